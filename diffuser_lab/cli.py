@@ -1,0 +1,143 @@
+"""`diffuser-lab`: the Hydra command line. One run = one folder under logs/.
+
+Start-up order: the command line is composed and validated first (unknown keys, wrong
+types, values out of range -> one line naming the key, exit 2), then Hydra runs the job.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any, Optional
+
+from .config import register
+
+log = logging.getLogger("diffuser_lab")
+PROG = "diffuser-lab"
+
+
+def config_dir() -> str:
+    """The Hydra config folder: the wheel's ``diffuser_lab/conf`` when installed, else the
+    checkout's top-level ``conf/``."""
+    here = Path(__file__).resolve().parent
+    for cand in (here / "conf", here.parent / "conf"):
+        if (cand / "config.yaml").is_file():
+            return str(cand)
+    raise FileNotFoundError(f"no Hydra config folder (config.yaml) in {here / 'conf'} or {here.parent / 'conf'}")
+
+
+def one_line(exc: BaseException) -> str:
+    """A config or input error as one line, naming the key when OmegaConf/Hydra know it."""
+    chain = []
+    e: Optional[BaseException] = exc
+    while e is not None and len(chain) < 5:
+        chain.append(e)
+        e = e.__cause__ or e.__context__
+    key = None
+    for e in chain:
+        for line in str(e).splitlines():
+            line = line.strip()
+            if line.startswith("full_key:"):
+                key = line.split(":", 1)[1].strip()
+    # the innermost message says what is wrong; Hydra's outer one says which override
+    msg = ""
+    for e in reversed(chain):
+        first = next((ln.strip() for ln in str(e).splitlines() if ln.strip()), "")
+        if first:
+            msg = first
+            break
+    if key and key not in msg:
+        msg = f"{key}: {msg}"
+    return msg or type(exc).__name__
+
+
+def _verbose() -> bool:
+    return os.environ.get("HYDRA_FULL_ERROR") == "1"
+
+
+def _prevalidate(argv: list[str]) -> None:
+    """Compose the single-run config the way Hydra will and check it; exit 2 with one line."""
+    if any(a.startswith("-") for a in argv):  # --help, --cfg, -m/--multirun: leave them to Hydra
+        return
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from .config import to_object
+
+    try:
+        with initialize_config_dir(config_dir=config_dir(), version_base="1.3", job_name="prevalidate"):
+            cfg = compose(config_name="config", overrides=argv, return_hydra_config=False)
+            to_object(cfg)
+    except Exception as exc:  # noqa: BLE001 - every start-up failure becomes one line
+        if _verbose():
+            raise
+        print(f"{PROG}: error: {one_line(exc)}", file=sys.stderr)
+        sys.exit(2)
+    finally:
+        GlobalHydra.instance().clear()
+
+
+def _task(cfg: Any) -> Optional[float]:
+    """The Hydra job: run the pipeline and write the run folder."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    from . import report
+    from .config import to_object
+    from .records import write_json_atomic, write_labels
+
+    hc = HydraConfig.get()
+    run_dir = Path(hc.runtime.output_dir)
+    multirun = hc.mode == RunMode.MULTIRUN
+    summary: dict[str, Any] = {"status": "running", "overrides": list(hc.overrides.task),
+                               "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+    summary_path = run_dir / "summary.json"
+    try:
+        if summary_path.exists():
+            raise FileExistsError(f"{run_dir} already holds a run (summary.json); refusing to overwrite it")
+        write_json_atomic(summary_path, summary)
+        conf = to_object(cfg)
+        summary["method"] = conf.method.name.value
+        write_json_atomic(summary_path, summary)
+
+        from .pipeline import run
+
+        result = run(conf)
+        t_out = time.perf_counter()
+        files = write_labels(run_dir, result.scene.points, result.labels, result.scene.taxonomy,
+                             ply=conf.output.labels_ply)
+        result.timings_s["write"] = time.perf_counter() - t_out
+        summary.update(report.summary(result, conf))
+        summary["files"] = files
+        summary["status"] = "ok"
+        write_json_atomic(summary_path, summary)
+        if not conf.output.quiet:
+            print(report.table(result, run_dir))
+        return summary.get("metrics", {}).get("miou") if summary.get("metrics") else None
+    except Exception as exc:  # noqa: BLE001 - recorded, then reported as one line
+        summary["status"] = "failed"
+        summary["error"] = f"{type(exc).__name__}: {one_line(exc)}"
+        try:
+            write_json_atomic(summary_path, summary)
+        except OSError:
+            pass
+        if multirun or _verbose():
+            raise  # Hydra marks this job failed and goes on with the others
+        print(f"{PROG}: error: {one_line(exc)}", file=sys.stderr)
+        sys.exit(1)
+
+
+def main() -> None:
+    """Console entry point ``diffuser-lab``."""
+    import hydra
+
+    register()
+    _prevalidate(sys.argv[1:])
+    app = hydra.main(config_path=config_dir(), config_name="config", version_base="1.3")(_task)
+    app()
+
+
+if __name__ == "__main__":
+    main()

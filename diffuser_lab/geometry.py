@@ -1,0 +1,105 @@
+"""Geometry helpers: projection (Eq. 2), voxel grid, normals, nearest-neighbour transfer.
+
+Frames: world coordinates in metres; T_cw is world-to-camera (x_cam = R x + t), the
+camera looks along +z with x right, y down. Pixel (col, row) has its centre at the
+continuous image coordinate (u, v) = (col, row) (the OpenCV convention).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+
+def project(points: np.ndarray, K: np.ndarray, T_cw: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Eq. 2: pi(x) = K (R x + t).
+
+    Args:
+        points: (N, 3) world coordinates, metres.
+        K: (3, 3) intrinsics, pixels.
+        T_cw: (4, 4) world-to-camera.
+    Returns:
+        u, v: (N,) float32 continuous pixel coordinates (NaN behind the camera);
+        z: (N,) float32 camera-frame depth, metres.
+    """
+    R = np.asarray(T_cw[:3, :3], np.float32)
+    t = np.asarray(T_cw[:3, 3], np.float32)
+    pc = points.astype(np.float32, copy=False) @ R.T + t
+    z = pc[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv_z = np.where(z > 1e-6, 1.0 / z, np.nan).astype(np.float32)
+    x, y = pc[:, 0] * inv_z, pc[:, 1] * inv_z
+    u = K[0, 0] * x + K[0, 1] * y + K[0, 2]
+    v = K[1, 1] * y + K[1, 2]
+    return u.astype(np.float32), v.astype(np.float32), z
+
+
+def backproject(depth: np.ndarray, K: np.ndarray, T_cw: np.ndarray, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Depth image -> world points of its valid pixels.
+
+    Args:
+        depth: (H, W) z-depth in metres, 0 = invalid.
+        K: (3, 3) intrinsics; T_cw: (4, 4) world-to-camera.
+        stride: take every stride-th pixel in both directions.
+    Returns:
+        points: (M, 3) float32 world coordinates; pix: (M, 2) int64 (row, col) of each point.
+    """
+    rows, cols = np.mgrid[0 : depth.shape[0] : stride, 0 : depth.shape[1] : stride]
+    d = depth[rows, cols]
+    ok = np.isfinite(d) & (d > 0)
+    rows, cols, d = rows[ok], cols[ok], d[ok].astype(np.float64)
+    Kinv = np.linalg.inv(K)
+    rays = np.stack([cols, rows, np.ones_like(cols)], 1).astype(np.float64) @ Kinv.T
+    pc = rays * d[:, None]
+    T_wc = np.linalg.inv(T_cw)
+    pw = pc @ T_wc[:3, :3].T + T_wc[:3, 3]
+    return pw.astype(np.float32), np.stack([rows, cols], 1)
+
+
+@dataclass
+class VoxelGrid:
+    """Voxel downsampling with the map back to the original points.
+
+    Attributes:
+        points: (M, 3) float32 centroid of the original points in each occupied voxel, metres.
+        inverse: (N,) int64 voxel index of every original point.
+    """
+
+    points: np.ndarray
+    inverse: np.ndarray
+
+    def mean(self, values: np.ndarray) -> np.ndarray:
+        """(N, D) per-point values -> (M, D) float32 per-voxel means."""
+        m = self.points.shape[0]
+        counts = np.bincount(self.inverse, minlength=m).astype(np.float64)
+        cols = [np.bincount(self.inverse, weights=values[:, j], minlength=m) for j in range(values.shape[1])]
+        return (np.stack(cols, 1) / counts[:, None]).astype(np.float32)
+
+
+def voxel_downsample(points: np.ndarray, voxel_size: float) -> VoxelGrid:
+    """Group (N, 3) world points into cubes of ``voxel_size`` metres; one centroid per cube."""
+    keys = np.floor((points - points.min(0)) / voxel_size).astype(np.int64)
+    dims = keys.max(0) + 1
+    flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
+    _, inverse = np.unique(flat, return_inverse=True)
+    grid = VoxelGrid(points=np.zeros((0, 3), np.float32), inverse=inverse.ravel())
+    grid.points = np.zeros((int(inverse.max()) + 1, 3), np.float32)
+    grid.points = grid.mean(points)
+    return grid
+
+
+def nearest_transfer(src_points: np.ndarray, src_values: np.ndarray, dst_points: np.ndarray) -> np.ndarray:
+    """Give every (N, 3) ``dst_points`` the value of its nearest ``src_points`` (paper: the
+    labels of the 2 cm-downsampled cloud go back to every original point)."""
+    _, idx = cKDTree(src_points).query(dst_points, k=1, workers=-1)
+    return src_values[idx]
+
+
+def estimate_normals(points: np.ndarray, knn: int = 16) -> np.ndarray:
+    """(N, 3) points -> (N, 3) float32 unit normals by local PCA (open3d); sign arbitrary."""
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=knn))
+    return np.asarray(pcd.normals, dtype=np.float32)

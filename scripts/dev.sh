@@ -1,0 +1,53 @@
+#!/usr/bin/env bash
+# Set up diffuser-lab in ./.venv on a Debian/Ubuntu machine and run a job.
+#   bash scripts/dev.sh demo [hydra overrides...]   set up, then run the demo (diffuser-lab)
+#   bash scripts/dev.sh test [pytest args...]       set up, then run the test suite
+#   bash scripts/dev.sh setup                       set up only
+# System packages (open3d's shared libraries, python venv) come from apt-get when missing:
+# as root directly, otherwise through sudo; without either, the script says what to install.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+VENV=${VENV:-.venv}
+APT_PACKAGES="python3 python3-venv python3-pip libusb-1.0-0 libgl1 libegl1 libx11-6 libudev1 libgomp1"
+
+system_deps() {
+  command -v dpkg >/dev/null 2>&1 || return 0  # not Debian-like: the user's own business
+  local missing=()
+  for p in $APT_PACKAGES; do
+    case $p in python3*) command -v python3 >/dev/null && python3 -c "import venv, ensurepip" 2>/dev/null && continue;; esac
+    dpkg -s "$p" >/dev/null 2>&1 || missing+=("$p")
+  done
+  [ ${#missing[@]} -eq 0 ] && return 0
+  local sudo=""
+  if [ "$(id -u)" -ne 0 ]; then
+    if command -v sudo >/dev/null 2>&1; then sudo="sudo"; else
+      echo "diffuser-lab needs these system packages: ${missing[*]}" >&2
+      echo "install them as root: apt-get install -y ${missing[*]}" >&2
+      exit 1
+    fi
+  fi
+  echo "installing system packages: ${missing[*]}"
+  $sudo apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
+}
+
+python_env() {
+  local stamp="$VENV/.installed"
+  if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
+    [ -x "$VENV/bin/python" ] || python3 -m venv "$VENV"
+    "$VENV/bin/python" -m pip install -q --upgrade pip
+    "$VENV/bin/python" -m pip install -q -e '.[test]'
+    touch "$stamp"
+  fi
+}
+
+cmd=${1:-demo}
+[ $# -gt 0 ] && shift
+system_deps
+python_env
+case $cmd in
+  setup) ;;
+  demo) exec "$VENV/bin/diffuser-lab" "$@" ;;
+  test) exec "$VENV/bin/python" -m pytest "$@" ;;
+  *) echo "usage: bash scripts/dev.sh {demo|test|setup} [args...]" >&2; exit 2 ;;
+esac
