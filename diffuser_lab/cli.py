@@ -32,25 +32,24 @@ def one_line(exc: BaseException) -> str:
     """A config or input error as one line, naming the key when OmegaConf/Hydra know it."""
     chain = []
     e: Optional[BaseException] = exc
-    while e is not None and len(chain) < 5:
+    while e is not None and len(chain) < 8:
         chain.append(e)
         e = e.__cause__ or e.__context__
-    key = None
+    # OmegaConf's formatted error (the one with "full_key:") names the key and the problem
     for e in chain:
-        for line in str(e).splitlines():
-            line = line.strip()
-            if line.startswith("full_key:"):
-                key = line.split(":", 1)[1].strip()
-    # the innermost message says what is wrong; Hydra's outer one says which override
-    msg = ""
-    for e in reversed(chain):
-        first = next((ln.strip() for ln in str(e).splitlines() if ln.strip()), "")
-        if first:
-            msg = first
-            break
-    if key and key not in msg:
-        msg = f"{key}: {msg}"
-    return msg or type(exc).__name__
+        lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
+        keys = [ln.split(":", 1)[1].strip() for ln in lines if ln.startswith("full_key:")]
+        if keys and lines:
+            return lines[0] if keys[0] in lines[0] else f"{keys[0]}: {lines[0]}"
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    if not lines:
+        return type(exc).__name__
+    msg = lines[0]
+    if any(ln.startswith("Available options") for ln in lines):  # Hydra: unknown group option
+        i = next(i for i, ln in enumerate(lines) if ln.startswith("Available options"))
+        opts = [ln for ln in lines[i + 1 :] if not ln.startswith(("Config search path", "provider="))]
+        msg += f" (available: {', '.join(opts)})"
+    return msg
 
 
 def _verbose() -> bool:
@@ -61,6 +60,13 @@ def _prevalidate(argv: list[str]) -> None:
     """Compose the single-run config the way Hydra will and check it; exit 2 with one line."""
     if any(a.startswith("-") for a in argv):  # --help, --cfg, -m/--multirun: leave them to Hydra
         return
+    for a in argv:  # an explicit run folder that already holds a run is never reused
+        if a.startswith("hydra.run.dir="):
+            d = Path(a.split("=", 1)[1])
+            if d.is_dir() and any(d.iterdir()):
+                print(f"{PROG}: error: hydra.run.dir={d} is not empty; earlier runs are never overwritten",
+                      file=sys.stderr)
+                sys.exit(2)
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 

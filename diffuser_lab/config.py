@@ -187,6 +187,10 @@ def register() -> None:
 
 def to_object(cfg: Any) -> Config:
     """Composed DictConfig -> validated :class:`Config` (runs every ``__post_init__``)."""
+    known = set(Config.__dataclass_fields__)
+    extra = sorted(set(cfg.keys()) - known - {"hydra"})
+    if extra:
+        raise ConfigError(f"unknown top-level key(s) {', '.join(extra)}: expected only {', '.join(sorted(known))}")
     obj = OmegaConf.to_object(cfg)
     if not isinstance(obj, Config):  # e.g. a DictConfig without the schema
         obj = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(Config), cfg))

@@ -91,8 +91,11 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
     ev_kw = dict(depth_tol=cfg.evidence.depth_tol, pixel_radius=cfg.evidence.pixel_radius)
     method = cfg.method.name
     ev = evidence_mod.Evidence.empty(pts.shape[0], tax.num_classes)
+    # The Bayesian baseline is always the standard one (single projected pixel), so it is
+    # the same in every run on the same frames whatever the method's pixel neighbourhood.
     votes = cfg.method.bayesian_mode == BayesianMode.votes
-    ev_votes = evidence_mod.Evidence.empty(pts.shape[0], tax.num_classes) if votes else None
+    separate_base = votes or cfg.evidence.pixel_radius != 0
+    ev_base = evidence_mod.Evidence.empty(pts.shape[0], tax.num_classes) if separate_base else ev
     conf2d = None
     t["predictions"] = t["evidence"] = 0.0
     for i in range(len(frames)):
@@ -104,13 +107,12 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
             conf2d = c if conf2d is None else conf2d + c
         te = time.perf_counter()
         evidence_mod.add_frame(ev, pts, f, **ev_kw)
-        if ev_votes is not None:  # argmax votes differ from the mass only for soft labels
-            evidence_mod.add_frame(ev_votes, pts, f, hard=True, **ev_kw)
+        if separate_base:
+            evidence_mod.add_frame(ev_base, pts, f, depth_tol=cfg.evidence.depth_tol, hard=votes)
         t["predictions"] += te - tp
         t["evidence"] += time.perf_counter() - te
     pred2d = None if conf2d is None else scores_from_confusion(conf2d, tax.names)
-
-    bayes_work = labels_from_scores(ev_votes.mass if ev_votes is not None else ev.mass)
+    bayes_work = labels_from_scores(ev_base.mass)
 
     graph = diff = None
     if method in (MethodName.diffuser, MethodName.ldls):

@@ -5,11 +5,12 @@ label images of posed pinhole views, and a labelled point cloud sampled on the
 same mesh.
 
 Conventions (see :mod:`diffuser_lab.scene`): world metres, ``T_cw`` world-to-camera,
-camera looks along +z with x right and y down. Pixel ``(u, v)`` (column, row) covers
-image coordinates ``[u, u+1) x [v, v+1)``; its ray goes through the pixel centre
-``(u + 0.5, v + 0.5)`` (Open3D's ``create_rays_pinhole`` convention), so a point
-projecting to continuous image coordinates ``(x, y)`` lands in pixel
-``(floor(x), floor(y))``.
+camera looks along +z with x right and y down. Pixel ``(u, v)`` (column, row) has its
+centre at image coordinate ``(u, v)`` (the OpenCV convention used by
+:mod:`diffuser_lab.geometry`), so a point projecting to ``(x, y)`` lands in pixel
+``(round(x), round(y))``. Open3D's ``create_rays_pinhole`` puts pixel centres at
+``(u + 0.5, v + 0.5)``; :meth:`MeshRenderer.render` shifts the principal point by half
+a pixel to match.
 """
 from __future__ import annotations
 
@@ -62,9 +63,10 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
 
 def intrinsics(width: int, height: int, fov_deg: float) -> np.ndarray:
     """(3, 3) float64 pinhole K with square pixels, horizontal field of view
-    ``fov_deg`` (degrees) and principal point at the image centre (w/2, h/2)."""
+    ``fov_deg`` (degrees) and principal point at the image centre ((w-1)/2, (h-1)/2),
+    pixel centres at integer coordinates."""
     f = 0.5 * width / np.tan(np.deg2rad(fov_deg) / 2.0)
-    return np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
+    return np.array([[f, 0.0, (width - 1) / 2.0], [0.0, f, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
 
 
 def triangle_normals(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -145,8 +147,10 @@ class MeshRenderer:
             depth: (H, W) float32 z-depth in metres along the optical axis, 0 = no hit.
             labels: (H, W) int16 label of the hit triangle, IGNORE where nothing is hit.
         """
+        K_o3d = np.array(K, np.float64)
+        K_o3d[:2, 2] += 0.5  # Open3D casts pixel (u, v) through (u + 0.5, v + 0.5)
         rays = o3d.t.geometry.RaycastingScene.create_rays_pinhole(
-            o3d.core.Tensor(np.asarray(K, np.float64)), o3d.core.Tensor(np.asarray(T_cw, np.float64)),
+            o3d.core.Tensor(K_o3d), o3d.core.Tensor(np.asarray(T_cw, np.float64)),
             int(width), int(height))
         # Open3D scales each ray direction to unit camera-z, so t_hit is already z-depth.
         t_hit, prim = self._cast(rays.numpy())
@@ -318,7 +322,8 @@ def camera_trajectory(
         # Heading towards a content point; a few draws to get one far enough away.
         tgt_idx = np.searchsorted(cdf, rng.random((m, 4)))
         tgt_idx = np.minimum(tgt_idx, len(tri) - 1)
-        tgt = tv[tri[tgt_idx]].mean(2)  # triangle centroids, (m, 4, 3)
+        w = rng.dirichlet(np.ones(3), size=(m, 4))  # uniform point in each triangle
+        tgt = np.einsum("mjk,mjkd->mjd", w, tv[tri[tgt_idx]])  # (m, 4, 3)
         hd = np.linalg.norm(tgt[..., :2] - eyes[:, None, :2], axis=-1)
         pick = np.argmax(hd >= min_target_dist, axis=1)  # first far one (0 if none)
         heading = tgt[np.arange(m), pick, :2] - eyes[:, :2]

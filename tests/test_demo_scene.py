@@ -87,7 +87,7 @@ def test_frame_labels_agree_with_visible_points(demo):
         z = pc[:, 2]
         front = z > 0.05
         uv = (pc[front, :2] / z[front, None]) * np.diag(f.K)[:2] + f.K[:2, 2]
-        u, v = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
+        u, v = np.rint(uv[:, 0]).astype(int), np.rint(uv[:, 1]).astype(int)  # centres at integers
         inside = (u >= 0) & (u < f.depth.shape[1]) & (v >= 0) & (v < f.depth.shape[0])
         idx = np.flatnonzero(front)[inside]
         u, v = u[inside], v[inside]

@@ -69,7 +69,7 @@ def test_depth_matches_analytic_ray_box_distance_on_axis():
     lo, hi = np.array([-0.4, 0.3, 0.0]), np.array([0.6, 1.1, 0.9])
     v, t = box(lo, hi)
     r = MeshRenderer(v, t, np.zeros(12))
-    W, H = 41, 31  # odd: the centre pixel's ray is the optical axis (cx = W/2 = 20 + 0.5)
+    W, H = 41, 31  # odd: the centre pixel's ray is the optical axis (cx = (W-1)/2 = 20)
     K = intrinsics(W, H, 60.0)
     eye, target = np.array([1.7, -2.3, 1.6]), np.array([0.05, 0.7, 0.4])
     T = look_at(eye, target)
@@ -81,7 +81,7 @@ def test_depth_matches_analytic_ray_box_distance_on_axis():
     # Every hit pixel back-projects onto the box surface.
     v_, u_ = np.nonzero(depth > 0)
     z = depth[v_, u_]
-    pc = np.stack([(u_ + 0.5 - K[0, 2]) / K[0, 0] * z, (v_ + 0.5 - K[1, 2]) / K[1, 1] * z, z], 1)
+    pc = np.stack([(u_ - K[0, 2]) / K[0, 0] * z, (v_ - K[1, 2]) / K[1, 1] * z, z], 1)  # centres at integers
     pw = (pc - T[:3, 3]) @ T[:3, :3]
     rel = np.abs(pw - (lo + hi) / 2) / ((hi - lo) / 2)
     np.testing.assert_allclose(rel.max(1), 1.0, atol=1e-4)
@@ -95,19 +95,19 @@ def test_look_at_projects_target_to_centre():
         np.testing.assert_allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-12)
         assert np.linalg.det(T[:3, :3]) == pytest.approx(1.0)
         uv, z = project(K, T, np.asarray(target, float))
-        np.testing.assert_allclose(uv, [80.0, 60.0], atol=1e-9)
+        np.testing.assert_allclose(uv, [79.5, 59.5], atol=1e-9)
         assert z > 0
     # Horizontal gaze: world up is image up (smaller v), camera x is world right.
     T = look_at((0, 0, 1), (0, 5, 1))
     (u_up, v_up), _ = project(K, T, np.array([0, 5, 2.0]))
     (u_r, _), _ = project(K, T, np.array([1, 5, 1.0]))
-    assert v_up < 60 and u_r > 80
+    assert v_up < 59.5 and u_r > 79.5
 
 
 def test_intrinsics_horizontal_fov():
     K = intrinsics(200, 100, 90.0)
     assert K[0, 0] == pytest.approx(100.0) and K[1, 1] == K[0, 0]
-    assert (K[0, 2], K[1, 2]) == (100.0, 50.0)
+    assert (K[0, 2], K[1, 2]) == (99.5, 49.5)  # image centre with pixel centres at integers
 
 
 def test_sample_surface_points_on_mesh_and_density():

@@ -1,0 +1,30 @@
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+SHARED = ROOT.parent / "shared"
+
+# Small demo settings for tests that only need the mechanics (seconds, not tens of seconds).
+SMALL_DEMO = ["scene.demo.n_views=10", "scene.demo.point_spacing=0.08", "solver.max_iter=60"]
+
+
+def run_cli(*args: str, cwd: Path | None = None, env: dict | None = None) -> subprocess.CompletedProcess:
+    """Run `diffuser-lab ARGS` as a user would (python -m diffuser_lab)."""
+    e = dict(os.environ)
+    e.pop("HYDRA_FULL_ERROR", None)
+    e.update(env or {})
+    return subprocess.run([sys.executable, "-m", "diffuser_lab", *args], cwd=cwd or ROOT, env=e,
+                          capture_output=True, text=True, timeout=600)
+
+
+@pytest.fixture(scope="session")
+def small_demo_scene():
+    from diffuser_lab.config import default_config
+    from diffuser_lab.pipeline import load_scene
+
+    cfg = default_config(**{"scene.demo.n_views": 12, "scene.demo.point_spacing": 0.07})
+    return load_scene(cfg.scene)
