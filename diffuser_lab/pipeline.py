@@ -86,7 +86,7 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
 
     # One pass over the frames: each is loaded (and its predictions made) once, scored in 2D
     # against its ground truth, and added to the evidence; memory stays independent of their number.
-    frames = with_predictions(scene.frames, cfg.predictions, tax.num_classes)
+    frames = with_predictions(scene.frames, cfg.predictions, tax)
     pts, nrm, grid = _work_cloud(scene, cfg.scene.voxel_size)
     ev_kw = dict(depth_tol=cfg.evidence.depth_tol, pixel_radius=cfg.evidence.pixel_radius)
     method = cfg.method.name

@@ -12,7 +12,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from .config import PredictionSource, PredictionsConfig
-from .scene import Frame
+from .scene import Frame, Taxonomy
 
 
 class MappedFrames(Sequence[Frame]):
@@ -32,7 +32,7 @@ class MappedFrames(Sequence[Frame]):
         return self._fn(i, self._frames[i])
 
 
-def with_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, num_classes: int) -> Sequence[Frame]:
+def with_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy: Taxonomy) -> Sequence[Frame]:
     """Frames whose ``labels`` are the configured predictions."""
     if cfg.source == PredictionSource.gt:
         def fn(i: int, f: Frame) -> Frame:
@@ -44,9 +44,11 @@ def with_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, num_classe
         def fn(i: int, f: Frame) -> Frame:
             _need_gt(f)
             rng = np.random.default_rng([cfg.seed, i])
-            pred = simulate_predictions(f.gt_labels, num_classes, rng, strength=cfg.strength,
-                                        jitter_px=cfg.jitter_px, confuse_prob=cfg.confuse_prob,
-                                        blob_count=cfg.blob_count)
+            pred = simulate_predictions(
+                f.gt_labels, taxonomy.num_classes, rng, strength=cfg.strength, jitter_px=cfg.jitter_px,
+                jitter_scale_px=cfg.jitter_scale_px, confuse_prob=cfg.confuse_prob,
+                confuse_max_frac=cfg.confuse_max_frac, blob_count=cfg.blob_count, blob_radius=cfg.blob_radius,
+                blob_roughness=cfg.blob_roughness, class_names=taxonomy.names)
             return dataclasses.replace(f, labels=pred, probs=None)
     else:  # pragma: no cover - the config enum forbids it
         raise ValueError(f"predictions.source={cfg.source}: unknown")
