@@ -108,6 +108,19 @@ def _task(cfg: Any) -> Optional[float]:
         summary["method"] = conf.method.name.value
         write_json_atomic(summary_path, summary)
 
+        from .config import Protocol
+
+        if conf.protocol.name == Protocol.single_frame:
+            from .protocols import single_frame, table
+
+            sf = single_frame(conf)
+            summary.update(report.single_frame_summary(sf))
+            summary["status"] = "ok"
+            write_json_atomic(summary_path, summary)
+            if not conf.output.quiet:
+                print(table(sf) + f"\nrun folder: {run_dir}")
+            return summary["metrics"]["miou"]
+
         from .pipeline import run
 
         result = run(conf)

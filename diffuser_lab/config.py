@@ -25,12 +25,21 @@ def _check(ok: bool, key: str, value: Any, expected: str) -> None:
 
 
 class SceneSource(Enum):
-    demo = "demo"
+    demo = "demo"  # embedded procedural room
+    mesh_views = "mesh_views"  # labelled mesh (PLY with per-vertex label) + rendered views
+    scannet = "scannet"  # ScanNet export layout (color/ depth/ pose/ intrinsic/ label-filt/ + PLYs)
+    rgbd_folder = "rgbd_folder"  # frame-XXXXXX.{color,depth,pose} + camera-intrinsics.txt
+
+
+class Protocol(Enum):
+    global_3d = "global_3d"  # label the scene's points, score 3D mIoU (paper Table I)
+    single_frame = "single_frame"  # label each frame's back-projected depth, score 2D mIoU (Table II)
 
 
 class PredictionSource(Enum):
     simulated = "simulated"  # simulated 2D-network mistakes on ground-truth label images
     gt = "gt"  # ground-truth label images (perfect 2D labels)
+    files = "files"  # a 2D network's label images (mapped) or class probabilities (.npy/.npz)
 
 
 class MethodName(Enum):
@@ -81,9 +90,80 @@ class DemoSceneConfig:
 
 
 @dataclass
+class MeshViewsConfig:
+    """Views rendered from a labelled mesh (diffuser_lab.sources.mesh_views)."""
+
+    path: Optional[str] = None  # required: PLY mesh with a per-vertex `label` (e.g. ScanNet's *_vh_clean_2.labels.ply)
+    mapping: str = "nyu40_to_scannet20"  # mesh label ids -> taxonomy (name of a shipped table or a CSV path)
+    n_views: int = 40
+    seed: int = 0
+    image_width: int = 320
+    image_height: int = 240
+    fov_deg: float = 58.0  # horizontal; ScanNet's depth camera: fx = 577.9 at 640 px
+    min_coverage: float = 0.3  # reject views whose valid-depth share is below this
+    eye_height_min: float = 1.2  # metres above the floor
+    eye_height_max: float = 1.8
+
+    def __post_init__(self) -> None:
+        _check(self.n_views >= 1, "scene.mesh_views.n_views", self.n_views, ">= 1")
+        _check(self.image_width >= 16 and self.image_height >= 16, "scene.mesh_views.image_width/height",
+               (self.image_width, self.image_height), ">= 16 pixels")
+        _check(10.0 <= self.fov_deg <= 150.0, "scene.mesh_views.fov_deg", self.fov_deg, "in [10, 150]")
+        _check(0.0 <= self.min_coverage < 1.0, "scene.mesh_views.min_coverage", self.min_coverage, "in [0, 1)")
+        _check(0.0 < self.eye_height_min <= self.eye_height_max, "scene.mesh_views.eye_height_min/max",
+               (self.eye_height_min, self.eye_height_max), "0 < min <= max")
+
+
+@dataclass
+class ScannetConfig:
+    """A scene in ScanNet's export layout (diffuser_lab.sources.scannet)."""
+
+    root: Optional[str] = None  # required: folder holding color/ depth/ pose/ intrinsic/ label-filt/ and the PLYs
+    frame_step: int = 10  # paper: every 10th frame
+    max_frames: Optional[int] = None
+    mapping: str = "nyu40_to_scannet20"
+
+    def __post_init__(self) -> None:
+        _check(self.frame_step >= 1, "scene.scannet.frame_step", self.frame_step, ">= 1")
+        _check(self.max_frames is None or self.max_frames >= 1, "scene.scannet.max_frames", self.max_frames,
+               ">= 1 or null")
+
+
+@dataclass
+class RgbdFolderConfig:
+    """A posed RGB-D folder: frame-XXXXXX.{color.*,depth.png,pose.txt} + camera-intrinsics.txt."""
+
+    root: Optional[str] = None  # required
+    depth_scale: float = 1000.0  # raw depth units per metre (1000 = millimetres)
+    depth_bit_shift: int = 0  # circular right shift of the raw 16-bit depth (SUN3D: 3)
+    invalid_depth: List[int] = field(default_factory=lambda: [0, 65535])
+    color_suffix: str = "color.jpg"
+    label_suffix: Optional[str] = None  # ground-truth label images frame-XXXXXX.<suffix>, if any
+    mapping: Optional[str] = None  # label ids -> taxonomy; null = ids are taxonomy ids
+    cloud: Optional[str] = None  # PLY point cloud; null = back-project and voxel-merge the depth frames
+    cloud_voxel: float = 0.02  # metres, for the back-projected cloud
+    cloud_stride: int = 4  # every n-th pixel of each depth frame for the back-projected cloud
+    max_depth: Optional[float] = None  # metres; ignore depth beyond it
+    frame_step: int = 1
+    max_frames: Optional[int] = None
+
+    def __post_init__(self) -> None:
+        _check(self.depth_scale > 0, "scene.rgbd_folder.depth_scale", self.depth_scale, "> 0")
+        _check(0 <= self.depth_bit_shift < 16, "scene.rgbd_folder.depth_bit_shift", self.depth_bit_shift,
+               "in [0, 15]")
+        _check(self.cloud_voxel > 0, "scene.rgbd_folder.cloud_voxel", self.cloud_voxel, "> 0 metres")
+        _check(self.cloud_stride >= 1, "scene.rgbd_folder.cloud_stride", self.cloud_stride, ">= 1")
+        _check(self.frame_step >= 1, "scene.rgbd_folder.frame_step", self.frame_step, ">= 1")
+
+
+@dataclass
 class SceneConfig:
     source: SceneSource = SceneSource.demo
+    name: Optional[str] = None  # display name; null = derived from the source
     demo: DemoSceneConfig = field(default_factory=DemoSceneConfig)
+    mesh_views: MeshViewsConfig = field(default_factory=MeshViewsConfig)
+    scannet: ScannetConfig = field(default_factory=ScannetConfig)
+    rgbd_folder: RgbdFolderConfig = field(default_factory=RgbdFolderConfig)
     voxel_size: float = 0.0  # metres; > 0: voxel-downsample before diffusion, labels transferred back
 
     def __post_init__(self) -> None:
@@ -96,6 +176,8 @@ class PredictionsConfig:
     :func:`diffuser_lab.simulate.simulate_predictions` (defaults: 2D mIoU ~58 on the demo)."""
 
     source: PredictionSource = PredictionSource.simulated
+    folder: Optional[str] = None  # files: the folder of per-frame predictions (named after the frames)
+    mapping: Optional[str] = None  # files: network label ids -> taxonomy (e.g. nyu40_to_scannet20)
     seed: int = 0
     strength: float = 1.0  # scales every simulated mistake; 0 = perfect labels
     jitter_px: float = 3.0  # std of the smooth boundary displacement field, pixels
@@ -174,6 +256,20 @@ class MethodConfig:
 
 
 @dataclass
+class ProtocolConfig:
+    """Evaluation protocol (paper Sec. IV-A)."""
+
+    name: Protocol = Protocol.global_3d
+    window: int = 5  # single_frame: views fused per target frame in the multi-view rows (paper: 5)
+    target_step: int = 1  # single_frame: evaluate every n-th frame of the sequence
+    max_targets: Optional[int] = None  # single_frame: at most this many target frames
+
+    def __post_init__(self) -> None:
+        _check(self.window >= 1, "protocol.window", self.window, ">= 1")
+        _check(self.target_step >= 1, "protocol.target_step", self.target_step, ">= 1")
+
+
+@dataclass
 class OutputConfig:
     labels_ply: bool = True  # write labels.ply (points coloured by label)
     quiet: bool = False  # do not print the result table
@@ -187,6 +283,7 @@ class Config:
     graph: GraphConfig = field(default_factory=GraphConfig)
     solver: SolverConfig = field(default_factory=SolverConfig)
     method: MethodConfig = field(default_factory=MethodConfig)
+    protocol: ProtocolConfig = field(default_factory=ProtocolConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
 
 

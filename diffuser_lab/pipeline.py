@@ -11,7 +11,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from . import evidence as evidence_mod
-from .config import BayesianMode, Config, MethodName, NormalSign, SceneConfig, SceneSource
+from .config import BayesianMode, Config, GraphConfig, MethodName, NormalSign, SceneConfig, SceneSource
 from .diffusion import DiffusionResult, Observer, diffuse, labels_from_scores, normalise
 from .geometry import VoxelGrid, estimate_normals, nearest_transfer, voxel_downsample
 from .graph import KnnGraph, build_graph
@@ -20,17 +20,52 @@ from .predictions import with_predictions
 from .scene import IGNORE, Frame, Scene
 
 
+def _required(value, key: str, source: str):
+    if value in (None, ""):
+        raise ValueError(f"{key} is required for scene.source={source}")
+    return value
+
+
 def load_scene(cfg: SceneConfig) -> Scene:
-    """The configured source -> :class:`Scene` whose frames carry ground-truth labels when known."""
-    if cfg.source == SceneSource.demo:
+    """The configured source -> :class:`Scene` whose frames carry ground-truth labels when known.
+    Relative paths are taken from the current directory."""
+    src = cfg.source
+    if src == SceneSource.demo:
         from .sources.demo import make_demo_scene
 
         d = cfg.demo
         scene, _ = make_demo_scene(seed=d.seed, room_size=tuple(d.room_size), n_views=d.n_views,
                                    image_width=d.image_width, image_height=d.image_height,
                                    fov_deg=d.fov_deg, point_spacing=d.point_spacing, point_noise=d.point_noise)
-        return scene
-    raise ValueError(f"scene.source={cfg.source}: unknown")  # pragma: no cover - enum forbids it
+    elif src == SceneSource.mesh_views:
+        from .sources.mesh_views import load_mesh_views
+
+        m = cfg.mesh_views
+        scene = load_mesh_views(_required(m.path, "scene.mesh_views.path", src.value), mapping=m.mapping,
+                                n_views=m.n_views, seed=m.seed, image_width=m.image_width,
+                                image_height=m.image_height, fov_deg=m.fov_deg, min_coverage=m.min_coverage,
+                                eye_height_range=(m.eye_height_min, m.eye_height_max))
+    elif src == SceneSource.scannet:
+        from .sources.scannet import load_scannet
+
+        c = cfg.scannet
+        scene = load_scannet(_required(c.root, "scene.scannet.root", src.value), frame_step=c.frame_step,
+                             max_frames=c.max_frames, mapping=c.mapping)
+    elif src == SceneSource.rgbd_folder:
+        from .mapping import load_mapping  # noqa: F401  (validated inside the loader)
+        from .sources.rgbd_folder import load_rgbd_folder
+
+        r = cfg.rgbd_folder
+        scene = load_rgbd_folder(_required(r.root, "scene.rgbd_folder.root", src.value), depth_scale=r.depth_scale,
+                                 depth_bit_shift=r.depth_bit_shift, invalid_depth=tuple(r.invalid_depth),
+                                 color_suffix=r.color_suffix, label_suffix=r.label_suffix, mapping=r.mapping,
+                                 cloud=r.cloud, voxel_size=r.cloud_voxel, cloud_stride=r.cloud_stride,
+                                 frame_step=r.frame_step, max_frames=r.max_frames, max_depth=r.max_depth)
+    else:  # pragma: no cover - the enum forbids it
+        raise ValueError(f"scene.source={src}: unknown")
+    if cfg.name:
+        scene.name = cfg.name
+    return scene
 
 
 @dataclass
@@ -52,6 +87,7 @@ class RunResult:
     metrics: Optional[dict] = None
     baseline: dict = field(default_factory=dict)  # {"bayesian": scores}
     predictions_2d: Optional[dict] = None
+    predictions_stats: dict = field(default_factory=dict)  # e.g. unmapped pixels of file predictions
     timings_s: dict = field(default_factory=dict)
 
 
@@ -64,6 +100,19 @@ def _work_cloud(scene: Scene, voxel_size: float) -> tuple[np.ndarray, Optional[n
         n = grid.mean(scene.normals)
         normals = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
     return grid.points, normals, grid
+
+
+def make_graph(points: np.ndarray, normals: Optional[np.ndarray], g: GraphConfig) -> tuple[Optional[np.ndarray], KnnGraph]:
+    """Eqs. 3-4 as configured. Normals: the given ones (sign trusted unless
+    ``normal_sign=invariant``), else estimated by open3d (sign arbitrary, so compared
+    sign-invariantly unless ``normal_sign=signed``). Returns (normals used or None, graph)."""
+    invariant = g.normal_sign == NormalSign.invariant
+    if g.use_normals and normals is None:
+        normals = estimate_normals(points, g.normal_knn)
+        invariant = g.normal_sign != NormalSign.signed
+    graph = build_graph(points, g.k, normals if g.use_normals else None, sigma_s=g.sigma_s, sigma_d=g.sigma_d,
+                        sigma_d_factor=g.sigma_d_factor, invariant_normals=invariant)
+    return normals, graph
 
 
 def _to_original(scene: Scene, grid: Optional[VoxelGrid], work_labels: np.ndarray) -> np.ndarray:
@@ -117,14 +166,7 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
     graph = diff = None
     if method in (MethodName.diffuser, MethodName.ldls):
         tg = time.perf_counter()
-        g = cfg.graph
-        use_normals = g.use_normals
-        invariant = g.normal_sign == NormalSign.invariant
-        if use_normals and nrm is None:
-            nrm = estimate_normals(pts, g.normal_knn)
-            invariant = g.normal_sign != NormalSign.signed
-        graph = build_graph(pts, g.k, nrm if use_normals else None, sigma_s=g.sigma_s, sigma_d=g.sigma_d,
-                            sigma_d_factor=g.sigma_d_factor, invariant_normals=invariant)
+        nrm, graph = make_graph(pts, nrm, cfg.graph)
         system = normalise(graph, ev.mass, cfg.evidence.pixel_weight)
         t["graph"] = time.perf_counter() - tg
         td = time.perf_counter()
@@ -149,7 +191,7 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
 
     res = RunResult(scene=scene, frames=frames, method=method.value, labels=labels, bayesian_labels=bayes,
                     work_points=pts, work_normals=nrm, evidence=ev, voxels=grid, graph=graph, diffusion=diff,
-                    predictions_2d=pred2d)
+                    predictions_2d=pred2d, predictions_stats=dict(getattr(frames, "stats", {})))
     if scene.gt_labels is not None:
         tm = time.perf_counter()
         res.metrics = score(labels, scene.gt_labels, tax.names)
