@@ -55,8 +55,8 @@ def normalise(graph: KnnGraph, mass: np.ndarray, pixel_weight: float) -> System:
     """Eqs. 14-15 from the graph and the (N, C) pixel mass (before lambda)."""
     pix = mass.astype(np.float32) * np.float32(pixel_weight)
     denom = graph.weights.sum(1, dtype=np.float32) + pix.sum(1)
-    with np.errstate(divide="ignore"):
-        inv = np.where(denom > 0, 1.0 / denom, 0.0).astype(np.float32)
+    # a point whose edges all underflowed and that has no pixel mass is isolated: zero row
+    inv = np.divide(1.0, denom, out=np.zeros_like(denom), where=denom > 1e-30).astype(np.float32)
     P = graph.matrix(row_scale=inv)
     P.data[P.data < EDGE_FLOOR] = 0.0
     P.eliminate_zeros()

@@ -39,7 +39,8 @@ class KnnGraph:
         n, k = self.neighbors.shape
         data = self.weights if row_scale is None else self.weights * row_scale[:, None].astype(np.float32)
         indptr = np.arange(0, n * k + 1, k, dtype=np.int64)
-        return sp.csr_matrix((data.ravel(), self.neighbors.ravel(), indptr), shape=(n, n))
+        # copies: the matrix may be edited in place (eliminate_zeros) and must not alias the graph
+        return sp.csr_matrix((data.ravel().copy(), self.neighbors.ravel().copy(), indptr), shape=(n, n))
 
 
 def knn(points: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:

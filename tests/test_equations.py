@@ -184,3 +184,17 @@ def test_two_planes_normals_stop_labels_at_the_crease(use_normals):
         assert np.all(lab[is_wall] == 1) and np.all(lab[~is_wall] == 0)
     else:
         assert share_floor_label > 0.9  # without the normal term it crosses
+
+
+def test_normalising_twice_leaves_the_graph_intact():
+    rng = np.random.default_rng(0)
+    pts = rng.random((300, 3)).astype(np.float32)
+    g = build_graph(pts, 8, sigma_d=0.01)  # tiny bandwidth: many weights fall under the edge floor
+    before = g.neighbors.copy(), g.weights.copy()
+    mass = np.zeros((300, 2), np.float32)
+    mass[:10, 0] = 1
+    a = diffuse(normalise(g, mass, 1e-4), max_iter=30).Z
+    np.testing.assert_array_equal(g.neighbors, before[0])
+    np.testing.assert_array_equal(g.weights, before[1])
+    b = diffuse(normalise(g, mass, 1e-4), max_iter=30).Z
+    np.testing.assert_array_equal(a, b)

@@ -109,13 +109,14 @@ def _check_round_trip(scene, world, ids):
         u, v, z = project(pts, f.K, f.T_cw)
         assert np.abs(u - pix[:, 1]).max() < 1.0 and np.abs(v - pix[:, 0]).max() < 1.0
         assert np.abs(z - depth_true[pix[:, 0], pix[:, 1]]).max() < 0.001
-    # Cross-view: frame k's points pass a 1 cm depth check in frame k+1 (wrong pose inversion fails).
+    # Cross-view: frame 0's points pass the 5 cm depth check in frame 1 (an inverted pose gives 0 %;
+    # at 80x60 px pixel rounding on oblique floor costs ~6 %).
     a, b = scene.frames[0], scene.frames[1]
     pts, _ = backproject(a.depth, a.K, a.T_cw)
     u, v, _ = project(pts, b.K, b.T_cw)
     inside = np.count_nonzero((np.rint(u) >= 0) & (np.rint(u) < W) & (np.rint(v) >= 0) & (np.rint(v) < H))
-    idx, _, _ = visible_projection(pts, b, 0.01)
-    assert inside > 0.5 * len(pts) and len(idx) > 0.9 * inside
+    idx, _, _ = visible_projection(pts, b, 0.05)
+    assert inside > 0.5 * len(pts) and len(idx) > 0.85 * inside
 
 
 def test_scannet_layout_round_trip(scannet_dir, world):
@@ -137,7 +138,8 @@ def test_scannet_layout_round_trip(scannet_dir, world):
         assert f.gt_labels.shape == (H, W) and f.gt_labels.dtype == np.int16
         assert np.mean(f.gt_labels == lab) > 0.95  # nearest resize differs only at edges
         assert f.rgb.shape == (H, W, 3) and f.rgb.dtype == np.uint8
-    assert (scene.frames[0].gt_labels == IGNORE).sum() == (world["views"][0][1] == IGNORE).sum() or True
+    # Unannotated (NYU40 0) pixels -> IGNORE exactly where nothing was hit.
+    assert ((scene.frames[0].gt_labels == IGNORE) == (world["views"][0][0] == 0)).mean() > 0.95
 
 
 def test_scannet_frame_step_and_missing_folders(scannet_dir):
@@ -213,7 +215,6 @@ def test_rgbd_folder_round_trip_and_fused_cloud(rgbd_dir, world):
     _save_u16(rgbd_dir / "frame-000000.depth.png", np.full((H, W), 1234))
     assert np.allclose(scene.frames[0].depth, 1.234)
     # frame_step / max_frames.
-    s = load_rgbd_folder(rgbd_dir, frame_step=2, cloud=rgbd_dir / "cloud.ply") if False else None
     s = load_rgbd_folder(rgbd_dir, frame_step=2, max_frames=1, voxel_size=0.1)
     assert s.frames.names == ["frame-000000"]
 
@@ -246,7 +247,7 @@ def test_rgbd_folder_validation(rgbd_dir):
 
 
 def test_depth_bit_shift(tmp_path):
-    d = np.array([[0, 1, 1500, 4000, 8191]], np.uint32)
+    d = np.array([[0, 1, 1500, 4000, 9000, 20000]], np.uint32)  # >= 8192: top bits wrap around
     stored = ((d << 3) | (d >> 13)) & 0xFFFF  # SUN3D: rotate left by 3
     _save_u16(tmp_path / "d.png", stored)
     np.testing.assert_allclose(read_depth_png(tmp_path / "d.png", 1000.0, bit_shift=3), d / 1000.0)

@@ -289,7 +289,8 @@ def load_rgbd_folder(
     for name in names:  # loop over frames: poses are tiny and validated up front
         T_wc = read_pose_c2w(root / f"{name}.pose.txt")
         if T_wc is None:
-            raise ValueError(f"{root / (name + '.pose.txt')}: pose has non-finite entries, expected a 4x4 rigid transform")
+            raise ValueError(f"{root / (name + '.pose.txt')}: pose has non-finite entries, "
+                             f"expected a 4x4 rigid camera-to-world transform")
         poses.append(rigid_inverse(T_wc))
         kept.append(name)
 
