@@ -1,0 +1,47 @@
+"""A 2D network's outputs from files: mapped label PNGs (unmapped counted) and probabilities."""
+import dataclasses
+
+import numpy as np
+from PIL import Image
+
+from diffuser_lab.config import default_config
+from diffuser_lab.pipeline import run
+from diffuser_lab.scene import IGNORE, SCANNET20, SCANNET20_NYU40_IDS
+
+
+def test_label_pngs_in_nyu40_are_mapped_and_unmapped_counted(small_demo_scene, tmp_path):
+    to_nyu = np.array(SCANNET20_NYU40_IDS, np.uint16)
+    n_otherprop = 0
+    for i, f in enumerate(small_demo_scene.frames):
+        ids = np.where(f.gt_labels == IGNORE, 0, to_nyu[np.maximum(f.gt_labels, 0)]).astype(np.uint16)
+        if i == 0:
+            ids[:10, :10] = 40  # otherprop: not a ScanNet-20 class
+            n_otherprop = 100
+        Image.fromarray(ids).save(tmp_path / f"{f.name}.png")
+    cfg = default_config(**{"predictions.source": "files", "predictions.folder": str(tmp_path),
+                            "predictions.mapping": "nyu40_to_scannet20", "solver.max_iter": 60})
+    res = run(cfg, scene=small_demo_scene)
+    zero_ids = sum(int((f.gt_labels == IGNORE).sum()) for f in small_demo_scene.frames)
+    assert res.predictions_stats["label_files"] == len(small_demo_scene.frames)
+    assert res.predictions_stats["unmapped_pixels"] == zero_ids + n_otherprop - int(
+        (small_demo_scene.frames[0].gt_labels[:10, :10] == IGNORE).sum())
+    assert res.predictions_2d["miou"] > 95  # the files hold (almost) the ground truth
+
+
+def test_probability_files_are_soft_evidence(small_demo_scene, tmp_path):
+    C = SCANNET20.num_classes
+    for f in small_demo_scene.frames:
+        p = np.full(f.shape + (C,), 0.01, np.float32)
+        lab = np.maximum(f.gt_labels, 0)
+        np.put_along_axis(p, lab[..., None].astype(np.int64), 0.8, axis=2)
+        np.save(tmp_path / f"{f.name}.npy", np.moveaxis(p, 2, 0))  # (C, H, W) is accepted too
+    cfg = default_config(**{"predictions.source": "files", "predictions.folder": str(tmp_path),
+                            "solver.max_iter": 60})
+    res = run(cfg, scene=small_demo_scene)
+    assert res.predictions_stats["probability_files"] == len(small_demo_scene.frames)
+    m = res.evidence.mass
+    links = res.evidence.links
+    np.testing.assert_allclose(m.sum(1), links, rtol=1e-4)  # each linked pixel carries a mass of 1
+    assert m.max() < links.max()  # ... spread over the classes, not one-hot
+    hard = run(default_config(**{"predictions.source": "gt", "solver.max_iter": 60}), scene=small_demo_scene)
+    assert np.mean(res.bayesian_labels == hard.bayesian_labels) > 0.99  # argmax of the sums as with gt
