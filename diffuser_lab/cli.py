@@ -121,9 +121,20 @@ def _task(cfg: Any) -> Optional[float]:
                 print(table(sf) + f"\nrun folder: {run_dir}")
             return summary["metrics"]["miou"]
 
+        from .config import RecordMode
         from .pipeline import run
 
-        result = run(conf)
+        hooks = None
+        if conf.record.mode != RecordMode.off:
+            from .recording import make_hooks
+
+            hooks = make_hooks(conf, run_dir, overrides=list(hc.overrides.task))
+        try:
+            result = run(conf, hooks=hooks)
+        finally:
+            if hooks is not None:
+                hooks.close()
+        summary["records"] = hooks.files() if hooks is not None else {}
         t_out = time.perf_counter()
         files = write_labels(run_dir, result.scene.points, result.labels, result.scene.taxonomy,
                              ply=conf.output.labels_ply)

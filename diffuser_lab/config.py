@@ -57,6 +57,14 @@ class NormalSign(Enum):
 
 class SolverName(Enum):
     jacobi = "jacobi"  # the paper's iteration Z <- P Z + Z_IX (Eq. 10)
+    exact = "exact"  # the fixed point (I - P) Z = B solved directly (Krylov / factorisation)
+
+
+class SolverBackend(Enum):
+    auto = "auto"  # the fastest available CPU backend
+    scipy = "scipy"  # pure numpy/scipy
+    numba = "numba"  # compiled CPU kernel (optional extra)
+    torch = "torch"  # PyTorch on a GPU (optional extra; CUDA required)
 
 
 class BayesianMode(Enum):
@@ -237,11 +245,12 @@ class GraphConfig:
 
 @dataclass
 class SolverConfig:
-    """Diffusion (Eq. 10) stopping rule."""
+    """Diffusion (Eq. 10) stopping rule and implementation."""
 
     name: SolverName = SolverName.jacobi
     max_iter: int = 200
-    tol: float = 1e-4  # stop when max|Z_t - Z_{t-1}| <= tol * max|Z_t|
+    tol: float = 1e-4  # jacobi: stop when max|Z_t - Z_{t-1}| <= tol * max|Z_t|; exact: relative residual
+    backend: SolverBackend = SolverBackend.auto
 
     def __post_init__(self) -> None:
         _check(self.max_iter >= 1, "solver.max_iter", self.max_iter, ">= 1")
@@ -269,6 +278,32 @@ class ProtocolConfig:
         _check(self.target_step >= 1, "protocol.target_step", self.target_step, ">= 1")
 
 
+class RecordMode(Enum):
+    off = "off"
+    rerun = "rerun"  # run.rrd
+    mcap = "mcap"  # run.mcap
+    both = "both"
+
+
+class ZPrecision(Enum):
+    float32 = "float32"
+    float16 = "float16"
+
+
+@dataclass
+class RecordConfig:
+    """What the run records of the diffusion (diffuser_lab.recording); records never change results."""
+
+    mode: RecordMode = RecordMode.both
+    interval: int = 10  # record every n-th iteration; the first and the last always
+    z_precision: ZPrecision = ZPrecision.float32  # precision of Z in run.mcap
+    max_image_side: int = 320  # frames' images in run.rrd are downsampled to at most this many pixels
+
+    def __post_init__(self) -> None:
+        _check(self.interval >= 1, "record.interval", self.interval, ">= 1")
+        _check(self.max_image_side >= 16, "record.max_image_side", self.max_image_side, ">= 16")
+
+
 @dataclass
 class OutputConfig:
     labels_ply: bool = True  # write labels.ply (points coloured by label)
@@ -284,6 +319,7 @@ class Config:
     solver: SolverConfig = field(default_factory=SolverConfig)
     method: MethodConfig = field(default_factory=MethodConfig)
     protocol: ProtocolConfig = field(default_factory=ProtocolConfig)
+    record: RecordConfig = field(default_factory=RecordConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
 
 

@@ -29,7 +29,9 @@ from .scene import IGNORE
 
 Observer = Callable[[int, np.ndarray, dict], None]
 """Called as observer(iteration, Z, stats) after each iteration; Z (N, C) is read-only and
-stats holds ``residual`` (relative, see :func:`diffuse`). Observers must not change anything."""
+stats holds ``residual`` (relative, see :func:`diffuse`). Observers must not change anything.
+An observer with a ``wants(iteration) -> bool`` method is called only where it returns True
+(building Z in the paper's units for an iteration nobody records costs a full copy)."""
 
 
 @dataclass
@@ -106,7 +108,7 @@ def diffuse(system: System, *, max_iter: int = 200, tol: float = 1e-4,
         residual = change / top if top > 0 else 0.0
         residuals.append(residual)
         Z = Z_new
-        if observer is not None:
+        if observer is not None and (not hasattr(observer, "wants") or observer.wants(it)):
             view = paper_units(Z).view()
             view.flags.writeable = False
             observer(it, view, {"residual": residual})
@@ -122,3 +124,11 @@ def labels_from_scores(Z: np.ndarray) -> np.ndarray:
     lab = np.argmax(Z, axis=1).astype(np.int16)
     lab[Z.max(1) <= 0] = IGNORE
     return lab
+
+
+def solve(system: System, cfg, observer: Optional[Observer] = None) -> DiffusionResult:
+    """Dispatch on ``cfg`` (:class:`~diffuser_lab.config.SolverConfig`): the solver and backend."""
+    name = getattr(cfg.name, "value", cfg.name)
+    if name == "jacobi":
+        return diffuse(system, max_iter=cfg.max_iter, tol=cfg.tol, observer=observer)
+    raise NotImplementedError(f"solver.name={name} is not implemented yet")

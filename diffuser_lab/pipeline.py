@@ -12,9 +12,10 @@ import numpy as np
 
 from . import evidence as evidence_mod
 from .config import BayesianMode, Config, GraphConfig, MethodName, NormalSign, SceneConfig, SceneSource
-from .diffusion import DiffusionResult, Observer, diffuse, labels_from_scores, normalise
+from .diffusion import DiffusionResult, Observer, labels_from_scores, normalise, solve
 from .geometry import VoxelGrid, estimate_normals, nearest_transfer, voxel_downsample
 from .graph import KnnGraph, build_graph
+from .hooks import RunHooks
 from .metrics import confusion_matrix, score, scores_from_confusion
 from .predictions import with_predictions
 from .scene import IGNORE, Frame, Scene
@@ -121,9 +122,28 @@ def _to_original(scene: Scene, grid: Optional[VoxelGrid], work_labels: np.ndarra
     return nearest_transfer(grid.points, work_labels, scene.points)
 
 
-def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observer] = None) -> RunResult:
+class _Observe:
+    """Adapts :class:`RunHooks` (and a plain observer callable) to the diffusion's observer."""
+
+    def __init__(self, hooks: RunHooks, fn: Optional[Observer]):
+        self.hooks, self.fn = hooks, fn
+
+    def wants(self, it: int) -> bool:
+        return self.fn is not None or self.hooks.wants(it)
+
+    def __call__(self, it: int, Z: np.ndarray, stats: dict) -> None:
+        if self.fn is not None:
+            self.fn(it, Z, stats)
+        if self.hooks.wants(it):
+            self.hooks.observe(it, Z, stats)
+
+
+def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observer] = None,
+        hooks: Optional[RunHooks] = None) -> RunResult:
     """Label ``scene`` (default: the configured source) with ``cfg.method``; Bayesian fusion of
-    the same evidence is always computed beside it."""
+    the same evidence is always computed beside it. ``observer(iteration, Z, stats)`` and
+    ``hooks`` (see :mod:`diffuser_lab.hooks`) watch the run without changing it."""
+    hooks = hooks or RunHooks()
     t = {}
     t0 = time.perf_counter()
     if scene is None:
@@ -132,6 +152,7 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
     if scene.n_points == 0:
         raise ValueError(f"scene {scene.name}: the point cloud is empty")
     t["load"] = time.perf_counter() - t0
+    hooks.on_scene(scene)
 
     # One pass over the frames: each is loaded (and its predictions made) once, scored in 2D
     # against its ground truth, and added to the evidence; memory stays independent of their number.
@@ -154,6 +175,7 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
             pred = f.labels if f.labels is not None else np.argmax(f.probs, axis=2)
             c = confusion_matrix(pred, f.gt_labels, tax.num_classes)
             conf2d = c if conf2d is None else conf2d + c
+        hooks.on_frame(i, f)
         te = time.perf_counter()
         evidence_mod.add_frame(ev, pts, f, **ev_kw)
         if separate_base:
@@ -162,6 +184,7 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
         t["evidence"] += time.perf_counter() - te
     pred2d = None if conf2d is None else scores_from_confusion(conf2d, tax.names)
     bayes_work = labels_from_scores(ev_base.mass)
+    hooks.on_evidence(pts, grid, ev, bayes_work)
 
     graph = diff = None
     if method in (MethodName.diffuser, MethodName.ldls):
@@ -170,7 +193,7 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
         system = normalise(graph, ev.mass, cfg.evidence.pixel_weight)
         t["graph"] = time.perf_counter() - tg
         td = time.perf_counter()
-        diff = diffuse(system, max_iter=cfg.solver.max_iter, tol=cfg.solver.tol, observer=observer)
+        diff = solve(system, cfg.solver, observer=_Observe(hooks, observer))
         work_labels = labels_from_scores(diff.Z)
         t["diffusion"] = time.perf_counter() - td
     elif method == MethodName.bayesian:
@@ -199,6 +222,7 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
         t["metrics"] = time.perf_counter() - tm
     t["total"] = time.perf_counter() - t0
     res.timings_s = t
+    hooks.on_result(res)
     return res
 
 

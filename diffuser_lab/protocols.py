@@ -20,7 +20,7 @@ import numpy as np
 
 from . import evidence as evidence_mod
 from .config import Config
-from .diffusion import diffuse, labels_from_scores, normalise
+from .diffusion import labels_from_scores, normalise, solve
 from .geometry import backproject, voxel_downsample
 from .metrics import confusion_matrix, scores_from_confusion
 from .pipeline import load_scene, make_graph
@@ -137,7 +137,7 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None) -> SingleFrameResul
             ("bayesian", W): labels_from_scores(evW_base.mass),
         }
         for key, g, ev in [(("ldls", 1), g_ldls, ev1_ldls), (("diffuser", 1), g_diff, ev1), (("diffuser", W), g_diff, evW)]:
-            z = diffuse(normalise(g, ev.mass, lam), max_iter=solver.max_iter, tol=solver.tol).Z
+            z = solve(normalise(g, ev.mass, lam), solver).Z
             work_labels[key] = labels_from_scores(z)
         t["diffusion"] += time.perf_counter() - td
 

@@ -28,7 +28,6 @@ def summary(res: RunResult, cfg: Config) -> dict:
         "predictions_2d": res.predictions_2d,
         "predictions_stats": res.predictions_stats,
         "timings_s": {k: round(v, 4) for k, v in res.timings_s.items()},
-        "records": {},
     }
     if res.diffusion is not None:
         out["diffusion"] = {"iterations": res.diffusion.iterations, "converged": res.diffusion.converged,

@@ -1,0 +1,42 @@
+"""The narrow hook through which records observe a run. Hooks read; they never change anything.
+
+:func:`diffuser_lab.pipeline.run` calls, in order:
+    on_scene(scene)                                  once, after loading
+    on_frame(index, frame)                           for every frame, with its predictions attached
+    on_evidence(points, grid, evidence, bayesian)    once, on the cloud the diffusion runs on
+    wants(iteration) -> bool, observe(iteration, Z, stats)   during the diffusion
+    on_result(result)                                once, at the end (also gets the final Z)
+Arrays passed in are read-only views or must be treated as such.
+"""
+from __future__ import annotations
+
+from typing import Any, Optional
+
+import numpy as np
+
+
+class RunHooks:
+    """No-op base: subclass and override what you need."""
+
+    def on_scene(self, scene: Any) -> None:
+        """scene: :class:`~diffuser_lab.scene.Scene` (original points, gt labels, taxonomy)."""
+
+    def on_frame(self, index: int, frame: Any) -> None:
+        """frame: :class:`~diffuser_lab.scene.Frame` with ``labels``/``probs`` set (predictions)."""
+
+    def on_evidence(self, points: np.ndarray, grid: Optional[Any], evidence: Any, bayesian: np.ndarray) -> None:
+        """points: (M, 3) work cloud (world m); grid: VoxelGrid mapping original -> work points or
+        None; evidence: Evidence on the work points; bayesian: (M,) int16 baseline labels."""
+
+    def wants(self, iteration: int) -> bool:
+        """Whether :meth:`observe` should be called after this iteration (1-based)."""
+        return False
+
+    def observe(self, iteration: int, Z: np.ndarray, stats: dict) -> None:
+        """Z: (M, C) float32 read-only scores after ``iteration``; stats: ``residual``."""
+
+    def on_result(self, result: Any) -> None:
+        """result: :class:`~diffuser_lab.pipeline.RunResult` (``result.diffusion.Z`` is the final Z)."""
+
+    def close(self) -> None:
+        """Flush and close files (called even when the run fails)."""
