@@ -143,7 +143,11 @@ def _task(cfg: Any) -> Optional[float]:
         summary["files"] = files
         summary["status"] = "ok"
         write_json_atomic(summary_path, summary)
-        if not conf.output.quiet:
+        if multirun:  # one line per job; the table is in summary.json
+            m = summary.get("metrics") or {}
+            print(f"{run_dir.name}: {conf.method.name.value} mIoU {m.get('miou', float('nan')):.1f} "
+                  f"(bayesian {((summary.get('baseline') or {}).get('bayesian') or {}).get('miou', float('nan')):.1f})")
+        elif not conf.output.quiet:
             print(report.table(result, run_dir))
         return summary.get("metrics", {}).get("miou") if summary.get("metrics") else None
     except Exception as exc:  # noqa: BLE001 - recorded, then reported as one line

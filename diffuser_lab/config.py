@@ -312,6 +312,11 @@ class OutputConfig:
 
 @dataclass
 class Config:
+    """A run. ``seed`` and ``n_views`` are shared keys the groups' YAML files refer to
+    (``${seed}``, ``${n_views}``), so one sweep works on every scene source."""
+
+    seed: int = 0  # seeds the demo room, the rendered camera path and the simulated mistakes
+    n_views: int = 30  # views rendered by the demo and mesh_views sources
     scene: SceneConfig = field(default_factory=SceneConfig)
     predictions: PredictionsConfig = field(default_factory=PredictionsConfig)
     evidence: EvidenceConfig = field(default_factory=EvidenceConfig)

@@ -1,0 +1,110 @@
+"""Two runs side by side: per-class IoU deltas, the points whose label differs, and an .rrd
+showing both label sets on the same cloud.
+
+    python -m analysis.compare RUN_A RUN_B [--rrd compare.rrd]
+
+Both runs must label the same cloud (same scene, same number of points).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+
+def _load(run: Path) -> tuple[dict, np.ndarray]:
+    run = Path(run)
+    s_path, l_path = run / "summary.json", run / "labels.npy"
+    for p in (s_path, l_path):
+        if not p.is_file():
+            raise FileNotFoundError(f"{p}: missing; is {run} a diffuser-lab run folder?")
+    return json.loads(s_path.read_text()), np.load(l_path)
+
+
+def compare(run_a: str | Path, run_b: str | Path, rrd: str | Path | None = None) -> dict:
+    """Per-class IoU of both runs and their difference (b - a), and label disagreement."""
+    sa, la = _load(run_a)
+    sb, lb = _load(run_b)
+    if la.shape != lb.shape:
+        raise ValueError(f"the runs label different clouds: {la.shape[0]} vs {lb.shape[0]} points")
+    ia = (sa.get("metrics") or {}).get("per_class_iou") or {}
+    ib = (sb.get("metrics") or {}).get("per_class_iou") or {}
+    classes = sorted(set(ia) | set(ib), key=lambda c: -(ib.get(c, 0) - ia.get(c, 0)))
+    per_class = [{"class": c, "a": ia.get(c), "b": ib.get(c),
+                  "delta": None if c not in ia or c not in ib else ib[c] - ia[c]} for c in classes]
+    differ = la != lb
+    out = {"a": str(run_a), "b": str(run_b), "miou_a": (sa.get("metrics") or {}).get("miou"),
+           "miou_b": (sb.get("metrics") or {}).get("miou"), "n_points": int(la.size),
+           "n_differ": int(differ.sum()), "share_differ": float(differ.mean()) if la.size else 0.0,
+           "per_class": per_class}
+    if rrd is not None:
+        _write_rrd(Path(run_a), Path(run_b), la, lb, Path(rrd), sa)
+        out["rrd"] = str(rrd)
+    return out
+
+
+def _write_rrd(run_a: Path, run_b: Path, la: np.ndarray, lb: np.ndarray, rrd: Path, summary: dict) -> None:
+    """world/a and world/b: the cloud coloured by each run's labels (same class colours);
+    world/differ: the points whose labels differ, in red."""
+    import open3d as o3d
+    import rerun as rr
+
+    ply = run_a / "labels.ply"
+    if not ply.is_file():
+        raise FileNotFoundError(f"{ply}: missing (run with output.labels_ply=true to compare in Rerun)")
+    pcd = o3d.t.io.read_point_cloud(str(ply))
+    if "positions" not in pcd.point or pcd.point.positions.shape[0] != la.size:
+        raise ValueError(f"{run_a / 'labels.ply'}: missing, or not the {la.size} points of labels.npy")
+    pts = pcd.point.positions.numpy()
+    from diffuser_lab.scene import SCANNET20
+
+    tax = SCANNET20  # the taxonomy of every shipped source; colours follow the class ids
+    rec = rr.RecordingStream("diffuser-lab-compare")
+    rec.save(str(rrd))
+    rec.log("world", rr.AnnotationContext([rr.AnnotationInfo(id=i, label=n, color=tuple(int(x) for x in c))
+                                           for i, (n, c) in enumerate(zip(tax.names, tax.colors))]
+                                          + [rr.AnnotationInfo(id=tax.num_classes, label="unlabeled",
+                                                               color=(40, 40, 40))]),
+            static=True)
+    unl = tax.num_classes  # rerun class ids are unsigned: unlabeled (-1) gets an id of its own
+    rec.log("world/a", rr.Points3D(pts, class_ids=np.where(la < 0, unl, la).astype(np.uint16)), static=True)
+    rec.log("world/b", rr.Points3D(pts, class_ids=np.where(lb < 0, unl, lb).astype(np.uint16)), static=True)
+    d = la != lb
+    rec.log("world/differ", rr.Points3D(pts[d], colors=np.tile([255, 0, 0], (int(d.sum()), 1)).astype(np.uint8),
+                                        radii=0.01), static=True)
+    rec.flush()
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m analysis.compare", description=__doc__.splitlines()[0])
+    ap.add_argument("run_a")
+    ap.add_argument("run_b")
+    ap.add_argument("--rrd", help="write an .rrd with both label sets (open with `rerun FILE`)")
+    ap.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    a = ap.parse_args(argv)
+    try:
+        res = compare(a.run_a, a.run_b, a.rrd)
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"compare: error: {exc}", file=sys.stderr)
+        return 2
+    if a.json:
+        print(json.dumps(res, indent=2))
+        return 0
+    f = lambda v: "-" if v is None else f"{v:.1f}"  # noqa: E731
+    print(f"A: {res['a']}\nB: {res['b']}")
+    print(f"mIoU  A {f(res['miou_a'])}  B {f(res['miou_b'])}   labels differ on {res['n_differ']:,} of "
+          f"{res['n_points']:,} points ({100 * res['share_differ']:.1f}%)")
+    print(f"{'class':16s}{'A':>7s}{'B':>7s}{'B-A':>7s}")
+    for r in res["per_class"]:
+        print(f"{r['class']:16s}{f(r['a']):>7s}{f(r['b']):>7s}{f(r['delta']):>7s}")
+    if "rrd" in res:
+        print(f"both label sets: {res['rrd']} (rerun {res['rrd']})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+    raise SystemExit(main())

@@ -1,0 +1,83 @@
+"""Hydra multirun of a tiny sweep, then the analysis scripts on its output; launcher configs compose."""
+import csv
+import importlib.util
+
+import pytest
+
+from conftest import ROOT, run_cli
+
+
+@pytest.fixture(scope="module")
+def sweep(tmp_path_factory):
+    base = tmp_path_factory.mktemp("sweep")
+    ok = run_cli("-m", "+experiment=smoke", f"hydra.sweep.dir={base / 'smoke'}", cwd=base)
+    assert ok.returncode == 0, ok.stderr[-2000:]
+    bad = run_cli("-m", "+experiment=smoke", "graph.sigma_s=-1", "graph.use_normals=true", "seed=0",
+                  f"hydra.sweep.dir={base / 'bad'}", cwd=base)
+    assert bad.returncode != 0  # Hydra reports the failed job ...
+    return base
+
+
+def test_collect_table_has_the_sweep(sweep, tmp_path):
+    from analysis.collect import collect
+
+    rrows, arows, md = collect([str(sweep / "smoke")], tmp_path / "t")
+    assert len(rrows) == 4 and all(r["status"] == "ok" for r in rrows)
+    pairs = sorted((r["graph.use_normals"], r["seed"]) for r in rrows)
+    assert pairs == [("false", "0"), ("false", "1"), ("true", "0"), ("true", "1")] or \
+        pairs == [("False", "0"), ("False", "1"), ("True", "0"), ("True", "1")]
+    assert len(arows) == 2 and all(r["runs"] == 2 and r["failed"] == 0 for r in arows)
+    assert all(r["miou"] is not None and 0 < r["miou"] <= 100 for r in arows)
+    with open(tmp_path / "t_runs.csv") as fh:
+        assert len(list(csv.DictReader(fh))) == 4
+    assert "graph.use_normals" in md and "±" in md
+
+
+def test_failed_job_shows_as_failed(sweep, tmp_path):
+    from analysis.collect import collect
+
+    rrows, arows, md = collect([str(sweep / "smoke"), str(sweep / "bad")], tmp_path / "t")
+    failed = [r for r in rrows if r["status"] != "ok"]
+    assert len(rrows) == 5 and len(failed) == 1  # ... and the other jobs are still in the table
+    assert "graph.sigma_s" in failed[0]["error"]
+    assert "Failed runs" in md and "graph.sigma_s" in md
+
+
+def test_plots_are_non_empty_pngs(sweep, tmp_path):
+    from analysis.plots import make_plots
+
+    made = make_plots([str(sweep / "smoke")], tmp_path)
+    names = {p.name for p in made}
+    assert {"miou_vs_graph.use_normals.png", "methods.png", "per_class_iou.png", "convergence.png"} <= names
+    for p in made:
+        data = p.read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000
+
+
+def test_report_and_compare(sweep, tmp_path):
+    from analysis.compare import compare
+    from analysis.report import report
+
+    md = report([str(sweep / "smoke")], tmp_path / "rep").read_text()
+    assert "| graph.use_normals |" in md and "![convergence](convergence.png)" in md
+    runs = sorted((sweep / "smoke").glob("*_*"))
+    res = compare(runs[0], runs[-1], tmp_path / "cmp.rrd")
+    assert res["n_points"] > 0 and 0 <= res["share_differ"] <= 1
+    assert (tmp_path / "cmp.rrd").stat().st_size > 1000
+
+
+@pytest.mark.parametrize("launcher,plugin", [("local_parallel", "hydra_plugins.hydra_joblib_launcher"),
+                                             ("slurm", "hydra_plugins.hydra_submitit_launcher"),
+                                             ("ray", "hydra_plugins.hydra_ray_launcher")])
+def test_launcher_configs_compose(launcher, plugin):
+    if importlib.util.find_spec(plugin) is None:
+        pytest.skip(f"{plugin} not installed (optional extra)")
+    from hydra import compose, initialize_config_dir
+
+    from diffuser_lab.config import register
+
+    register()
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose("config", overrides=["+experiment=k", f"hydra/launcher={launcher}"], return_hydra_config=True)
+    assert "Launcher" in cfg.hydra.launcher._target_
+    assert cfg.hydra.sweeper.params["graph.k"] == "8,16,24,32,48"
