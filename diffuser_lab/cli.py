@@ -9,6 +9,7 @@ import logging
 import os
 import sys
 import time
+import warnings
 from pathlib import Path
 from typing import Any, Optional
 
@@ -56,6 +57,10 @@ def _verbose() -> bool:
     return os.environ.get("HYDRA_FULL_ERROR") == "1"
 
 
+def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> str:
+    return f"{PROG}: warning: {message}\n"
+
+
 def _prevalidate(argv: list[str]) -> None:
     """Compose the single-run config the way Hydra will and check it; exit 2 with one line."""
     if any(a.startswith("-") for a in argv):  # --help, --cfg, -m/--multirun: leave them to Hydra
@@ -100,6 +105,15 @@ def _task(cfg: Any) -> Optional[float]:
     summary: dict[str, Any] = {"status": "running", "overrides": list(hc.overrides.task),
                                "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
     summary_path = run_dir / "summary.json"
+    caught: list[str] = []
+    show = warnings.showwarning
+
+    def keep(message, category, filename, lineno, file=None, line=None):  # print and record
+        caught.append(str(message))
+        summary["warnings"] = caught
+        show(message, category, filename, lineno, file, line)
+
+    warnings.showwarning = keep
     try:
         if summary_path.exists():
             raise FileExistsError(f"{run_dir} already holds a run (summary.json); refusing to overwrite it")
@@ -161,6 +175,8 @@ def _task(cfg: Any) -> Optional[float]:
             raise  # Hydra marks this job failed and goes on with the others
         print(f"{PROG}: error: {one_line(exc)}", file=sys.stderr)
         sys.exit(1)
+    finally:
+        warnings.showwarning = show
 
 
 def main() -> None:
@@ -168,6 +184,10 @@ def main() -> None:
     import hydra
 
     register()
+    if "--verbose" in sys.argv:  # full tracebacks, as HYDRA_FULL_ERROR=1
+        sys.argv.remove("--verbose")
+        os.environ["HYDRA_FULL_ERROR"] = "1"
+    warnings.formatwarning = _one_line_warning
     _prevalidate(sys.argv[1:])
     app = hydra.main(config_path=config_dir(), config_name="config", version_base="1.3")(_task)
     app()

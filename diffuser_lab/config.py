@@ -317,6 +317,7 @@ class Config:
 
     seed: int = 0  # seeds the demo room, the rendered camera path and the simulated mistakes
     n_views: int = 30  # views rendered by the demo and mesh_views sources
+    memory_budget_gb: float = 16.0  # refuse runs whose estimated peak memory exceeds this
     scene: SceneConfig = field(default_factory=SceneConfig)
     predictions: PredictionsConfig = field(default_factory=PredictionsConfig)
     evidence: EvidenceConfig = field(default_factory=EvidenceConfig)

@@ -5,12 +5,14 @@ Nothing here writes files; :mod:`diffuser_lab.cli` turns a :class:`RunResult` in
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass, field
 from typing import Optional, Sequence
 
 import numpy as np
 
 from . import evidence as evidence_mod
+from . import validate
 from .config import BayesianMode, Config, GraphConfig, MethodName, NormalSign, SceneConfig, SceneSource
 from .diffusion import DiffusionResult, Observer, labels_from_scores, normalise, solve
 from .geometry import VoxelGrid, estimate_normals, nearest_transfer, voxel_downsample
@@ -149,8 +151,7 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
     if scene is None:
         scene = load_scene(cfg.scene)
     tax = scene.taxonomy
-    if scene.n_points == 0:
-        raise ValueError(f"scene {scene.name}: the point cloud is empty")
+    validate.check_points(scene)
     t["load"] = time.perf_counter() - t0
     hooks.on_scene(scene)
 
@@ -158,6 +159,10 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
     # against its ground truth, and added to the evidence; memory stays independent of their number.
     frames = with_predictions(scene.frames, cfg.predictions, tax)
     pts, nrm, grid = _work_cloud(scene, cfg.scene.voxel_size)
+    validate.check_memory(scene.n_points, pts.shape[0], tax.num_classes, cfg.graph.k, cfg.memory_budget_gb)
+    if cfg.method.name in (MethodName.diffuser, MethodName.ldls) and cfg.graph.k >= pts.shape[0]:
+        raise ValueError(f"graph.k={cfg.graph.k} must be smaller than the number of points ({pts.shape[0]})")
+    centres, inverted = [], []
     ev_kw = dict(depth_tol=cfg.evidence.depth_tol, pixel_radius=cfg.evidence.pixel_radius)
     method = cfg.method.name
     ev = evidence_mod.Evidence.empty(pts.shape[0], tax.num_classes)
@@ -171,6 +176,11 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
     for i in range(len(frames)):
         tp = time.perf_counter()
         f = frames[i]
+        validate.check_frame(f)
+        if i == 0:
+            validate.check_depth_unit(f)
+        centres.append(validate.camera_centre(f))
+        inverted.append(np.asarray(f.T_cw, float)[:3, 3])  # the centre if T_cw were camera-to-world
         if f.gt_labels is not None:
             pred = f.labels if f.labels is not None else np.argmax(f.probs, axis=2)
             c = confusion_matrix(pred, f.gt_labels, tax.num_classes)
@@ -183,6 +193,10 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
         t["predictions"] += te - tp
         t["evidence"] += time.perf_counter() - te
     pred2d = None if conf2d is None else scores_from_confusion(conf2d, tax.names)
+    validate.check_pose_convention(pts, np.array(centres).reshape(-1, 3), np.array(inverted).reshape(-1, 3))
+    if not ev.seen.any():
+        warnings.warn(f"no frame sees any point ({len(frames)} frames): nothing is labelled; check the poses "
+                      f"(world-to-camera), intrinsics and evidence.depth_tol", stacklevel=2)
     bayes_work = labels_from_scores(ev_base.mass)
     hooks.on_evidence(pts, grid, ev, bayes_work)
 

@@ -13,6 +13,8 @@ vectors intact; this assumes the prediction covers the same field of view as dep
 """
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 from pathlib import Path
 
 import numpy as np
@@ -47,14 +49,28 @@ def resize_nearest(img: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return img[rows[:, None], cols[None, :]]
 
 
-def read_label_png(path: str | Path) -> np.ndarray:
-    """Single-channel label image -> (H, W) int64 ids (8/16-bit grey, 32-bit int, or palette indices)."""
-    from PIL import Image
+@contextmanager
+def open_image(path: str | Path, what: str):
+    """PIL image of ``path`` whose pixels are loaded; an unreadable, truncated or corrupt file
+    is one ValueError naming it (Pillow raises OSError and friends)."""
+    from PIL import Image, UnidentifiedImageError
 
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"label image {path} does not exist")
-    with Image.open(path) as im:
+        raise FileNotFoundError(f"{what} {path} does not exist")
+    try:
+        im = Image.open(path)
+        im.load()
+    except (OSError, UnidentifiedImageError, SyntaxError, ValueError) as exc:
+        raise ValueError(f"{path}: unreadable {what} ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
+    with im:
+        yield im
+
+
+def read_label_png(path: str | Path) -> np.ndarray:
+    """Single-channel label image -> (H, W) int64 ids (8/16-bit grey, 32-bit int, or palette indices)."""
+    path = Path(path)
+    with open_image(path, "label image") as im:
         if im.mode not in ("L", "P", "I", "I;16", "I;16B", "I;16L"):
             raise ValueError(f"{path}: label image mode {im.mode}, expected single-channel 8/16-bit ids "
                              f"(grey or palette), not colour-coded labels")

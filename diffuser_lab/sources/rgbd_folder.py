@@ -30,7 +30,7 @@ import numpy as np
 
 from ..geometry import backproject, voxel_downsample
 from ..mapping import ClassMapping, load_mapping
-from ..prediction_files import read_label_png, resize_nearest
+from ..prediction_files import open_image, read_label_png, resize_nearest
 from ..scene import IGNORE, SCANNET20, Frame, Scene, Taxonomy
 
 __all__ = [
@@ -88,9 +88,14 @@ def _read_matrix(path: Path, what: str) -> np.ndarray:
     if not path.is_file():
         raise FileNotFoundError(f"{what} file {path} does not exist")
     try:
-        return np.loadtxt(path, dtype=np.float64, ndmin=2)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # an empty file is reported below, not as a warning
+            M = np.loadtxt(path, dtype=np.float64, ndmin=2)
     except ValueError as e:
-        raise ValueError(f"{path}: cannot parse {what} as a numeric matrix ({e})") from None
+        raise ValueError(f"{path}: cannot parse {what} as a numeric matrix ({str(e).splitlines()[0]})") from None
+    if M.size == 0:
+        raise ValueError(f"{path}: empty {what} file")
+    return M
 
 
 def read_pose_c2w(path: str | Path, tol: float = 1e-3) -> np.ndarray | None:
@@ -141,12 +146,8 @@ def read_depth_png(path: str | Path, depth_scale: float, bit_shift: int = 0,
         bit_shift: circular right shift of the raw 16-bit value before scaling (SUN3D: 3).
         invalid: raw stored values (before the shift) meaning "no depth".
     """
-    from PIL import Image
-
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"depth image {path} does not exist")
-    with Image.open(path) as im:
+    with open_image(path, "depth image") as im:
         raw = np.asarray(im)
     if raw.ndim != 2 or raw.dtype.kind not in "ui" or raw.dtype.itemsize < 2:
         raise ValueError(f"{path}: depth image of dtype {raw.dtype} shape {raw.shape}, expected single-channel 16-bit")
@@ -165,9 +166,7 @@ def read_rgb(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndarr
     from PIL import Image
 
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"colour image {path} does not exist")
-    with Image.open(path) as im:
+    with open_image(path, "colour image") as im:
         im = im.convert("RGB")
         if shape is not None and im.size != (shape[1], shape[0]):
             im = im.resize((int(shape[1]), int(shape[0])), Image.BILINEAR)

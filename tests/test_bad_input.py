@@ -1,0 +1,213 @@
+"""Bad input gives one clear line (exit code non-zero, no traceback) or a one-line warning.
+
+Each case starts from a small valid posed RGB-D folder (rendered from the demo room) and
+breaks one thing, then runs the command line as a user would.
+"""
+import json
+
+import numpy as np
+import pytest
+from PIL import Image
+from plyfile import PlyData, PlyElement
+
+from conftest import run_cli
+from diffuser_lab.render import intrinsics, look_at
+from diffuser_lab.sources.demo import make_demo_scene
+
+W, H = 64, 48
+
+
+@pytest.fixture(scope="module")
+def good(tmp_path_factory):
+    """A posed RGB-D folder (3 frames, labels in ScanNet-20 ids) and the room's sampled cloud."""
+    scene, renderer = make_demo_scene(seed=0, n_views=1, point_spacing=0.1)
+    root = tmp_path_factory.mktemp("rgbd") / "seq"
+    root.mkdir()
+    K = intrinsics(W, H, 70.0)
+    np.savetxt(root / "camera-intrinsics.txt", K)
+    for i, eye in enumerate([(1.5, 1.2, 1.5), (2.0, 1.3, 1.5), (2.5, 1.4, 1.5)]):
+        T = look_at(eye, (3.5, 3.0, 0.5))
+        depth, lab = renderer.render(K, T, W, H)
+        stem = root / f"frame-{i:06d}"
+        Image.fromarray(np.rint(depth * 1000).astype(np.uint16)).save(f"{stem}.depth.png")
+        Image.fromarray(np.where(lab < 0, 255, lab).astype(np.uint8)).save(f"{stem}.label.png")
+        Image.fromarray(np.zeros((H, W, 3), np.uint8)).save(f"{stem}.color.jpg")
+        np.savetxt(f"{stem}.pose.txt", np.linalg.inv(T))
+    (root.parent / "mapping.csv").write_text("source_id,source_name,target\n" + "".join(
+        f"{i},{n},{n}\n" for i, n in enumerate(scene.taxonomy.names)) + "255,void,ignore\n")
+    return root, scene
+
+
+def write_ply(path, pts, labels=None):
+    dt = [("x", "f4"), ("y", "f4"), ("z", "f4")] + ([("label", "u1")] if labels is not None else [])
+    v = np.zeros(len(pts), dt)
+    if len(pts):
+        v["x"], v["y"], v["z"] = np.asarray(pts, np.float32).T
+    if labels is not None:
+        v["label"] = np.where(labels < 0, 255, labels)  # 255 = void in mapping.csv
+    PlyData([PlyElement.describe(v, "vertex")]).write(str(path))
+
+
+def copy(good, tmp_path):
+    import shutil
+
+    root, scene = good
+    dst = tmp_path / "seq"
+    shutil.copytree(root, dst)
+    shutil.copy(root.parent / "mapping.csv", tmp_path / "mapping.csv")
+    return dst, scene
+
+
+def cli(root, *extra, cwd):
+    args = ["scene=rgbd_folder", f"scene.rgbd_folder.root={root}", "scene.rgbd_folder.label_suffix=label.png",
+            f"scene.rgbd_folder.mapping={root.parent / 'mapping.csv'}", "scene.rgbd_folder.cloud_voxel=0.05",
+            "predictions=gt", "record=off", "solver.max_iter=30", "graph.k=8", *extra]
+    return run_cli(*args, f"hydra.run.dir={cwd / 'run'}", cwd=cwd)
+
+
+def one_error(p, *needles):
+    lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
+    assert p.returncode != 0, p.stdout
+    assert len(lines) == 1 and lines[0].startswith("diffuser-lab: error:"), p.stderr
+    assert "Traceback" not in p.stderr
+    for n in needles:
+        assert n in lines[0], lines[0]
+    return lines[0]
+
+
+def warnings_of(p):
+    return [ln for ln in p.stderr.splitlines() if ln.startswith("diffuser-lab: warning:")]
+
+
+def test_the_good_folder_runs(good, tmp_path):
+    root, _ = copy(good, tmp_path)
+    p = cli(root, cwd=tmp_path)  # the cloud back-projected from the depth frames
+    assert p.returncode == 0, p.stderr
+    s = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert s["status"] == "ok" and s["predictions_2d"]["miou"] == 100 and not warnings_of(p)
+    assert s["coverage_evidence"] > 90
+
+
+def test_missing_folder(tmp_path):
+    (tmp_path / "mapping.csv").write_text("source_id,source_name,target\n0,wall,wall\n")
+    one_error(cli(tmp_path / "nope", cwd=tmp_path), "does not exist")
+
+
+def test_missing_required_root(tmp_path):
+    one_error(run_cli("scene=rgbd_folder", "record=off", cwd=tmp_path), "scene.rgbd_folder.root is required")
+
+
+def test_frame_counts_differ(good, tmp_path):
+    root, _ = copy(good, tmp_path)
+    (root / "frame-000001.pose.txt").unlink()
+    one_error(cli(root, cwd=tmp_path), "3 depth", "2 pose")
+
+
+def test_pose_not_rigid(good, tmp_path):
+    root, _ = copy(good, tmp_path)
+    T = np.loadtxt(root / "frame-000001.pose.txt")
+    T[:3, :3] *= 1.5
+    np.savetxt(root / "frame-000001.pose.txt", T)
+    one_error(cli(root, cwd=tmp_path), "frame-000001.pose.txt", "rigid")
+
+
+def test_pose_with_text(good, tmp_path):
+    root, _ = copy(good, tmp_path)
+    (root / "frame-000002.pose.txt").write_text("1 0 0 0\n0 1 zero 0\n")
+    one_error(cli(root, cwd=tmp_path), "frame-000002.pose.txt")
+
+
+def test_inverse_pose_convention_warns(good, tmp_path):
+    root, scene = copy(good, tmp_path)
+    for f in sorted(root.glob("*.pose.txt")):
+        np.savetxt(f, np.linalg.inv(np.loadtxt(f)))  # world-to-camera written where camera-to-world belongs
+    write_ply(tmp_path / "cloud.ply", scene.points)
+    p = cli(root, f"scene.rgbd_folder.cloud={tmp_path / 'cloud.ply'}", cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    assert any("inverse convention" in w for w in warnings_of(p)), p.stderr
+
+
+def test_intrinsics_of_another_resolution(good, tmp_path):
+    root, _ = copy(good, tmp_path)
+    K = np.loadtxt(root / "camera-intrinsics.txt")
+    K[:2] *= 4  # the colour camera's K at 4x the depth resolution
+    np.savetxt(root / "camera-intrinsics.txt", K)
+    one_error(cli(root, cwd=tmp_path), "principal point", "outside")
+
+
+def test_label_ids_outside_the_mapping(good, tmp_path):
+    root, _ = copy(good, tmp_path)
+    lab = np.array(Image.open(root / "frame-000000.label.png"))
+    lab[:4, :4] = 77
+    Image.fromarray(lab).save(root / "frame-000000.label.png")
+    one_error(cli(root, cwd=tmp_path), "77")
+
+
+def test_depth_in_the_wrong_unit_warns(good, tmp_path):
+    root, _ = copy(good, tmp_path)
+    p = cli(root, "scene.rgbd_folder.depth_scale=1", cwd=tmp_path)  # millimetres read as metres
+    assert any("depth_scale" in w for w in warnings_of(p)), p.stderr
+
+
+@pytest.mark.parametrize("case,needle", [("nan", "NaN"), ("empty", "empty"), ("no_xyz", "x/y/z"),
+                                         ("garbage", "PLY")])
+def test_bad_point_clouds(good, tmp_path, case, needle):
+    root, scene = copy(good, tmp_path)
+    ply = tmp_path / "cloud.ply"
+    if case == "nan":
+        pts = scene.points.copy()
+        pts[5] = np.nan
+        write_ply(ply, pts)
+    elif case == "empty":
+        write_ply(ply, np.zeros((0, 3)))
+    elif case == "no_xyz":
+        v = np.zeros(10, [("a", "f4"), ("b", "f4")])
+        PlyData([PlyElement.describe(v, "vertex")]).write(str(ply))
+    else:
+        ply.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 99999999999\n\x00\x01")
+    one_error(cli(root, f"scene.rgbd_folder.cloud={ply}", cwd=tmp_path), needle)
+
+
+def test_k_not_smaller_than_n(good, tmp_path):
+    root, scene = copy(good, tmp_path)
+    write_ply(tmp_path / "cloud.ply", scene.points[:20])
+    one_error(cli(root, f"scene.rgbd_folder.cloud={tmp_path / 'cloud.ply'}", "graph.k=20", cwd=tmp_path),
+              "graph.k=20", "20")
+
+
+def test_duplicate_points_give_no_nan(good, tmp_path):
+    root, scene = copy(good, tmp_path)
+    write_ply(tmp_path / "cloud.ply", np.repeat(scene.points, 3, axis=0),  # every point three times
+              np.repeat(scene.gt_labels, 3))
+    p = cli(root, f"scene.rgbd_folder.cloud={tmp_path / 'cloud.ply'}", cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    s = json.loads((tmp_path / "run" / "summary.json").read_text())
+    labels = np.load(tmp_path / "run" / "labels.npy")
+    assert s["status"] == "ok" and s["metrics"]["miou"] > 50
+    np.testing.assert_array_equal(labels[0::3], labels[1::3])  # duplicates agree
+
+
+def test_no_frame_sees_any_point(good, tmp_path):
+    root, scene = copy(good, tmp_path)
+    write_ply(tmp_path / "cloud.ply", scene.points + np.float32([100.0, 0, 0]))  # the cloud is elsewhere
+    p = cli(root, f"scene.rgbd_folder.cloud={tmp_path / 'cloud.ply'}", cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    assert any("no frame sees any point" in w for w in warnings_of(p)), p.stderr
+    assert (np.load(tmp_path / "run" / "labels.npy") == -1).all()  # nothing labelled, not class 0
+    s = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert s["coverage_evidence"] == 0 and s["n_unlabeled"] == s["n_points"]
+    assert any("no frame sees" in w for w in s["warnings"])
+
+
+def test_memory_budget_fails_early(good, tmp_path):
+    root, _ = copy(good, tmp_path)
+    one_error(cli(root, "memory_budget_gb=0.0001", cwd=tmp_path), "GiB", "memory_budget_gb")
+    s = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert s["status"] == "failed" and "memory_budget_gb" in s["error"]
+
+
+def test_verbose_shows_the_traceback(good, tmp_path):
+    root, _ = copy(good, tmp_path)
+    (root / "frame-000001.pose.txt").unlink()
+    p = cli(root, "--verbose", cwd=tmp_path)
+    assert p.returncode != 0 and "Traceback" in p.stderr

@@ -1,0 +1,92 @@
+"""Bounded fuzzing of the file readers: malformed PLY headers, truncated PNGs, pose and
+intrinsics files with text or wrong shapes, mapping tables, empty folders. Every input either
+reads or raises ValueError / FileNotFoundError with a message naming the file: never another
+exception, a hang or a crash of the interpreter."""
+import io
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from PIL import Image
+
+from diffuser_lab.mapping import load_mapping
+from diffuser_lab.prediction_files import read_label_png
+from diffuser_lab.scene import SCANNET20
+from diffuser_lab.sources.rgbd_folder import (load_rgbd_folder, read_depth_png, read_intrinsics, read_point_cloud_ply,
+                                              read_pose_c2w)
+from diffuser_lab.sources.scannet import read_labelled_mesh
+
+FUZZ = settings(max_examples=40, deadline=2000, suppress_health_check=[HealthCheck.function_scoped_fixture])
+CLEAR = (ValueError, FileNotFoundError)
+
+PLY_LINES = ["ply", "format ascii 1.0", "format binary_little_endian 1.0", "format binary_big_endian 1.0",
+             "element vertex 3", "element vertex -1", "element vertex 999999999999", "element face 1",
+             "property float x", "property float y", "property float z", "property uchar label",
+             "property list uchar int vertex_indices", "property double", "comment x", "end_header",
+             "0 0 0", "1 2", "nan nan nan", "3 0 1 2", "garbage \x00\xff"]
+
+
+def _check(reader, data: bytes, suffix: str):
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / f"f{suffix}"
+        path.write_bytes(data)
+        try:
+            reader(path)
+        except CLEAR as exc:
+            assert str(path) in str(exc) or path.name in str(exc), str(exc)
+            assert "\n" not in str(exc).strip()
+
+
+@FUZZ
+@given(st.lists(st.sampled_from(PLY_LINES), max_size=12), st.binary(max_size=64))
+def test_ply_readers(lines, tail):
+    data = ("\n".join(lines) + "\n").encode("latin-1") + tail
+    _check(read_point_cloud_ply, data, ".ply")
+    _check(read_labelled_mesh, data, ".ply")
+
+
+def _png_bytes(rng_seed: int, mode: str) -> bytes:
+    rng = np.random.default_rng(rng_seed)
+    arr = rng.integers(0, 255, (12, 16)).astype(np.uint16 if mode == "I;16" else np.uint8)
+    buf = io.BytesIO()
+    Image.fromarray(arr).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+@FUZZ
+@given(st.integers(0, 10_000), st.sampled_from(["I;16", "L"]), st.floats(0.0, 1.0), st.binary(max_size=16))
+def test_truncated_or_corrupt_pngs(seed, mode, cut, noise):
+    data = _png_bytes(seed, mode)
+    data = data[: int(len(data) * cut)] + noise  # truncated in the middle, junk appended
+    _check(lambda p: read_depth_png(p, 1000.0), data, ".png")
+    _check(read_label_png, data, ".png")
+
+
+@FUZZ
+@given(st.lists(st.lists(st.sampled_from(["1", "0", "-1", "0.5", "nan", "inf", "x", "1e400", ""]), max_size=5),
+                max_size=5))
+def test_pose_and_intrinsics_text(rows):
+    data = "\n".join(" ".join(r) for r in rows).encode()
+    _check(read_pose_c2w, data, ".txt")
+    _check(read_intrinsics, data, ".txt")
+
+
+@FUZZ
+@given(st.lists(st.tuples(st.sampled_from(["0", "1", "2", "-3", "x", "1.5", "99999999999"]),
+                          st.sampled_from(["wall", "", "foo"]),
+                          st.sampled_from(["wall", "floor", "ignore", "", "nonsense", "chair,extra"])), max_size=6),
+       st.booleans())
+def test_mapping_tables(rows, header):
+    text = ("source_id,source_name,target\n" if header else "") + "".join(f"{a},{b},{c}\n" for a, b, c in rows)
+    _check(lambda p: load_mapping(str(p), SCANNET20), text.encode(), ".csv")
+
+
+def test_empty_folders(tmp_path):
+    with pytest.raises(FileNotFoundError, match="does not exist|no frame-XXXXXX.depth.png"):
+        load_rgbd_folder(tmp_path)
+    (tmp_path / "camera-intrinsics.txt").write_text("")
+    with pytest.raises(CLEAR):
+        load_rgbd_folder(tmp_path)
