@@ -140,12 +140,12 @@ def plot_convergence(runs: list[Run], out: Path) -> Path | None:
     recorded = [r for r in runs if r.status == "ok" and (r.path / "run.mcap").is_file()]
     if not recorded:
         return None
-    from diffuser_lab.inspect_run import iteration_metrics
+    from diffuser_lab.recording.mcap_log import read_run
 
     curves = []
     keys = swept(runs)
     for r in recorded:
-        rows = iteration_metrics(r.path / "run.mcap")
+        rows = read_run(r.path / "run.mcap").metrics  # per recorded iteration: residual, miou, ...
         if rows:
             curves.append((", ".join(f"{k}={r.overrides.get(k)}" for k in keys) or r.path.name, rows))
     if not curves:
