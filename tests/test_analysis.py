@@ -60,8 +60,9 @@ def test_report_and_compare(sweep, tmp_path):
 
     md = report([str(sweep / "smoke")], tmp_path / "rep").read_text()
     assert "| graph.use_normals |" in md and "![convergence](convergence.png)" in md
-    runs = sorted((sweep / "smoke").glob("*_*"))
-    res = compare(runs[0], runs[-1], tmp_path / "cmp.rrd")
+    runs = sorted((sweep / "smoke").glob("*seed=0"))  # same seed = same room: normals on vs off
+    assert len(runs) == 2
+    res = compare(runs[0], runs[1], tmp_path / "cmp.rrd")
     assert res["n_points"] > 0 and 0 <= res["share_differ"] <= 1
     assert (tmp_path / "cmp.rrd").stat().st_size > 1000
 
