@@ -24,7 +24,7 @@ from typing import Callable, Optional
 import numpy as np
 import scipy.sparse as sp
 
-from .graph import KnnGraph
+from .graph import KnnGraph, SortedKnnGraph
 from .scene import IGNORE
 
 Observer = Callable[[int, np.ndarray, dict], None]
@@ -47,6 +47,46 @@ class System:
         return np.asarray(self.P.sum(1)).ravel() + self.B.sum(1)
 
 
+class SortedSystem(System):
+    """A :class:`System` whose P is kept as fixed-length rows in the graph's Morton order
+    (:class:`~diffuser_lab.graph.SortedKnnGraph`); ``P`` in the caller's order is built on first
+    access. ``B`` is in the caller's order.
+
+    Attributes:
+        order: (N,) int64 caller's index of sorted point s.
+        sorted_neighbors: (N, K) int32; sorted_P: (N, K) float32 transition weights (dropped = 0).
+    """
+
+    def __init__(self, order: np.ndarray, sorted_neighbors: np.ndarray, sorted_P: np.ndarray, B: np.ndarray):
+        self.order = order
+        self.sorted_neighbors = sorted_neighbors
+        self.sorted_P = sorted_P
+        self.B = B
+        self._P: sp.csr_matrix | None = None
+
+    @property
+    def P(self) -> sp.csr_matrix:  # type: ignore[override]
+        if self._P is None:
+            n, k = self.sorted_neighbors.shape
+            inv = np.empty_like(self.order)
+            inv[self.order] = np.arange(n)
+            data = self.sorted_P[inv].ravel()
+            cols = self.order[self.sorted_neighbors[inv]].ravel().astype(np.int32)
+            P = sp.csr_matrix((data, cols, np.arange(0, n * k + 1, k, dtype=np.int64)), shape=(n, n))
+            P.eliminate_zeros()
+            self._P = P
+        return self._P
+
+    def sorted_csr(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(indptr, indices, data) of P in sorted order (fixed K per row, zeros kept)."""
+        n, k = self.sorted_neighbors.shape
+        return (np.arange(0, n * k + 1, k, dtype=np.int64), self.sorted_neighbors.reshape(-1),
+                self.sorted_P.reshape(-1))
+
+    def __repr__(self) -> str:
+        return f"SortedSystem(n={self.B.shape[0]}, k={self.sorted_neighbors.shape[1]}, classes={self.B.shape[1]})"
+
+
 EDGE_FLOOR = 1e-12
 """Transition weights below this (of a row summing to 1) are dropped."""
 SCORE_FLOOR = 1e-18
@@ -56,6 +96,16 @@ SCORE_FLOOR = 1e-18
 def normalise(graph: KnnGraph, mass: np.ndarray, pixel_weight: float) -> System:
     """Eqs. 14-15 from the graph and the (N, C) pixel mass (before lambda)."""
     pix = mass.astype(np.float32) * np.float32(pixel_weight)
+    if isinstance(graph, SortedKnnGraph):
+        # Row sums come with the graph; the rows stay in its Morton order for the diffusion.
+        order = graph.order
+        wsum = np.empty(graph.n, np.float32)
+        wsum[order] = graph.sorted_row_sums
+        denom = wsum + pix.sum(1)
+        inv = np.divide(1.0, denom, out=np.zeros_like(denom), where=denom > 1e-30).astype(np.float32)
+        Ps = graph.sorted_weights * inv[order][:, None]
+        Ps[Ps < EDGE_FLOOR] = 0.0
+        return SortedSystem(order, graph.sorted_neighbors, Ps, pix * inv[:, None])
     denom = graph.weights.sum(1, dtype=np.float32) + pix.sum(1)
     # a point whose edges all underflowed and that has no pixel mass is isolated: zero row
     inv = np.divide(1.0, denom, out=np.zeros_like(denom), where=denom > 1e-30).astype(np.float32)
@@ -67,56 +117,235 @@ def normalise(graph: KnnGraph, mass: np.ndarray, pixel_weight: float) -> System:
 
 @dataclass
 class DiffusionResult:
-    """Z (N, C) float32 after ``iterations`` updates; residual is the last relative change."""
+    """Z (N, C) float32 after ``iterations`` updates; residual is the last relative change
+    (jacobi) or the relative residual |B - (I - P) Z| / |B| (exact). ``info`` says how the
+    result was computed (solver, backend, ...)."""
 
     Z: np.ndarray
     iterations: int
     converged: bool
     residual: float
     residuals: list[float] = field(default_factory=list)
+    info: dict = field(default_factory=dict)
+
+
+def _blocks(n_active: int) -> list[tuple[int, int, int]]:
+    """Split the active classes into kernel blocks: (first, count, width) with width in WIDTHS."""
+    from .kernels import WIDTHS
+
+    out, c = [], 0
+    while c < n_active:
+        cnt = min(n_active - c, WIDTHS[-1])
+        width = next(w for w in WIDTHS if w >= cnt)
+        out.append((c, cnt, width))
+        c += cnt
+    return out
+
+
+def _resolve_backend(backend: str) -> str:
+    from . import kernels
+
+    backend = getattr(backend, "value", backend)
+    if backend == "auto":
+        return "numba" if kernels.available() else "scipy"
+    if backend == "numba" and not kernels.available():
+        raise RuntimeError("solver.backend=numba: numba is not installed (pip install 'diffuser-lab[fast]') "
+                           "or DIFFUSER_LAB_NUMBA=0 is set")
+    if backend not in ("numba", "scipy", "torch"):
+        raise ValueError(f"solver.backend={backend}: expected auto, scipy, numba or torch")
+    return backend
 
 
 def diffuse(system: System, *, max_iter: int = 200, tol: float = 1e-4,
-            observer: Optional[Observer] = None) -> DiffusionResult:
+            observer: Optional[Observer] = None, backend: str = "auto") -> DiffusionResult:
     """Iterate Eq. 10 from Z = 0 until max|Z_t - Z_{t-1}| <= tol * max|Z_t| or ``max_iter``.
 
     The change is measured relative to Z's scale because Z carries lambda-sized values.
+    ``backend``: ``numba`` (compiled, threaded), ``scipy`` (CSR products), ``torch`` (CUDA),
+    ``auto`` = numba when installed. A :class:`SortedSystem` is iterated in its Morton order.
     """
+    backend = _resolve_backend(backend)
+    if backend == "torch":
+        from .gpu import diffuse_torch
+
+        return diffuse_torch(system, max_iter=max_iter, tol=tol, observer=observer)
     # Classes that no pixel voted for stay exactly zero: iterate on the others only.
     active = np.flatnonzero(system.B.any(0))
     full_shape = system.B.shape
+    n = full_shape[0]
     b_max = float(system.B.max()) if system.B.size else 0.0
     scale = np.float32(b_max if b_max > 0 else 1.0)
-    B = np.ascontiguousarray(system.B[:, active]) / scale  # iterate on Z / max(B), see module doc
     floor = np.float32(SCORE_FLOOR)
-
-    def paper_units(Zs: np.ndarray) -> np.ndarray:
-        Z_full = np.zeros(full_shape, np.float32)
-        Z_full[:, active] = Zs * scale
-        return Z_full
-
-    Z = np.zeros_like(B)
+    if isinstance(system, SortedSystem):
+        order = system.order
+        indptr, indices, data = system.sorted_csr()
+        B_src = system.B[order]
+    else:
+        order = None
+        P = system.P.tocsr()
+        indptr, indices, data = P.indptr.astype(np.int64), P.indices.astype(np.int32), P.data.astype(np.float32)
+        B_src = system.B
     residuals: list[float] = []
     converged = False
     it = 0
+
+    if backend == "numba":
+        from . import kernels
+
+        blocks = []
+        for first, cnt, width in _blocks(len(active)):
+            Bb = np.zeros((n, width), np.float32)
+            Bb[:, :cnt] = B_src[:, active[first:first + cnt]] / scale  # iterate on Z / max(B), see module doc
+            blocks.append([first, cnt, width, Bb, np.zeros_like(Bb), np.zeros_like(Bb)])
+        bounds = kernels.row_bounds(indptr, 4 * kernels.n_threads())
+        ident = np.arange(n, dtype=np.int64) if order is None else order
+
+        def paper_units() -> np.ndarray:
+            Z_full = np.zeros(full_shape, np.float32)
+            for first, cnt, width, _, Z, _ in blocks:
+                kernels.unpermute_scaled(Z, ident, active[first:first + cnt].astype(np.int64), scale, Z_full)
+            return Z_full
+
+        def step() -> tuple[float, float]:
+            change = top = 0.0
+            for blk in blocks:
+                ch, tp = kernels.jacobi_step(blk[2], indptr, indices, data, blk[4], blk[5], blk[3], floor, bounds)
+                blk[4], blk[5] = blk[5], blk[4]
+                change, top = max(change, ch), max(top, tp)
+            return change, top
+    else:
+        Pm = sp.csr_matrix((data, indices, indptr), shape=(n, n), copy=True)  # never alias the system
+        Pm.eliminate_zeros()
+        B = np.ascontiguousarray(B_src[:, active]) / scale  # iterate on Z / max(B), see module doc
+        state = {"Z": np.zeros_like(B)}
+
+        def paper_units() -> np.ndarray:
+            Z_full = np.zeros(full_shape, np.float32)
+            if order is None:
+                Z_full[:, active] = state["Z"] * scale
+            else:
+                tmp = np.zeros(full_shape, np.float32)
+                tmp[:, active] = state["Z"] * scale
+                Z_full[order] = tmp
+            return Z_full
+
+        def step() -> tuple[float, float]:
+            Z = state["Z"]
+            Z_new = Pm @ Z
+            Z_new += B
+            np.multiply(Z_new, Z_new >= floor, out=Z_new)
+            top = float(Z_new.max()) if Z_new.size else 0.0  # Z >= 0 throughout
+            change = float(np.abs(Z_new - Z).max()) if Z_new.size else 0.0
+            state["Z"] = Z_new
+            return change, top
+
     for it in range(1, max_iter + 1):
-        Z_new = system.P @ Z
-        Z_new += B
-        np.multiply(Z_new, Z_new >= floor, out=Z_new)
-        top = float(Z_new.max()) if Z_new.size else 0.0  # Z >= 0 throughout
-        change = float(np.abs(Z_new - Z).max()) if Z_new.size else 0.0
+        change, top = step()
         residual = change / top if top > 0 else 0.0
         residuals.append(residual)
-        Z = Z_new
         if observer is not None and (not hasattr(observer, "wants") or observer.wants(it)):
-            view = paper_units(Z).view()
+            view = paper_units().view()
             view.flags.writeable = False
             observer(it, view, {"residual": residual})
         if residual <= tol:
             converged = True
             break
-    return DiffusionResult(Z=paper_units(Z), iterations=it, converged=converged,
-                           residual=residuals[-1] if residuals else 0.0, residuals=residuals)
+    return DiffusionResult(Z=paper_units(), iterations=it, converged=converged,
+                           residual=residuals[-1] if residuals else 0.0, residuals=residuals,
+                           info={"solver": "jacobi", "backend": backend})
+
+
+EXACT_DIRECT_MAX = 1_000_000
+"""solver=exact factorises I - P (SuperLU) up to this many reachable points, else GMRES + ILU."""
+
+
+def solve_exact(system: System, *, max_iter: int = 200, tol: float = 1e-4,
+                observer: Optional[Observer] = None, backend: str = "auto") -> DiffusionResult:
+    """The fixed point of Eq. 10 directly: (I - P) Z = B, in float64.
+
+    Only points from which some evidence can be reached through the graph are solved for
+    (elsewhere the fixed point is Z = 0, as Jacobi leaves it, and I - P is singular). Up to
+    :data:`EXACT_DIRECT_MAX` of them the system is factorised once (SuperLU, COLAMD ordering)
+    and solved for every class; above, each class is solved by restarted GMRES with an
+    incomplete-LU preconditioner to ``tol`` relative residual in at most ``max_iter`` iterations.
+    ``residual`` is max over classes of |B_c - (I - P) Z_c| / |B_c|. The observer sees the
+    result once, as iteration 1.
+    """
+    import scipy.sparse.csgraph as csgraph
+    import scipy.sparse.linalg as spla
+
+    backend = _resolve_backend(backend)
+    if backend == "torch":
+        raise RuntimeError("solver=exact runs on the CPU (scipy); use solver.backend=auto with it")
+    active = np.flatnonzero(system.B.any(0))
+    full_shape = system.B.shape
+    n = full_shape[0]
+    b_max = float(system.B.max()) if system.B.size else 0.0
+    scale = b_max if b_max > 0 else 1.0
+    if isinstance(system, SortedSystem):
+        order = system.order
+        indptr, indices, data = system.sorted_csr()
+        P = sp.csr_matrix((data.astype(np.float64), indices.copy(), indptr.copy()), shape=(n, n))
+        P.eliminate_zeros()
+        B = system.B[order][:, active].astype(np.float64) / scale
+    else:
+        order = np.arange(n)
+        P = system.P.astype(np.float64).tocsr()
+        B = system.B[:, active].astype(np.float64) / scale
+    # points that reach evidence: breadth-first search from a virtual node linked to every
+    # evidence point, along the reversed edges (j -> i where P_ij > 0)
+    src = np.flatnonzero(B.any(1))
+    PT = P.T.tocsr()
+    virt = sp.csr_matrix((np.ones(src.size), src, [0, src.size]), shape=(1, n + 1))
+    G = sp.vstack([sp.hstack([PT, sp.csr_matrix((n, 1))]), virt]).tocsr()
+    reach = np.zeros(n, bool)
+    if src.size:
+        seen = csgraph.breadth_first_order(G, n, directed=True, return_predecessors=False)
+        reach[seen[seen < n]] = True
+    R = np.flatnonzero(reach)
+    A = (sp.identity(R.size, format="csr") - P[R][:, R]).tocsc()
+    BR = B[R]
+    Z = np.zeros_like(BR)
+    info: dict = {"solver": "exact", "backend": "scipy", "points_solved": int(R.size)}
+    krylov = 0
+    converged = True
+    if R.size and active.size:
+        if R.size <= EXACT_DIRECT_MAX:
+            lu = spla.splu(A, permc_spec="COLAMD")
+            Z = lu.solve(BR)
+            info["method"] = "splu"
+        else:
+            ilu = spla.spilu(A, drop_tol=1e-5, fill_factor=10)
+            M = spla.LinearOperator(A.shape, ilu.solve)
+            Acsr = A.tocsr()
+            for c in range(BR.shape[1]):
+                its = [0]
+
+                def count(_):
+                    its[0] += 1
+
+                z, flag = spla.gmres(Acsr, BR[:, c], rtol=tol, restart=50, maxiter=max_iter, M=M,
+                                     callback=count, callback_type="pr_norm")
+                Z[:, c] = z
+                krylov = max(krylov, its[0])
+                converged &= flag == 0
+            info["method"] = "gmres+ilu"
+            info["krylov_iterations"] = krylov
+    Acsr = A.tocsr()
+    res = 0.0
+    for c in range(BR.shape[1]):
+        nb = np.linalg.norm(BR[:, c])
+        if nb > 0:
+            res = max(res, float(np.linalg.norm(BR[:, c] - Acsr @ Z[:, c]) / nb))
+    np.maximum(Z, 0.0, out=Z)  # the fixed point is non-negative; clip round-off
+    Z_full = np.zeros(full_shape, np.float32)
+    Z_full[np.ix_(order[R], active)] = (Z * scale).astype(np.float32)
+    if observer is not None and (not hasattr(observer, "wants") or observer.wants(1)):
+        view = Z_full.copy().view()
+        view.flags.writeable = False
+        observer(1, view, {"residual": res})
+    return DiffusionResult(Z=Z_full, iterations=max(krylov, 1), converged=bool(converged), residual=res,
+                           residuals=[res], info=info)
 
 
 def labels_from_scores(Z: np.ndarray) -> np.ndarray:
@@ -129,6 +358,9 @@ def labels_from_scores(Z: np.ndarray) -> np.ndarray:
 def solve(system: System, cfg, observer: Optional[Observer] = None) -> DiffusionResult:
     """Dispatch on ``cfg`` (:class:`~diffuser_lab.config.SolverConfig`): the solver and backend."""
     name = getattr(cfg.name, "value", cfg.name)
+    backend = getattr(cfg.backend, "value", cfg.backend)
     if name == "jacobi":
-        return diffuse(system, max_iter=cfg.max_iter, tol=cfg.tol, observer=observer)
-    raise NotImplementedError(f"solver.name={name} is not implemented yet")
+        return diffuse(system, max_iter=cfg.max_iter, tol=cfg.tol, observer=observer, backend=backend)
+    if name == "exact":
+        return solve_exact(system, max_iter=cfg.max_iter, tol=cfg.tol, observer=observer, backend=backend)
+    raise ValueError(f"solver.name={name}: expected jacobi or exact")

@@ -4,6 +4,14 @@ Each point is linked to its K nearest neighbours (Euclidean, KD-tree) with weigh
     w_ij = exp(-|x_i - x_j|^2 / (2 sigma_d^2) - |n_i - n_j|^2 / (2 sigma_s^2)),
 sigma_d = 2 rho by default, rho = mean distance of a point to its nearest neighbour.
 The graph is directed as in Eq. 3 (j in KNN(i)); rows have exactly K entries.
+
+Speed: :func:`build_graph` sorts the points along a Morton (Z-order) curve first and works in
+that order throughout (kNN, weights, and later the normalised system and the diffusion), so that
+a point's neighbours are near it in memory. With numba (the ``fast`` extra) the kNN is an exact
+search on a uniform grid aligned with that curve (cell side ~ the K-th neighbour distance, rings
+of cells until no closer point can remain), else scipy's cKDTree queried in that order. The
+graph it returns exposes ``neighbors``/``weights`` in the caller's point order (built on first
+access); results never depend on the input order except through exact distance ties.
 """
 from __future__ import annotations
 
@@ -43,6 +51,55 @@ class KnnGraph:
         return sp.csr_matrix((data.ravel().copy(), self.neighbors.ravel().copy(), indptr), shape=(n, n))
 
 
+class SortedKnnGraph(KnnGraph):
+    """A :class:`KnnGraph` kept in Morton order internally (see module doc).
+
+    Attributes:
+        order: (N,) int64, ``order[s]`` = caller's index of sorted point s.
+        sorted_neighbors: (N, K) int32 neighbours of sorted point s, as sorted indices.
+        sorted_weights: (N, K) float32 their weights; sorted_row_sums: (N,) float64 row sums.
+    ``neighbors``/``weights`` (caller's order) are computed on first access and cached.
+    """
+
+    def __init__(self, order: np.ndarray, sorted_neighbors: np.ndarray, sorted_weights: np.ndarray,
+                 sorted_row_sums: np.ndarray, rho: float, sigma_d: float):
+        self.order = order
+        self.sorted_neighbors = sorted_neighbors
+        self.sorted_weights = sorted_weights
+        self.sorted_row_sums = sorted_row_sums
+        self.rho = rho
+        self.sigma_d = sigma_d
+        self._public: tuple[np.ndarray, np.ndarray] | None = None
+
+    def _caller_order(self) -> tuple[np.ndarray, np.ndarray]:
+        if self._public is None:
+            nb = np.empty_like(self.sorted_neighbors)
+            w = np.empty_like(self.sorted_weights)
+            nb[self.order] = self.order[self.sorted_neighbors]
+            w[self.order] = self.sorted_weights
+            self._public = (nb, w)
+        return self._public
+
+    @property
+    def neighbors(self) -> np.ndarray:  # type: ignore[override]
+        return self._caller_order()[0]
+
+    @property
+    def weights(self) -> np.ndarray:  # type: ignore[override]
+        return self._caller_order()[1]
+
+    @property
+    def n(self) -> int:
+        return int(self.order.shape[0])
+
+    @property
+    def k(self) -> int:
+        return int(self.sorted_neighbors.shape[1])
+
+    def __repr__(self) -> str:
+        return f"SortedKnnGraph(n={self.n}, k={self.k}, rho={self.rho:.4g}, sigma_d={self.sigma_d:.4g})"
+
+
 def knn(points: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     """K nearest neighbours of every point, itself excluded (duplicates of it are kept).
 
@@ -79,22 +136,63 @@ def normal_distance2(ni: np.ndarray, nj: np.ndarray, invariant: bool) -> np.ndar
     return np.maximum(2.0 - 2.0 * dot, 0.0)
 
 
+def _knn_kdtree(points: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`knn` with float64 squared distances (the scipy path of :func:`build_graph`)."""
+    n = points.shape[0]
+    dist, idx = cKDTree(points).query(points, k=k + 1, workers=-1)
+    is_self = idx == np.arange(n)[:, None]
+    is_self[~is_self.any(1), -1] = True
+    keep = ~(is_self & (is_self.cumsum(1) == 1))
+    return idx[keep].reshape(n, k).astype(np.int32), np.square(dist[keep].reshape(n, k))
+
+
 def build_graph(points: np.ndarray, k: int = 24, normals: np.ndarray | None = None, *,
                 sigma_s: float = 0.2, sigma_d: float | None = None, sigma_d_factor: float = 2.0,
-                invariant_normals: bool = False) -> KnnGraph:
+                invariant_normals: bool = False, backend: str = "auto") -> KnnGraph:
     """Eqs. 3-4 for (N, 3) world ``points``.
 
     Args:
         normals: (N, 3) unit normals; None drops the normal term (LDLS-like graph).
         sigma_d: distance bandwidth in metres; None = ``sigma_d_factor`` * rho.
         invariant_normals: normal difference independent of the normals' sign.
+        backend: ``auto`` (compiled grid kNN when numba is available), ``numba``, or
+            ``scipy`` (cKDTree + numpy).
+    Returns:
+        a :class:`SortedKnnGraph` (see module doc).
     """
+    from . import kernels
+    from .geometry import morton_codes, quantize
+
     points = np.asarray(points, np.float32)
-    dist, idx = knn(points, k)
-    rho = mean_spacing(dist)
+    n = points.shape[0]
+    if k >= n:
+        raise ValueError(f"graph.k={k} must be smaller than the number of points ({n})")
+    if backend == "numba" and not kernels.available():
+        raise RuntimeError("graph backend numba: numba is not installed (pip install 'diffuser-lab[fast]')")
+    q, _, step = quantize(points)
+    order = np.argsort(morton_codes(q), kind="stable")
+    ps = np.ascontiguousarray(points[order])
+    nrm = None if normals is None else np.ascontiguousarray(np.asarray(normals, np.float32)[order])
+    res = None
+    use_nb = backend != "scipy" and kernels.available()
+    if use_nb:
+        res = kernels.knn_grid(ps, np.ascontiguousarray(q[order]), step, k)
+    idx, d2 = res if res is not None else _knn_kdtree(ps, k)
+    # rho: per point the nearest *distinct* neighbour (duplicates at distance 0 skipped)
+    d0 = np.sqrt(np.where(d2 > 0, d2, np.inf).min(1))
+    pos = d0[np.isfinite(d0)]
+    if pos.size == 0:
+        raise ValueError("all points coincide: the mean point spacing rho is 0")
+    rho = float(pos.mean())
     sd = float(sigma_d) if sigma_d is not None else sigma_d_factor * rho
-    expo = dist * dist * np.float32(-0.5 / sd**2)
-    if normals is not None:
-        nrm = np.asarray(normals, np.float32)
-        expo -= normal_distance2(nrm[:, None, :], nrm[idx], invariant_normals) * np.float32(0.5 / sigma_s**2)
-    return KnnGraph(neighbors=idx, weights=np.exp(expo).astype(np.float32), rho=rho, sigma_d=sd)
+    if use_nb:
+        w, wsum = kernels.edge_weights(d2, idx, nrm, invariant_normals, sd, sigma_s)
+    else:
+        expo = d2 * (-0.5 / sd**2)
+        if nrm is not None:
+            expo -= normal_distance2(nrm[:, None, :].astype(np.float64), nrm[idx].astype(np.float64),
+                                     invariant_normals) * (0.5 / sigma_s**2)
+        w = np.exp(expo).astype(np.float32)
+        wsum = w.sum(1, dtype=np.float64)
+    return SortedKnnGraph(order=order, sorted_neighbors=idx, sorted_weights=w, sorted_row_sums=wsum,
+                          rho=rho, sigma_d=sd)

@@ -183,7 +183,11 @@ def test_duplicate_points_give_no_nan(good, tmp_path):
     assert p.returncode == 0, p.stderr
     s = json.loads((tmp_path / "run" / "summary.json").read_text())
     labels = np.load(tmp_path / "run" / "labels.npy")
-    assert s["status"] == "ok" and s["metrics"]["miou"] > 50
+    assert s["status"] == "ok"
+    # zero distances give finite weights: the diffusion still improves on Bayesian fusion
+    # (the duplicates fill neighbour slots, so it reaches less far than on the plain cloud)
+    assert s["metrics"]["miou"] > s["baseline"]["bayesian"]["miou"] + 3
+    assert s["metrics"]["coverage"] > s["baseline"]["bayesian"]["coverage"]
     np.testing.assert_array_equal(labels[0::3], labels[1::3])  # duplicates agree
 
 

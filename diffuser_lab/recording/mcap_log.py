@@ -1,0 +1,501 @@
+"""run.mcap: the diffusion as MCAP (zstd chunks, protobuf messages with their schemas inside).
+
+Channels (message encoding ``protobuf``; schemas in :mod:`diffuser_lab.recording.schema`)::
+
+    /scene/points        foxglove.PointCloud, once: input cloud (x y z float32, red green blue alpha
+                         uint8 = input colours, else ground-truth colours, label int16 = ground truth)
+    /evidence/bayesian   foxglove.PointCloud, once: work cloud coloured by Bayesian labels
+    /diffuser_lab/run    diffuser_lab.RunInfo, once: taxonomy, work cloud, cameras
+    /diffusion/labels    foxglove.PointCloud, per recorded iteration: work cloud coloured by label
+                         (fields as above, label = the iteration's class ids)
+    /diffuser_lab/metrics  diffuser_lab.IterationMetrics, per recorded iteration
+    /diffuser_lab/z      diffuser_lab.ZState, per recorded iteration: the full (M, C) Z
+
+Metadata records: ``diffuser_lab.config`` (``yaml``: the resolved config, ``overrides``: JSON list),
+``diffuser_lab.run`` (scene, method, sizes, taxonomy as JSON) and, once the run has finished,
+``diffuser_lab.summary`` (``json``: the summary.json content).
+
+Each recorded iteration ends its chunk and flushes the file, so a run that is killed leaves
+every completed iteration readable (:func:`read_run` reads such a truncated file).
+Compression and writing happen on one background thread (in order, a short bounded queue), so
+the diffusion does not wait for zstd; :meth:`McapRecorder.close` drains it.
+Message ``sequence`` is the diffusion iteration; ``log_time`` is the wall clock (ns).
+"""
+from __future__ import annotations
+
+import functools
+import json
+import queue
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Iterator, Optional, Sequence
+
+import numpy as np
+
+from . import schema
+from .steps import Step
+
+TOPIC_SCENE = "/scene/points"
+TOPIC_EVIDENCE = "/evidence/bayesian"
+TOPIC_RUN = "/diffuser_lab/run"
+TOPIC_LABELS = "/diffusion/labels"
+TOPIC_METRICS = "/diffuser_lab/metrics"
+TOPIC_Z = "/diffuser_lab/z"
+FRAME_ID = "world"
+MAGIC = b"\x89MCAP0\r\n"
+
+
+def _cloud_dtype() -> np.dtype:
+    return np.dtype({"names": ["x", "y", "z", "red", "green", "blue", "alpha", "label"],
+                     "formats": ["<f4", "<f4", "<f4", "u1", "u1", "u1", "u1", "<i2"]})
+
+
+def _point_cloud(buf: np.ndarray, stamp_ns: int) -> Any:
+    """A foxglove.PointCloud of the packed structured array ``buf``."""
+    from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
+    from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+
+    kinds = {"<f4": PackedElementField.FLOAT32, "|u1": PackedElementField.UINT8, "<i2": PackedElementField.INT16}
+    msg = PointCloud(frame_id=FRAME_ID, point_stride=buf.dtype.itemsize)
+    msg.timestamp.FromNanoseconds(stamp_ns)
+    msg.pose.orientation.w = 1.0
+    for name in buf.dtype.names:
+        dt, off = buf.dtype.fields[name][:2]
+        msg.fields.add(name=name, offset=off, type=kinds[dt.str])
+    msg.data = buf.tobytes()
+    return msg
+
+
+def decode_point_cloud(msg: Any) -> dict[str, np.ndarray]:
+    """foxglove.PointCloud -> {field name: (P,) array} (FLOAT32, UINT8, INT16, INT32 fields)."""
+    from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField as F
+
+    codes = {F.FLOAT32: "<f4", F.UINT8: "u1", F.INT16: "<i2", F.INT32: "<i4", F.UINT16: "<u2",
+             F.FLOAT64: "<f8", F.INT8: "i1", F.UINT32: "<u4"}
+    dt = np.dtype({"names": [f.name for f in msg.fields], "formats": [codes[f.type] for f in msg.fields],
+                   "offsets": [f.offset for f in msg.fields], "itemsize": msg.point_stride})
+    arr = np.frombuffer(msg.data, dt)
+    return {name: np.ascontiguousarray(arr[name]) for name in dt.names}
+
+
+def encode_z(Z: np.ndarray, dtype: str) -> tuple[bytes, float]:
+    """(M, C) Z -> (row-major little-endian bytes, scale) with Z = decoded * scale; float32 is
+    exact (scale 1), float16 stores Z / max(Z) so that Z's tiny values keep their precision."""
+    if dtype == "float16":
+        top = float(Z.max()) if Z.size else 0.0
+        scale = top if top > 0 else 1.0
+        return (Z / np.float32(scale)).astype("<f2").tobytes(), scale
+    return np.ascontiguousarray(Z, dtype="<f4").tobytes(), 1.0
+
+
+def _varint(n: int) -> bytes:
+    out = bytearray()
+    while True:
+        b = n & 0x7F
+        n >>= 7
+        if n:
+            out.append(b | 0x80)
+        else:
+            out.append(b)
+            return bytes(out)
+
+
+def z_state_bytes(iteration: int, Z: np.ndarray, dtype: str) -> bytes:
+    """``ZState(...).SerializeToString()`` with Z copied once: the fields around ``data`` are
+    serialized by protobuf, field 5 (tag, length, the array's bytes) is joined in between."""
+    if dtype == "float16":
+        top = float(Z.max()) if Z.size else 0.0
+        scale = top if top > 0 else 1.0
+        arr = np.ascontiguousarray((Z / np.float32(scale)).astype("<f2"))
+    else:
+        scale = 1.0
+        arr = np.ascontiguousarray(Z, dtype="<f4")
+    body = arr.reshape(-1).view(np.uint8)
+    head = schema.ZState(iteration=int(iteration), n_points=Z.shape[0], n_classes=Z.shape[1],
+                         dtype=dtype).SerializeToString()
+    tail = schema.ZState(scale=scale).SerializeToString()
+    field5 = (b"\x2a" + _varint(body.nbytes), body) if body.nbytes else ()
+    return b"".join((head, *field5, tail))
+
+
+class _RawMessage:
+    """An already serialized message (what the writer thread calls SerializeToString on)."""
+
+    __slots__ = ("data",)
+
+    def __init__(self, data: bytes):
+        self.data = data
+
+    def SerializeToString(self) -> bytes:  # noqa: N802 - protobuf's name
+        return self.data
+
+
+def decode_z(msg: Any) -> np.ndarray:
+    """diffuser_lab.ZState -> (M, C) float32 Z in the paper's units."""
+    dt = "<f2" if msg.dtype == "float16" else "<f4"
+    Z = np.frombuffer(msg.data, dt).reshape(msg.n_points, msg.n_classes).astype(np.float32)
+    if msg.scale not in (0.0, 1.0):
+        Z *= np.float32(msg.scale)
+    return Z
+
+
+WRITER_THREAD = True
+"""Compress and write on a background thread (False: in the caller's thread)."""
+ZSTD_LEVEL = -3
+"""zstd level of run.mcap's chunks. Float32 Z barely compresses (about 0.57x at the library's
+default level 3, 0.63x at -3) and compressing it is most of the cost of recording, so a fast
+level: about 3x faster than level 3 for 10% more bytes."""
+
+
+@functools.lru_cache(maxsize=None)
+def _writer_class():
+    """mcap's Writer with chunks compressed at :data:`ZSTD_LEVEL`.
+
+    mcap 1.x compresses chunks with ``zstandard.compress(data)`` (level 3) and has no option
+    for the level, so the subclass carries a copy of the chunk-finishing method whose global
+    ``zstandard`` is a shim with the level set; mcap's own module is not touched. Falls back to
+    the stock Writer when mcap's internals differ from what this expects."""
+    import types
+
+    import zstandard
+    from mcap.writer import Writer
+
+    fn = getattr(Writer, "_Writer__finalize_chunk", None)
+    if fn is None or "zstandard" not in fn.__code__.co_names:
+        return Writer
+
+    class _Zstd:
+        def __getattr__(self, name: str) -> Any:
+            return getattr(zstandard, name)
+
+        @staticmethod
+        def compress(data: bytes) -> bytes:
+            return zstandard.compress(data, ZSTD_LEVEL)
+
+    glb = dict(fn.__globals__)
+    glb["zstandard"] = _Zstd()
+
+    class FastZstdWriter(Writer):
+        pass
+
+    FastZstdWriter._Writer__finalize_chunk = types.FunctionType(  # type: ignore[attr-defined]
+        fn.__code__, glb, fn.__name__, fn.__defaults__, fn.__closure__)
+    return FastZstdWriter
+
+
+class McapRecorder:
+    """Writes run.mcap as the run goes (see the module doc)."""
+
+    file_key = "mcap"
+
+    def __init__(self, path: Path, *, z_dtype: str = "float32", config_yaml: str = "",
+                 overrides: Sequence[str] = (), interval: int = 1, max_iter: int = 0):
+        from mcap.writer import CompressionType
+
+        from .. import __version__
+
+        self.path = Path(path)
+        self.z_dtype = z_dtype
+        self.interval, self.max_iter = int(interval), int(max_iter)
+        self._fh = open(self.path, "wb")
+        self.w = _writer_class()(self._fh, compression=CompressionType.ZSTD)
+        self.w.start(profile="", library=f"diffuser-lab {__version__}")
+        from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+
+        self._channels: dict[str, int] = {}
+        self._schema_ids: dict[str, int] = {}
+        for topic, cls in ((TOPIC_SCENE, PointCloud), (TOPIC_EVIDENCE, PointCloud), (TOPIC_RUN, schema.RunInfo),
+                           (TOPIC_LABELS, PointCloud), (TOPIC_METRICS, schema.IterationMetrics),
+                           (TOPIC_Z, schema.ZState)):
+            sid = self._schema(cls)
+            self._channels[topic] = self.w.register_channel(topic=topic, message_encoding="protobuf", schema_id=sid)
+        self.w.add_metadata("diffuser_lab.config", {"yaml": config_yaml, "overrides": json.dumps(list(overrides))})
+        self._cameras: list[Any] = []
+        self._labels_buf: Optional[np.ndarray] = None
+        self._colors: Optional[np.ndarray] = None
+        self._closed = False
+        self._error: Optional[BaseException] = None
+        self._queue: queue.Queue = queue.Queue(maxsize=32)  # ~8 iterations
+        self._thread: Optional[threading.Thread] = None
+        if WRITER_THREAD:
+            self._thread = threading.Thread(target=self._work, name="diffuser-lab-mcap", daemon=True)
+            self._thread.start()
+
+    # -- the writer thread: the only user of self.w from here on ----------------------------------
+    def _work(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is None:
+                return
+            if self._error is not None:
+                continue  # drain after a failure
+            fn, args = item
+            try:
+                fn(*args)
+            except BaseException as exc:  # noqa: BLE001 - reported by the next call or close()
+                self._error = exc
+
+    def _submit(self, fn, *args) -> None:
+        if self._error is not None:
+            raise RuntimeError(f"writing {self.path.name} failed: {self._error}") from self._error
+        if self._thread is None:
+            fn(*args)
+        else:
+            self._queue.put((fn, args))
+
+    def _add(self, topic: str, msg: Any, sequence: int, t: int) -> None:
+        self.w.add_message(self._channels[topic], log_time=t, publish_time=t, sequence=sequence,
+                           data=msg.SerializeToString())
+
+    def _schema(self, cls) -> int:
+        name = cls.DESCRIPTOR.full_name
+        if name not in self._schema_ids:
+            self._schema_ids[name] = self.w.register_schema(name=name, encoding="protobuf",
+                                                            data=schema.file_descriptor_set(cls))
+        return self._schema_ids[name]
+
+    def _write(self, topic: str, msg: Any, sequence: int = 0) -> None:
+        """Queue ``msg`` (which must not change afterwards) for the writer thread."""
+        self._submit(self._add, topic, msg, int(sequence), time.time_ns())
+
+    def _flush(self) -> None:
+        self._submit(self.w.flush)
+
+    def _lut(self, labels: np.ndarray) -> np.ndarray:
+        idx = np.where(labels < 0, len(self._colors) - 1, labels)
+        return self._colors[idx]
+
+    # -- static ----------------------------------------------------------------------------
+    def log_scene(self, scene: Any) -> None:
+        tax = scene.taxonomy
+        self._colors = np.vstack([tax.colors, np.array([[70, 70, 70]], np.uint8)])  # last: unlabeled
+        gt = scene.gt_labels
+        self._submit(self.w.add_metadata, "diffuser_lab.run", {
+            "scene": scene.name, "n_points": str(scene.n_points), "taxonomy": tax.name,
+            "class_names": json.dumps(list(tax.names)), "class_colors": json.dumps(tax.colors.tolist()),
+            "has_colors": json.dumps(scene.colors is not None), "has_gt": json.dumps(gt is not None)})
+        buf = np.zeros(scene.n_points, _cloud_dtype())
+        for i, ax in enumerate("xyz"):
+            buf[ax] = scene.points[:, i]
+        rgb = scene.colors if scene.colors is not None else (
+            self._lut(gt) if gt is not None else np.full((scene.n_points, 3), 160, np.uint8))
+        buf["red"], buf["green"], buf["blue"], buf["alpha"] = rgb[:, 0], rgb[:, 1], rgb[:, 2], 255
+        buf["label"] = gt if gt is not None else -1
+        self._write(TOPIC_SCENE, _point_cloud(buf, time.time_ns()))
+
+    def log_camera(self, index: int, frame: Any) -> None:
+        h, w = frame.shape
+        self._cameras.append(schema.Camera(name=str(frame.name), width=int(w), height=int(h),
+                                           K=np.asarray(frame.K, float).ravel().tolist(),
+                                           T_cw=np.asarray(frame.T_cw, float).ravel().tolist()))
+
+    def log_evidence(self, scene: Any, method: str, work_points: np.ndarray, to_work: Optional[np.ndarray],
+                     seen: np.ndarray, bayesian: np.ndarray) -> None:
+        tax = scene.taxonomy
+        m = len(work_points)
+        info = schema.RunInfo(scene=scene.name, method=method, taxonomy=tax.name, class_names=list(tax.names),
+                              class_colors=np.asarray(tax.colors, np.uint8).tobytes(), n_points=scene.n_points,
+                              n_work_points=m, work_points=np.ascontiguousarray(work_points, "<f4").tobytes(),
+                              original_to_work=b"" if to_work is None else to_work.astype("<i4").tobytes(),
+                              bayesian_labels=np.asarray(bayesian, "<i2").tobytes(),
+                              seen=np.asarray(seen, np.uint8).tobytes(), interval=self.interval,
+                              max_iter=self.max_iter, z_dtype=self.z_dtype)
+        info.cameras.extend(self._cameras)
+        self._write(TOPIC_RUN, info)
+        buf = np.zeros(m, _cloud_dtype())
+        for i, ax in enumerate("xyz"):
+            buf[ax] = work_points[:, i]
+        rgb = self._lut(bayesian)
+        buf["red"], buf["green"], buf["blue"], buf["alpha"] = rgb[:, 0], rgb[:, 1], rgb[:, 2], 255
+        buf["label"] = bayesian
+        self._write(TOPIC_EVIDENCE, _point_cloud(buf, time.time_ns()))
+        # the per-iteration cloud: positions filled once
+        self._labels_buf = np.zeros(m, _cloud_dtype())
+        for i, ax in enumerate("xyz"):
+            self._labels_buf[ax] = work_points[:, i]
+        self._labels_buf["alpha"] = 255
+        self._flush()
+
+    # -- per iteration ------------------------------------------------------------------------
+    def log_step(self, step: Step) -> None:
+        nan = float("nan")
+        self._write(TOPIC_METRICS, schema.IterationMetrics(
+            iteration=step.iteration, residual=step.residual, n_changed=step.n_changed,
+            previous_iteration=step.previous, miou=nan if step.miou is None else step.miou,
+            accuracy=nan if step.accuracy is None else step.accuracy, coverage=step.coverage,
+            mean_confidence=step.mean_confidence), step.iteration)
+        if self._labels_buf is not None:
+            buf = self._labels_buf
+            rgb = self._lut(step.labels)
+            buf["red"], buf["green"], buf["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
+            buf["label"] = step.labels
+            self._write(TOPIC_LABELS, _point_cloud(buf, time.time_ns()), step.iteration)
+        self._write(TOPIC_Z, _RawMessage(z_state_bytes(step.iteration, step.Z, self.z_dtype)), step.iteration)
+        self._flush()  # ends the chunk: a killed run keeps this iteration
+
+    def log_summary(self, summary: dict) -> None:
+        self._submit(self.w.add_metadata, "diffuser_lab.summary",
+                     {"json": json.dumps(summary, default=_json_default)})
+        self._flush()
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            if self._thread is None:
+                self.w.finish()
+            else:
+                self._queue.put((self.w.finish, ()))
+                self._queue.put(None)
+                self._thread.join()
+        finally:
+            self._fh.close()
+        if self._error is not None:
+            raise RuntimeError(f"writing {self.path.name} failed: {self._error}") from self._error
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    return str(o)
+
+
+# ---------------------------------------------------------------------------------------------
+# reading
+
+
+@dataclass
+class RunLog:
+    """What :func:`read_run` found in a run.mcap.
+
+    Attributes:
+        metadata: {record name: {key: value}} (config, run, summary when the run finished).
+        info: the RunInfo message, or None.
+        metrics: per recorded iteration, dicts with the IterationMetrics fields (None for NaN).
+        z_iterations: iterations whose Z state was read completely, in order.
+        z: {iteration: (M, C) float32 Z} for the iterations asked for.
+        scene: {field: array} of the /scene/points cloud (x y z red green blue alpha label), or None.
+        truncated: the file ended before its footer (killed run or cut copy).
+        error: what stopped the reading early, or None.
+    """
+
+    path: Path
+    metadata: dict = field(default_factory=dict)
+    info: Any = None
+    metrics: list = field(default_factory=list)
+    z_iterations: list = field(default_factory=list)
+    z: dict = field(default_factory=dict)
+    scene: Optional[dict] = None
+    truncated: bool = False
+    error: Optional[str] = None
+    complete: bool = False
+
+    @property
+    def config_yaml(self) -> str:
+        return self.metadata.get("diffuser_lab.config", {}).get("yaml", "")
+
+    @property
+    def overrides(self) -> list:
+        return json.loads(self.metadata.get("diffuser_lab.config", {}).get("overrides", "[]"))
+
+    @property
+    def summary(self) -> Optional[dict]:
+        s = self.metadata.get("diffuser_lab.summary")
+        return json.loads(s["json"]) if s else None
+
+    @property
+    def run(self) -> dict:
+        return self.metadata.get("diffuser_lab.run", {})
+
+    @property
+    def class_names(self) -> list:
+        if self.info is not None:
+            return list(self.info.class_names)
+        return json.loads(self.run.get("class_names", "[]"))
+
+
+def iter_run(path: Path | str, log: "RunLog") -> Iterator[tuple[str, Any]]:
+    """Read run.mcap front to back (no summary section needed, so a truncated file works),
+    yielding ``(topic, raw message bytes)`` for every message and ``("metadata:<name>", dict)``
+    for metadata records. Sets ``log.complete`` / ``log.truncated`` / ``log.error`` at the end;
+    only whole records are yielded."""
+    from mcap.records import Channel, Footer, Message, Metadata
+    from mcap.stream_reader import StreamReader
+
+    topics: dict[int, str] = {}
+    with open(path, "rb") as fh:
+        if fh.read(8) != MAGIC:
+            raise ValueError(f"{path}: not an MCAP file")
+        fh.seek(0)
+        reader = StreamReader(fh, validate_crcs=True)
+        try:
+            for rec in reader.records:
+                if isinstance(rec, Channel):
+                    topics[rec.id] = rec.topic
+                elif isinstance(rec, Metadata):
+                    log.metadata[rec.name] = dict(rec.metadata)
+                    yield f"metadata:{rec.name}", dict(rec.metadata)
+                elif isinstance(rec, Message):
+                    yield topics.get(rec.channel_id, ""), rec.data
+                elif isinstance(rec, Footer):
+                    log.complete = True
+        except Exception as exc:  # noqa: BLE001 - a cut file ends in any of several ways
+            log.truncated = True
+            log.error = (f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__)[:300]
+    if not log.complete and not log.truncated:
+        log.truncated, log.error = True, "the file ends without its footer"
+
+
+def metrics_dict(data: bytes) -> dict:
+    """IterationMetrics bytes -> dict (NaN mIoU / accuracy -> None)."""
+    m = schema.IterationMetrics.FromString(data)
+    d = {f: getattr(m, f) for f in ("iteration", "residual", "n_changed", "previous_iteration", "miou",
+                                    "accuracy", "coverage", "mean_confidence")}
+    for k in ("miou", "accuracy"):
+        if d[k] != d[k]:
+            d[k] = None
+    return d
+
+
+def read_run(path: Path | str, *, z: Optional[Iterable[int]] | str = None, scene: bool = False) -> RunLog:
+    """Read a run.mcap, also a truncated one (see :func:`iter_run`).
+
+    Args:
+        z: iterations whose Z to decode (``"all"`` for every one, ``"last"`` for the last
+            complete one); None: none.
+        scene: also decode the /scene/points cloud.
+    Returns:
+        :class:`RunLog`; ``truncated``/``error`` say whether the file ended early. An iteration
+        counts as recorded only when its Z arrived whole.
+    """
+    from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+
+    want_all, want_last = z == "all", z == "last"
+    want = set() if (z is None or isinstance(z, str)) else {int(i) for i in z}
+    out = RunLog(path=Path(path))
+    for topic, data in iter_run(path, out):
+        if topic == TOPIC_METRICS:
+            out.metrics.append(metrics_dict(data))
+        elif topic == TOPIC_Z:
+            msg = schema.ZState.FromString(data)
+            out.z_iterations.append(int(msg.iteration))
+            if want_last:
+                out.z = {int(msg.iteration): decode_z(msg)}
+            elif want_all or msg.iteration in want:
+                out.z[int(msg.iteration)] = decode_z(msg)
+        elif topic == TOPIC_RUN:
+            out.info = schema.RunInfo.FromString(data)
+        elif topic == TOPIC_SCENE and scene:
+            out.scene = decode_point_cloud(PointCloud.FromString(data))
+    done = set(out.z_iterations)
+    out.metrics = [m for m in out.metrics if m["iteration"] in done]
+    return out
+
+
+__all__ = ["McapRecorder", "RunLog", "read_run", "iter_run", "metrics_dict", "decode_z", "encode_z", "decode_point_cloud",
+           "TOPIC_Z", "TOPIC_METRICS", "TOPIC_RUN", "TOPIC_LABELS", "TOPIC_SCENE", "TOPIC_EVIDENCE"]

@@ -1,0 +1,125 @@
+"""Protobuf schemas of run.mcap, built at import time with protobuf's descriptor API (no protoc).
+
+The schemas travel inside every run.mcap (a ``FileDescriptorSet`` per schema record, encoding
+``protobuf``), so any MCAP tool with protobuf support (Foxglove, ``rerun mcap convert``,
+``mcap-protobuf-support``'s decoder) decodes the messages without this package. As .proto text::
+
+    syntax = "proto3";
+    package diffuser_lab;
+
+    message Camera {                 // one frame's camera (pinhole, world -> camera pose)
+      string name = 1;
+      uint32 width = 2;  uint32 height = 3;
+      repeated double K = 4;         // 3x3 row-major intrinsics, pixels
+      repeated double T_cw = 5;      // 4x4 row-major world -> camera, metres
+    }
+    message RunInfo {                // once, after the evidence: what the diffusion runs on
+      string scene = 1;  string method = 2;  string taxonomy = 3;
+      repeated string class_names = 4;
+      bytes class_colors = 5;        // (C, 3) uint8 RGB
+      uint32 n_points = 6;           // N original points
+      uint32 n_work_points = 7;      // M points the diffusion runs on (voxel centroids or the N points)
+      bytes work_points = 8;         // (M, 3) float32 little-endian, world metres
+      bytes original_to_work = 9;    // (N,) int32: nearest work point of each original point; empty when M == N
+      bytes bayesian_labels = 10;    // (M,) int16 Bayesian-fusion labels, -1 = unlabeled
+      bytes seen = 11;               // (M,) uint8: 1 where the point received pixel mass
+      uint32 interval = 12;  uint32 max_iter = 13;
+      string z_dtype = 14;           // "float32" | "float16"
+      repeated Camera cameras = 15;
+    }
+    message ZState {                 // every recorded iteration: the full score matrix Z
+      uint32 iteration = 1;
+      uint32 n_points = 2;           // M rows
+      uint32 n_classes = 3;          // C columns
+      string dtype = 4;              // "float32" | "float16"
+      bytes data = 5;                // (M, C) row-major little-endian
+      double scale = 6;              // Z (the paper's units, Eq. 10) = data * scale; 1 for float32
+    }
+    message IterationMetrics {       // every recorded iteration
+      uint32 iteration = 1;
+      double residual = 2;           // max|Z_t - Z_{t-1}| / max|Z_t| of this iteration
+      uint32 n_changed = 3;          // labels changed since the previous recorded iteration (work cloud)
+      uint32 previous_iteration = 4; // 0 for the first recorded iteration
+      double miou = 5;               // percent on the original points; NaN without ground truth
+      double accuracy = 6;           // percent; NaN without ground truth
+      double coverage = 7;           // percent of work points with a label
+      double mean_confidence = 8;    // mean over labelled points of max_c Z / sum_c Z
+    }
+"""
+from __future__ import annotations
+
+from google.protobuf import descriptor_pb2, descriptor_pool
+from google.protobuf.message_factory import GetMessageClass
+
+PACKAGE = "diffuser_lab"
+FILE_NAME = "diffuser_lab/recording.proto"
+
+_F = descriptor_pb2.FieldDescriptorProto
+_SCALAR = {
+    "string": _F.TYPE_STRING, "bytes": _F.TYPE_BYTES, "uint32": _F.TYPE_UINT32,
+    "double": _F.TYPE_DOUBLE, "bool": _F.TYPE_BOOL,
+}
+
+# (message, [(field, number, type, repeated)]) — kept in step with the .proto text above
+_MESSAGES = [
+    ("Camera", [("name", 1, "string", False), ("width", 2, "uint32", False), ("height", 3, "uint32", False),
+                ("K", 4, "double", True), ("T_cw", 5, "double", True)]),
+    ("RunInfo", [("scene", 1, "string", False), ("method", 2, "string", False), ("taxonomy", 3, "string", False),
+                 ("class_names", 4, "string", True), ("class_colors", 5, "bytes", False),
+                 ("n_points", 6, "uint32", False), ("n_work_points", 7, "uint32", False),
+                 ("work_points", 8, "bytes", False), ("original_to_work", 9, "bytes", False),
+                 ("bayesian_labels", 10, "bytes", False), ("seen", 11, "bytes", False),
+                 ("interval", 12, "uint32", False), ("max_iter", 13, "uint32", False),
+                 ("z_dtype", 14, "string", False), ("cameras", 15, ".diffuser_lab.Camera", True)]),
+    ("ZState", [("iteration", 1, "uint32", False), ("n_points", 2, "uint32", False),
+                ("n_classes", 3, "uint32", False), ("dtype", 4, "string", False), ("data", 5, "bytes", False),
+                ("scale", 6, "double", False)]),
+    ("IterationMetrics", [("iteration", 1, "uint32", False), ("residual", 2, "double", False),
+                          ("n_changed", 3, "uint32", False), ("previous_iteration", 4, "uint32", False),
+                          ("miou", 5, "double", False), ("accuracy", 6, "double", False),
+                          ("coverage", 7, "double", False), ("mean_confidence", 8, "double", False)]),
+]
+
+
+def file_descriptor_proto() -> descriptor_pb2.FileDescriptorProto:
+    """The schema file as a FileDescriptorProto (what the .proto text above compiles to)."""
+    fd = descriptor_pb2.FileDescriptorProto(name=FILE_NAME, package=PACKAGE, syntax="proto3")
+    for msg_name, fields in _MESSAGES:
+        m = fd.message_type.add(name=msg_name)
+        for name, number, typ, repeated in fields:
+            f = m.field.add(name=name, number=number)
+            f.label = _F.LABEL_REPEATED if repeated else _F.LABEL_OPTIONAL
+            if typ.startswith("."):
+                f.type, f.type_name = _F.TYPE_MESSAGE, typ
+            else:
+                f.type = _SCALAR[typ]
+    return fd
+
+
+_POOL = descriptor_pool.DescriptorPool()
+_FILE = _POOL.Add(file_descriptor_proto())
+
+Camera = GetMessageClass(_POOL.FindMessageTypeByName(f"{PACKAGE}.Camera"))
+RunInfo = GetMessageClass(_POOL.FindMessageTypeByName(f"{PACKAGE}.RunInfo"))
+ZState = GetMessageClass(_POOL.FindMessageTypeByName(f"{PACKAGE}.ZState"))
+IterationMetrics = GetMessageClass(_POOL.FindMessageTypeByName(f"{PACKAGE}.IterationMetrics"))
+
+
+def file_descriptor_set(message_class) -> bytes:
+    """Serialized ``FileDescriptorSet`` of ``message_class``'s file and its dependencies (the
+    MCAP ``protobuf`` schema encoding)."""
+    fds = descriptor_pb2.FileDescriptorSet()
+    seen: set[str] = set()
+
+    def add(fdesc) -> None:
+        for dep in fdesc.dependencies:
+            if dep.name not in seen:
+                seen.add(dep.name)
+                add(dep)
+        fdesc.CopyToProto(fds.file.add())
+
+    add(message_class.DESCRIPTOR.file)
+    return fds.SerializeToString()
+
+
+__all__ = ["Camera", "RunInfo", "ZState", "IterationMetrics", "file_descriptor_set", "file_descriptor_proto"]

@@ -1,0 +1,115 @@
+"""What each recorded diffusion iteration shows, computed once and shared by both recorders
+(and by ``diffuser-lab-inspect --to-rrd``, which rebuilds the same steps from run.mcap)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional, Sequence
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..metrics import score
+from ..scene import IGNORE
+
+
+@dataclass
+class Step:
+    """One recorded iteration. Arrays on the work cloud have M rows, on the original points N.
+
+    Attributes:
+        iteration: 1-based diffusion iteration.
+        Z: (M, C) float32 scores in the paper's units (read-only; valid during the call only).
+        labels: (M,) int16 argmax of Z (Eq. 16), IGNORE where the row is all zero.
+        confidence: (M,) float32 normalised max of Z, max_c Z / sum_c Z (0 where unlabeled).
+        residual: relative change max|Z_t - Z_{t-1}| / max|Z_t| of this iteration.
+        n_changed: labels changed since the previous recorded iteration.
+        previous: the previous recorded iteration (0: none; changes counted from all-unlabeled).
+        miou, accuracy: percent on the original points, None without ground truth.
+        coverage: percent of work points with a label.
+        mean_confidence: mean confidence over labelled work points.
+        wrong: (N,) bool, annotated original points whose transferred label is wrong, or None.
+    """
+
+    iteration: int
+    Z: np.ndarray
+    labels: np.ndarray
+    confidence: np.ndarray
+    residual: float
+    n_changed: int
+    previous: int
+    miou: Optional[float]
+    accuracy: Optional[float]
+    coverage: float
+    mean_confidence: float
+    wrong: Optional[np.ndarray]
+
+
+def original_to_work(work_points: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(N,) int64 index of the nearest work point of every original point: the same query as
+    :func:`diffuser_lab.geometry.nearest_transfer`, so transferred labels match the run's."""
+    _, idx = cKDTree(work_points).query(points, k=1, workers=-1)
+    return np.asarray(idx, np.int64)
+
+
+def confidence(Z: np.ndarray) -> np.ndarray:
+    """(M, C) scores -> (M,) float32 max_c Z / sum_c Z, 0 where the row sums to 0."""
+    top = Z.max(1)
+    tot = Z.sum(1, dtype=np.float32)
+    out = np.zeros(Z.shape[0], np.float32)
+    np.divide(top, tot, out=out, where=tot > 0)
+    return out
+
+
+class StepTracker:
+    """Turns (iteration, Z, residual) into :class:`Step` s, remembering the previous labels.
+
+    Args:
+        n_work: M, rows of Z.
+        class_names: the taxonomy's names (metrics per class).
+        gt: (N,) int16 ground truth of the original points, or None.
+        to_work: (N,) int index of each original point's work point, or None when the work
+            cloud is the original cloud.
+    """
+
+    def __init__(self, n_work: int, class_names: Sequence[str], gt: Optional[np.ndarray] = None,
+                 to_work: Optional[np.ndarray] = None):
+        self.names = list(class_names)
+        self.gt = None if gt is None else np.asarray(gt)
+        self.to_work = to_work
+        self.prev_labels = np.full(n_work, IGNORE, np.int16)
+        self.prev_iteration = 0
+        self.last: Optional[Step] = None
+        self._rows: Optional[np.ndarray] = None
+
+    def step(self, iteration: int, Z: np.ndarray, residual: float) -> Step:
+        # Eq. 16 as labels_from_scores, sharing the row maxima with the confidence
+        arg = np.argmax(Z, axis=1)
+        m, c = Z.shape
+        if self._rows is None or len(self._rows) != m:
+            self._rows = np.arange(m, dtype=np.int64) * c
+        top = Z.reshape(-1)[self._rows + arg] if Z.flags.c_contiguous else Z[np.arange(m), arg]
+        labels = arg.astype(np.int16)
+        labels[top <= 0] = IGNORE
+        tot = Z.sum(1, dtype=np.float32)
+        conf = np.zeros(Z.shape[0], np.float32)
+        np.divide(top, tot, out=conf, where=tot > 0)
+        labelled = labels != IGNORE
+        n_changed = int(np.count_nonzero(labels != self.prev_labels))
+        miou = acc = wrong = None
+        if self.gt is not None:
+            lab = labels if self.to_work is None else labels[self.to_work]
+            s = score(lab, self.gt, self.names)
+            miou, acc = s["miou"], s["accuracy"]
+            wrong = (lab != self.gt) & (self.gt != IGNORE)
+        n_lab = int(labelled.sum())
+        st = Step(iteration=int(iteration), Z=Z, labels=labels, confidence=conf, residual=float(residual),
+                  n_changed=n_changed, previous=self.prev_iteration, miou=miou, accuracy=acc,
+                  coverage=100.0 * n_lab / max(len(labels), 1),
+                  mean_confidence=float(conf[labelled].mean()) if n_lab else 0.0, wrong=wrong)
+        self.prev_labels = labels
+        self.prev_iteration = int(iteration)
+        self.last = st
+        return st
+
+
+__all__ = ["Step", "StepTracker", "original_to_work", "confidence"]

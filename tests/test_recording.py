@@ -1,0 +1,265 @@
+"""Records of a run (issue 4): run.rrd (Rerun) and run.mcap (MCAP) as observers, replay, inspection."""
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import SMALL_DEMO, run_cli
+from diffuser_lab.config import default_config
+from diffuser_lab.diffusion import labels_from_scores
+from diffuser_lab.inspect_run import main as inspect_main
+from diffuser_lab.pipeline import run
+from diffuser_lab.recording import make_hooks
+from diffuser_lab.recording.mcap_log import TOPIC_Z, read_run
+from diffuser_lab.recording.rerun_log import UNLABELED_ID
+
+RERUN = str(Path(sys.executable).with_name("rerun"))
+
+
+def rrd_class_ids(path: Path) -> dict:
+    """{diffusion_step: (M,) class ids} of world/diffusion/labels, read with rerun's own reader."""
+    from rerun.chunk import RrdReader
+
+    out = {}
+    for ch in RrdReader(path).stream():
+        if ch.entity_path == "/world/diffusion/labels" and not ch.is_static:
+            rb = ch.to_record_batch()
+            for step, ids in zip(rb.column("diffusion_step").to_pylist(), rb.column("Points3D:class_ids").to_pylist()):
+                out[step] = np.asarray(ids)
+    return out
+
+
+def as_class_ids(labels: np.ndarray) -> np.ndarray:
+    return np.where(labels < 0, UNLABELED_ID, labels)
+
+
+def recorded(cfg, scene, run_dir):
+    hooks = make_hooks(cfg, run_dir)
+    try:
+        res = run(cfg, scene=scene, hooks=hooks)
+    finally:
+        hooks.close()
+    return res, hooks
+
+
+@pytest.fixture(scope="module")
+def cli_runs(tmp_path_factory):
+    """The same small demo run from the command line, recorded (both, interval 10) and not."""
+    base = tmp_path_factory.mktemp("rec")
+    out = {}
+    for mode in ("both", "off"):
+        d = base / mode
+        p = run_cli(*SMALL_DEMO, f"record={mode}", "output.quiet=true", f"hydra.run.dir={d}")
+        assert p.returncode == 0, p.stderr
+        out[mode] = d
+    return out
+
+
+def test_round_trip_last_z_is_the_solvers_and_gives_the_labels(cli_runs):
+    d = cli_runs["both"]
+    s = json.loads((d / "summary.json").read_text())
+    assert s["records"] == {"rrd": "run.rrd", "mcap": "run.mcap"}
+    log = read_run(d / "run.mcap", z="all")
+    assert log.complete and not log.truncated
+    assert log.z_iterations == [1, 10, 20, 30, 40, 50, 60]  # interval 10, first and last
+    assert [m["iteration"] for m in log.metrics] == log.z_iterations
+    Z = log.z[60]
+    assert Z.dtype == np.float32 and Z.shape == (s["n_points"], s["n_classes"])
+    labels = np.load(d / "labels.npy")
+    np.testing.assert_array_equal(labels_from_scores(Z), labels)
+    assert log.metrics[-1]["miou"] == pytest.approx(s["metrics"]["miou"], abs=1e-9)
+    assert log.summary["diffusion"]["iterations"] == 60
+    assert "graph:" in log.config_yaml and "scene.demo.n_views=10" in log.overrides
+
+
+def test_library_final_z_exact_also_after_early_convergence(small_demo_scene, tmp_path):
+    # a loose tolerance stops the diffusion between two recorded iterations: the last one is
+    # then recorded from the returned Z
+    cfg = default_config(**{"solver.max_iter": 200, "solver.tol": 0.02, "record.interval": 10})
+    res, hooks = recorded(cfg, small_demo_scene, tmp_path)
+    it = res.diffusion.iterations
+    assert res.diffusion.converged and it % 10 != 0 and it < 200
+    log = read_run(tmp_path / "run.mcap", z=[it])
+    assert log.z_iterations == [1] + list(range(10, it, 10)) + [it] == hooks.recorded
+    np.testing.assert_array_equal(log.z[it], res.diffusion.Z)  # exactly, float32
+    np.testing.assert_array_equal(labels_from_scores(log.z[it]), res.labels)
+    assert sorted(rrd_class_ids(tmp_path / "run.rrd")) == log.z_iterations
+
+
+def test_float16_and_voxel_grid(small_demo_scene, tmp_path):
+    cfg = default_config(**{"solver.max_iter": 30, "scene.voxel_size": 0.12, "record.z_precision": "float16",
+                            "record.interval": 7})
+    res, _ = recorded(cfg, small_demo_scene, tmp_path)
+    log = read_run(tmp_path / "run.mcap", z="last")
+    assert log.z_iterations == [1, 7, 14, 21, 28, 30]
+    Z, Zs = log.z[30], res.diffusion.Z
+    assert Z.shape == Zs.shape == (res.work_points.shape[0], small_demo_scene.taxonomy.num_classes)
+    assert Z.shape[0] < small_demo_scene.n_points and log.info.original_to_work  # transfer indices stored
+    np.testing.assert_allclose(Z, Zs, rtol=2e-3, atol=2e-3 * Zs.max())
+    assert np.mean(labels_from_scores(Z) == labels_from_scores(Zs)) > 0.99
+    # mIoU so far is scored on the original points: the last equals the run's
+    assert log.metrics[-1]["miou"] == pytest.approx(res.metrics["miou"], abs=1e-9)
+    ids = rrd_class_ids(tmp_path / "run.rrd")
+    np.testing.assert_array_equal(ids[30], as_class_ids(labels_from_scores(Zs)))  # work cloud
+
+
+def test_rrd_reads_back_with_rerun_and_holds_class_ids_per_iteration(cli_runs):
+    d = cli_runs["both"]
+    ids = rrd_class_ids(d / "run.rrd")
+    assert sorted(ids) == [1, 10, 20, 30, 40, 50, 60]
+    np.testing.assert_array_equal(ids[60], as_class_ids(np.load(d / "labels.npy")))
+    assert not np.array_equal(ids[1], ids[60])  # the labels spread
+    from rerun.chunk import RrdReader
+
+    reader = RrdReader(d / "run.rrd")
+    assert reader.recordings() and reader.blueprints()  # a default blueprint ships with the data
+    paths = {ch.entity_path for ch in reader.stream()}
+    assert {"/world", "/world/scene/points", "/world/scene/ground_truth", "/world/cameras/0000",
+            "/world/cameras/0000/depth", "/world/cameras/0000/labels", "/world/evidence/bayesian",
+            "/world/diffusion/confidence", "/world/diffusion/wrong", "/metrics/miou",
+            "/metrics/residual", "/metrics/changed"} <= paths
+    p = subprocess.run([RERUN, "rrd", "verify", str(d / "run.rrd")], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+
+
+def test_rerun_reads_the_mcap(cli_runs):
+    path = cli_runs["both"] / "run.mcap"
+    p = subprocess.run([RERUN, "mcap", "info", str(path)], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    assert "/diffuser_lab/z" in p.stdout and "diffuser_lab.ZState" in p.stdout and "zstd" in p.stdout
+    from rerun.chunk import McapReader
+
+    cols: dict = {}
+    for ch in McapReader(path).stream():
+        cols.setdefault(ch.entity_path, set()).update(ch.to_record_batch().schema.names)
+    # the foxglove PointCloud becomes Rerun points; our protobuf messages decode by reflection
+    assert "Points3D:positions" in cols["/diffusion/labels"] and "Points3D:colors" in cols["/diffusion/labels"]
+    assert any("IterationMetrics" in c for c in cols["/diffuser_lab/metrics"])
+
+
+def test_schema_in_the_file_decodes_without_this_package(cli_runs):
+    """What another tool does: build the message class from the schema record alone."""
+    from google.protobuf import descriptor_pb2, descriptor_pool
+    from google.protobuf.message_factory import GetMessageClass
+    from mcap.reader import make_reader
+
+    with open(cli_runs["both"] / "run.mcap", "rb") as fh:
+        for schema, channel, message in make_reader(fh).iter_messages(topics=[TOPIC_Z]):
+            assert schema.encoding == "protobuf" and channel.message_encoding == "protobuf"
+            pool = descriptor_pool.DescriptorPool()
+            for f in descriptor_pb2.FileDescriptorSet.FromString(schema.data).file:
+                pool.Add(f)
+            msg = GetMessageClass(pool.FindMessageTypeByName(schema.name)).FromString(message.data)
+            Z = np.frombuffer(msg.data, "<f4").reshape(msg.n_points, msg.n_classes)
+            assert msg.dtype == "float32" and msg.scale == 1.0 and Z.shape[1] == 20
+            break
+        else:
+            pytest.fail("no Z message")
+
+
+def test_truncated_mcap_gives_its_leading_iterations_with_a_warning(cli_runs, tmp_path, capsys):
+    full = cli_runs["both"] / "run.mcap"
+    cut = tmp_path / "run.mcap"
+    data = full.read_bytes()
+    cut.write_bytes(data[: len(data) // 2])
+    assert inspect_main([str(tmp_path)]) == 0
+    out, err = capsys.readouterr()
+    assert "warning" in err and "truncated" in err
+    assert "TRUNCATED" in out and "did not finish" in out
+    log_full, log_cut = read_run(full, z="all"), read_run(cut, z="all")
+    assert log_cut.truncated and 0 < len(log_cut.z_iterations) < len(log_full.z_iterations)
+    assert log_cut.z_iterations == log_full.z_iterations[: len(log_cut.z_iterations)]
+    for it in log_cut.z_iterations:
+        np.testing.assert_array_equal(log_cut.z[it], log_full.z[it])
+        assert f"\n{it:6d}  " in out  # a table row per complete iteration
+    last = log_cut.z_iterations[-1]
+    assert inspect_main([str(cut), "--at", "last", "--out", str(tmp_path / "z.npy")]) == 0
+    np.testing.assert_array_equal(np.load(tmp_path / "z.npy"), log_full.z[last])
+
+
+def test_inspect_summary_table_and_z(cli_runs, tmp_path, capsys):
+    d = cli_runs["both"]
+    assert inspect_main([str(d)]) == 0
+    out = capsys.readouterr().out
+    assert "demo_room_seed0" in out and "method diffuser" in out and "7 iterations" in out
+    assert "mIoU" in out and "residual" in out and "changed" in out and "wall, floor" in out
+    assert inspect_main([str(d / "run.mcap"), "--at", "20", "--out", str(tmp_path / "z.npy")]) == 0
+    z20 = np.load(tmp_path / "z.npy")
+    np.testing.assert_array_equal(z20, read_run(d / "run.mcap", z=[20]).z[20])
+    capsys.readouterr()
+    assert inspect_main([str(d), "--at", "15"]) == 2
+    assert "not recorded" in capsys.readouterr().err
+    assert inspect_main([str(tmp_path / "nothing")]) == 2
+
+
+def test_to_rrd_relogs_the_run_from_its_mcap_alone(cli_runs, tmp_path):
+    src = cli_runs["both"]
+    only = tmp_path / "mcap_only"
+    only.mkdir()
+    shutil.copy(src / "run.mcap", only / "run.mcap")
+    out = tmp_path / "replay.rrd"
+    assert inspect_main([str(only), "--to-rrd", str(out)]) == 0
+    live, replay = rrd_class_ids(src / "run.rrd"), rrd_class_ids(out)
+    assert sorted(live) == sorted(replay)
+    for it in live:
+        np.testing.assert_array_equal(live[it], replay[it])
+
+
+def test_record_off_writes_nothing_and_labels_match(cli_runs):
+    off, both = cli_runs["off"], cli_runs["both"]
+    assert not (off / "run.rrd").exists() and not (off / "run.mcap").exists()
+    assert json.loads((off / "summary.json").read_text())["records"] == {}
+    np.testing.assert_array_equal(np.load(off / "labels.npy"), np.load(both / "labels.npy"))
+
+
+@pytest.mark.parametrize("method", ["bayesian", "direct"])
+def test_methods_without_diffusion_record_the_static_part(method, small_demo_scene, tmp_path, capsys):
+    cfg = default_config(**{"method.name": method})
+    res, hooks = recorded(cfg, small_demo_scene, tmp_path)
+    assert hooks.files() == {"rrd": "run.rrd", "mcap": "run.mcap"} and hooks.recorded == []
+    log = read_run(tmp_path / "run.mcap")
+    assert log.complete and log.z_iterations == [] and log.info.n_work_points == small_demo_scene.n_points
+    assert rrd_class_ids(tmp_path / "run.rrd") == {}
+    assert inspect_main([str(tmp_path)]) == 0
+    assert "no diffusion" in capsys.readouterr().out
+
+
+def test_a_failing_recorder_is_switched_off_and_the_run_goes_on(small_demo_scene, tmp_path, monkeypatch, caplog):
+    from diffuser_lab.recording import mcap_log
+
+    def boom(self, step):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(mcap_log.McapRecorder, "log_step", boom)
+    cfg = default_config(**{"solver.max_iter": 20})
+    res, hooks = recorded(cfg, small_demo_scene, tmp_path)
+    files = hooks.files()
+    assert files["rrd"] == "run.rrd" and "mcap" not in files and "disk full" in files["errors"]["mcap"]
+    assert sorted(rrd_class_ids(tmp_path / "run.rrd")) == [1, 10, 20]
+    plain = run(cfg, scene=small_demo_scene)
+    np.testing.assert_array_equal(res.labels, plain.labels)
+
+
+def test_make_hooks_off_is_harmless(tmp_path):
+    hooks = make_hooks(default_config(**{"record.mode": "off"}), tmp_path / "x")
+    assert hooks.files() == {} and not hooks.wants(1)
+    hooks.close()
+    assert not (tmp_path / "x").exists()
+
+
+def test_view_opens_the_rrd_or_a_relogged_mcap(cli_runs, tmp_path, monkeypatch):
+    from diffuser_lab import inspect_run
+
+    calls = []
+    monkeypatch.setattr(inspect_run.subprocess, "call", lambda cmd: calls.append(cmd) or 0)
+    assert inspect_main([str(cli_runs["both"]), "--view"]) == 0
+    assert calls[-1][-1] == str(cli_runs["both"] / "run.rrd") and calls[-1][0].endswith("rerun")
+    only = tmp_path / "mcap_only"
+    only.mkdir()
+    shutil.copy(cli_runs["both"] / "run.mcap", only / "run.mcap")
+    assert inspect_main([str(only), "--view"]) == 0
+    assert calls[-1][-1].endswith("replay.rrd") and Path(calls[-1][-1]).is_file()

@@ -1,0 +1,203 @@
+"""Solvers and backends: compiled vs scipy paths, spatial order, solver=exact, torch, the bench CLI."""
+import json
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from diffuser_lab import kernels
+from diffuser_lab.config import default_config
+from diffuser_lab.diffusion import SortedSystem, diffuse, labels_from_scores, normalise, solve, solve_exact
+from diffuser_lab.evidence import accumulate
+from diffuser_lab.graph import KnnGraph, SortedKnnGraph, build_graph
+
+needs_numba = pytest.mark.skipif(not kernels.available(), reason="numba (extra 'fast') not installed")
+
+
+def cloud(n=2000, seed=0):
+    rng = np.random.default_rng(seed)
+    # two noisy planes meeting at a crease, like a voxelised wall and floor
+    a = rng.random((n // 2, 2))
+    floor = np.c_[a, np.zeros(n // 2)]
+    wall = np.c_[np.zeros(n - n // 2), rng.random((n - n // 2, 2))]
+    pts = np.vstack([floor, wall]) + rng.normal(scale=0.002, size=(n, 3))
+    nrm = np.vstack([np.tile([0, 0, 1.0], (n // 2, 1)), np.tile([1.0, 0, 0], (n - n // 2, 1))])
+    mass = np.zeros((n, 5), np.float32)
+    seen = rng.random(n) < 0.3
+    mass[seen, rng.integers(0, 4, seen.sum())] = rng.integers(1, 6, seen.sum())
+    return pts.astype(np.float32), nrm.astype(np.float32), mass
+
+
+def plain_graph(g: KnnGraph) -> KnnGraph:
+    return KnnGraph(neighbors=g.neighbors.copy(), weights=g.weights.copy(), rho=g.rho, sigma_d=g.sigma_d)
+
+
+@pytest.mark.parametrize("backend", [pytest.param("numba", marks=needs_numba), "scipy"])
+def test_knn_is_exact(backend):
+    pts, nrm, _ = cloud()
+    pts = np.vstack([pts, pts[:5]])  # exact duplicates
+    g = build_graph(pts, 12, backend=backend)
+    d, idx = cKDTree(pts.astype(np.float64)).query(pts.astype(np.float64), k=13)
+    nb = g.neighbors
+    assert not (nb == np.arange(len(pts))[:, None]).any()
+    # same distances as a KD-tree (sets may differ only among exact ties)
+    mine = np.sort(np.linalg.norm(pts[nb] - pts[:, None], axis=2), 1)
+    theirs = np.sort(np.where(idx == np.arange(len(pts))[:, None], np.inf, d), 1)[:, :12]
+    dup = np.zeros(len(pts), bool)
+    dup[:5] = dup[-5:] = True
+    np.testing.assert_allclose(mine[~dup], theirs[~dup], rtol=1e-5, atol=1e-7)
+
+
+@needs_numba
+def test_sparse_cloud_falls_back_and_backends_agree():
+    rng = np.random.default_rng(3)
+    pts = np.vstack([rng.random((300, 3)) * 0.1, 1000.0 + rng.random((300, 3)) * 0.1]).astype(np.float32)
+    a, b = build_graph(pts, 8, backend="numba"), build_graph(pts, 8, backend="scipy")
+    np.testing.assert_array_equal(np.sort(a.neighbors, 1), np.sort(b.neighbors, 1))
+    assert a.rho == pytest.approx(b.rho, rel=1e-12)
+
+
+def test_sorted_system_matches_the_plain_one():
+    pts, nrm, mass = cloud(600)
+    g = build_graph(pts, 10, nrm)
+    assert isinstance(g, SortedKnnGraph)
+    s = normalise(g, mass, 1e-3)
+    p = normalise(plain_graph(g), mass, 1e-3)
+    assert isinstance(s, SortedSystem)
+    np.testing.assert_allclose(s.P.toarray(), p.P.toarray(), rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(s.B, p.B, rtol=1e-6)
+    np.testing.assert_allclose(s.row_sums, 1.0, rtol=1e-5)
+
+
+@pytest.mark.parametrize("backend", [pytest.param("numba", marks=needs_numba), "scipy"])
+def test_backends_and_orders_agree(backend):
+    pts, nrm, mass = cloud()
+    g = build_graph(pts, 16, nrm)
+    a = diffuse(normalise(g, mass, 1e-4), max_iter=60, tol=0, backend=backend)
+    b = diffuse(normalise(plain_graph(g), mass, 1e-4), max_iter=60, tol=0, backend="scipy")
+    assert a.Z.dtype == np.float32 and a.iterations == 60 and a.info["backend"] == backend
+    np.testing.assert_allclose(a.Z, b.Z, rtol=2e-5, atol=1e-12 * b.Z.max())
+    np.testing.assert_array_equal(labels_from_scores(a.Z), labels_from_scores(b.Z))
+    np.testing.assert_allclose(a.residuals, b.residuals, rtol=1e-3)
+
+
+@pytest.mark.parametrize("backend", [pytest.param("numba", marks=needs_numba), "scipy"])
+def test_observer_sees_the_returned_z(backend):
+    pts, nrm, mass = cloud(800)
+    s = normalise(build_graph(pts, 12, nrm), mass, 1e-4)
+
+    class Obs:
+        def __init__(self):
+            self.seen = {}
+
+        def wants(self, it):
+            return it % 10 == 0 or it == 1 or it == 25
+
+        def __call__(self, it, Z, stats):
+            assert not Z.flags.writeable and "residual" in stats
+            self.seen[it] = Z.copy()
+
+    obs = Obs()
+    res = diffuse(s, max_iter=25, tol=0, observer=obs, backend=backend)
+    assert sorted(obs.seen) == [1, 10, 20, 25]
+    np.testing.assert_array_equal(obs.seen[25], res.Z)
+    calls = []
+    diffuse(s, max_iter=3, tol=0, observer=lambda it, Z, st: calls.append(it), backend=backend)
+    assert calls == [1, 2, 3]  # a plain callable is called every iteration
+
+
+def test_exact_solver_matches_dense_solve_and_leaves_unreachable_points_at_zero():
+    pts, nrm, mass = cloud(400)
+    pts = np.vstack([pts, pts[:20] + 50.0])  # an island that no pixel sees
+    nrm = np.vstack([nrm, nrm[:20]])
+    mass = np.vstack([mass, np.zeros((20, mass.shape[1]), np.float32)])
+    s = normalise(build_graph(pts, 8, nrm), mass, 1e-2)
+    res = solve_exact(s)
+    P = s.P.toarray().astype(np.float64)
+    reach = np.ones(len(pts), bool)
+    reach[-20:] = False
+    Zs = np.zeros_like(s.B, dtype=np.float64)
+    A = np.eye(reach.sum()) - P[np.ix_(reach, reach)]
+    Zs[reach] = np.linalg.solve(A, s.B[reach].astype(np.float64))
+    np.testing.assert_allclose(res.Z, Zs, rtol=1e-4, atol=1e-7 * Zs.max())
+    assert res.residual < 1e-8 and res.converged and res.info["method"] == "splu"
+    assert (labels_from_scores(res.Z)[-20:] == -1).all()
+    # Jacobi converges to the same fixed point
+    jac = diffuse(s, max_iter=20000, tol=1e-9)
+    np.testing.assert_allclose(jac.Z, res.Z, rtol=1e-2, atol=1e-6 * Zs.max())
+
+
+def test_solver_config_dispatch(small_demo_scene):
+    from diffuser_lab.pipeline import run
+
+    res = run(default_config(**{"solver.name": "exact"}), scene=small_demo_scene)
+    assert res.diffusion.info["solver"] == "exact" and res.diffusion.residual < 1e-6
+    assert res.metrics["miou"] > 0
+    cfg = default_config(**{"solver.backend": "scipy", "solver.max_iter": 5})
+    pts, nrm, mass = cloud(300)
+    s = normalise(build_graph(pts, 8, nrm), mass, 1e-4)
+    assert solve(s, cfg.solver).info["backend"] == "scipy"
+
+
+def test_torch_code_path_on_cpu():
+    torch = pytest.importorskip("torch")
+    from diffuser_lab.gpu import diffuse_torch
+
+    pts, nrm, mass = cloud(500)
+    s = normalise(build_graph(pts, 8, nrm), mass, 1e-4)
+    seen = {}
+    a = diffuse_torch(s, max_iter=40, tol=0, device="cpu", observer=lambda it, Z, st: seen.__setitem__(it, Z.copy()))
+    b = diffuse(s, max_iter=40, tol=0, backend="scipy")
+    np.testing.assert_allclose(a.Z, b.Z, rtol=1e-4, atol=1e-9 * b.Z.max())
+    np.testing.assert_array_equal(seen[40], a.Z)
+    assert torch is not None
+
+
+def test_torch_backend_or_a_clear_error():
+    from diffuser_lab.gpu import cuda_available
+
+    pts, nrm, mass = cloud(500)
+    s = normalise(build_graph(pts, 8, nrm), mass, 1e-4)
+    if not cuda_available():
+        with pytest.raises(RuntimeError, match="solver.backend=torch: "):
+            diffuse(s, max_iter=5, backend="torch")
+        pytest.skip("no CUDA GPU: the torch backend stops with a one-line error")
+    a = diffuse(s, max_iter=50, tol=0, backend="torch")
+    b = diffuse(s, max_iter=50, tol=0, backend="scipy")
+    np.testing.assert_allclose(a.Z, b.Z, rtol=1e-4, atol=1e-9 * b.Z.max())
+
+
+@needs_numba
+def test_compiled_evidence_equals_numpy(small_demo_scene, monkeypatch):
+    from diffuser_lab.predictions import with_predictions
+
+    cfg = default_config()
+    frames = list(with_predictions(small_demo_scene.frames, cfg.predictions, small_demo_scene.taxonomy))
+    fast = accumulate(small_demo_scene.points, frames, 20)
+    monkeypatch.setattr(kernels, "_NB", None)
+    slow = accumulate(small_demo_scene.points, frames, 20)
+    same_rows = np.all(fast.mass == slow.mass, axis=1)
+    assert same_rows.mean() >= 0.999  # float64 vs float32 projection: rare rounding at pixel borders
+    assert abs(sum(fast.points_per_frame) - sum(slow.points_per_frame)) <= 0.001 * sum(slow.points_per_frame)
+
+
+@needs_numba
+def test_generated_kernels_are_up_to_date():
+    assert kernels._GEN.read_text() == kernels.generate_source()
+
+
+def test_bench_cli(tmp_path, capsys):
+    from diffuser_lab.bench import main
+
+    pts, nrm, mass = cloud(500)
+    np.savez(tmp_path / "in.npz", points=pts, normals=nrm, evidence=mass)
+    out = tmp_path / "labels.npy"
+    assert main(["--input", str(tmp_path / "in.npz"), "--iters", "20", "--k", "8", "--out", str(out)]) == 0
+    line = json.loads(capsys.readouterr().out.strip())
+    assert {"n_points", "graph_s", "diffusion_s", "total_s", "iterations"} <= set(line)
+    assert line["n_points"] == 500 and line["iterations"] == 20
+    lab = np.load(out)
+    assert main(["--input", str(tmp_path / "in.npz"), "--iters", "20", "--k", "8", "--solver", "reference",
+                 "--out", str(tmp_path / "ref.npy")]) == 0
+    assert np.mean(np.load(tmp_path / "ref.npy") == lab) >= 0.999
+    assert main(["--input", str(tmp_path / "missing.npz")]) == 2
