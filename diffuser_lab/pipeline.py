@@ -177,7 +177,7 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
         tp = time.perf_counter()
         f = frames[i]
         validate.check_frame(f)
-        if i == 0:
+        if i == 0 and not getattr(scene.frames, "info", {}).get("depth_unit_checked"):
             validate.check_depth_unit(f)
         centres.append(validate.camera_centre(f))
         inverted.append(np.asarray(f.T_cw, float)[:3, 3])  # the centre if T_cw were camera-to-world

@@ -61,13 +61,14 @@ def camera_centre(f: Frame) -> np.ndarray:
     return -T[:3, :3].T @ T[:3, 3]
 
 
-def check_depth_unit(f: Frame) -> None:
+def check_depth_unit(f: Frame, hint: str = "the source's depth scale") -> None:
+    """Warn when the frame's median valid depth is beyond 20 m or under 5 cm."""
     d = f.depth[f.depth > 0]
     if d.size:
         med = float(np.median(d))
         if med > 20 or med < 0.05:
-            warnings.warn(f"frame {f.name}: median depth {med:.3g} m looks like a wrong unit; check the depth "
-                          f"scale (e.g. scene.rgbd_folder.depth_scale)", stacklevel=2)
+            warnings.warn(f"frame {f.name}: median depth {med:.3g} m looks like a wrong unit; check {hint}",
+                          stacklevel=2)
 
 
 def check_pose_convention(points: np.ndarray, centres: np.ndarray, inverted_centres: np.ndarray) -> None:

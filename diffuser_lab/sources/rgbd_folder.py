@@ -32,6 +32,7 @@ from ..geometry import backproject, voxel_downsample
 from ..mapping import ClassMapping, load_mapping
 from ..prediction_files import open_image, read_label_png, resize_nearest
 from ..scene import IGNORE, SCANNET20, Frame, Scene, Taxonomy
+from ..validate import check_depth_unit
 
 __all__ = [
     "load_rgbd_folder",
@@ -305,13 +306,9 @@ def load_rgbd_folder(
         return Frame(name=name, K=K.copy(), T_cw=poses[i], depth=depth, gt_labels=gt, rgb=rgb)
 
     frames = LazyFrames(kept, load, {"n_frames_found": len(depth_stems)})
-    first = frames[0]
-    valid = first.depth[first.depth > 0]
-    if valid.size:
-        med = float(np.median(valid))
-        if med > 20.0 or med < 0.05:
-            warnings.warn(f"{root}: median depth of frame {first.name} is {med:.3g} m with depth_scale={depth_scale}; "
-                          f"check depth_scale (units per metre) / depth_bit_shift", stacklevel=2)
+    # checked here, before a wrong unit scales the back-projected cloud; the pipeline skips it then
+    check_depth_unit(frames[0], hint=f"depth_scale={depth_scale} (units per metre) / depth_bit_shift")
+    frames.info["depth_unit_checked"] = True
 
     normals = colors = gt_points = None
     if cloud is not None:
