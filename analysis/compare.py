@@ -59,19 +59,15 @@ def _write_rrd(run_a: Path, run_b: Path, la: np.ndarray, lb: np.ndarray, rrd: Pa
     if "positions" not in pcd.point or pcd.point.positions.shape[0] != la.size:
         raise ValueError(f"{run_a / 'labels.ply'}: missing, or not the {la.size} points of labels.npy")
     pts = pcd.point.positions.numpy()
+    from diffuser_lab.recording.rerun_log import annotation_context, class_ids
     from diffuser_lab.scene import SCANNET20
 
     tax = SCANNET20  # the taxonomy of every shipped source; colours follow the class ids
     rec = rr.RecordingStream("diffuser-lab-compare")
     rec.save(str(rrd))
-    rec.log("world", rr.AnnotationContext([rr.AnnotationInfo(id=i, label=n, color=tuple(int(x) for x in c))
-                                           for i, (n, c) in enumerate(zip(tax.names, tax.colors))]
-                                          + [rr.AnnotationInfo(id=tax.num_classes, label="unlabeled",
-                                                               color=(40, 40, 40))]),
-            static=True)
-    unl = tax.num_classes  # rerun class ids are unsigned: unlabeled (-1) gets an id of its own
-    rec.log("world/a", rr.Points3D(pts, class_ids=np.where(la < 0, unl, la).astype(np.uint16)), static=True)
-    rec.log("world/b", rr.Points3D(pts, class_ids=np.where(lb < 0, unl, lb).astype(np.uint16)), static=True)
+    rec.log("world", annotation_context(tax.names, tax.colors), static=True)
+    rec.log("world/a", rr.Points3D(pts, class_ids=class_ids(la)), static=True)
+    rec.log("world/b", rr.Points3D(pts, class_ids=class_ids(lb)), static=True)
     d = la != lb
     rec.log("world/differ", rr.Points3D(pts[d], colors=np.tile([255, 0, 0], (int(d.sum()), 1)).astype(np.uint8),
                                         radii=0.01), static=True)

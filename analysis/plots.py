@@ -31,6 +31,13 @@ def _groups(runs: list[Run], keys: list[str]) -> dict[tuple, list[Run]]:
     return g
 
 
+def _save(fig, path: Path) -> Path:
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
 def _mean_std(runs: list[Run], path: str) -> tuple[float, float]:
     v = np.array([x for x in (r.metric(path) for r in runs) if isinstance(x, (int, float))], float)
     return (float(v.mean()), float(v.std())) if v.size else (np.nan, np.nan)
@@ -68,11 +75,7 @@ def plot_sweep(runs: list[Run], key: str, out: Path) -> Path:
     ax.set_ylabel("mIoU [%] (mean ± std over seeds)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    path = out / f"miou_vs_{key.replace('/', '_')}.png"
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(fig, out / f"miou_vs_{key.replace('/', '_')}.png")
 
 
 def plot_methods(runs: list[Run], out: Path) -> Path | None:
@@ -93,17 +96,15 @@ def plot_methods(runs: list[Run], out: Path) -> Path | None:
         ax.text(i, v[0] + 1, f"{v[0]:.1f}", ha="center", fontsize=9)
     ax.set_ylabel("mIoU [%]")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    path = out / "methods.png"
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(fig, out / "methods.png")
 
 
 def plot_class_heatmap(runs: list[Run], out: Path) -> Path | None:
-    keys = swept(runs) or ["method"]
-    groups = _groups(runs, keys) if keys != ["method"] else {}
-    if keys == ["method"]:
+    keys = swept(runs)
+    if keys:
+        groups = _groups(runs, keys)
+    else:  # nothing swept: one row per method
+        keys, groups = ["method"], {}
         for r in runs:
             if r.status == "ok":
                 groups.setdefault((r.summary.get("method", "?"),), []).append(r)
@@ -128,11 +129,7 @@ def plot_class_heatmap(runs: list[Run], out: Path) -> Path | None:
         if np.isfinite(v):
             ax.text(j, i, f"{v:.0f}", ha="center", va="center", fontsize=7, color="w" if v < 60 else "k")
     fig.colorbar(im, ax=ax, label="IoU [%]")
-    fig.tight_layout()
-    path = out / "per_class_iou.png"
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(fig, out / "per_class_iou.png")
 
 
 def plot_convergence(runs: list[Run], out: Path) -> Path | None:
@@ -164,11 +161,7 @@ def plot_convergence(runs: list[Run], out: Path) -> Path | None:
         a.grid(alpha=0.3)
     if len(curves) <= 12:
         a1.legend(fontsize=7)
-    fig.tight_layout()
-    path = out / "convergence.png"
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(fig, out / "convergence.png")
 
 
 def make_plots(paths: list[str], out: str | Path) -> list[Path]:

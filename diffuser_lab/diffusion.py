@@ -156,6 +156,21 @@ def _resolve_backend(backend: str) -> str:
     return backend
 
 
+def iteration_inputs(system: System):
+    """What every Jacobi backend iterates on: the classes any pixel voted for (the others stay
+    exactly zero), the (N, C) shape, the scale max(B) the iteration divides out (see module doc),
+    the Morton order or None, the CSR arrays (int64 indptr, int32 indices, float32 data) in
+    that order, and B rows in that order."""
+    active = np.flatnonzero(system.B.any(0))
+    b_max = float(system.B.max()) if system.B.size else 0.0
+    scale = np.float32(b_max if b_max > 0 else 1.0)
+    if isinstance(system, SortedSystem):
+        return active, system.B.shape, scale, system.order, system.sorted_csr(), system.B[system.order]
+    P = system.P.tocsr()
+    csr = (P.indptr.astype(np.int64), P.indices.astype(np.int32), P.data.astype(np.float32))
+    return active, system.B.shape, scale, None, csr, system.B
+
+
 def diffuse(system: System, *, max_iter: int = 200, tol: float = 1e-4,
             observer: Optional[Observer] = None, backend: str = "auto") -> DiffusionResult:
     """Iterate Eq. 10 from Z = 0 until max|Z_t - Z_{t-1}| <= tol * max|Z_t| or ``max_iter``.
@@ -169,22 +184,9 @@ def diffuse(system: System, *, max_iter: int = 200, tol: float = 1e-4,
         from .gpu import diffuse_torch
 
         return diffuse_torch(system, max_iter=max_iter, tol=tol, observer=observer)
-    # Classes that no pixel voted for stay exactly zero: iterate on the others only.
-    active = np.flatnonzero(system.B.any(0))
-    full_shape = system.B.shape
+    active, full_shape, scale, order, (indptr, indices, data), B_src = iteration_inputs(system)
     n = full_shape[0]
-    b_max = float(system.B.max()) if system.B.size else 0.0
-    scale = np.float32(b_max if b_max > 0 else 1.0)
     floor = np.float32(SCORE_FLOOR)
-    if isinstance(system, SortedSystem):
-        order = system.order
-        indptr, indices, data = system.sorted_csr()
-        B_src = system.B[order]
-    else:
-        order = None
-        P = system.P.tocsr()
-        indptr, indices, data = P.indptr.astype(np.int64), P.indices.astype(np.int32), P.data.astype(np.float32)
-        B_src = system.B
     residuals: list[float] = []
     converged = False
     it = 0

@@ -33,24 +33,12 @@ def _torch(device: Optional[str] = None):
 
 def diffuse_torch(system, *, max_iter: int = 200, tol: float = 1e-4, observer=None, device: Optional[str] = None):
     """:func:`~diffuser_lab.diffusion.diffuse` on a CUDA device (see module doc)."""
-    from .diffusion import SCORE_FLOOR, DiffusionResult, SortedSystem
+    from .diffusion import SCORE_FLOOR, DiffusionResult, iteration_inputs
 
     torch = _torch(device)  # device="cpu" runs the same code without a GPU (tests)
     dev = torch.device(device or "cuda")
-    active = np.flatnonzero(system.B.any(0))
-    full_shape = system.B.shape
+    active, full_shape, scale, order, (indptr, indices, data), B_src = iteration_inputs(system)
     n = full_shape[0]
-    b_max = float(system.B.max()) if system.B.size else 0.0
-    scale = np.float32(b_max if b_max > 0 else 1.0)
-    if isinstance(system, SortedSystem):
-        order = system.order
-        indptr, indices, data = system.sorted_csr()
-        B_src = system.B[order]
-    else:
-        order = None
-        P = system.P.tocsr()
-        indptr, indices, data = P.indptr, P.indices, P.data
-        B_src = system.B
     Pt = torch.sparse_csr_tensor(torch.from_numpy(np.asarray(indptr, np.int64)),
                                  torch.from_numpy(np.asarray(indices, np.int64)),
                                  torch.from_numpy(np.asarray(data, np.float32)), size=(n, n)).to(dev)

@@ -164,6 +164,24 @@ if _NB is not None:
         return d1 > d2 or (d1 == d2 and j1 > j2)
 
     @njit(cache=True, boundscheck=False, inline="always")
+    def _sift_down(hd, hj, size, d2, j):
+        """Put (d2, j) at the top of the max-heap hd/hj[:size] and sift it down."""
+        pos = 0
+        while True:
+            c = 2 * pos + 1
+            if c >= size:
+                break
+            if c + 1 < size and _greater(hd[c + 1], hj[c + 1], hd[c], hj[c]):
+                c += 1
+            if not _greater(hd[c], hj[c], d2, j):
+                break
+            hd[pos] = hd[c]
+            hj[pos] = hj[c]
+            pos = c
+        hd[pos] = d2
+        hj[pos] = j
+
+    @njit(cache=True, boundscheck=False, inline="always")
     def _push(hd, hi_, m, k, d2, j):
         """Max-heap (by (d2, j)) of the k best candidates; returns the new size."""
         if m < k:  # sift up
@@ -181,20 +199,7 @@ if _NB is not None:
             return m
         if not _greater(hd[0], hi_[0], d2, j):
             return m
-        pos = 0  # replace the top, sift down
-        while True:
-            c = 2 * pos + 1
-            if c >= k:
-                break
-            if c + 1 < k and _greater(hd[c + 1], hi_[c + 1], hd[c], hi_[c]):
-                c += 1
-            if not _greater(hd[c], hi_[c], d2, j):
-                break
-            hd[pos] = hd[c]
-            hi_[pos] = hi_[c]
-            pos = c
-        hd[pos] = d2
-        hi_[pos] = j
+        _sift_down(hd, hi_, k, d2, j)  # replace the top
         return m
 
     @njit(cache=True, boundscheck=False)
@@ -254,21 +259,7 @@ if _NB is not None:
                 out_d[i, e] = hd[0]
                 out_i[i, e] = hj[0]
                 # pop: move the last leaf to the top and sift it down within e entries
-                ld, lj = hd[e], hj[e]
-                pos = 0
-                while True:
-                    c = 2 * pos + 1
-                    if c >= e:
-                        break
-                    if c + 1 < e and _greater(hd[c + 1], hj[c + 1], hd[c], hj[c]):
-                        c += 1
-                    if not _greater(hd[c], hj[c], ld, lj):
-                        break
-                    hd[pos] = hd[c]
-                    hj[pos] = hj[c]
-                    pos = c
-                hd[pos] = ld
-                hj[pos] = lj
+                _sift_down(hd, hj, e, hd[e], hj[e])
 
     @njit(cache=True, boundscheck=False)
     def _knn_rows_fast(pts, q, shift, step, start, count, dims, k, rf2, out_i, out_d, slow, lo, hi):

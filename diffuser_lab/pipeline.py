@@ -55,7 +55,6 @@ def load_scene(cfg: SceneConfig) -> Scene:
         scene = load_scannet(_required(c.root, "scene.scannet.root", src.value), frame_step=c.frame_step,
                              max_frames=c.max_frames, mapping=c.mapping)
     elif src == SceneSource.rgbd_folder:
-        from .mapping import load_mapping  # noqa: F401  (validated inside the loader)
         from .sources.rgbd_folder import load_rgbd_folder
 
         r = cfg.rgbd_folder

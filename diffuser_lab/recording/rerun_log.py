@@ -48,6 +48,16 @@ def class_ids(labels: np.ndarray) -> np.ndarray:
     return np.where(lab == IGNORE, UNLABELED_ID, lab).astype(np.uint16)
 
 
+def annotation_context(names: Sequence[str], colors: np.ndarray):
+    """Rerun AnnotationContext: class id -> name and colour, plus UNLABELED_ID for IGNORE."""
+    import rerun as rr
+
+    infos = [rr.AnnotationInfo(id=i, label=str(n), color=tuple(int(x) for x in colors[i]))
+             for i, n in enumerate(names)]
+    infos.append(rr.AnnotationInfo(id=UNLABELED_ID, label="unlabeled", color=(70, 70, 70)))
+    return rr.AnnotationContext(infos)
+
+
 def point_radius(points: np.ndarray) -> float:
     """Half the mean nearest-neighbour spacing (on a sample), metres: points that just touch."""
     from scipy.spatial import cKDTree
@@ -114,10 +124,7 @@ class RerunRecorder:
     # -- static -----------------------------------------------------------------------------
     def log_taxonomy(self, names: Sequence[str], colors: np.ndarray) -> None:
         rr = self.rr
-        infos = [rr.AnnotationInfo(id=i, label=str(n), color=tuple(int(x) for x in colors[i]))
-                 for i, n in enumerate(names)]
-        infos.append(rr.AnnotationInfo(id=UNLABELED_ID, label="unlabeled", color=(70, 70, 70)))
-        self.rec.log("world", rr.AnnotationContext(infos), rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        self.rec.log("world", annotation_context(names, colors), rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         rr_series = [("miou", "mIoU so far [%]", (31, 119, 180)), ("accuracy", "accuracy [%]", (44, 160, 44)),
                      ("changed", "labels changed", (214, 39, 40)), ("residual", "relative residual", (148, 103, 189)),
                      ("confidence", "mean confidence", (255, 127, 14))]
