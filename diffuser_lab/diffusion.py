@@ -191,6 +191,7 @@ def diffuse(system: System, *, max_iter: int = 200, tol: float = 1e-4,
     converged = False
     it = 0
 
+    runner = None
     if backend == "numba":
         from . import kernels
 
@@ -199,7 +200,8 @@ def diffuse(system: System, *, max_iter: int = 200, tol: float = 1e-4,
             Bb = np.zeros((n, width), np.float32)
             Bb[:, :cnt] = B_src[:, active[first:first + cnt]] / scale  # iterate on Z / max(B), see module doc
             blocks.append([first, cnt, width, Bb, np.zeros_like(Bb), np.zeros_like(Bb)])
-        bounds = kernels.row_bounds(indptr, 4 * kernels.n_threads())
+        nbr, wts = kernels.fixed_rows(indptr, indices, data)
+        runner = kernels.StepRunner(n)
         ident = np.arange(n, dtype=np.int64) if order is None else order
 
         def paper_units() -> np.ndarray:
@@ -211,7 +213,7 @@ def diffuse(system: System, *, max_iter: int = 200, tol: float = 1e-4,
         def step() -> tuple[float, float]:
             change = top = 0.0
             for blk in blocks:
-                ch, tp = kernels.jacobi_step(blk[2], indptr, indices, data, blk[4], blk[5], blk[3], floor, bounds)
+                ch, tp = runner.step(blk[2], nbr, wts, blk[4], blk[5], blk[3], floor)
                 blk[4], blk[5] = blk[5], blk[4]
                 change, top = max(change, ch), max(top, tp)
             return change, top
@@ -241,17 +243,21 @@ def diffuse(system: System, *, max_iter: int = 200, tol: float = 1e-4,
             state["Z"] = Z_new
             return change, top
 
-    for it in range(1, max_iter + 1):
-        change, top = step()
-        residual = change / top if top > 0 else 0.0
-        residuals.append(residual)
-        if observer is not None and (not hasattr(observer, "wants") or observer.wants(it)):
-            view = paper_units().view()
-            view.flags.writeable = False
-            observer(it, view, {"residual": residual})
-        if residual <= tol:
-            converged = True
-            break
+    try:
+        for it in range(1, max_iter + 1):
+            change, top = step()
+            residual = change / top if top > 0 else 0.0
+            residuals.append(residual)
+            if observer is not None and (not hasattr(observer, "wants") or observer.wants(it)):
+                view = paper_units().view()
+                view.flags.writeable = False
+                observer(it, view, {"residual": residual})
+            if residual <= tol:
+                converged = True
+                break
+    finally:
+        if runner is not None:
+            runner.close()
     return DiffusionResult(Z=paper_units(), iterations=it, converged=converged,
                            residual=residuals[-1] if residuals else 0.0, residuals=residuals,
                            info={"solver": "jacobi", "backend": backend})
