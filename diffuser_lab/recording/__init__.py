@@ -77,7 +77,7 @@ class RecordingHooks(RunHooks):
             yaml = repr(self.conf)
         self.mcap = McapRecorder(self.run_dir / MCAP_NAME, z_dtype=str(_value(self.conf.record.z_precision)),
                                  config_yaml=yaml, overrides=overrides, interval=self.interval,
-                                 max_iter=self.max_iter)
+                                 max_iter=self.max_iter, zstd_level=int(getattr(self.conf.record, "zstd_level", -20)))
         self._files["mcap"] = MCAP_NAME
 
     def _guard(self, which: str, fn, *args) -> None:

@@ -40,6 +40,9 @@ _VIRIDIS = np.array([(68, 1, 84), (71, 44, 122), (59, 81, 139), (44, 113, 142), 
                      (39, 173, 129), (92, 200, 99), (170, 220, 50), (253, 231, 37)], np.float32)
 _LUT = np.stack([np.interp(np.linspace(0, 8, 256), np.arange(9), _VIRIDIS[:, c]) for c in range(3)], 1)
 CONFIDENCE_LUT = np.round(_LUT).astype(np.uint8)
+_CONFIDENCE_RGBA = ((CONFIDENCE_LUT[:, 0].astype(np.uint32) << 24) | (CONFIDENCE_LUT[:, 1].astype(np.uint32) << 16)
+                    | (CONFIDENCE_LUT[:, 2].astype(np.uint32) << 8) | np.uint32(255))
+"""CONFIDENCE_LUT packed as 0xRRGGBBAA: Rerun takes these as they are (no per-point conversion)."""
 
 
 def class_ids(labels: np.ndarray) -> np.ndarray:
@@ -198,8 +201,8 @@ class RerunRecorder:
         rec = self.rec
         rec.set_time(TIMELINE, sequence=step.iteration)
         rec.log("world/diffusion/labels", rr.Points3D.from_fields(class_ids=class_ids(step.labels)))
-        conf = CONFIDENCE_LUT[np.clip((step.confidence * 255.0).astype(np.int32), 0, 255)]
-        rec.log("world/diffusion/confidence", rr.Points3D.from_fields(colors=conf))
+        q = np.multiply(step.confidence, 255.0, dtype=np.float32).astype(np.uint8)  # confidence in [0, 1]
+        rec.log("world/diffusion/confidence", rr.Points3D.from_fields(colors=_CONFIDENCE_RGBA[q]))
         if step.wrong is not None and points is not None:
             rec.log("world/diffusion/wrong", rr.Points3D(points[step.wrong], colors=(230, 30, 30),
                                                          radii=1.2 * self.radius))
