@@ -95,6 +95,17 @@ SCORE_FLOOR = 1e-18
 
 def normalise(graph: KnnGraph, mass: np.ndarray, pixel_weight: float) -> System:
     """Eqs. 14-15 from the graph and the (N, C) pixel mass (before lambda)."""
+    if isinstance(graph, SortedKnnGraph):
+        from . import kernels
+
+        if kernels.available():
+            from .knn import normalise_sorted
+
+            # the numpy lines below fused into three compiled passes (same float32 results)
+            res = normalise_sorted(graph.order, graph.sorted_weights, graph.sorted_row_sums, mass, pixel_weight,
+                                   EDGE_FLOOR)
+            if res is not None:
+                return SortedSystem(graph.order, graph.sorted_neighbors, *res)
     pix = mass.astype(np.float32) * np.float32(pixel_weight)
     if isinstance(graph, SortedKnnGraph):
         # Row sums come with the graph; the rows stay in its Morton order for the diffusion.

@@ -7,11 +7,11 @@ The graph is directed as in Eq. 3 (j in KNN(i)); rows have exactly K entries.
 
 Speed: :func:`build_graph` sorts the points along a Morton (Z-order) curve first and works in
 that order throughout (kNN, weights, and later the normalised system and the diffusion), so that
-a point's neighbours are near it in memory. With numba (the ``fast`` extra) the kNN is an exact
-search on a uniform grid aligned with that curve (cell side ~ the K-th neighbour distance, rings
-of cells until no closer point can remain), else scipy's cKDTree queried in that order. The
-graph it returns exposes ``neighbors``/``weights`` in the caller's point order (built on first
-access); results never depend on the input order except through exact distance ties.
+a point's neighbours are near it in memory. With numba (the ``fast`` extra) the Morton order, an
+exact kNN on a uniform grid (cells about the K-th neighbour distance, processed cell by cell) and
+the weights are compiled (:mod:`diffuser_lab.knn`), else scipy's cKDTree is queried in that
+order. The graph it returns exposes ``neighbors``/``weights`` in the caller's point order (built
+on first access); results never depend on the input order except through exact distance ties.
 """
 from __future__ import annotations
 
@@ -161,32 +161,46 @@ def build_graph(points: np.ndarray, k: int = 24, normals: np.ndarray | None = No
         a :class:`SortedKnnGraph` (see module doc).
     """
     from . import kernels
-    from .geometry import morton_codes, quantize
 
-    points = np.asarray(points, np.float32)
+    points = np.ascontiguousarray(points, np.float32)
     n = points.shape[0]
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must be (N, 3), got {points.shape}")
+    if normals is not None and np.shape(normals) != (n, 3):
+        raise ValueError(f"normals must be (N, 3) like the points, got {np.shape(normals)}")
     if k >= n:
         raise ValueError(f"graph.k={k} must be smaller than the number of points ({n})")
     if backend == "numba" and not kernels.available():
         raise RuntimeError("graph backend numba: numba is not installed (pip install 'diffuser-lab[fast]')")
-    q, _, step = quantize(points)
-    order = np.argsort(morton_codes(q), kind="stable")
-    ps = np.ascontiguousarray(points[order])
-    nrm = None if normals is None else np.ascontiguousarray(np.asarray(normals, np.float32)[order])
-    res = None
     use_nb = backend != "scipy" and kernels.available()
     if use_nb:
-        res = kernels.knn_grid(ps, np.ascontiguousarray(q[order]), step, k)
-    idx, d2 = res if res is not None else _knn_kdtree(ps, k)
+        from . import knn as _knn
+
+        # P4/N4: sorted points and normals as float64 rows of 4 (what the weights read);
+        # d0: per point the smallest positive squared distance of its row
+        order, P4, N4, res = _knn.sorted_knn(points, normals, k)
+        if res is not None:
+            idx, d0 = res
+        else:  # too sparse for a dense grid
+            idx, d2 = _knn_kdtree(P4[:, :3], k)
+            d0 = np.where(d2 > 0, d2, np.inf).min(1)
+    else:
+        from .geometry import morton_codes, quantize
+
+        order = np.argsort(morton_codes(quantize(points)[0]), kind="stable")
+        ps = points[order]
+        nrm = None if normals is None else np.asarray(normals, np.float32)[order]
+        idx, d2 = _knn_kdtree(ps, k)
+        d0 = np.where(d2 > 0, d2, np.inf).min(1)
     # rho: per point the nearest *distinct* neighbour (duplicates at distance 0 skipped)
-    d0 = np.sqrt(np.where(d2 > 0, d2, np.inf).min(1))
+    d0 = np.sqrt(d0)
     pos = d0[np.isfinite(d0)]
     if pos.size == 0:
         raise ValueError("all points coincide: the mean point spacing rho is 0")
     rho = float(pos.mean())
     sd = float(sigma_d) if sigma_d is not None else sigma_d_factor * rho
     if use_nb:
-        w, wsum = kernels.edge_weights(d2, idx, nrm, invariant_normals, sd, sigma_s)
+        w, wsum = _knn.edge_weights(P4, idx, N4, invariant_normals, sd, sigma_s)
     else:
         expo = d2 * (-0.5 / sd**2)
         if nrm is not None:
