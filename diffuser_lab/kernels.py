@@ -1,14 +1,15 @@
-"""Compiled CPU kernels (numba, optional extra ``fast``): kNN on a voxel grid, edge weights, the
-Jacobi step of Eq. 10 and the fused evidence of one frame. Every kernel has a numpy/scipy twin
-in :mod:`diffuser_lab.graph`, :mod:`diffuser_lab.diffusion` and :mod:`diffuser_lab.evidence`;
-``DIFFUSER_LAB_NUMBA=0`` (or numba missing) selects those.
+"""Compiled CPU kernels (numba, optional extra ``fast``): the Jacobi step of Eq. 10, the fused
+evidence of one frame and the un-permutation of Z (the graph's kernels are in
+:mod:`diffuser_lab.knn`). Every kernel has a numpy/scipy twin in :mod:`diffuser_lab.diffusion`
+and :mod:`diffuser_lab.evidence`; ``DIFFUSER_LAB_NUMBA=0`` (or numba missing) selects those.
 
 The Jacobi step is the hot loop: for every row ``Z'_i = Sum_k P_ik Z_{j_k} + B_i`` over a
 block of W classes. Its row kernels are generated with one scalar accumulator per class
 (``_kernels_unrolled.py``, W in 8/16/24/32; regenerate with ``python -m diffuser_lab.kernels``) so
-that LLVM's SLP vectoriser turns them into AVX loads and multiplies; numba leaves SLP
+that LLVM's SLP vectoriser turns them into AVX loads and fused multiply-adds; numba leaves SLP
 vectorisation off by default, so it is switched on while these kernels compile (:func:`slp`).
-Rows are summed in the order of their neighbours, exactly like scipy's CSR product.
+Rows are summed in the order of their neighbours, like scipy's CSR product. :class:`StepRunner`
+runs them on plain threads (they release the GIL).
 """
 from __future__ import annotations
 

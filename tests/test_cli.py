@@ -56,6 +56,7 @@ def test_default_run_folders_are_distinct(tmp_path):
     ("method=foo", "method/foo"),
     ("method.name=foo", "method.name"),
     ("solver.max_iter=0", "solver.max_iter"),
+    ("record.zstd_level=23", "record.zstd_level=23"),
     ("+nonsense=1", "nonsense"),
 ])
 def test_bad_config_fails_with_one_line(override, expected, tmp_path):

@@ -201,3 +201,36 @@ def test_bench_cli(tmp_path, capsys):
                  "--out", str(tmp_path / "ref.npy")]) == 0
     assert np.mean(np.load(tmp_path / "ref.npy") == lab) >= 0.999
     assert main(["--input", str(tmp_path / "missing.npz")]) == 2
+
+
+@needs_numba
+@pytest.mark.parametrize("threads", [2, 3])
+def test_threaded_steps_equal_one_thread_exactly(threads):
+    """Rows are independent within a step, so splitting them over threads changes nothing."""
+    pts, nrm, mass = cloud(3000)
+    s = normalise(build_graph(pts, 12, nrm), mass, 1e-4)
+    nbr, wts = s.sorted_neighbors, s.sorted_P
+    B = np.zeros((len(pts), 8), np.float32)
+    B[:, :5] = s.B[s.order] / s.B.max()
+    out = []
+    for th in (1, threads):
+        Z, Zn = np.zeros_like(B), np.zeros_like(B)
+        with kernels.StepRunner(len(pts), threads=th, min_rows_per_thread=1) as runner:
+            assert len(runner.chunks) == (1 if th == 1 else 4 * th)
+            for _ in range(30):
+                ch, tp = runner.step(8, nbr, wts, Z, Zn, B, 1e-18)
+                Z, Zn = Zn, Z
+        out.append((Z, ch, tp))
+    np.testing.assert_array_equal(out[0][0], out[1][0])
+    assert out[0][1:] == out[1][1:]
+
+
+def test_fixed_rows_pads_short_rows_with_zero_weight():
+    import scipy.sparse as sp
+
+    P = sp.csr_matrix(np.array([[0, 0.5, 0.2], [0.3, 0, 0], [0, 0, 0]], np.float32))
+    nbr, wts = kernels.fixed_rows(P.indptr.astype(np.int64), P.indices.astype(np.int32), P.data)
+    assert nbr.shape == (3, 2) and wts.dtype == np.float32
+    dense = np.zeros((3, 3), np.float32)
+    np.add.at(dense, (np.repeat(np.arange(3), 2), nbr.ravel()), wts.ravel())
+    np.testing.assert_array_equal(dense, P.toarray())
