@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import kernels
-from .geometry import MORTON_BITS
+from .geometry import MORTON_BITS, _spread_bits
 
 _NB = kernels._NB
 
@@ -47,16 +47,8 @@ if _NB is not None:
 
     _QMAX = 2**MORTON_BITS - 1
 
-    @njit(cache=True, boundscheck=False, inline="always")
-    def _spread(x):
-        """Insert two zero bits between the low 21 bits of x (uint64), as geometry._spread_bits."""
-        x = x & np.uint64(0x1FFFFF)
-        x = (x | (x << np.uint64(32))) & np.uint64(0x1F00000000FFFF)
-        x = (x | (x << np.uint64(16))) & np.uint64(0x1F0000FF0000FF)
-        x = (x | (x << np.uint64(8))) & np.uint64(0x100F00F00F00F00F)
-        x = (x | (x << np.uint64(4))) & np.uint64(0x10C30C30C30C30C3)
-        x = (x | (x << np.uint64(2))) & np.uint64(0x1249249249249249)
-        return x
+    # the numpy function compiles as is for one uint64
+    _spread = njit(cache=True, boundscheck=False, inline="always")(_spread_bits)
 
     @njit(cache=True, boundscheck=False, inline="always")
     def _lat(v, o, step):
