@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import queue
 import threading
 from pathlib import Path
 
@@ -125,9 +126,12 @@ def _row_kernels():
 class StepRunner:
     """Runs Jacobi steps on the calling thread plus ``threads - 1`` helper threads.
 
-    The row kernels release the GIL, so plain Python threads run them in parallel. One step is
-    one dispatch per chunk of rows; numba's own ``prange`` costs ~0.5 ms per launch with its
-    workqueue layer (measured), which is a third of a whole step on 30k points.
+    The row kernels release the GIL, so plain Python threads run them in parallel; every thread
+    (the caller included) takes the next chunk of rows until none is left, so a core that another
+    thread (a recorder) takes for a while is balanced by the others. Helpers wait on a
+    ``SimpleQueue``: numba's own ``prange`` costs ~0.5 ms per launch with its workqueue layer,
+    and a ``ThreadPoolExecutor`` ~0.1 ms a step (both measured), against ~0.5 ms of work per
+    step on 30k points.
 
     Args:
         n: number of rows; threads: worker count (default: numba's thread count); rows below
@@ -136,25 +140,35 @@ class StepRunner:
 
     def __init__(self, n: int, threads: int | None = None, min_rows_per_thread: int = 8000):
         threads = max(1, min(threads or n_threads(), n // max(min_rows_per_thread, 1) or 1))
-        parts = 4 * threads if threads > 1 else 1  # several chunks each: a core taken by another thread (recording) is balanced
+        parts = 4 * threads if threads > 1 else 1
         edges = np.linspace(0, n, parts + 1).astype(np.int64)
         self.chunks = [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a] or [(0, 0)]
         self.threads = threads
-        self._pool = None
-        if threads > 1:
-            from concurrent.futures import ThreadPoolExecutor
+        self._jobs: queue.SimpleQueue = queue.SimpleQueue()
+        self._done: queue.SimpleQueue = queue.SimpleQueue()
+        self._helpers = [threading.Thread(target=self._serve, name="diffuser-lab-jacobi", daemon=True)
+                         for _ in range(threads - 1)]
+        for t in self._helpers:
+            t.start()
 
-            self._pool = ThreadPoolExecutor(threads - 1, thread_name_prefix="diffuser-lab-jacobi")
+    def _serve(self) -> None:
+        while True:
+            job = self._jobs.get()
+            if job is None:
+                return
+            try:
+                self._done.put(job())
+            except BaseException as exc:  # noqa: BLE001 - re-raised by step() in the caller
+                self._done.put(exc)
 
     def step(self, W: int, nbr, wts, Z, Zn, B, floor) -> tuple[float, float]:
         """One Eq. 10 step on an (N, W) block: Zn <- floor(P Z + B); returns (max|Zn - Z|, max Zn)."""
         f = _row_kernels()[W]
         args = (nbr, wts, Z.reshape(-1), Zn.reshape(-1), B.reshape(-1), np.float32(floor))
         with slp():
-            if self._pool is None:
+            if not self._helpers:
                 res = [f(*args, lo, hi) for lo, hi in self.chunks]
             else:
-                # every thread (this one included) takes the next chunk until none is left
                 todo = iter(self.chunks)
                 lock = threading.Lock()
 
@@ -167,16 +181,22 @@ class StepRunner:
                             return out
                         out.append(f(*args, *c))
 
-                futs = [self._pool.submit(work) for _ in range(self.threads - 1)]
+                for _ in self._helpers:
+                    self._jobs.put(work)
                 res = work()
-                for fu in futs:
-                    res += fu.result()
+                for _ in self._helpers:
+                    r = self._done.get()
+                    if isinstance(r, BaseException):
+                        raise r
+                    res += r
         return float(max(r[0] for r in res)), float(max(r[1] for r in res))
 
     def close(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown(wait=True)
-            self._pool = None
+        for _ in self._helpers:
+            self._jobs.put(None)
+        for t in self._helpers:
+            t.join()
+        self._helpers = []
 
     def __enter__(self):
         return self
