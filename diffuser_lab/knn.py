@@ -333,22 +333,13 @@ if _NB is not None:
         none)."""
         CX, CY, CZ, CJ, D, sd, sj, sel = buf
         dmin = np.inf
-        if c_hi == k:  # the usual case: straight from the bit masks into the row
-            m = 0
-            for b in range(0, ncp, 64):
-                msk = np.uint64(0)
-                for l in range(64):
-                    msk |= np.uint64(D[b + l] <= t_hi) << np.uint64(l)
-                while msk != 0:
-                    a = b + trailing_zeros(msk)
-                    out_i[i, m] = CJ[a]
-                    d = D[a]
-                    if d > 0 and d < dmin:
-                        dmin = d
-                    m += 1
-                    msk &= msk - np.uint64(1)
-            return dmin
         m = _compact(D, ncp, t_hi, sd, sel)
+        if c_hi == k:  # the usual case: exactly k within t_hi, no ranking needed
+            for s in range(k):
+                out_i[i, s] = CJ[sel[s]]
+                if sd[s] > 0 and sd[s] < dmin:
+                    dmin = sd[s]
+            return dmin
         for a in range(m):
             sj[a] = CJ[sel[a]]
         _sort_select(sd, sj, m, k)

@@ -80,14 +80,21 @@ def decode_point_cloud(msg: Any) -> dict[str, np.ndarray]:
     return {name: np.ascontiguousarray(arr[name]) for name in dt.names}
 
 
-def encode_z(Z: np.ndarray, dtype: str) -> tuple[bytes, float]:
-    """(M, C) Z -> (row-major little-endian bytes, scale) with Z = decoded * scale; float32 is
-    exact (scale 1), float16 stores Z / max(Z) so that Z's tiny values keep their precision."""
+def _z_array(Z: np.ndarray, dtype: str) -> tuple[np.ndarray, float]:
+    """(M, C) Z -> (C-contiguous little-endian array to store, scale) with Z = stored * scale:
+    float32 is exact (scale 1), float16 stores Z / max(Z) so that Z's tiny values keep their
+    precision."""
     if dtype == "float16":
         top = float(Z.max()) if Z.size else 0.0
         scale = top if top > 0 else 1.0
-        return (Z / np.float32(scale)).astype("<f2").tobytes(), scale
-    return np.ascontiguousarray(Z, dtype="<f4").tobytes(), 1.0
+        return np.ascontiguousarray((Z / np.float32(scale)).astype("<f2")), scale
+    return np.ascontiguousarray(Z, dtype="<f4"), 1.0
+
+
+def encode_z(Z: np.ndarray, dtype: str) -> tuple[bytes, float]:
+    """(M, C) Z -> (row-major little-endian bytes, scale) with Z = decoded * scale (see :func:`_z_array`)."""
+    arr, scale = _z_array(Z, dtype)
+    return arr.tobytes(), scale
 
 
 def _varint(n: int) -> bytes:
@@ -105,13 +112,7 @@ def _varint(n: int) -> bytes:
 def z_state_bytes(iteration: int, Z: np.ndarray, dtype: str) -> bytes:
     """``ZState(...).SerializeToString()`` with Z copied once: the fields around ``data`` are
     serialized by protobuf, field 5 (tag, length, the array's bytes) is joined in between."""
-    if dtype == "float16":
-        top = float(Z.max()) if Z.size else 0.0
-        scale = top if top > 0 else 1.0
-        arr = np.ascontiguousarray((Z / np.float32(scale)).astype("<f2"))
-    else:
-        scale = 1.0
-        arr = np.ascontiguousarray(Z, dtype="<f4")
+    arr, scale = _z_array(Z, dtype)
     body = arr.reshape(-1).view(np.uint8)
     head = schema.ZState(iteration=int(iteration), n_points=Z.shape[0], n_classes=Z.shape[1],
                          dtype=dtype).SerializeToString()

@@ -8,6 +8,7 @@ from typing import Optional, Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..diffusion import labels_from_scores
 from ..metrics import score
 from ..scene import IGNORE
 
@@ -49,17 +50,6 @@ def original_to_work(work_points: np.ndarray, points: np.ndarray) -> np.ndarray:
     :func:`diffuser_lab.geometry.nearest_transfer`, so transferred labels match the run's."""
     _, idx = cKDTree(work_points).query(points, k=1, workers=-1)
     return np.asarray(idx, np.int64)
-
-
-def _label_confidence_numpy(Z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    arg = np.argmax(Z, axis=1)
-    top = np.take_along_axis(Z, arg[:, None], 1)[:, 0]
-    labels = arg.astype(np.int16)
-    labels[top <= 0] = IGNORE
-    tot = Z.sum(1, dtype=np.float32)
-    conf = np.zeros(Z.shape[0], np.float32)
-    np.divide(top, tot, out=conf, where=tot > 0)
-    return labels, conf
 
 
 _FUSED = None
@@ -106,7 +96,7 @@ def label_confidence(Z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     (M,) float32 confidence max_c Z / sum_c Z (0 where unlabeled)."""
     f = _fused() if Z.dtype == np.float32 and Z.ndim == 2 and Z.shape[1] > 0 else None
     if f is None:
-        return _label_confidence_numpy(Z)
+        return labels_from_scores(Z), confidence(Z)
     labels = np.empty(Z.shape[0], np.int16)
     conf = np.empty(Z.shape[0], np.float32)
     f(Z, IGNORE, labels, conf)
