@@ -28,7 +28,8 @@ from .graph import KnnGraph, SortedKnnGraph
 from .scene import IGNORE
 
 Observer = Callable[[int, np.ndarray, dict], None]
-"""Called as observer(iteration, Z, stats) after each iteration; Z (N, C) is read-only and
+"""Called as observer(iteration, Z, stats) after each iteration; Z (N, C) is read-only, valid
+during the call only (the next observed iteration reuses its memory: copy what you keep), and
 stats holds ``residual`` (relative, see :func:`diffuse`). Observers must not change anything.
 An observer with a ``wants(iteration) -> bool`` method is called only where it returns True
 (building Z in the paper's units for an iteration nobody records costs a full copy)."""
@@ -215,8 +216,8 @@ def diffuse(system: System, *, max_iter: int = 200, tol: float = 1e-4,
         runner = kernels.StepRunner(n)
         ident = np.arange(n, dtype=np.int64) if order is None else order
 
-        def paper_units() -> np.ndarray:
-            Z_full = np.zeros(full_shape, np.float32)
+        def paper_units(out: Optional[np.ndarray] = None) -> np.ndarray:
+            Z_full = np.zeros(full_shape, np.float32) if out is None else out  # out: inactive columns stay 0
             for first, cnt, width, _, Z, _ in blocks:
                 kernels.unpermute_scaled(Z, ident, active[first:first + cnt].astype(np.int64), scale, Z_full)
             return Z_full
@@ -234,8 +235,8 @@ def diffuse(system: System, *, max_iter: int = 200, tol: float = 1e-4,
         B = np.ascontiguousarray(B_src[:, active]) / scale  # iterate on Z / max(B), see module doc
         state = {"Z": np.zeros_like(B)}
 
-        def paper_units() -> np.ndarray:
-            Z_full = np.zeros(full_shape, np.float32)
+        def paper_units(out: Optional[np.ndarray] = None) -> np.ndarray:
+            Z_full = np.zeros(full_shape, np.float32) if out is None else out  # out: inactive columns stay 0
             if order is None:
                 Z_full[:, active] = state["Z"] * scale
             else:
@@ -254,13 +255,16 @@ def diffuse(system: System, *, max_iter: int = 200, tol: float = 1e-4,
             state["Z"] = Z_new
             return change, top
 
+    seen_buf: Optional[np.ndarray] = None  # what observers see (valid during their call only)
     try:
         for it in range(1, max_iter + 1):
             change, top = step()
             residual = change / top if top > 0 else 0.0
             residuals.append(residual)
             if observer is not None and (not hasattr(observer, "wants") or observer.wants(it)):
-                view = paper_units().view()
+                if seen_buf is None:  # one buffer for all observed iterations: no fresh pages each time
+                    seen_buf = np.zeros(full_shape, np.float32)
+                view = paper_units(seen_buf).view()
                 view.flags.writeable = False
                 observer(it, view, {"residual": residual})
             if residual <= tol:

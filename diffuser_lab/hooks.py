@@ -33,7 +33,8 @@ class RunHooks:
         return False
 
     def observe(self, iteration: int, Z: np.ndarray, stats: dict) -> None:
-        """Z: (M, C) float32 read-only scores after ``iteration``; stats: ``residual``."""
+        """Z: (M, C) float32 read-only scores after ``iteration``, valid during this call only (the
+        solver reuses the memory for the next observed iteration); stats: ``residual``."""
 
     def on_result(self, result: Any) -> None:
         """result: :class:`~diffuser_lab.pipeline.RunResult` (``result.diffusion.Z`` is the final Z)."""

@@ -90,6 +90,73 @@ def test_library_final_z_exact_also_after_early_convergence(small_demo_scene, tm
     assert sorted(rrd_class_ids(tmp_path / "run.rrd")) == log.z_iterations
 
 
+def test_every_recorded_z_and_label_cloud_is_that_iterations(small_demo_scene, tmp_path):
+    # the solver reuses one buffer for what observers see and the MCAP recorder reuses its
+    # message buffers: each recorded iteration must still hold its own Z, and the per-iteration
+    # cloud its own labels and colours
+    from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+
+    from diffuser_lab.hooks import RunHooks
+    from diffuser_lab.recording.mcap_log import TOPIC_LABELS, decode_point_cloud, iter_run
+
+    cfg = default_config(**{"solver.max_iter": 40, "record.interval": 5})
+
+    class Copies(RunHooks):
+        def __init__(self):
+            self.z = {}
+
+        def wants(self, it):
+            return it == 1 or it % 5 == 0
+
+        def observe(self, it, Z, stats):
+            self.z[it] = np.array(Z)
+
+    copies = Copies()
+    run(cfg, scene=small_demo_scene, hooks=copies)
+    recorded(cfg, small_demo_scene, tmp_path)
+    log = read_run(tmp_path / "run.mcap", z="all")
+    assert log.z_iterations == sorted(copies.z) == [1, 5, 10, 15, 20, 25, 30, 35, 40]
+    for it, Z in copies.z.items():
+        np.testing.assert_array_equal(log.z[it], Z, err_msg=f"iteration {it}")
+    tax = small_demo_scene.taxonomy
+    colors = np.vstack([tax.colors, [[70, 70, 70]]])
+    clouds = [decode_point_cloud(PointCloud.FromString(data))
+              for topic, data in iter_run(tmp_path / "run.mcap", log) if topic == TOPIC_LABELS]
+    assert len(clouds) == len(copies.z)
+    for (it, Z), c in zip(sorted(copies.z.items()), clouds):
+        lab = labels_from_scores(Z)
+        np.testing.assert_array_equal(c["label"], lab)
+        rgb = np.stack([c["red"], c["green"], c["blue"]], 1)
+        np.testing.assert_array_equal(rgb, colors[lab], err_msg=f"iteration {it}")  # -1: unlabeled grey
+        assert (c["alpha"] == 255).all()
+
+
+def test_z_state_bytes_is_the_protobuf_serialisation():
+    from diffuser_lab.recording import schema
+    from diffuser_lab.recording.mcap_log import decode_z, z_state_bytes
+
+    Z = np.random.default_rng(0).random((50, 7), dtype=np.float32) * 1e-3
+    pool = bytearray(10_000)  # larger than needed: reused, only the filled part is the message
+    for dtype, out, major in (("float32", None, True), ("float32", pool, False), ("float16", pool, True),
+                              ("float16", None, False)):
+        mv = z_state_bytes(12, Z, dtype, out, class_major=major)
+        msg = schema.ZState.FromString(bytes(mv))
+        stored = Z if dtype == "float32" else (Z / Z.max()).astype("<f2")
+        data = (stored.T if major else stored).tobytes()
+        expect = schema.ZState(iteration=12, n_points=50, n_classes=7, dtype=dtype, data=data, scale=msg.scale,
+                               class_major=major)
+        assert bytes(mv) == expect.SerializeToString()
+        assert msg.scale == (1.0 if dtype == "float32" else pytest.approx(float(Z.max())))
+        Zd = decode_z(msg)
+        assert Zd.shape == Z.shape and Zd.flags.c_contiguous
+        if dtype == "float32":
+            np.testing.assert_array_equal(Zd, Z)
+        else:
+            np.testing.assert_allclose(Zd, Z, rtol=1e-3, atol=1e-3 * Z.max())
+    empty = schema.ZState.FromString(bytes(z_state_bytes(3, np.zeros((0, 4), np.float32), "float32")))
+    assert (empty.iteration, empty.n_points, empty.n_classes, empty.data) == (3, 0, 4, b"")
+
+
 def test_float16_and_voxel_grid(small_demo_scene, tmp_path):
     cfg = default_config(**{"solver.max_iter": 30, "scene.voxel_size": 0.12, "record.z_precision": "float16",
                             "record.interval": 7})
@@ -154,8 +221,9 @@ def test_schema_in_the_file_decodes_without_this_package(cli_runs):
             for f in descriptor_pb2.FileDescriptorSet.FromString(schema.data).file:
                 pool.Add(f)
             msg = GetMessageClass(pool.FindMessageTypeByName(schema.name)).FromString(message.data)
-            Z = np.frombuffer(msg.data, "<f4").reshape(msg.n_points, msg.n_classes)
-            assert msg.dtype == "float32" and msg.scale == 1.0 and Z.shape[1] == 20
+            assert msg.dtype == "float32" and msg.scale == 1.0 and msg.class_major
+            Z = np.frombuffer(msg.data, "<f4").reshape(msg.n_classes, msg.n_points).T
+            assert Z.shape[1] == 20 and (Z.sum(1) > 0).any()
             break
         else:
             pytest.fail("no Z message")
