@@ -157,6 +157,18 @@ def test_z_state_bytes_is_the_protobuf_serialisation():
     assert (empty.iteration, empty.n_points, empty.n_classes, empty.data) == (3, 0, 4, b"")
 
 
+def test_point_cloud_bytes_is_the_protobuf_serialisation():
+    from diffuser_lab.recording.mcap_log import _cloud_dtype, _point_cloud, point_cloud_bytes
+
+    buf = np.zeros(300, _cloud_dtype())
+    buf["x"], buf["label"], buf["red"] = np.arange(300) * 0.5, np.arange(300) % 7 - 1, 200
+    pool = bytearray(100_000)
+    for out in (None, pool, bytearray(10)):  # new, reused (larger), too small (replaced)
+        assert bytes(point_cloud_bytes(buf, 1_234_567_890_123, out)) == \
+            _point_cloud(buf, 1_234_567_890_123).SerializeToString()
+    assert bytes(point_cloud_bytes(buf[:0], 5)) == _point_cloud(buf[:0], 5).SerializeToString()
+
+
 def test_float16_and_voxel_grid(small_demo_scene, tmp_path):
     cfg = default_config(**{"solver.max_iter": 30, "scene.voxel_size": 0.12, "record.z_precision": "float16",
                             "record.interval": 7})
@@ -191,6 +203,17 @@ def test_rrd_reads_back_with_rerun_and_holds_class_ids_per_iteration(cli_runs):
             "/metrics/residual", "/metrics/changed"} <= paths
     p = subprocess.run([RERUN, "rrd", "verify", str(d / "run.rrd")], capture_output=True, text=True, timeout=120)
     assert p.returncode == 0, p.stderr
+    depth = next(ch for ch in reader.stream() if ch.entity_path == "/world/cameras/0000/depth").to_record_batch()
+    assert depth.column("DepthImage:meter").to_pylist() == [[1000.0]]  # uint16 millimetres
+
+
+def test_depth_mm():
+    from diffuser_lab.recording.rerun_log import depth_mm
+
+    d = np.array([[0.0, 1.2344, 1.2346, np.nan], [-1.0, np.inf, 65.535, 70.0]], np.float32)
+    out = depth_mm(d)
+    assert out.dtype == np.uint16
+    np.testing.assert_array_equal(out, [[0, 1234, 1235, 0], [0, 0, 65535, 0]])
 
 
 def test_rerun_reads_the_mcap(cli_runs):

@@ -53,8 +53,9 @@ def _cloud_dtype() -> np.dtype:
                      "formats": ["<f4", "<f4", "<f4", "u1", "u1", "u1", "u1", "<i2"]})
 
 
-def _point_cloud(buf: np.ndarray, stamp_ns: int) -> Any:
-    """A foxglove.PointCloud of the packed structured array ``buf``."""
+def _point_cloud(buf: np.ndarray, stamp_ns: int, with_data: bool = True) -> Any:
+    """A foxglove.PointCloud of the packed structured array ``buf`` (without its ``data``
+    field when not ``with_data``)."""
     from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
     from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 
@@ -65,8 +66,18 @@ def _point_cloud(buf: np.ndarray, stamp_ns: int) -> Any:
     for name in buf.dtype.names:
         dt, off = buf.dtype.fields[name][:2]
         msg.fields.add(name=name, offset=off, type=kinds[dt.str])
-    msg.data = buf.tobytes()
+    if with_data:
+        msg.data = buf.tobytes()
     return msg
+
+
+def point_cloud_bytes(buf: np.ndarray, stamp_ns: int, out: Optional[bytearray] = None) -> memoryview:
+    """``_point_cloud(buf, stamp_ns).SerializeToString()`` with ``buf`` copied once, into ``out``
+    (see :func:`_with_bytes_field`); ``data`` is PointCloud's last field (6)."""
+    head = _point_cloud(buf, stamp_ns, with_data=False).SerializeToString()
+    mv, at = _with_bytes_field(head, 6, buf.nbytes, b"", out)
+    np.frombuffer(mv, np.uint8, buf.nbytes, at)[:] = buf.reshape(-1).view(np.uint8)
+    return mv
 
 
 def decode_point_cloud(msg: Any) -> dict[str, np.ndarray]:
@@ -103,32 +114,40 @@ def _varint(n: int) -> bytes:
             return bytes(out)
 
 
-def z_state_bytes(iteration: int, Z: np.ndarray, dtype: str, out: Optional[bytearray] = None,
-                  class_major: bool = True) -> memoryview:
-    """``ZState(...).SerializeToString()`` with Z copied once: the fields around ``data`` are
-    serialized by protobuf, field 5 (tag, length, the array's bytes, Z transposed when
-    ``class_major``) is placed in between. Written into ``out`` (a new buffer when None or too
-    small); returns the filled part."""
-    arr, scale = _z_array(Z, dtype)
-    nbytes = arr.nbytes
-    head = schema.ZState(iteration=int(iteration), n_points=Z.shape[0], n_classes=Z.shape[1],
-                         dtype=dtype).SerializeToString()
-    if nbytes:
-        head += b"\x2a" + _varint(nbytes)
-    tail = schema.ZState(scale=scale, class_major=bool(class_major)).SerializeToString()
+def _with_bytes_field(head: bytes, number: int, nbytes: int, tail: bytes,
+                      out: Optional[bytearray]) -> tuple[memoryview, int]:
+    """A serialized protobuf message ``head`` + bytes field ``number`` (``nbytes`` long, left for
+    the caller to fill) + ``tail``, where head and tail serialize the fields numbered below and
+    above it (protobuf writes fields in number order, so this is the message's own encoding).
+    Uses ``out`` when it is large enough, else a new buffer. Returns (the message, offset of the
+    field's payload)."""
+    if nbytes:  # proto3 leaves an empty bytes field out
+        head += _varint(number << 3 | 2) + _varint(nbytes)
     size = len(head) + nbytes + len(tail)
     if out is None or len(out) < size:
         out = bytearray(size)
     mv = memoryview(out)[:size]
     mv[:len(head)] = head
-    body = np.frombuffer(mv, arr.dtype, arr.size, len(head))
+    mv[len(head) + nbytes:] = tail
+    return mv, len(head)
+
+
+def z_state_bytes(iteration: int, Z: np.ndarray, dtype: str, out: Optional[bytearray] = None,
+                  class_major: bool = True) -> memoryview:
+    """``ZState(...).SerializeToString()`` with Z copied once (transposed when ``class_major``)
+    into ``out`` (see :func:`_with_bytes_field`); ``data`` is field 5."""
+    arr, scale = _z_array(Z, dtype)
+    head = schema.ZState(iteration=int(iteration), n_points=Z.shape[0], n_classes=Z.shape[1],
+                         dtype=dtype).SerializeToString()
+    tail = schema.ZState(scale=scale, class_major=bool(class_major)).SerializeToString()
+    mv, at = _with_bytes_field(head, 5, arr.nbytes, tail, out)
+    body = np.frombuffer(mv, arr.dtype, arr.size, at)
     if class_major:
         from ..kernels import transpose_into  # numba: only where Z is written
 
         transpose_into(arr, body.reshape(arr.shape[::-1]))
     else:
         body.reshape(arr.shape)[...] = arr
-    mv[len(head) + nbytes:] = tail
     return mv
 
 
@@ -236,9 +255,9 @@ class McapRecorder:
         self._labels_buf: Optional[np.ndarray] = None
         self._colors: Optional[np.ndarray] = None
         self._rgba: Optional[np.ndarray] = None  # (C + 1,) colours packed as the cloud's 4 rgba bytes
-        # Z message buffers, reused once the writer has copied them (fresh 4 MB buffers per
-        # recorded iteration cost as much in page faults as the copy itself)
-        self._z_free: queue.SimpleQueue = queue.SimpleQueue()
+        # per-iteration message buffers, reused once the writer has copied them (a fresh 4 MB
+        # buffer per recorded iteration costs more in page faults than the copy itself)
+        self._free: dict[str, queue.SimpleQueue] = {TOPIC_LABELS: queue.SimpleQueue(), TOPIC_Z: queue.SimpleQueue()}
         self._closed = False
         self._error: Optional[BaseException] = None
         self._queue: queue.Queue = queue.Queue(maxsize=32)  # ~8 iterations
@@ -360,14 +379,21 @@ class McapRecorder:
                                       "itemsize": buf.dtype.itemsize}))
             rgba["rgba"] = self._rgba[step.labels]  # red green blue alpha at offsets 12-15
             buf["label"] = step.labels
-            self._write(TOPIC_LABELS, _point_cloud(buf, time.time_ns()), step.iteration)
-        try:
-            out = self._z_free.get_nowait()
-        except queue.Empty:
-            out = None
-        mv = z_state_bytes(step.iteration, step.Z, self.z_dtype, out)
-        self._write(TOPIC_Z, _RawMessage(mv, functools.partial(self._z_free.put, mv.obj)), step.iteration)
+            self._write_pooled(TOPIC_LABELS, point_cloud_bytes(buf, time.time_ns(), self._pooled(TOPIC_LABELS)),
+                               step.iteration)
+        self._write_pooled(TOPIC_Z, z_state_bytes(step.iteration, step.Z, self.z_dtype, self._pooled(TOPIC_Z)),
+                           step.iteration)
         self._flush()  # ends the chunk: a killed run keeps this iteration
+
+    def _pooled(self, topic: str) -> Optional[bytearray]:
+        try:
+            return self._free[topic].get_nowait()
+        except queue.Empty:
+            return None
+
+    def _write_pooled(self, topic: str, mv: memoryview, sequence: int) -> None:
+        """Queue a serialized message whose buffer returns to ``topic``'s pool once written."""
+        self._write(topic, _RawMessage(mv, functools.partial(self._free[topic].put, mv.obj)), sequence)
 
     def log_summary(self, summary: dict) -> None:
         self._submit(self.w.add_metadata, "diffuser_lab.summary",
@@ -531,5 +557,5 @@ def read_run(path: Path | str, *, z: Optional[Iterable[int]] | str = None, scene
     return out
 
 
-__all__ = ["McapRecorder", "RunLog", "read_run", "iter_run", "metrics_dict", "decode_z", "z_state_bytes", "decode_point_cloud",
+__all__ = ["McapRecorder", "RunLog", "read_run", "iter_run", "metrics_dict", "decode_z", "z_state_bytes", "point_cloud_bytes", "decode_point_cloud",
            "TOPIC_Z", "TOPIC_METRICS", "TOPIC_RUN", "TOPIC_LABELS", "TOPIC_SCENE", "TOPIC_EVIDENCE"]

@@ -5,7 +5,7 @@ Entity tree (``world`` is z-up, metres; class colours come from the AnnotationCo
     world                          AnnotationContext (taxonomy names + colours; id 65535 = unlabeled)
     world/scene/points             Points3D, static: the input cloud (input colours, else grey)
     world/scene/ground_truth       Points3D, static: ground-truth class ids (when known)
-    world/cameras/<i>              Transform3D + Pinhole, static; children depth (DepthImage),
+    world/cameras/<i>              Transform3D + Pinhole, static; children depth (DepthImage, mm),
                                    labels (SegmentationImage, the 2D predictions), rgb (Image, if any)
     world/evidence/bayesian        Points3D, static: work points that received pixel mass, Bayesian labels
     world/evidence/unseen          Points3D, static: work points no pixel reached
@@ -49,6 +49,14 @@ def class_ids(labels: np.ndarray) -> np.ndarray:
     """(...,) int labels with IGNORE -> uint16 Rerun class ids (IGNORE -> UNLABELED_ID)."""
     lab = np.asarray(labels)
     return np.where(lab == IGNORE, UNLABELED_ID, lab).astype(np.uint16)
+
+
+def depth_mm(depth: np.ndarray) -> np.ndarray:
+    """(H, W) float depth in metres -> uint16 millimetres (0 where invalid or beyond 65.5 m): half
+    the bytes of float32, the resolution of the sensors' own depth files."""
+    d = np.rint(np.nan_to_num(np.asarray(depth, np.float32) * np.float32(1000.0), nan=0.0, posinf=0.0, neginf=0.0))
+    d[(d < 0) | (d > 65535)] = 0
+    return d.astype(np.uint16)
 
 
 def annotation_context(names: Sequence[str], colors: np.ndarray):
@@ -169,7 +177,7 @@ class RerunRecorder:
         if depth is not None:
             d, K_img = self._shrink(np.asarray(depth, np.float32), np.asarray(K, np.float64))
             res = (d.shape[1], d.shape[0])
-            self.rec.log(f"{path}/depth", rr.DepthImage(d, meter=1.0), static=True)
+            self.rec.log(f"{path}/depth", rr.DepthImage(depth_mm(d), meter=1000.0), static=True)
         if labels is not None:
             lab, _ = self._shrink(labels, np.asarray(K, np.float64))
             self.rec.log(f"{path}/labels", rr.SegmentationImage(class_ids(lab)), static=True)
