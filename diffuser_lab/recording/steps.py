@@ -130,7 +130,6 @@ class StepTracker:
         self.to_work = to_work
         self.prev_labels = np.full(n_work, IGNORE, np.int16)
         self.prev_iteration = 0
-        self.last: Optional[Step] = None
 
     def step(self, iteration: int, Z: np.ndarray, residual: float) -> Step:
         labels, conf = label_confidence(Z)
@@ -149,7 +148,6 @@ class StepTracker:
                   mean_confidence=float(conf[labelled].mean()) if n_lab else 0.0, wrong=wrong)
         self.prev_labels = labels
         self.prev_iteration = int(iteration)
-        self.last = st
         return st
 
 
