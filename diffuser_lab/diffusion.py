@@ -35,6 +35,18 @@ An observer with a ``wants(iteration) -> bool`` method is called only where it r
 (building Z in the paper's units for an iteration nobody records costs a full copy)."""
 
 
+
+def observes(observer: Optional[Observer], iteration: int) -> bool:
+    """Whether ``observer`` is to be called after ``iteration`` (see :data:`Observer`)."""
+    return observer is not None and (not hasattr(observer, "wants") or observer.wants(iteration))
+
+
+def show(observer: Observer, iteration: int, Z: np.ndarray, residual: float) -> None:
+    """Call ``observer`` with a read-only view of ``Z`` (N, C) in the paper's units."""
+    view = Z.view()
+    view.flags.writeable = False
+    observer(iteration, view, {"residual": residual})
+
 @dataclass
 class System:
     """The normalised system of Eqs. 14-15: P (N, N) CSR float32 and B (N, C) float32."""
@@ -261,12 +273,10 @@ def diffuse(system: System, *, max_iter: int = 200, tol: float = 1e-4,
             change, top = step()
             residual = change / top if top > 0 else 0.0
             residuals.append(residual)
-            if observer is not None and (not hasattr(observer, "wants") or observer.wants(it)):
+            if observes(observer, it):
                 if seen_buf is None:  # one buffer for all observed iterations: no fresh pages each time
                     seen_buf = np.zeros(full_shape, np.float32)
-                view = paper_units(seen_buf).view()
-                view.flags.writeable = False
-                observer(it, view, {"residual": residual})
+                show(observer, it, paper_units(seen_buf), residual)
             if residual <= tol:
                 converged = True
                 break
@@ -363,10 +373,8 @@ def solve_exact(system: System, *, max_iter: int = 200, tol: float = 1e-4,
     np.maximum(Z, 0.0, out=Z)  # the fixed point is non-negative; clip round-off
     Z_full = np.zeros(full_shape, np.float32)
     Z_full[np.ix_(order[R], active)] = (Z * scale).astype(np.float32)
-    if observer is not None and (not hasattr(observer, "wants") or observer.wants(1)):
-        view = Z_full.copy().view()
-        view.flags.writeable = False
-        observer(1, view, {"residual": res})
+    if observes(observer, 1):
+        show(observer, 1, Z_full.copy(), res)
     return DiffusionResult(Z=Z_full, iterations=max(krylov, 1), converged=bool(converged), residual=res,
                            residuals=[res], info=info)
 

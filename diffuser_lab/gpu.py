@@ -33,7 +33,7 @@ def _torch(device: Optional[str] = None):
 
 def diffuse_torch(system, *, max_iter: int = 200, tol: float = 1e-4, observer=None, device: Optional[str] = None):
     """:func:`~diffuser_lab.diffusion.diffuse` on a CUDA device (see module doc)."""
-    from .diffusion import SCORE_FLOOR, DiffusionResult, iteration_inputs
+    from .diffusion import SCORE_FLOOR, DiffusionResult, iteration_inputs, observes, show
 
     torch = _torch(device)  # device="cpu" runs the same code without a GPU (tests)
     dev = torch.device(device or "cuda")
@@ -71,10 +71,8 @@ def diffuse_torch(system, *, max_iter: int = 200, tol: float = 1e-4, observer=No
         residual = change / top if top > 0 else 0.0
         residuals.append(residual)
         Z = Zn
-        if observer is not None and (not hasattr(observer, "wants") or observer.wants(it)):
-            view = paper_units(Z).view()
-            view.flags.writeable = False
-            observer(it, view, {"residual": residual})
+        if observes(observer, it):
+            show(observer, it, paper_units(Z), residual)
         if residual <= tol:
             converged = True
             break

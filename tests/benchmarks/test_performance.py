@@ -19,6 +19,7 @@ import sys
 import textwrap
 import time
 import tracemalloc
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -81,7 +82,7 @@ def test_graph_and_diffusion(benchmark, enabled, n, iters, impl):
     if impl.startswith("reference-float64"):
         if impl.endswith("shuffled"):
             perm = np.random.default_rng(0).permutation(w.n)
-            w_in = type("Shuffled", (), {"points": w.points[perm], "normals": w.normals[perm], "mass": w.mass[perm]})
+            w_in = SimpleNamespace(points=w.points[perm], normals=w.normals[perm], mass=w.mass[perm])
         else:
             w_in = w
         if n >= 300_000 and enabled:  # ~20-60 s a run: a single round
