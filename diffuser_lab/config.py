@@ -299,11 +299,13 @@ class RecordConfig:
     z_precision: ZPrecision = ZPrecision.float32  # precision of Z in run.mcap
     max_image_side: int = 320  # frames' images in run.rrd are downsampled to at most this many pixels
     zstd_level: int = -20  # run.mcap chunks: -131072 (fastest) .. 22 (smallest); see mcap_log.ZSTD_LEVEL
+    retain_heap_mb: int = 256  # glibc keeps this much freed memory for reuse (0: its defaults); see recording.heap
 
     def __post_init__(self) -> None:
         _check(self.interval >= 1, "record.interval", self.interval, ">= 1")
         _check(-131072 <= self.zstd_level <= 22, "record.zstd_level", self.zstd_level, "in -131072..22")
         _check(self.max_image_side >= 16, "record.max_image_side", self.max_image_side, ">= 16")
+        _check(0 <= self.retain_heap_mb <= 1024, "record.retain_heap_mb", self.retain_heap_mb, "in 0..1024")
 
 
 @dataclass

@@ -26,6 +26,7 @@ from typing import Any, Optional, Sequence
 import numpy as np
 
 from ..hooks import RunHooks
+from .heap import retain_freed_memory
 from .steps import Step, StepTracker, original_to_work
 
 log = logging.getLogger("diffuser_lab.recording")
@@ -53,7 +54,7 @@ class RecordingHooks(RunHooks):
         self.rerun = self.mcap = None
         self.scene = None
         self.tracker: Optional[StepTracker] = None
-        self._wants_cache: dict[int, bool] = {}
+        retain_freed_memory(int(getattr(conf.record, "retain_heap_mb", 0)))
         if rerun:
             self._guard("rerun", self._open_rerun)
         if mcap:
