@@ -105,3 +105,16 @@ def test_wheel_carries_the_configs(tmp_path):
                         str(target)], cwd=elsewhere, capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr
     assert str(target) in p.stdout and "k: 7" in p.stdout and "name: ldls" in p.stdout
+
+
+@pytest.mark.parametrize("overrides", [{}, {"graph.k": 8, "record.mode": "off", "solver.name": "exact"},
+                                       {"scene.voxel_size": 0.05, "record.z_precision": "float16", "seed": 3}])
+def test_config_yaml_is_omegaconfs_text(overrides):
+    from omegaconf import OmegaConf
+
+    from diffuser_lab.config import config_yaml, default_config
+
+    conf = default_config(**overrides)
+    assert config_yaml(conf) == OmegaConf.to_yaml(OmegaConf.structured(conf))
+    dc = OmegaConf.structured(conf)
+    assert config_yaml(dc) == OmegaConf.to_yaml(dc)

@@ -205,6 +205,9 @@ def test_rrd_reads_back_with_rerun_and_holds_class_ids_per_iteration(cli_runs):
     assert p.returncode == 0, p.stderr
     depth = next(ch for ch in reader.stream() if ch.entity_path == "/world/cameras/0000/depth").to_record_batch()
     assert depth.column("DepthImage:meter").to_pylist() == [[1000.0]]  # uint16 millimetres
+    cam = next(ch for ch in reader.stream() if ch.entity_path == "/world/cameras/0000").to_record_batch()
+    assert {"Pinhole:image_from_camera", "Pinhole:resolution", "Transform3D:mat3x3",
+            "Transform3D:translation"} <= set(cam.schema.names)
 
 
 def test_depth_mm():

@@ -68,12 +68,11 @@ class RecordingHooks(RunHooks):
         self._files["rrd"] = RRD_NAME
 
     def _open_mcap(self, overrides: Sequence[str]) -> None:
-        from omegaconf import OmegaConf
-
+        from ..config import config_yaml
         from .mcap_log import McapRecorder
 
         try:
-            yaml = OmegaConf.to_yaml(OmegaConf.structured(self.conf))
+            yaml = config_yaml(self.conf)
         except Exception:  # noqa: BLE001 - a library caller may pass a plain object
             yaml = repr(self.conf)
         self.mcap = McapRecorder(self.run_dir / MCAP_NAME, z_dtype=str(_value(self.conf.record.z_precision)),

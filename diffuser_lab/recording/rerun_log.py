@@ -76,7 +76,8 @@ def point_radius(points: np.ndarray) -> float:
     if len(points) < 2:
         return 0.01
     sample = points[np.random.default_rng(0).choice(len(points), min(len(points), 2000), replace=False)]
-    d, _ = cKDTree(points).query(sample, k=2)
+    # an unbalanced tree builds in half the time and answers 2,000 queries as well
+    d, _ = cKDTree(points, balanced_tree=False, compact_nodes=False).query(sample, k=2)
     return float(max(0.5 * np.mean(d[:, 1]), 1e-4))
 
 
@@ -171,7 +172,6 @@ class RerunRecorder:
         rr = self.rr
         path = f"world/cameras/{index:04d}"
         T_wc = np.linalg.inv(np.asarray(T_cw, np.float64))
-        self.rec.log(path, rr.Transform3D(translation=T_wc[:3, 3], mat3x3=T_wc[:3, :3]), static=True)
         K_img = np.asarray(K, np.float64)
         res = (int(width), int(height))
         if depth is not None:
@@ -184,8 +184,8 @@ class RerunRecorder:
         if rgb is not None:
             im, _ = self._shrink(rgb, np.asarray(K, np.float64))
             self.rec.log(f"{path}/rgb", rr.Image(np.ascontiguousarray(im)), static=True)
-        self.rec.log(path, rr.Pinhole(image_from_camera=K_img, resolution=res, image_plane_distance=0.25),
-                     static=True)
+        self.rec.log(path, rr.Transform3D(translation=T_wc[:3, 3], mat3x3=T_wc[:3, :3]),
+                     rr.Pinhole(image_from_camera=K_img, resolution=res, image_plane_distance=0.25), static=True)
 
     def log_evidence(self, work_points: np.ndarray, seen: np.ndarray, bayesian: np.ndarray) -> None:
         """Work cloud (M, 3); seen (M,) bool; bayesian (M,) labels. Also logs the static
