@@ -19,7 +19,8 @@ Metadata records: ``diffuser_lab.config`` (``yaml``: the resolved config, ``over
 Each recorded iteration ends its chunk and flushes the file, so a run that is killed leaves
 every completed iteration readable (:func:`read_run` reads such a truncated file).
 Compression and writing happen on one background thread (in order, a short bounded queue), so
-the diffusion does not wait for zstd; :meth:`McapRecorder.close` drains it.
+the diffusion does not wait for zstd; :meth:`McapRecorder.close` drains it. The file is written
+with ``O_DIRECT`` where the file system allows (:mod:`.direct_file`): no page-cache copies.
 Message ``sequence`` is the diffusion iteration; ``log_time`` is the wall clock (ns).
 """
 from __future__ import annotations
