@@ -35,7 +35,6 @@ An observer with a ``wants(iteration) -> bool`` method is called only where it r
 (building Z in the paper's units for an iteration nobody records costs a full copy)."""
 
 
-
 def observes(observer: Optional[Observer], iteration: int) -> bool:
     """Whether ``observer`` is to be called after ``iteration`` (see :data:`Observer`)."""
     return observer is not None and (not hasattr(observer, "wants") or observer.wants(iteration))
@@ -46,6 +45,7 @@ def show(observer: Observer, iteration: int, Z: np.ndarray, residual: float) -> 
     view = Z.view()
     view.flags.writeable = False
     observer(iteration, view, {"residual": residual})
+
 
 @dataclass
 class System:

@@ -26,17 +26,18 @@ M_MMAP_THRESHOLD = -3
 MMAP_THRESHOLD = 32 << 20
 """Blocks above this still get their own mapping (returned to the kernel when freed)."""
 
-_applied: dict[str, int] = {}
+_trim_applied = 0  # bytes; 0: glibc's defaults are in force
 
 
 def retain_freed_memory(trim_mb: int) -> bool:
     """Let glibc keep up to ``trim_mb`` MiB of freed memory at the top of each heap (0: leave the
     defaults). Returns whether the setting is in force. Applied once per process; a later call
     with a larger value raises it."""
+    global _trim_applied
     if trim_mb <= 0 or platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
-        return bool(_applied)
+        return _trim_applied > 0
     trim = int(trim_mb) << 20
-    if _applied.get("trim", 0) >= trim:
+    if _trim_applied >= trim:
         return True
     try:
         libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
@@ -45,7 +46,7 @@ def retain_freed_memory(trim_mb: int) -> bool:
         log.debug("mallopt unavailable: %s", exc)
         return False
     if ok:
-        _applied["trim"] = trim
+        _trim_applied = trim
     return ok
 
 

@@ -55,6 +55,16 @@ def _cloud_dtype() -> np.dtype:
                      "formats": ["<f4", "<f4", "<f4", "u1", "u1", "u1", "u1", "<i2"]})
 
 
+def _cloud(points: np.ndarray) -> np.ndarray:
+    """(P, 3) points -> a packed cloud (:func:`_cloud_dtype`) with x y z set, opaque, label -1."""
+    buf = np.zeros(len(points), _cloud_dtype())
+    for i, ax in enumerate("xyz"):
+        buf[ax] = points[:, i]
+    buf["alpha"] = 255
+    buf["label"] = -1
+    return buf
+
+
 def _point_cloud(buf: np.ndarray, stamp_ns: int, with_data: bool = True) -> Any:
     """A foxglove.PointCloud of the packed structured array ``buf`` (without its ``data``
     field when not ``with_data``)."""
@@ -255,7 +265,6 @@ class McapRecorder:
         self.w.add_metadata("diffuser_lab.config", {"yaml": config_yaml, "overrides": json.dumps(list(overrides))})
         self._cameras: list[Any] = []
         self._labels_buf: Optional[np.ndarray] = None
-        self._colors: Optional[np.ndarray] = None
         self._rgba: Optional[np.ndarray] = None  # (C + 1,) colours packed as the cloud's 4 rgba bytes
         # per-iteration message buffers, reused once the writer has copied them (a fresh 4 MB
         # buffer per recorded iteration costs more in page faults than the copy itself)
@@ -310,28 +319,32 @@ class McapRecorder:
     def _flush(self) -> None:
         self._submit(self.w.flush)
 
-    def _lut(self, labels: np.ndarray) -> np.ndarray:
-        idx = np.where(labels < 0, len(self._colors) - 1, labels)
-        return self._colors[idx]
+    def _paint(self, buf: np.ndarray, labels: np.ndarray) -> None:
+        """Colour the cloud ``buf`` by ``labels`` (taxonomy colours, IGNORE grey) and store them
+        as its label field."""
+        rgba = buf.view(np.dtype({"names": ["rgba"], "formats": ["<u4"], "offsets": [12],
+                                  "itemsize": buf.dtype.itemsize}))
+        rgba["rgba"] = self._rgba[labels]  # red green blue alpha at offsets 12-15
+        buf["label"] = labels
 
     # -- static ----------------------------------------------------------------------------
     def log_scene(self, scene: Any) -> None:
         tax = scene.taxonomy
-        self._colors = np.vstack([tax.colors, np.array([[70, 70, 70]], np.uint8)])  # last: unlabeled
-        rgba = np.concatenate([self._colors, np.full((len(self._colors), 1), 255, np.uint8)], 1)
+        colors = np.vstack([tax.colors, np.array([[70, 70, 70]], np.uint8)])  # last: unlabeled
+        rgba = np.concatenate([colors, np.full((len(colors), 1), 255, np.uint8)], 1)
         self._rgba = np.ascontiguousarray(rgba).view("<u4").ravel()  # index -1 (IGNORE): unlabeled
         gt = scene.gt_labels
         self._submit(self.w.add_metadata, "diffuser_lab.run", {
             "scene": scene.name, "n_points": str(scene.n_points), "taxonomy": tax.name,
             "class_names": json.dumps(list(tax.names)), "class_colors": json.dumps(tax.colors.tolist()),
             "has_colors": json.dumps(scene.colors is not None), "has_gt": json.dumps(gt is not None)})
-        buf = np.zeros(scene.n_points, _cloud_dtype())
-        for i, ax in enumerate("xyz"):
-            buf[ax] = scene.points[:, i]
-        rgb = scene.colors if scene.colors is not None else (
-            self._lut(gt) if gt is not None else np.full((scene.n_points, 3), 160, np.uint8))
-        buf["red"], buf["green"], buf["blue"], buf["alpha"] = rgb[:, 0], rgb[:, 1], rgb[:, 2], 255
-        buf["label"] = gt if gt is not None else -1
+        buf = _cloud(scene.points)
+        if gt is not None:
+            self._paint(buf, gt)
+        if scene.colors is not None:  # input colours win over the ground truth's
+            buf["red"], buf["green"], buf["blue"] = scene.colors[:, 0], scene.colors[:, 1], scene.colors[:, 2]
+        elif gt is None:
+            buf["red"] = buf["green"] = buf["blue"] = 160
         self._write(TOPIC_SCENE, _point_cloud(buf, time.time_ns()))
 
     def log_camera(self, index: int, frame: Any) -> None:
@@ -353,18 +366,10 @@ class McapRecorder:
                               max_iter=self.max_iter, z_dtype=self.z_dtype)
         info.cameras.extend(self._cameras)
         self._write(TOPIC_RUN, info)
-        buf = np.zeros(m, _cloud_dtype())
-        for i, ax in enumerate("xyz"):
-            buf[ax] = work_points[:, i]
-        rgb = self._lut(bayesian)
-        buf["red"], buf["green"], buf["blue"], buf["alpha"] = rgb[:, 0], rgb[:, 1], rgb[:, 2], 255
-        buf["label"] = bayesian
+        buf = _cloud(work_points)
+        self._paint(buf, bayesian)
         self._write(TOPIC_EVIDENCE, _point_cloud(buf, time.time_ns()))
-        # the per-iteration cloud: positions filled once
-        self._labels_buf = np.zeros(m, _cloud_dtype())
-        for i, ax in enumerate("xyz"):
-            self._labels_buf[ax] = work_points[:, i]
-        self._labels_buf["alpha"] = 255
+        self._labels_buf = _cloud(work_points)  # the per-iteration cloud: positions filled once
         self._flush()
 
     # -- per iteration ------------------------------------------------------------------------
@@ -377,10 +382,7 @@ class McapRecorder:
             mean_confidence=step.mean_confidence), step.iteration)
         if self._labels_buf is not None:
             buf = self._labels_buf
-            rgba = buf.view(np.dtype({"names": ["rgba"], "formats": ["<u4"], "offsets": [12],
-                                      "itemsize": buf.dtype.itemsize}))
-            rgba["rgba"] = self._rgba[step.labels]  # red green blue alpha at offsets 12-15
-            buf["label"] = step.labels
+            self._paint(buf, step.labels)
             self._write_pooled(TOPIC_LABELS, point_cloud_bytes(buf, time.time_ns(), self._pooled(TOPIC_LABELS)),
                                step.iteration)
         self._write_pooled(TOPIC_Z, z_state_bytes(step.iteration, step.Z, self.z_dtype, self._pooled(TOPIC_Z)),
