@@ -2,6 +2,8 @@
 import numpy as np
 from numba import njit
 
+from ._sync import atomic_add, wait_until
+
 @njit(cache=True, boundscheck=False, nogil=True, fastmath={'contract'})
 def rows_8(nbr, wts, Zf, Znf, Bf, floor, lo, hi):
     K = nbr.shape[1]
@@ -94,6 +96,37 @@ def rows_8(nbr, wts, Zf, Znf, Bf, floor, lo, hi):
     change = max(ch0, ch1, ch2, ch3, ch4, ch5, ch6, ch7)
     top = max(tp0, tp1, tp2, tp3, tp4, tp5, tp6, tp7)
     return change, top
+
+
+@njit(cache=True, boundscheck=False, nogil=True)
+def steps_8(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, ctrl, res):
+    n = nbr.shape[0]
+    nchunks = (n + chunk - 1) // chunk
+    for s in range(n_steps):
+        src = Za if s % 2 == 0 else Zb
+        dst = Zb if s % 2 == 0 else Za
+        ch = np.float32(0.0)
+        tp = np.float32(0.0)
+        while True:
+            c = atomic_add(ctrl, 1 + s, 1)
+            if c >= nchunks:
+                break
+            lo = c * chunk
+            a, b = rows_8(nbr, wts, src, dst, Bf, floor, lo, min(lo + chunk, n))
+            ch = max(ch, a)
+            tp = max(tp, b)
+        res[s, tid, 0] = ch
+        res[s, tid, 1] = tp
+        atomic_add(ctrl, 0, 1)
+        wait_until(ctrl, 0, (s + 1) * nthreads)
+        gch = np.float32(0.0)
+        gtp = np.float32(0.0)
+        for t in range(nthreads):
+            gch = max(gch, res[s, t, 0])
+            gtp = max(gtp, res[s, t, 1])
+        if (np.float64(gch) / np.float64(gtp) if gtp > 0 else 0.0) <= tol:
+            return s + 1
+    return n_steps
 
 
 @njit(cache=True, boundscheck=False, nogil=True, fastmath={'contract'})
@@ -268,6 +301,37 @@ def rows_16(nbr, wts, Zf, Znf, Bf, floor, lo, hi):
     change = max(ch0, ch1, ch2, ch3, ch4, ch5, ch6, ch7, ch8, ch9, ch10, ch11, ch12, ch13, ch14, ch15)
     top = max(tp0, tp1, tp2, tp3, tp4, tp5, tp6, tp7, tp8, tp9, tp10, tp11, tp12, tp13, tp14, tp15)
     return change, top
+
+
+@njit(cache=True, boundscheck=False, nogil=True)
+def steps_16(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, ctrl, res):
+    n = nbr.shape[0]
+    nchunks = (n + chunk - 1) // chunk
+    for s in range(n_steps):
+        src = Za if s % 2 == 0 else Zb
+        dst = Zb if s % 2 == 0 else Za
+        ch = np.float32(0.0)
+        tp = np.float32(0.0)
+        while True:
+            c = atomic_add(ctrl, 1 + s, 1)
+            if c >= nchunks:
+                break
+            lo = c * chunk
+            a, b = rows_16(nbr, wts, src, dst, Bf, floor, lo, min(lo + chunk, n))
+            ch = max(ch, a)
+            tp = max(tp, b)
+        res[s, tid, 0] = ch
+        res[s, tid, 1] = tp
+        atomic_add(ctrl, 0, 1)
+        wait_until(ctrl, 0, (s + 1) * nthreads)
+        gch = np.float32(0.0)
+        gtp = np.float32(0.0)
+        for t in range(nthreads):
+            gch = max(gch, res[s, t, 0])
+            gtp = max(gtp, res[s, t, 1])
+        if (np.float64(gch) / np.float64(gtp) if gtp > 0 else 0.0) <= tol:
+            return s + 1
+    return n_steps
 
 
 @njit(cache=True, boundscheck=False, nogil=True, fastmath={'contract'})
@@ -522,6 +586,37 @@ def rows_24(nbr, wts, Zf, Znf, Bf, floor, lo, hi):
     change = max(ch0, ch1, ch2, ch3, ch4, ch5, ch6, ch7, ch8, ch9, ch10, ch11, ch12, ch13, ch14, ch15, ch16, ch17, ch18, ch19, ch20, ch21, ch22, ch23)
     top = max(tp0, tp1, tp2, tp3, tp4, tp5, tp6, tp7, tp8, tp9, tp10, tp11, tp12, tp13, tp14, tp15, tp16, tp17, tp18, tp19, tp20, tp21, tp22, tp23)
     return change, top
+
+
+@njit(cache=True, boundscheck=False, nogil=True)
+def steps_24(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, ctrl, res):
+    n = nbr.shape[0]
+    nchunks = (n + chunk - 1) // chunk
+    for s in range(n_steps):
+        src = Za if s % 2 == 0 else Zb
+        dst = Zb if s % 2 == 0 else Za
+        ch = np.float32(0.0)
+        tp = np.float32(0.0)
+        while True:
+            c = atomic_add(ctrl, 1 + s, 1)
+            if c >= nchunks:
+                break
+            lo = c * chunk
+            a, b = rows_24(nbr, wts, src, dst, Bf, floor, lo, min(lo + chunk, n))
+            ch = max(ch, a)
+            tp = max(tp, b)
+        res[s, tid, 0] = ch
+        res[s, tid, 1] = tp
+        atomic_add(ctrl, 0, 1)
+        wait_until(ctrl, 0, (s + 1) * nthreads)
+        gch = np.float32(0.0)
+        gtp = np.float32(0.0)
+        for t in range(nthreads):
+            gch = max(gch, res[s, t, 0])
+            gtp = max(gtp, res[s, t, 1])
+        if (np.float64(gch) / np.float64(gtp) if gtp > 0 else 0.0) <= tol:
+            return s + 1
+    return n_steps
 
 
 @njit(cache=True, boundscheck=False, nogil=True, fastmath={'contract'})
@@ -856,3 +951,34 @@ def rows_32(nbr, wts, Zf, Znf, Bf, floor, lo, hi):
     change = max(ch0, ch1, ch2, ch3, ch4, ch5, ch6, ch7, ch8, ch9, ch10, ch11, ch12, ch13, ch14, ch15, ch16, ch17, ch18, ch19, ch20, ch21, ch22, ch23, ch24, ch25, ch26, ch27, ch28, ch29, ch30, ch31)
     top = max(tp0, tp1, tp2, tp3, tp4, tp5, tp6, tp7, tp8, tp9, tp10, tp11, tp12, tp13, tp14, tp15, tp16, tp17, tp18, tp19, tp20, tp21, tp22, tp23, tp24, tp25, tp26, tp27, tp28, tp29, tp30, tp31)
     return change, top
+
+
+@njit(cache=True, boundscheck=False, nogil=True)
+def steps_32(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, ctrl, res):
+    n = nbr.shape[0]
+    nchunks = (n + chunk - 1) // chunk
+    for s in range(n_steps):
+        src = Za if s % 2 == 0 else Zb
+        dst = Zb if s % 2 == 0 else Za
+        ch = np.float32(0.0)
+        tp = np.float32(0.0)
+        while True:
+            c = atomic_add(ctrl, 1 + s, 1)
+            if c >= nchunks:
+                break
+            lo = c * chunk
+            a, b = rows_32(nbr, wts, src, dst, Bf, floor, lo, min(lo + chunk, n))
+            ch = max(ch, a)
+            tp = max(tp, b)
+        res[s, tid, 0] = ch
+        res[s, tid, 1] = tp
+        atomic_add(ctrl, 0, 1)
+        wait_until(ctrl, 0, (s + 1) * nthreads)
+        gch = np.float32(0.0)
+        gtp = np.float32(0.0)
+        for t in range(nthreads):
+            gch = max(gch, res[s, t, 0])
+            gtp = max(gtp, res[s, t, 1])
+        if (np.float64(gch) / np.float64(gtp) if gtp > 0 else 0.0) <= tol:
+            return s + 1
+    return n_steps

@@ -195,6 +195,11 @@ def iteration_inputs(system: System):
     return active, system.B.shape, scale, None, csr, system.B
 
 
+SEGMENT_ROW_STEPS = 20_000_000
+"""The compiled Jacobi runs at most this many row updates (~0.5-1 s) before returning to Python,
+so that Ctrl-C and observers are never far away."""
+
+
 def diffuse(system: System, *, max_iter: int = 200, tol: float = 1e-4,
             observer: Optional[Observer] = None, backend: str = "auto") -> DiffusionResult:
     """Iterate Eq. 10 from Z = 0 until max|Z_t - Z_{t-1}| <= tol * max|Z_t| or ``max_iter``.
@@ -234,13 +239,24 @@ def diffuse(system: System, *, max_iter: int = 200, tol: float = 1e-4,
                 kernels.unpermute_scaled(Z, ident, active[first:first + cnt].astype(np.int64), scale, Z_full)
             return Z_full
 
-        def step() -> tuple[float, float]:
-            change = top = 0.0
-            for blk in blocks:
-                ch, tp = runner.step(blk[2], nbr, wts, blk[4], blk[5], blk[3], floor)
-                blk[4], blk[5] = blk[5], blk[4]
-                change, top = max(change, ch), max(top, tp)
-            return change, top
+        def steps(count: int) -> np.ndarray:
+            """Up to ``count`` steps (fewer when converged): (steps done, 2) change, top."""
+            if len(blocks) == 1:  # all steps in compiled code, no GIL needed between them
+                blk = blocks[0]
+                out = runner.run(blk[2], nbr, wts, blk[4], blk[5], blk[3], floor, tol, count)
+                if len(out) % 2:
+                    blk[4], blk[5] = blk[5], blk[4]
+                return out
+            out = np.zeros((0, 2), np.float32)
+            for _ in range(count):  # several class blocks share one residual: a step at a time
+                ct = np.zeros(2, np.float32)
+                for blk in blocks:
+                    ct = np.maximum(ct, runner.run(blk[2], nbr, wts, blk[4], blk[5], blk[3], floor, -1.0, 1)[0])
+                    blk[4], blk[5] = blk[5], blk[4]
+                out = np.vstack([out, ct[None]])
+                if (ct[0] / ct[1] if ct[1] > 0 else 0.0) <= tol:
+                    break
+            return out
     else:
         Pm = sp.csr_matrix((data, indices, indptr), shape=(n, n), copy=True)  # never alias the system
         Pm.eliminate_zeros()
@@ -257,22 +273,33 @@ def diffuse(system: System, *, max_iter: int = 200, tol: float = 1e-4,
                 Z_full[order] = tmp
             return Z_full
 
-        def step() -> tuple[float, float]:
-            Z = state["Z"]
-            Z_new = Pm @ Z
-            Z_new += B
-            np.multiply(Z_new, Z_new >= floor, out=Z_new)
-            top = float(Z_new.max()) if Z_new.size else 0.0  # Z >= 0 throughout
-            change = float(np.abs(Z_new - Z).max()) if Z_new.size else 0.0
-            state["Z"] = Z_new
-            return change, top
+        def steps(count: int) -> np.ndarray:
+            out = []
+            for _ in range(count):
+                Z = state["Z"]
+                Z_new = Pm @ Z
+                Z_new += B
+                np.multiply(Z_new, Z_new >= floor, out=Z_new)
+                top = float(Z_new.max()) if Z_new.size else 0.0  # Z >= 0 throughout
+                change = float(np.abs(Z_new - Z).max()) if Z_new.size else 0.0
+                state["Z"] = Z_new
+                out.append((change, top))
+                if (change / top if top > 0 else 0.0) <= tol:
+                    break
+            return np.array(out, np.float32).reshape(-1, 2)
 
     seen_buf: Optional[np.ndarray] = None  # what observers see (valid during their call only)
     try:
-        for it in range(1, max_iter + 1):
-            change, top = step()
-            residual = change / top if top > 0 else 0.0
-            residuals.append(residual)
+        while it < max_iter:
+            # run up to the next iteration an observer wants to see, without returning to Python
+            stop = it + 1
+            last = min(max_iter, it + max(1, SEGMENT_ROW_STEPS // max(n, 1)))
+            while stop < last and not observes(observer, stop):
+                stop += 1
+            for change, top in steps(stop - it):
+                it += 1
+                residual = float(change) / float(top) if top > 0 else 0.0
+                residuals.append(residual)
             if observes(observer, it):
                 if seen_buf is None:  # one buffer for all observed iterations: no fresh pages each time
                     seen_buf = np.zeros(full_shape, np.float32)

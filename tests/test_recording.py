@@ -90,14 +90,24 @@ def test_library_final_z_exact_also_after_early_convergence(small_demo_scene, tm
     assert sorted(rrd_class_ids(tmp_path / "run.rrd")) == log.z_iterations
 
 
-def test_every_recorded_z_and_label_cloud_is_that_iterations(small_demo_scene, tmp_path):
-    # the solver reuses one buffer for what observers see and the MCAP recorder reuses its
-    # message buffers: each recorded iteration must still hold its own Z, and the per-iteration
-    # cloud its own labels and colours
+@pytest.mark.parametrize("mode", ["background", "background-slow", "in-line"])
+def test_every_recorded_z_and_label_cloud_is_that_iterations(small_demo_scene, tmp_path, monkeypatch, mode):
+    # the solver reuses one buffer for what observers see, the recording thread a few for the
+    # Z states it has queued (background-slow: a slow recorder makes the run wait for them),
+    # and the MCAP recorder its message buffers: each recorded iteration must still hold its
+    # own Z, and the per-iteration cloud its own labels and colours
+    import time
+
     from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 
+    from diffuser_lab import recording
     from diffuser_lab.hooks import RunHooks
-    from diffuser_lab.recording.mcap_log import TOPIC_LABELS, decode_point_cloud, iter_run
+    from diffuser_lab.recording.mcap_log import TOPIC_LABELS, McapRecorder, decode_point_cloud, iter_run
+
+    monkeypatch.setattr(recording, "ASYNC", mode != "in-line")
+    if mode == "background-slow":
+        slow = McapRecorder.log_step
+        monkeypatch.setattr(McapRecorder, "log_step", lambda self, step: (time.sleep(0.03), slow(self, step)))
 
     cfg = default_config(**{"solver.max_iter": 40, "record.interval": 5})
 
@@ -129,6 +139,43 @@ def test_every_recorded_z_and_label_cloud_is_that_iterations(small_demo_scene, t
         rgb = np.stack([c["red"], c["green"], c["blue"]], 1)
         np.testing.assert_array_equal(rgb, colors[lab], err_msg=f"iteration {it}")  # -1: unlabeled grey
         assert (c["alpha"] == 255).all()
+
+
+@pytest.mark.parametrize("voxels", [False, True])
+def test_compiled_step_statistics_equal_numpy(small_demo_scene, voxels):
+    """StepTracker's one compiled pass gives numpy's labels, changes, mIoU, accuracy, wrong
+    points and coverage (confidence up to float32 summation order), with and without a voxel
+    grid between the diffused and the original points, and without ground truth."""
+    from diffuser_lab.kernels import available
+    from diffuser_lab.recording import steps
+
+    if not available():
+        pytest.skip("numba (extra 'fast') not installed")
+    cfg = default_config(**{"solver.max_iter": 30, "scene.voxel_size": 0.1 if voxels else 0.0})
+    zs = {}
+    res = run(cfg, scene=small_demo_scene, observer=lambda it, Z, st: zs.__setitem__(it, np.array(Z)))
+    sc = res.scene
+    to_work = steps.original_to_work(res.work_points, sc.points) if voxels else None
+    for gt in (sc.gt_labels, None):
+        fused = steps.StepTracker(len(res.work_points), sc.taxonomy.names, gt, to_work)
+        plain = steps.StepTracker(len(res.work_points), sc.taxonomy.names, gt, to_work)
+        for it in (1, 2, 10, 30):
+            a = fused.step(it, zs[it], 0.5)
+            assert steps._FUSED
+            steps._FUSED = False
+            try:
+                b = plain.step(it, zs[it], 0.5)
+            finally:
+                steps._FUSED = None
+            np.testing.assert_array_equal(a.labels, b.labels)
+            np.testing.assert_allclose(a.confidence, b.confidence, atol=1e-6)
+            assert (a.n_changed, a.miou, a.accuracy, a.coverage) == (b.n_changed, b.miou, b.accuracy, b.coverage)
+            assert a.mean_confidence == pytest.approx(b.mean_confidence, abs=1e-6)
+            if gt is None:
+                assert a.wrong is None and b.wrong is None
+            else:
+                np.testing.assert_array_equal(a.wrong, b.wrong)
+                assert a.wrong.any() and a.miou > 0
 
 
 def test_z_state_bytes_is_the_protobuf_serialisation():

@@ -206,23 +206,49 @@ def test_bench_cli(tmp_path, capsys):
 @needs_numba
 @pytest.mark.parametrize("threads", [2, 3])
 def test_threaded_steps_equal_one_thread_exactly(threads):
-    """Rows are independent within a step, so splitting them over threads changes nothing."""
+    """Rows are independent within a step, so splitting them over threads (small chunks, many
+    barriers inside one compiled call) changes nothing; step by step equals all at once."""
     pts, nrm, mass = cloud(3000)
     s = normalise(build_graph(pts, 12, nrm), mass, 1e-4)
     nbr, wts = s.sorted_neighbors, s.sorted_P
     B = np.zeros((len(pts), 8), np.float32)
     B[:, :5] = s.B[s.order] / s.B.max()
     out = []
-    for th in (1, threads):
+    for th, one_at_a_time in ((1, True), (threads, True), (threads, False)):
         Z, Zn = np.zeros_like(B), np.zeros_like(B)
-        with kernels.StepRunner(len(pts), threads=th, min_rows_per_thread=1) as runner:
-            assert len(runner.chunks) == (1 if th == 1 else 4 * th)
-            for _ in range(30):
-                ch, tp = runner.step(8, nbr, wts, Z, Zn, B, 1e-18)
-                Z, Zn = Zn, Z
-        out.append((Z, ch, tp))
-    np.testing.assert_array_equal(out[0][0], out[1][0])
-    assert out[0][1:] == out[1][1:]
+        with kernels.StepRunner(len(pts), threads=th, min_rows_per_thread=1, chunk=97) as runner:
+            assert runner.threads == th
+            if one_at_a_time:
+                for _ in range(30):
+                    ch, tp = runner.step(8, nbr, wts, Z, Zn, B, 1e-18)
+                    Z, Zn = Zn, Z
+                per_step = None
+            else:
+                per_step = runner.run(8, nbr, wts, Z, Zn, B, 1e-18, -1.0, 30)
+                assert per_step.shape == (30, 2)
+                ch, tp = per_step[-1]  # 30 steps: the last state is back in Z
+        out.append((Z, float(ch), float(tp)))
+    for o in out[1:]:
+        np.testing.assert_array_equal(out[0][0], o[0])
+        assert out[0][1:] == o[1:]
+
+
+@needs_numba
+def test_compiled_runner_stops_where_the_python_loop_would():
+    """All threads stop after the first step whose relative change is <= tol; diffuse() reports
+    the same iterations, residuals and Z with and without an observer splitting the run."""
+    pts, nrm, mass = cloud(3000)
+    s = normalise(build_graph(pts, 12, nrm), mass, 1e-4)
+    full = diffuse(s, max_iter=400, tol=0.0, backend="numba")
+    tol = full.residuals[57] * 1.0000001  # converges at iteration 58 exactly
+    a = diffuse(s, max_iter=400, tol=tol, backend="numba")
+    seen = []
+    b = diffuse(s, max_iter=400, tol=tol, backend="numba", observer=lambda it, Z, st: seen.append(it))
+    assert a.converged and a.iterations == b.iterations == 58 and seen == list(range(1, 59))
+    assert a.residuals == b.residuals == full.residuals[:58]
+    np.testing.assert_array_equal(a.Z, b.Z)
+    sc = diffuse(s, max_iter=400, tol=tol, backend="scipy")
+    assert sc.iterations == 58
 
 
 def test_fixed_rows_pads_short_rows_with_zero_weight():

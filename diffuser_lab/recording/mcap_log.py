@@ -28,7 +28,6 @@ from __future__ import annotations
 import functools
 import json
 import queue
-import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,6 +37,7 @@ import numpy as np
 
 from . import schema
 from .direct_file import open_direct
+from .serial import SerialThread
 from .steps import Step
 
 TOPIC_SCENE = "/scene/points"
@@ -234,13 +234,15 @@ def _writer_class(level: int = ZSTD_LEVEL):
 
 
 class McapRecorder:
-    """Writes run.mcap as the run goes (see the module doc)."""
+    """Writes run.mcap as the run goes (see the module doc). ``writer_thread``: compress and
+    write on a thread of its own (default :data:`WRITER_THREAD`); False when the caller records
+    on a background thread already (:mod:`diffuser_lab.recording`)."""
 
     file_key = "mcap"
 
     def __init__(self, path: Path, *, z_dtype: str = "float32", config_yaml: str = "",
                  overrides: Sequence[str] = (), interval: int = 1, max_iter: int = 0,
-                 zstd_level: int = ZSTD_LEVEL):
+                 zstd_level: int = ZSTD_LEVEL, writer_thread: bool | None = None):
         from mcap.writer import CompressionType
 
         from .. import __version__
@@ -270,34 +272,22 @@ class McapRecorder:
         # buffer per recorded iteration costs more in page faults than the copy itself)
         self._free: dict[str, queue.SimpleQueue] = {TOPIC_LABELS: queue.SimpleQueue(), TOPIC_Z: queue.SimpleQueue()}
         self._closed = False
-        self._error: Optional[BaseException] = None
-        self._queue: queue.Queue = queue.Queue(maxsize=32)  # ~8 iterations
-        self._thread: Optional[threading.Thread] = None
-        if WRITER_THREAD:
-            self._thread = threading.Thread(target=self._work, name="diffuser-lab-mcap", daemon=True)
-            self._thread.start()
+        # the writer thread, when there is one, is the only user of self.w from here on
+        self._writer: Optional[SerialThread] = None
+        if WRITER_THREAD if writer_thread is None else writer_thread:
+            self._writer = SerialThread("diffuser-lab-mcap", 32, stop_on_error=True)  # ~8 iterations queued
 
-    # -- the writer thread: the only user of self.w from here on ----------------------------------
-    def _work(self) -> None:
-        while True:
-            item = self._queue.get()
-            if item is None:
-                return
-            if self._error is not None:
-                continue  # drain after a failure
-            fn, args = item
-            try:
-                fn(*args)
-            except BaseException as exc:  # noqa: BLE001 - reported by the next call or close()
-                self._error = exc
+    @property
+    def _error(self) -> Optional[BaseException]:
+        return None if self._writer is None else self._writer.error
 
     def _submit(self, fn, *args) -> None:
         if self._error is not None:
             raise RuntimeError(f"writing {self.path.name} failed: {self._error}") from self._error
-        if self._thread is None:
+        if self._writer is None:
             fn(*args)
         else:
-            self._queue.put((fn, args))
+            self._writer.submit(fn, *args)
 
     def _add(self, topic: str, msg: Any, sequence: int, t: int) -> None:
         self.w.add_message(self._channels[topic], log_time=t, publish_time=t, sequence=sequence,
@@ -409,12 +399,9 @@ class McapRecorder:
             return
         self._closed = True
         try:
-            if self._thread is None:
-                self.w.finish()
-            else:
-                self._queue.put((self.w.finish, ()))
-                self._queue.put(None)
-                self._thread.join()
+            self._submit(self.w.finish)
+            if self._writer is not None:
+                self._writer.close()
         finally:
             self._fh.close()
         if self._error is not None:
