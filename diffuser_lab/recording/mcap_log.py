@@ -104,14 +104,13 @@ def decode_point_cloud(msg: Any) -> dict[str, np.ndarray]:
     return {name: np.ascontiguousarray(arr[name]) for name in dt.names}
 
 
-def _z_array(Z: np.ndarray, dtype: str) -> tuple[np.ndarray, float]:
-    """(M, C) Z -> (array to store, scale) with Z = stored * scale: float32 is Z itself (exact,
-    scale 1), float16 stores Z / max(Z) so that Z's tiny values keep their precision."""
-    if dtype == "float16":
-        top = float(Z.max()) if Z.size else 0.0
-        scale = top if top > 0 else 1.0
-        return (Z / np.float32(scale)).astype("<f2"), scale
-    return np.asarray(Z, "<f4"), 1.0
+def _z_scale(Z: np.ndarray, dtype: str) -> float:
+    """The scale of stored Z (Z = stored * scale): 1 for float32 (Z itself, exact); max(Z) for
+    float16, which stores Z / max(Z) so that Z's tiny values keep their precision."""
+    if dtype != "float16":
+        return 1.0
+    top = float(Z.max()) if Z.size else 0.0
+    return top if top > 0 else 1.0
 
 
 def _varint(n: int) -> bytes:
@@ -148,19 +147,51 @@ def z_state_bytes(iteration: int, Z: np.ndarray, dtype: str, out: Optional[bytea
                   class_major: bool = True) -> memoryview:
     """``ZState(...).SerializeToString()`` with Z copied once (transposed when ``class_major``)
     into ``out`` (see :func:`_with_bytes_field`); ``data`` is field 5."""
-    arr, scale = _z_array(Z, dtype)
+    scale = _z_scale(Z, dtype)
+    stored = np.dtype("<f2" if dtype == "float16" else "<f4")
     head = schema.ZState(iteration=int(iteration), n_points=Z.shape[0], n_classes=Z.shape[1],
                          dtype=dtype).SerializeToString()
     tail = schema.ZState(scale=scale, class_major=bool(class_major)).SerializeToString()
-    mv, at = _with_bytes_field(head, 5, arr.nbytes, tail, out)
-    body = np.frombuffer(mv, arr.dtype, arr.size, at)
-    if class_major:
-        from ..kernels import transpose_into  # numba: only where Z is written
+    mv, at = _with_bytes_field(head, 5, Z.size * stored.itemsize, tail, out)
+    body = np.frombuffer(mv, stored, Z.size, at).reshape(Z.shape[::-1] if class_major else Z.shape)
+    from ..kernels import transpose_into  # numba: only where Z is written
 
-        transpose_into(arr, body.reshape(arr.shape[::-1]))
+    if stored == np.float32:
+        if class_major:
+            transpose_into(np.asarray(Z, np.float32), body)
+        else:
+            body[...] = Z
+        return mv
+    # float16: transpose (compiled, float32) and scale first, then one contiguous conversion
+    tmp = np.empty(body.shape, np.float32)
+    if class_major:
+        transpose_into(np.asarray(Z, np.float32), tmp)
     else:
-        body.reshape(arr.shape)[...] = arr
+        tmp[...] = Z
+    np.divide(tmp, np.float32(scale), out=tmp)
+    body[...] = to_float16(tmp)
     return mv
+
+
+_F16_MIN_NORMAL = np.float32(2.0**-14)
+
+
+def to_float16(a: np.ndarray) -> np.ndarray:
+    """``a.astype("<f2")`` for finite float32 ``a`` >= 0, bit for bit, fast: numpy converts
+    values that become float16 subnormals (below 2^-14; Z has many) in a slow path (~50 ms on a
+    1M-value Z state). Compiled where numba is; otherwise those values are rounded here as the
+    multiple of 2^-24 nearest (ties to even), which is their float16 bit pattern."""
+    from ..kernels import to_float16 as compiled
+
+    out = compiled(a)
+    if out is not None:
+        return out
+    sub = a < _F16_MIN_NORMAL
+    with np.errstate(over="ignore"):  # beyond 65504: inf, as numpy
+        out = np.where(sub, np.float32(0.0), a).astype("<f2")
+    bits = out.view(np.uint16)
+    bits[sub] = np.rint(a[sub] * np.float32(2.0**24)).astype(np.uint16)
+    return out
 
 
 class _RawMessage:
