@@ -254,7 +254,7 @@ def diffuse(system: System, *, max_iter: int = 200, tol: float = 1e-4,
                     ct = np.maximum(ct, runner.run(blk[2], nbr, wts, blk[4], blk[5], blk[3], floor, -1.0, 1)[0])
                     blk[4], blk[5] = blk[5], blk[4]
                 out = np.vstack([out, ct[None]])
-                if (ct[0] / ct[1] if ct[1] > 0 else 0.0) <= tol:
+                if (float(ct[0]) / float(ct[1]) if ct[1] > 0 else 0.0) <= tol:  # as the residual below
                     break
             return out
     else:

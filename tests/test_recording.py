@@ -404,3 +404,20 @@ def test_view_opens_the_rrd_or_a_relogged_mcap(cli_runs, tmp_path, monkeypatch):
     shutil.copy(cli_runs["both"] / "run.mcap", only / "run.mcap")
     assert inspect_main([str(only), "--view"]) == 0
     assert calls[-1][-1].endswith("replay.rrd") and Path(calls[-1][-1]).is_file()
+
+
+def test_iterations_are_recorded_while_the_recorders_are_still_opening(small_demo_scene, tmp_path, monkeypatch):
+    """The recorders open on the recording thread; a diffusion that starts before they are
+    open still gets every configured iteration recorded (they are queued, not skipped)."""
+    import time
+
+    from diffuser_lab.recording import RecordingHooks
+
+    slow_open = RecordingHooks._open_mcap
+    monkeypatch.setattr(RecordingHooks, "_open_mcap", lambda self, ov: (time.sleep(1.0), slow_open(self, ov)))
+    cfg = default_config(**{"solver.max_iter": 30, "record.interval": 10, "record.mode": "mcap"})
+    res, hooks = recorded(cfg, small_demo_scene, tmp_path)
+    assert hooks.recorded == [1, 10, 20, 30]
+    log = read_run(tmp_path / "run.mcap", z="last")
+    assert log.z_iterations == [1, 10, 20, 30]
+    np.testing.assert_array_equal(log.z[30], res.diffusion.Z)

@@ -68,7 +68,8 @@ class RecordingHooks(RunHooks):
         self.errors: dict[str, str] = {}
         self._files: dict[str, str] = {}
         self.recorded: list[int] = []  # iterations recorded, in order
-        self.rerun = self.mcap = None
+        self.rerun = self.mcap = None  # set on the recording thread, which opens them
+        self._wanted = [w for w, on in (("rerun", rerun), ("mcap", mcap)) if on]
         self.scene = None
         self.tracker: Optional[StepTracker] = None
         self._z_free: queue.SimpleQueue = queue.SimpleQueue()  # recorded-Z buffers back from the worker
@@ -174,7 +175,9 @@ class RecordingHooks(RunHooks):
                    lambda: self.mcap.log_evidence(scene, self.method, points, box["to_work"], seen, bayesian))
 
     def wants(self, iteration: int) -> bool:
-        return (self.rerun is not None or self.mcap is not None) and (
+        # what was asked for and has not failed: the recorders may still be opening on the
+        # recording thread, and what is queued now is written once they are
+        return any(w not in self.errors for w in self._wanted) and (
             iteration == 1 or iteration % self.interval == 0 or iteration == self.max_iter)
 
     def _record(self, iteration: int, Z: np.ndarray, residual: float) -> None:
