@@ -2,10 +2,13 @@
 
 Target: record=both at most 25% slower than record=off. Measure with
 
-    .venv/bin/python -m pytest tests/benchmarks/test_recording_overhead.py --benchmark-enable
+    .venv/bin/python -m pytest tests/benchmarks/test_recording_overhead.py --benchmark-enable -s
 
-and compare the two rows of the ``recording`` group (min or median). With benchmarks
-disabled (the default run) each case runs once, on small demo settings, as a smoke test.
+and compare the two rows of the ``recording`` group (min or median). Two more rows say why the
+gap is what it is: ``recording-content`` (what recording the demo costs in CPU with no diffusion
+beside it) and ``recording-contention`` (what CPU work on another thread costs the diffusion in
+wall time). With benchmarks disabled (the default run) each case runs once, on small demo
+settings, as a smoke test.
 """
 import shutil
 
@@ -131,3 +134,65 @@ def test_recording_content_cost_without_a_diffusion(benchmark, tmp_path):
     benchmark.extra_info.update(cpu_s=med, record_off_run_s=off_s, cpu_over_off=med / off_s)
     print(f"\n[recording content] cpu {med:.3f} s (all threads) vs record=off run {off_s:.3f} s: {med / off_s:.2f}")
     assert sum(1 for name, _ in cap.calls if name == "observe") == (21 if not benchmark.disabled else 7)
+
+
+@pytest.mark.benchmark(group="recording-contention")
+def test_what_a_busy_third_thread_costs_the_diffusion(benchmark):
+    """How much wall time the diffusion loses to CPU work on another thread (what a recorder
+    is): 200 Jacobi steps on the demo-size cloud, alone and beside a thread that compresses
+    with zstd for ~100 ms of CPU in 21 pieces (one per recorded iteration). Two ideal cores
+    would lose about half of that thread's CPU time; reported as lost wall / its CPU time."""
+    import statistics
+    import threading
+    import time
+
+    import numpy as np
+    import zstandard
+
+    from diffuser_lab.diffusion import diffuse, normalise
+    from diffuser_lab.graph import build_graph
+    from diffuser_lab.workloads import room_workload
+
+    n, total_ms, rounds = (50_000, 100.0, 5) if not benchmark.disabled else (3_000, 5.0, 1)
+    w = room_workload(n)
+    system = normalise(build_graph(w.points, 24, w.normals), w.mass, 1e-4)
+    diffuse(system, max_iter=2, tol=0.0)
+    data = np.random.default_rng(0).random(100_000).astype(np.float32).tobytes()
+
+    def busy(cpu):
+        t0 = time.thread_time()
+        for _ in range(21):
+            t = time.thread_time()
+            while (time.thread_time() - t) * 1e3 < total_ms / 21:
+                zstandard.compress(data, -20)
+            time.sleep(0.004)
+        cpu.append(time.thread_time() - t0)
+
+    def once(with_thread):
+        cpu = []
+        th = threading.Thread(target=busy, args=(cpu,)) if with_thread else None
+        if th:
+            th.start()
+        t = time.perf_counter()
+        diffuse(system, max_iter=200, tol=0.0)
+        wall = time.perf_counter() - t
+        if th:
+            th.join()
+        return wall, (cpu[0] if cpu else 0.0)
+
+    alone, beside, cpu = [], [], []
+    def both():
+        alone.append(once(False)[0])
+        wall, c = once(True)
+        beside.append(wall)
+        cpu.append(c)
+
+    benchmark.pedantic(both, rounds=rounds, iterations=1)
+    lost = statistics.median(beside) - statistics.median(alone)
+    ratio = lost / max(statistics.median(cpu), 1e-9)
+    benchmark.extra_info.update(alone_s=statistics.median(alone), beside_s=statistics.median(beside),
+                                thread_cpu_s=statistics.median(cpu), lost_per_cpu=ratio)
+    print(f"\n[contention] 200 steps alone {statistics.median(alone):.3f} s, beside a busy thread "
+          f"{statistics.median(beside):.3f} s; lost {lost * 1e3:.0f} ms for {statistics.median(cpu) * 1e3:.0f} ms "
+          f"of its CPU: {ratio:.2f}")
+    assert len(alone) == len(beside) == rounds
