@@ -247,16 +247,16 @@ def diffuse(system: System, *, max_iter: int = 200, tol: float = 1e-4,
                 if len(out) % 2:
                     blk[4], blk[5] = blk[5], blk[4]
                 return out
-            out = np.zeros((0, 2), np.float32)
+            out = []
             for _ in range(count):  # several class blocks share one residual: a step at a time
                 ct = np.zeros(2, np.float32)
                 for blk in blocks:
                     ct = np.maximum(ct, runner.run(blk[2], nbr, wts, blk[4], blk[5], blk[3], floor, -1.0, 1)[0])
                     blk[4], blk[5] = blk[5], blk[4]
-                out = np.vstack([out, ct[None]])
+                out.append(ct)
                 if (float(ct[0]) / float(ct[1]) if ct[1] > 0 else 0.0) <= tol:  # as the residual below
                     break
-            return out
+            return np.array(out, np.float32).reshape(-1, 2)
     else:
         Pm = sp.csr_matrix((data, indices, indptr), shape=(n, n), copy=True)  # never alias the system
         Pm.eliminate_zeros()

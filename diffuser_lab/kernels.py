@@ -159,22 +159,17 @@ change is <= ``tol``. Returns the number of steps done."""
 
 
 _GEN = Path(__file__).with_name("_kernels_unrolled.py")
-_ROWS = None
-
-
-def _row_kernels():
-    global _ROWS
-    if _ROWS is None:
-        from . import _kernels_unrolled as g
-
-        _ROWS = {W: getattr(g, f"rows_{W}") for W in WIDTHS}
-    return _ROWS
+_STEPS = None
 
 
 def _step_kernels():
-    from . import _kernels_unrolled as g
+    """{W: steps_W} of the generated module (see :data:`_STEPS_TEMPLATE`)."""
+    global _STEPS
+    if _STEPS is None:
+        from . import _kernels_unrolled as g
 
-    return {W: getattr(g, f"steps_{W}") for W in WIDTHS}
+        _STEPS = {W: getattr(g, f"steps_{W}") for W in WIDTHS}
+    return _STEPS
 
 
 class StepRunner:

@@ -260,3 +260,21 @@ def test_fixed_rows_pads_short_rows_with_zero_weight():
     dense = np.zeros((3, 3), np.float32)
     np.add.at(dense, (np.repeat(np.arange(3), 2), nbr.ravel()), wts.ravel())
     np.testing.assert_array_equal(dense, P.toarray())
+
+
+@needs_numba
+def test_more_classes_than_one_kernel_block_stop_where_scipy_does():
+    """Above 32 active classes the numba path runs several class blocks a step at a time under
+    one residual: same iterations and labels as scipy's CSR products."""
+    pts, nrm, mass = cloud(3000)
+    rng = np.random.default_rng(1)
+    wide = np.concatenate([mass] + [mass[rng.permutation(len(pts))] for _ in range(8)], 1)  # 45 columns, 36 voted for
+    s = normalise(build_graph(pts, 12, nrm), wide, 1e-4)
+    assert s.B.any(0).sum() > 32
+    r = diffuse(s, max_iter=60, tol=0.0, backend="numba").residuals
+    tol = 0.5 * (r[56] + r[57])  # halfway between steps 57 and 58: both stop at 58
+    a = diffuse(s, max_iter=400, tol=tol, backend="numba")
+    b = diffuse(s, max_iter=400, tol=tol, backend="scipy")
+    assert a.converged and a.iterations == b.iterations == 58
+    np.testing.assert_allclose(a.Z, b.Z, rtol=0, atol=1e-5 * float(b.Z.max()))
+    assert np.mean(labels_from_scores(a.Z) == labels_from_scores(b.Z)) >= 0.999

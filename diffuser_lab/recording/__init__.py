@@ -161,18 +161,15 @@ class RecordingHooks(RunHooks):
     def on_evidence(self, points: np.ndarray, grid: Optional[Any], evidence: Any, bayesian: np.ndarray) -> None:
         scene = self.scene
         seen = evidence.seen
-        box: dict = {}
-
         def tracker():  # on the recording thread: the k-d tree query is not the run's business
             to_work = None
             if grid is not None or len(points) != scene.n_points:
                 to_work = original_to_work(points, scene.points)
-            box["to_work"] = to_work
             self.tracker = StepTracker(len(points), scene.taxonomy.names, scene.gt_labels, to_work)
 
         self._later(tracker)
         self._each(lambda: self.rerun.log_evidence(points, seen, bayesian),
-                   lambda: self.mcap.log_evidence(scene, self.method, points, box["to_work"], seen, bayesian))
+                   lambda: self.mcap.log_evidence(scene, self.method, points, self.tracker.to_work, seen, bayesian))
 
     def wants(self, iteration: int) -> bool:
         # what was asked for and has not failed: the recorders may still be opening on the

@@ -109,12 +109,6 @@ def _fused():
     return _FUSED or None
 
 
-def label_confidence(Z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(M, C) float32 scores -> (M,) int16 labels (Eq. 16, IGNORE where the row is all zero) and
-    (M,) float32 confidence max_c Z / sum_c Z (0 where unlabeled)."""
-    return labels_from_scores(Z), confidence(Z)
-
-
 def confidence(Z: np.ndarray) -> np.ndarray:
     """(M, C) scores -> (M,) float32 max_c Z / sum_c Z, 0 where the row sums to 0."""
     top = Z.max(1)
@@ -162,7 +156,7 @@ class StepTracker:
             else:
                 wrong = None
         else:
-            labels, conf = label_confidence(Z)
+            labels, conf = labels_from_scores(Z), confidence(Z)
             labelled = labels != IGNORE
             n_changed = int(np.count_nonzero(labels != self.prev_labels))
             if self.gt is not None:
