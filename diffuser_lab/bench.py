@@ -1,6 +1,7 @@
 """``diffuser-lab-bench``: time the core (graph + diffusion) on your own data.
 
     diffuser-lab-bench --input FILE.npz [--iters T] [--k K] [--solver S] [--backend B] [--out labels.npy]
+    diffuser-lab-bench --write-demo-input FILE.npz [--points N]    # an input to try it on
 
 FILE.npz holds ``points`` (N, 3), ``normals`` (N, 3) (optional: without them the distance-only
 graph is used) and ``evidence`` (N, C), the pixel-to-point mass already summed per class, before
@@ -10,7 +11,9 @@ reference`` runs the straightforward scipy float64 implementation of
 :mod:`diffuser_lab.reference`), then prints one JSON line with ``n_points``, ``graph_s``,
 ``diffusion_s``, ``total_s``, ``iterations`` (and ``solver``, ``backend``) and writes the (N,)
 int16 labels (-1 = unlabeled) if ``--out`` is given. ``--repeat R`` times R runs and reports the
-median of each figure.
+median of each figure. ``--write-demo-input FILE.npz`` writes such a file for the benchmarks'
+demo-room workload (``--points`` points, 30 rendered 640x480 views of simulated 2D-network
+evidence, 21 classes; :mod:`diffuser_lab.workloads`) and exits.
 """
 from __future__ import annotations
 
@@ -42,7 +45,16 @@ def _load(path: str):
 
 def run_once(pts, nrm, ev, *, iters: int, k: int, solver: str, backend: str, pixel_weight: float,
              sigma_s: float, sigma_d_factor: float):
-    """One timed run: returns (labels, figures dict)."""
+    """One timed run: returns (labels, figures dict). No progress lines (they would be timed too)."""
+    from . import progress
+
+    with progress.quiet():
+        return _run_once(pts, nrm, ev, iters=iters, k=k, solver=solver, backend=backend, pixel_weight=pixel_weight,
+                         sigma_s=sigma_s, sigma_d_factor=sigma_d_factor)
+
+
+def _run_once(pts, nrm, ev, *, iters: int, k: int, solver: str, backend: str, pixel_weight: float,
+              sigma_s: float, sigma_d_factor: float):
     from .diffusion import diffuse, labels_from_scores, normalise, solve_exact
     from .graph import build_graph
 
@@ -73,9 +85,25 @@ def run_once(pts, nrm, ev, *, iters: int, k: int, solver: str, backend: str, pix
                      solver=solver, backend=res.info.get("backend", backend), residual=res.residual)
 
 
+def _write_demo_input(path: str, n_points: int) -> int:
+    from .workloads import room_workload
+
+    if n_points < 1000:
+        print(f"diffuser-lab-bench: error: --points {n_points}: expected >= 1000", file=sys.stderr)
+        return 2
+    w = room_workload(n_points)
+    np.savez(path, points=w.points, normals=w.normals, evidence=w.mass)
+    print(f"wrote {path}: {w.points.shape[0]:,} points, {w.mass.shape[1]} classes "
+          f"({w.mass.any(1).mean():.1%} of the points with evidence)")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="diffuser-lab-bench", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--input", required=True, help=".npz with points (N,3), normals (N,3), evidence (N,C)")
+    ap.add_argument("--input", help=".npz with points (N,3), normals (N,3), evidence (N,C)")
+    ap.add_argument("--write-demo-input", metavar="FILE.npz",
+                    help="write the demo-room benchmark workload as such a file, then exit")
+    ap.add_argument("--points", type=int, default=30_000, help="with --write-demo-input: about this many points")
     ap.add_argument("--iters", type=int, default=100, help="Jacobi iterations (default 100)")
     ap.add_argument("--k", type=int, default=24, help="neighbours per point (default 24)")
     ap.add_argument("--solver", default="jacobi", choices=["jacobi", "exact", "reference"])
@@ -87,6 +115,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--warmup", action="store_true", help="one untimed run first (compiles the kernels)")
     ap.add_argument("--out", help="write the (N,) int16 labels here (.npy)")
     a = ap.parse_args(argv)
+    if a.write_demo_input:
+        return _write_demo_input(a.write_demo_input, a.points)
+    if not a.input:
+        ap.error("--input FILE.npz is required (make one with --write-demo-input FILE.npz)")
     try:
         if a.iters < 1 or a.k < 1 or a.repeat < 1:
             raise ValueError("--iters, --k and --repeat must be >= 1")

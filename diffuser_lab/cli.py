@@ -13,7 +13,9 @@ import warnings
 from pathlib import Path
 from typing import Any, Optional
 
+from . import launchers
 from .config import register
+from .sweep import job_line, job_tag
 
 log = logging.getLogger("diffuser_lab")
 PROG = "diffuser-lab"
@@ -99,9 +101,17 @@ def _task(cfg: Any) -> Optional[float]:
     from .config import to_object
     from .records import write_json_atomic, write_labels
 
+    t_start = time.perf_counter()
     hc = HydraConfig.get()
     run_dir = Path(hc.runtime.output_dir)
     multirun = hc.mode == RunMode.MULTIRUN
+    if multirun and "BasicLauncher" not in str(hc.launcher.get("_target_", "")):
+        # jobs run side by side: say which one starts (the basic launcher's "#i :" line does)
+        print(f"{job_tag(hc.job.num)} started {' '.join(hc.overrides.task)}", flush=True)
+        if hc.launcher.get("cpus_per_task"):  # submitit: the job's share of the CPUs
+            from . import kernels
+
+            kernels.limit_threads(int(hc.launcher.cpus_per_task))
     summary: dict[str, Any] = {"status": "running", "overrides": list(hc.overrides.task),
                                "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
     summary_path = run_dir / "summary.json"
@@ -131,7 +141,9 @@ def _task(cfg: Any) -> Optional[float]:
             summary.update(report.single_frame_summary(sf))
             summary["status"] = "ok"
             write_json_atomic(summary_path, summary)
-            if not conf.output.quiet:
+            if multirun:
+                print(job_line(hc.job.num, run_dir, summary, time.perf_counter() - t_start), flush=True)
+            elif not conf.output.quiet:
                 print(table(sf) + f"\nrun folder: {run_dir}")
             return summary["metrics"]["miou"]
 
@@ -157,10 +169,8 @@ def _task(cfg: Any) -> Optional[float]:
         summary["files"] = files
         summary["status"] = "ok"
         write_json_atomic(summary_path, summary)
-        if multirun:  # one line per job; the table is in summary.json
-            m = summary.get("metrics") or {}
-            print(f"{run_dir.name}: {conf.method.name.value} mIoU {m.get('miou', float('nan')):.1f} "
-                  f"(bayesian {((summary.get('baseline') or {}).get('bayesian') or {}).get('miou', float('nan')):.1f})")
+        if multirun:  # one line per job; the sweep's table comes at the end (sweep.print_table)
+            print(job_line(hc.job.num, run_dir, summary, time.perf_counter() - t_start), flush=True)
         elif not conf.output.quiet:
             print(report.table(result, run_dir))
         return summary.get("metrics", {}).get("miou") if summary.get("metrics") else None
@@ -171,6 +181,8 @@ def _task(cfg: Any) -> Optional[float]:
             write_json_atomic(summary_path, summary)
         except OSError:
             pass
+        if multirun:
+            print(job_line(hc.job.num, run_dir, summary), flush=True)
         if multirun or _verbose():
             raise  # Hydra marks this job failed and goes on with the others
         print(f"{PROG}: error: {one_line(exc)}", file=sys.stderr)
@@ -184,13 +196,20 @@ def main() -> None:
     import hydra
 
     register()
+    launchers.register()
     if "--verbose" in sys.argv:  # full tracebacks, as HYDRA_FULL_ERROR=1
         sys.argv.remove("--verbose")
         os.environ["HYDRA_FULL_ERROR"] = "1"
     warnings.formatwarning = _one_line_warning
     _prevalidate(sys.argv[1:])
+    os.environ.setdefault("RAY_DEDUP_LOGS", "0")  # Ray folds the jobs' similar result lines into one
     app = hydra.main(config_path=config_dir(), config_name="config", version_base="1.3")(_task)
-    app()
+    try:
+        app()
+    finally:  # also when a job failed: Hydra raises after the batch, the table still shows
+        from .sweep import print_table
+
+        print_table()
 
 
 if __name__ == "__main__":

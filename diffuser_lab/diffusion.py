@@ -24,6 +24,7 @@ from typing import Callable, Optional
 import numpy as np
 import scipy.sparse as sp
 
+from . import progress
 from .graph import KnnGraph, SortedKnnGraph
 from .scene import IGNORE
 
@@ -200,6 +201,12 @@ SEGMENT_ROW_STEPS = 20_000_000
 so that Ctrl-C and observers are never far away."""
 
 
+def progress_chunk(max_iter: int) -> int:
+    """Iterations between two updates of the diffusion's progress line (only while it is shown:
+    the compiled Jacobi then returns to Python this often; the result does not change)."""
+    return max(10, max_iter // 20)
+
+
 def diffuse(system: System, *, max_iter: int = 200, tol: float = 1e-4,
             observer: Optional[Observer] = None, backend: str = "auto") -> DiffusionResult:
     """Iterate Eq. 10 from Z = 0 until max|Z_t - Z_{t-1}| <= tol * max|Z_t| or ``max_iter``.
@@ -221,6 +228,7 @@ def diffuse(system: System, *, max_iter: int = 200, tol: float = 1e-4,
     it = 0
 
     runner = None
+    name = f"diffusion (jacobi, {backend}, {n:,} points)"
     if backend == "numba":
         from . import kernels
 
@@ -230,6 +238,9 @@ def diffuse(system: System, *, max_iter: int = 200, tol: float = 1e-4,
             Bb[:, :cnt] = B_src[:, active[first:first + cnt]] / scale  # iterate on Z / max(B), see module doc
             blocks.append([first, cnt, width, Bb, np.zeros_like(Bb), np.zeros_like(Bb)])
         nbr, wts = kernels.fixed_rows(indptr, indices, data)
+        if progress.enabled() and blocks and kernels.first_compile(
+                *{kernels._step_kernels()[b[2]] for b in blocks}):
+            name += progress.COMPILING
         runner = kernels.StepRunner(n)
         ident = np.arange(n, dtype=np.int64) if order is None else order
 
@@ -290,23 +301,32 @@ def diffuse(system: System, *, max_iter: int = 200, tol: float = 1e-4,
 
     seen_buf: Optional[np.ndarray] = None  # what observers see (valid during their call only)
     try:
-        while it < max_iter:
-            # run up to the next iteration an observer wants to see, without returning to Python
-            stop = it + 1
-            last = min(max_iter, it + max(1, SEGMENT_ROW_STEPS // max(n, 1)))
-            while stop < last and not observes(observer, stop):
-                stop += 1
-            for change, top in steps(stop - it):
-                it += 1
-                residual = float(change) / float(top) if top > 0 else 0.0
-                residuals.append(residual)
-            if observes(observer, it):
-                if seen_buf is None:  # one buffer for all observed iterations: no fresh pages each time
-                    seen_buf = np.zeros(full_shape, np.float32)
-                show(observer, it, paper_units(seen_buf), residual)
-            if residual <= tol:
-                converged = True
-                break
+        with progress.stage(name, total=max_iter, unit="it") as bar:
+            # while shown, the run returns to Python every progress_chunk() iterations to update it
+            # (the steps and their stopping rule do not depend on where the run is split)
+            segment = max(1, SEGMENT_ROW_STEPS // max(n, 1))
+            if bar.enabled:
+                segment = min(segment, progress_chunk(max_iter))
+            while it < max_iter:
+                # run up to the next iteration an observer wants to see, without returning to Python
+                stop = it + 1
+                last = min(max_iter, it + segment)
+                while stop < last and not observes(observer, stop):
+                    stop += 1
+                for change, top in steps(stop - it):
+                    it += 1
+                    residual = float(change) / float(top) if top > 0 else 0.0
+                    residuals.append(residual)
+                if bar.enabled:
+                    bar.note(f"{'converged, ' if residual <= tol else ''}residual {residual:.1e}")
+                    bar.set(it)
+                if observes(observer, it):
+                    if seen_buf is None:  # one buffer for all observed iterations: no fresh pages each time
+                        seen_buf = np.zeros(full_shape, np.float32)
+                    show(observer, it, paper_units(seen_buf), residual)
+                if residual <= tol:
+                    converged = True
+                    break
     finally:
         if runner is not None:
             runner.close()
@@ -352,51 +372,52 @@ def solve_exact(system: System, *, max_iter: int = 200, tol: float = 1e-4,
         order = np.arange(n)
         P = system.P.astype(np.float64).tocsr()
         B = system.B[:, active].astype(np.float64) / scale
-    # points that reach evidence: breadth-first search from a virtual node linked to every
-    # evidence point, along the reversed edges (j -> i where P_ij > 0)
-    src = np.flatnonzero(B.any(1))
-    PT = P.T.tocsr()
-    virt = sp.csr_matrix((np.ones(src.size), src, [0, src.size]), shape=(1, n + 1))
-    G = sp.vstack([sp.hstack([PT, sp.csr_matrix((n, 1))]), virt]).tocsr()
-    reach = np.zeros(n, bool)
-    if src.size:
-        seen = csgraph.breadth_first_order(G, n, directed=True, return_predecessors=False)
-        reach[seen[seen < n]] = True
-    R = np.flatnonzero(reach)
-    A = (sp.identity(R.size, format="csr") - P[R][:, R]).tocsc()
-    BR = B[R]
-    Z = np.zeros_like(BR)
-    info: dict = {"solver": "exact", "backend": "scipy", "points_solved": int(R.size)}
-    krylov = 0
-    converged = True
-    if R.size and active.size:
-        if R.size <= EXACT_DIRECT_MAX:
-            lu = spla.splu(A, permc_spec="COLAMD")
-            Z = lu.solve(BR)
-            info["method"] = "splu"
-        else:
-            ilu = spla.spilu(A, drop_tol=1e-5, fill_factor=10)
-            M = spla.LinearOperator(A.shape, ilu.solve)
-            Acsr = A.tocsr()
-            for c in range(BR.shape[1]):
-                its = [0]
+    with progress.stage(f"diffusion (exact, {n:,} points)"):
+        # points that reach evidence: breadth-first search from a virtual node linked to every
+        # evidence point, along the reversed edges (j -> i where P_ij > 0)
+        src = np.flatnonzero(B.any(1))
+        PT = P.T.tocsr()
+        virt = sp.csr_matrix((np.ones(src.size), src, [0, src.size]), shape=(1, n + 1))
+        G = sp.vstack([sp.hstack([PT, sp.csr_matrix((n, 1))]), virt]).tocsr()
+        reach = np.zeros(n, bool)
+        if src.size:
+            seen = csgraph.breadth_first_order(G, n, directed=True, return_predecessors=False)
+            reach[seen[seen < n]] = True
+        R = np.flatnonzero(reach)
+        A = (sp.identity(R.size, format="csr") - P[R][:, R]).tocsc()
+        BR = B[R]
+        Z = np.zeros_like(BR)
+        info: dict = {"solver": "exact", "backend": "scipy", "points_solved": int(R.size)}
+        krylov = 0
+        converged = True
+        if R.size and active.size:
+            if R.size <= EXACT_DIRECT_MAX:
+                lu = spla.splu(A, permc_spec="COLAMD")
+                Z = lu.solve(BR)
+                info["method"] = "splu"
+            else:
+                ilu = spla.spilu(A, drop_tol=1e-5, fill_factor=10)
+                M = spla.LinearOperator(A.shape, ilu.solve)
+                Acsr = A.tocsr()
+                for c in range(BR.shape[1]):
+                    its = [0]
 
-                def count(_):
-                    its[0] += 1
+                    def count(_):
+                        its[0] += 1
 
-                z, flag = spla.gmres(Acsr, BR[:, c], rtol=tol, restart=50, maxiter=max_iter, M=M,
-                                     callback=count, callback_type="pr_norm")
-                Z[:, c] = z
-                krylov = max(krylov, its[0])
-                converged &= flag == 0
-            info["method"] = "gmres+ilu"
-            info["krylov_iterations"] = krylov
-    Acsr = A.tocsr()
-    res = 0.0
-    for c in range(BR.shape[1]):
-        nb = np.linalg.norm(BR[:, c])
-        if nb > 0:
-            res = max(res, float(np.linalg.norm(BR[:, c] - Acsr @ Z[:, c]) / nb))
+                    z, flag = spla.gmres(Acsr, BR[:, c], rtol=tol, restart=50, maxiter=max_iter, M=M,
+                                         callback=count, callback_type="pr_norm")
+                    Z[:, c] = z
+                    krylov = max(krylov, its[0])
+                    converged &= flag == 0
+                info["method"] = "gmres+ilu"
+                info["krylov_iterations"] = krylov
+        Acsr = A.tocsr()
+        res = 0.0
+        for c in range(BR.shape[1]):
+            nb = np.linalg.norm(BR[:, c])
+            if nb > 0:
+                res = max(res, float(np.linalg.norm(BR[:, c] - Acsr @ Z[:, c]) / nb))
     np.maximum(Z, 0.0, out=Z)  # the fixed point is non-negative; clip round-off
     Z_full = np.zeros(full_shape, np.float32)
     Z_full[np.ix_(order[R], active)] = (Z * scale).astype(np.float32)

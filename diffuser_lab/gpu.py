@@ -33,6 +33,7 @@ def _torch(device: Optional[str] = None):
 
 def diffuse_torch(system, *, max_iter: int = 200, tol: float = 1e-4, observer=None, device: Optional[str] = None):
     """:func:`~diffuser_lab.diffusion.diffuse` on a CUDA device (see module doc)."""
+    from . import progress
     from .diffusion import SCORE_FLOOR, DiffusionResult, iteration_inputs, observes, show
 
     torch = _torch(device)  # device="cpu" runs the same code without a GPU (tests)
@@ -60,22 +61,26 @@ def diffuse_torch(system, *, max_iter: int = 200, tol: float = 1e-4, observer=No
     residuals: list[float] = []
     converged = False
     it = 0
-    for it in range(1, max_iter + 1):
-        Zn = torch.sparse.mm(Pt, Z) if Z.shape[1] else Z.clone()
-        Zn += B
-        Zn = torch.where(Zn >= floor, Zn, torch.zeros((), device=dev, dtype=Zn.dtype))
-        if Zn.numel():
-            top, change = torch.stack([Zn.max(), (Zn - Z).abs().max()]).tolist()
-        else:
-            top = change = 0.0
-        residual = change / top if top > 0 else 0.0
-        residuals.append(residual)
-        Z = Zn
-        if observes(observer, it):
-            show(observer, it, paper_units(Z), residual)
-        if residual <= tol:
-            converged = True
-            break
+    with progress.stage(f"diffusion (jacobi, torch {dev}, {n:,} points)", total=max_iter, unit="it") as bar:
+        for it in range(1, max_iter + 1):
+            Zn = torch.sparse.mm(Pt, Z) if Z.shape[1] else Z.clone()
+            Zn += B
+            Zn = torch.where(Zn >= floor, Zn, torch.zeros((), device=dev, dtype=Zn.dtype))
+            if Zn.numel():
+                top, change = torch.stack([Zn.max(), (Zn - Z).abs().max()]).tolist()
+            else:
+                top = change = 0.0
+            residual = change / top if top > 0 else 0.0
+            residuals.append(residual)
+            Z = Zn
+            if observes(observer, it):
+                show(observer, it, paper_units(Z), residual)
+            if bar.enabled:
+                bar.note(f"{'converged, ' if residual <= tol else ''}residual {residual:.1e}")
+                bar.update()
+            if residual <= tol:
+                converged = True
+                break
     return DiffusionResult(Z=paper_units(Z), iterations=it, converged=converged,
                            residual=residuals[-1] if residuals else 0.0, residuals=residuals,
                            info={"solver": "jacobi", "backend": "torch", "device": str(dev)})

@@ -62,8 +62,67 @@ def slp():
         cfg.SLP_VECTORIZE = old
 
 
+_thread_cap: list[int] = []  # set by limit_threads()
+
+
+def _env_cpus() -> int | None:
+    """CPUs a scheduler gave this process, when it says so and numba was not told directly:
+    Ray sets ``OMP_NUM_THREADS`` to a task's ``num_cpus``, SLURM ``SLURM_CPUS_PER_TASK``
+    (joblib sets ``NUMBA_NUM_THREADS`` itself, which numba reads)."""
+    if "NUMBA_NUM_THREADS" in os.environ:
+        return None
+    for var in ("OMP_NUM_THREADS", "SLURM_CPUS_PER_TASK"):
+        try:
+            n = int(os.environ.get(var, ""))
+        except ValueError:
+            continue
+        if n >= 1:
+            return n
+    return None
+
+
+def limit_threads(n: int | None) -> None:
+    """Use at most ``n`` threads in the compiled kernels (a sweep job's share of the CPUs); None: no cap."""
+    _thread_cap[:] = [int(n)] if n else []
+
+
+def first_compile(*modules_or_kernels) -> bool:
+    """Whether the compiled kernels of the given modules (or the given kernels) will be compiled
+    before they run: none of them is compiled in this process yet and numba's on-disk cache
+    holds none of them (reads the small cache index files, ~20 us each). A hint for progress
+    lines only: a new signature of a cached kernel goes unnoticed, and any doubt says False."""
+    if _NB is None:
+        return False
+    from numba.core.registry import CPUDispatcher
+
+    kernels = []
+    for m in modules_or_kernels:
+        if isinstance(m, CPUDispatcher):
+            kernels.append(m)
+        else:
+            kernels += [v for v in vars(m).values() if isinstance(v, CPUDispatcher)]
+    try:
+        for k in kernels:
+            if k.overloads:
+                return False
+            cache_file = getattr(getattr(k, "_cache", None), "_cache_file", None)
+            if cache_file is None or cache_file._load_index():  # uncached kernel, or cached entries
+                return False
+    except Exception:  # noqa: BLE001 - numba internals moved: no hint
+        return False
+    return bool(kernels)
+
+
 def n_threads() -> int:
-    return int(_NB.get_num_threads()) if _NB is not None else 1
+    """Threads of the compiled kernels: numba's count, capped by :func:`limit_threads` and by
+    the CPUs a scheduler gave the process (:func:`_env_cpus`); threads give identical results."""
+    if _NB is None:
+        return 1
+    n = int(_NB.get_num_threads())
+    for cap in (*_thread_cap, _env_cpus()):
+        if cap:
+            n = min(n, cap)
+    return max(1, n)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -12,13 +12,14 @@ from typing import Optional, Sequence
 import numpy as np
 
 from . import evidence as evidence_mod
-from . import validate
+from . import progress, validate
 from .config import BayesianMode, Config, GraphConfig, MethodName, NormalSign, SceneConfig, SceneSource
 from .diffusion import DiffusionResult, Observer, labels_from_scores, normalise, solve
 from .geometry import VoxelGrid, estimate_normals, nearest_transfer, voxel_downsample
 from .graph import KnnGraph, build_graph
 from .hooks import RunHooks
 from .metrics import confusion_matrix, score, scores_from_confusion
+from .predictions import describe as describe_predictions
 from .predictions import with_predictions
 from .scene import IGNORE, Frame, Scene
 
@@ -33,38 +34,39 @@ def load_scene(cfg: SceneConfig) -> Scene:
     """The configured source -> :class:`Scene` whose frames carry ground-truth labels when known.
     Relative paths are taken from the current directory."""
     src = cfg.source
-    if src == SceneSource.demo:
-        from .sources.demo import make_demo_scene
+    with progress.stage(f"loading scene ({src.value})"):  # its own steps show inside
+        if src == SceneSource.demo:
+            from .sources.demo import make_demo_scene
 
-        d = cfg.demo
-        scene, _ = make_demo_scene(seed=d.seed, room_size=tuple(d.room_size), n_views=d.n_views,
-                                   image_width=d.image_width, image_height=d.image_height,
-                                   fov_deg=d.fov_deg, point_spacing=d.point_spacing, point_noise=d.point_noise)
-    elif src == SceneSource.mesh_views:
-        from .sources.mesh_views import load_mesh_views
+            d = cfg.demo
+            scene, _ = make_demo_scene(seed=d.seed, room_size=tuple(d.room_size), n_views=d.n_views,
+                                       image_width=d.image_width, image_height=d.image_height,
+                                       fov_deg=d.fov_deg, point_spacing=d.point_spacing, point_noise=d.point_noise)
+        elif src == SceneSource.mesh_views:
+            from .sources.mesh_views import load_mesh_views
 
-        m = cfg.mesh_views
-        scene = load_mesh_views(_required(m.path, "scene.mesh_views.path", src.value), mapping=m.mapping,
-                                n_views=m.n_views, seed=m.seed, image_width=m.image_width,
-                                image_height=m.image_height, fov_deg=m.fov_deg, min_coverage=m.min_coverage,
-                                eye_height_range=(m.eye_height_min, m.eye_height_max))
-    elif src == SceneSource.scannet:
-        from .sources.scannet import load_scannet
+            m = cfg.mesh_views
+            scene = load_mesh_views(_required(m.path, "scene.mesh_views.path", src.value), mapping=m.mapping,
+                                    n_views=m.n_views, seed=m.seed, image_width=m.image_width,
+                                    image_height=m.image_height, fov_deg=m.fov_deg, min_coverage=m.min_coverage,
+                                    eye_height_range=(m.eye_height_min, m.eye_height_max))
+        elif src == SceneSource.scannet:
+            from .sources.scannet import load_scannet
 
-        c = cfg.scannet
-        scene = load_scannet(_required(c.root, "scene.scannet.root", src.value), frame_step=c.frame_step,
-                             max_frames=c.max_frames, mapping=c.mapping)
-    elif src == SceneSource.rgbd_folder:
-        from .sources.rgbd_folder import load_rgbd_folder
+            c = cfg.scannet
+            scene = load_scannet(_required(c.root, "scene.scannet.root", src.value), frame_step=c.frame_step,
+                                 max_frames=c.max_frames, mapping=c.mapping)
+        elif src == SceneSource.rgbd_folder:
+            from .sources.rgbd_folder import load_rgbd_folder
 
-        r = cfg.rgbd_folder
-        scene = load_rgbd_folder(_required(r.root, "scene.rgbd_folder.root", src.value), depth_scale=r.depth_scale,
-                                 depth_bit_shift=r.depth_bit_shift, invalid_depth=tuple(r.invalid_depth),
-                                 color_suffix=r.color_suffix, label_suffix=r.label_suffix, mapping=r.mapping,
-                                 cloud=r.cloud, voxel_size=r.cloud_voxel, cloud_stride=r.cloud_stride,
-                                 frame_step=r.frame_step, max_frames=r.max_frames, max_depth=r.max_depth)
-    else:  # pragma: no cover - the enum forbids it
-        raise ValueError(f"scene.source={src}: unknown")
+            r = cfg.rgbd_folder
+            scene = load_rgbd_folder(_required(r.root, "scene.rgbd_folder.root", src.value), depth_scale=r.depth_scale,
+                                     depth_bit_shift=r.depth_bit_shift, invalid_depth=tuple(r.invalid_depth),
+                                     color_suffix=r.color_suffix, label_suffix=r.label_suffix, mapping=r.mapping,
+                                     cloud=r.cloud, voxel_size=r.cloud_voxel, cloud_stride=r.cloud_stride,
+                                     frame_step=r.frame_step, max_frames=r.max_frames, max_depth=r.max_depth)
+        else:  # pragma: no cover - the enum forbids it
+            raise ValueError(f"scene.source={src}: unknown")
     if cfg.name:
         scene.name = cfg.name
     return scene
@@ -96,12 +98,25 @@ class RunResult:
 def _work_cloud(scene: Scene, voxel_size: float) -> tuple[np.ndarray, Optional[np.ndarray], Optional[VoxelGrid]]:
     if voxel_size <= 0:
         return scene.points, scene.normals, None
-    grid = voxel_downsample(scene.points, voxel_size)
-    normals = None
-    if scene.normals is not None:
-        n = grid.mean(scene.normals)
-        normals = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    with progress.stage(f"voxel grid ({voxel_size:g} m, {scene.n_points:,} points)"):
+        grid = voxel_downsample(scene.points, voxel_size)
+        normals = None
+        if scene.normals is not None:
+            n = grid.mean(scene.normals)
+            normals = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
     return grid.points, normals, grid
+
+
+def graph_stage(n_points: int, g: GraphConfig, estimate_normals: bool):
+    """The progress stage of :func:`make_graph` (+ :func:`~diffuser_lab.diffusion.normalise`) on
+    ``n_points`` points, noting a first run's kernel compilation."""
+    name = f"kNN graph (k={g.k}, {n_points:,} points{', estimating normals' if estimate_normals else ''})"
+    if progress.enabled():
+        from . import kernels, knn
+
+        if kernels.first_compile(knn):
+            name += progress.COMPILING
+    return progress.stage(name)
 
 
 def make_graph(points: np.ndarray, normals: Optional[np.ndarray], g: GraphConfig) -> tuple[Optional[np.ndarray], KnnGraph]:
@@ -172,25 +187,28 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
     ev_base = evidence_mod.Evidence.empty(pts.shape[0], tax.num_classes) if separate_base else ev
     conf2d = None
     t["predictions"] = t["evidence"] = 0.0
-    for i in range(len(frames)):
-        tp = time.perf_counter()
-        f = frames[i]
-        validate.check_frame(f)
-        if i == 0 and not getattr(scene.frames, "info", {}).get("depth_unit_checked"):
-            validate.check_depth_unit(f)
-        centres.append(validate.camera_centre(f))
-        inverted.append(np.asarray(f.T_cw, float)[:3, 3])  # the centre if T_cw were camera-to-world
-        if f.gt_labels is not None:
-            pred = f.labels if f.labels is not None else np.argmax(f.probs, axis=2)
-            c = confusion_matrix(pred, f.gt_labels, tax.num_classes)
-            conf2d = c if conf2d is None else conf2d + c
-        hooks.on_frame(i, f)
-        te = time.perf_counter()
-        evidence_mod.add_frame(ev, pts, f, **ev_kw)
-        if separate_base:
-            evidence_mod.add_frame(ev_base, pts, f, depth_tol=cfg.evidence.depth_tol, hard=votes)
-        t["predictions"] += te - tp
-        t["evidence"] += time.perf_counter() - te
+    with progress.stage(f"frames: {describe_predictions(cfg.predictions)} + evidence", total=len(frames),
+                        unit="frame") as bar:
+        for i in range(len(frames)):
+            tp = time.perf_counter()
+            f = frames[i]
+            validate.check_frame(f)
+            if i == 0 and not getattr(scene.frames, "info", {}).get("depth_unit_checked"):
+                validate.check_depth_unit(f)
+            centres.append(validate.camera_centre(f))
+            inverted.append(np.asarray(f.T_cw, float)[:3, 3])  # the centre if T_cw were camera-to-world
+            if f.gt_labels is not None:
+                pred = f.labels if f.labels is not None else np.argmax(f.probs, axis=2)
+                c = confusion_matrix(pred, f.gt_labels, tax.num_classes)
+                conf2d = c if conf2d is None else conf2d + c
+            hooks.on_frame(i, f)
+            te = time.perf_counter()
+            evidence_mod.add_frame(ev, pts, f, **ev_kw)
+            if separate_base:
+                evidence_mod.add_frame(ev_base, pts, f, depth_tol=cfg.evidence.depth_tol, hard=votes)
+            t["predictions"] += te - tp
+            t["evidence"] += time.perf_counter() - te
+            bar.update()
     pred2d = None if conf2d is None else scores_from_confusion(conf2d, tax.names)
     validate.check_pose_convention(pts, np.array(centres).reshape(-1, 3), np.array(inverted).reshape(-1, 3))
     if not ev.seen.any():
@@ -202,8 +220,9 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
     graph = diff = None
     if method in (MethodName.diffuser, MethodName.ldls):
         tg = time.perf_counter()
-        nrm, graph = make_graph(pts, nrm, cfg.graph)
-        system = normalise(graph, ev.mass, cfg.evidence.pixel_weight)
+        with graph_stage(pts.shape[0], cfg.graph, cfg.graph.use_normals and nrm is None):
+            nrm, graph = make_graph(pts, nrm, cfg.graph)
+            system = normalise(graph, ev.mass, cfg.evidence.pixel_weight)
         t["graph"] = time.perf_counter() - tg
         td = time.perf_counter()
         diff = solve(system, cfg.solver, observer=_Observe(hooks, observer))
@@ -221,8 +240,9 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
         raise ValueError(f"method.name={method}: unknown")
 
     tl = time.perf_counter()
-    labels = _to_original(scene, grid, work_labels).astype(np.int16)
-    bayes = _to_original(scene, grid, bayes_work).astype(np.int16)
+    with progress.stage(f"labels to the {scene.n_points:,} original points"):  # instant without voxels
+        labels = _to_original(scene, grid, work_labels).astype(np.int16)
+        bayes = _to_original(scene, grid, bayes_work).astype(np.int16)
     t["labels"] = time.perf_counter() - tl
 
     res = RunResult(scene=scene, frames=frames, method=method.value, labels=labels, bayesian_labels=bayes,

@@ -33,6 +33,15 @@ class MappedFrames(Sequence[Frame]):
         return self._fn(i, self._frames[i])
 
 
+def describe(cfg: PredictionsConfig) -> str:
+    """What the frames' 2D labels are, in a few words (progress lines name the frame stage with it)."""
+    if cfg.source == PredictionSource.gt:
+        return "ground-truth 2D labels"
+    if cfg.source == PredictionSource.simulated:
+        return "simulated 2D predictions"
+    return f"2D predictions from {cfg.folder}"
+
+
 def with_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy: Taxonomy) -> Sequence[Frame]:
     """Frames whose ``labels`` are the configured predictions."""
     if cfg.source == PredictionSource.gt:

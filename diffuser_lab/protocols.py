@@ -19,11 +19,12 @@ from typing import Optional
 import numpy as np
 
 from . import evidence as evidence_mod
+from . import progress
 from .config import Config
 from .diffusion import labels_from_scores, normalise, solve
 from .geometry import backproject, voxel_downsample
 from .metrics import confusion_matrix, scores_from_confusion
-from .pipeline import load_scene, make_graph
+from .pipeline import graph_stage, load_scene, make_graph
 from .predictions import with_predictions
 from .scene import IGNORE, Frame, Scene
 
@@ -93,58 +94,65 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None) -> SingleFrameResul
             cache[j] = frames[j]
         return cache[j]
 
-    for i in targets:
-        ta = time.perf_counter()
-        win = _window(i, n, W)
-        for j in [j for j in cache if j not in win]:  # keep only the current window in memory
-            del cache[j]
-        f = frame(i)
-        if f.gt_labels is None:
-            raise ValueError(f"frame {f.name}: the single-frame protocol needs ground-truth label images")
-        pts, pix = backproject(f.depth, f.K, f.T_cw)
-        if pts.shape[0] <= cfg.graph.k:
-            continue  # almost no depth in this frame: nothing to label
-        if cfg.scene.voxel_size > 0:
-            grid = voxel_downsample(pts, cfg.scene.voxel_size)
-            work, to_work = grid.points, grid.inverse
-        else:
-            work, to_work = pts, np.arange(pts.shape[0])
-        n_points.append(work.shape[0])
-        pred = f.labels if f.labels is not None else np.argmax(f.probs, axis=2)
-        pred2d.add(pred, f.gt_labels, names)
-        win_frames = [frame(j) for j in win]
-        t["frames"] += time.perf_counter() - ta
+    with progress.stage(f"single-frame protocol: target frames (window {W})", total=len(targets),
+                        unit="frame") as bar:
+        for k, i in enumerate(targets):
+            bar.set(k)
+            ta = time.perf_counter()
+            win = _window(i, n, W)
+            for j in [j for j in cache if j not in win]:  # keep only the current window in memory
+                del cache[j]
+            f = frame(i)
+            if f.gt_labels is None:
+                raise ValueError(f"frame {f.name}: the single-frame protocol needs ground-truth label images")
+            pts, pix = backproject(f.depth, f.K, f.T_cw)
+            if pts.shape[0] <= cfg.graph.k:
+                continue  # almost no depth in this frame: nothing to label
+            if cfg.scene.voxel_size > 0:
+                grid = voxel_downsample(pts, cfg.scene.voxel_size)
+                work, to_work = grid.points, grid.inverse
+            else:
+                work, to_work = pts, np.arange(pts.shape[0])
+            n_points.append(work.shape[0])
+            pred = f.labels if f.labels is not None else np.argmax(f.probs, axis=2)
+            pred2d.add(pred, f.gt_labels, names)
+            win_frames = [frame(j) for j in win]
+            t["frames"] += time.perf_counter() - ta
 
-        te = time.perf_counter()
-        ev1 = evidence_mod.accumulate(work, [f], tax.num_classes, pixel_radius=cfg.evidence.pixel_radius, **ev_kw)
-        ev1_base = ev1 if cfg.evidence.pixel_radius == 0 else evidence_mod.accumulate(work, [f], tax.num_classes, **ev_kw)
-        ev1_ldls = evidence_mod.accumulate(work, [f], tax.num_classes, pixel_radius=LDLS_PIXEL_RADIUS, **ev_kw)
-        evW = evidence_mod.accumulate(work, win_frames, tax.num_classes, pixel_radius=cfg.evidence.pixel_radius,
-                                      **ev_kw)
-        evW_base = evW if cfg.evidence.pixel_radius == 0 else evidence_mod.accumulate(work, win_frames,
-                                                                                      tax.num_classes, **ev_kw)
-        t["evidence"] += time.perf_counter() - te
+            te = time.perf_counter()
+            ev1 = evidence_mod.accumulate(work, [f], tax.num_classes, pixel_radius=cfg.evidence.pixel_radius, **ev_kw)
+            ev1_base = ev1 if cfg.evidence.pixel_radius == 0 else evidence_mod.accumulate(work, [f], tax.num_classes,
+                                                                                          **ev_kw)
+            ev1_ldls = evidence_mod.accumulate(work, [f], tax.num_classes, pixel_radius=LDLS_PIXEL_RADIUS, **ev_kw)
+            evW = evidence_mod.accumulate(work, win_frames, tax.num_classes, pixel_radius=cfg.evidence.pixel_radius,
+                                          **ev_kw)
+            evW_base = evW if cfg.evidence.pixel_radius == 0 else evidence_mod.accumulate(work, win_frames,
+                                                                                          tax.num_classes, **ev_kw)
+            t["evidence"] += time.perf_counter() - te
 
-        tg = time.perf_counter()
-        _, g_diff = make_graph(work, None, cfg.graph)
-        _, g_ldls = make_graph(work, None, replace(cfg.graph, use_normals=False))
-        t["graph"] += time.perf_counter() - tg
+            tg = time.perf_counter()
+            with graph_stage(work.shape[0], cfg.graph, cfg.graph.use_normals):
+                _, g_diff = make_graph(work, None, cfg.graph)
+                _, g_ldls = make_graph(work, None, replace(cfg.graph, use_normals=False))
+            t["graph"] += time.perf_counter() - tg
 
-        td = time.perf_counter()
-        work_labels = {
-            ("direct", 1): labels_from_scores(ev1_base.mass),
-            ("bayesian", 1): labels_from_scores(ev1_base.mass),
-            ("bayesian", W): labels_from_scores(evW_base.mass),
-        }
-        for key, g, ev in [(("ldls", 1), g_ldls, ev1_ldls), (("diffuser", 1), g_diff, ev1), (("diffuser", W), g_diff, evW)]:
-            z = solve(normalise(g, ev.mass, lam), solver).Z
-            work_labels[key] = labels_from_scores(z)
-        t["diffusion"] += time.perf_counter() - td
+            td = time.perf_counter()
+            work_labels = {
+                ("direct", 1): labels_from_scores(ev1_base.mass),
+                ("bayesian", 1): labels_from_scores(ev1_base.mass),
+                ("bayesian", W): labels_from_scores(evW_base.mass),
+            }
+            for key, g, ev in [(("ldls", 1), g_ldls, ev1_ldls), (("diffuser", 1), g_diff, ev1),
+                               (("diffuser", W), g_diff, evW)]:
+                z = solve(normalise(g, ev.mass, lam), solver).Z
+                work_labels[key] = labels_from_scores(z)
+            t["diffusion"] += time.perf_counter() - td
 
-        for key, lab in work_labels.items():  # 3D labels back into the target frame
-            img = np.full(f.shape, IGNORE, np.int16)
-            img[pix[:, 0], pix[:, 1]] = lab[to_work]
-            rows[key].add(img, f.gt_labels, names)
+            for key, lab in work_labels.items():  # 3D labels back into the target frame
+                img = np.full(f.shape, IGNORE, np.int16)
+                img[pix[:, 0], pix[:, 1]] = lab[to_work]
+                rows[key].add(img, f.gt_labels, names)
+        bar.set(len(targets))
 
     t["total"] = time.perf_counter() - t0
     order = [("direct", 1), ("ldls", 1), ("bayesian", 1), ("bayesian", W), ("diffuser", 1), ("diffuser", W)]

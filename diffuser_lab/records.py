@@ -41,7 +41,14 @@ def write_json_atomic(path: Path, data: dict) -> None:
 def write_labels(run_dir: Path, points: np.ndarray, labels: np.ndarray, taxonomy: Taxonomy, ply: bool = True) -> dict:
     """labels.npy ((N,) int16, -1 = unlabeled) and labels.ply (points coloured by class, with a
     per-vertex ``label`` property). Returns the file names written."""
+    from . import progress
+
     run_dir = Path(run_dir)
+    with progress.stage(f"writing labels.npy{' + labels.ply' if ply else ''}"):
+        return _write_labels(run_dir, points, labels, taxonomy, ply)
+
+
+def _write_labels(run_dir: Path, points: np.ndarray, labels: np.ndarray, taxonomy: Taxonomy, ply: bool) -> dict:
     np.save(run_dir / "labels.npy", labels.astype(np.int16))
     out = {"labels": "labels.npy"}
     if ply:

@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 
+from . import progress
 from .scene import IGNORE
 
 __all__ = [
@@ -26,6 +27,7 @@ __all__ = [
     "triangle_normals",
     "sample_surface",
     "camera_trajectory",
+    "render_views",
 ]
 
 
@@ -214,14 +216,15 @@ def sample_surface(
     pts = a + uv[:, :1] * (b - a) + uv[:, 1:] * (c - a)
     nrm = n_tri[idx]
 
-    if renderer is None:
-        renderer = MeshRenderer(v, tri, tri_lab)
-    t, prim = renderer.cast_full(pts + occlusion_offset * nrm, nrm)
-    # Near hit = covered by a touching/hung object; back-face hit = the ray starts
-    # inside another closed solid (e.g. a leg top under a table top).
-    keep = t > occlusion_dist
-    if backface_occludes:
-        keep &= ~renderer.hits_back_face(nrm, prim)
+    with progress.stage(f"sampling surface points ({len(idx):,} candidates)"):
+        if renderer is None:
+            renderer = MeshRenderer(v, tri, tri_lab)
+        t, prim = renderer.cast_full(pts + occlusion_offset * nrm, nrm)
+        # Near hit = covered by a touching/hung object; back-face hit = the ray starts
+        # inside another closed solid (e.g. a leg top under a table top).
+        keep = t > occlusion_dist
+        if backface_occludes:
+            keep &= ~renderer.hits_back_face(nrm, prim)
     pts, nrm, idx = pts[keep], nrm[keep], idx[keep]
 
     if noise > 0:
@@ -303,49 +306,51 @@ def camera_trajectory(
     poses: list[np.ndarray] = []
     tried = 0
     n_close = n_inside = n_cover = 0
-    while len(poses) < n_views and tried < max_tries:
-        m = min(batch, max_tries - tried)
-        tried += m
-        eyes = np.empty((m, 3))
-        eyes[:, :2] = rng.uniform(xy_lo, xy_hi, size=(m, 2))
-        eyes[:, 2] = np.clip(lo[2] + rng.uniform(*eye_height_range, size=m), lo[2], hi[2])
+    with progress.stage("choosing camera views", total=n_views, unit="view") as bar:
+        while len(poses) < n_views and tried < max_tries:
+            m = min(batch, max_tries - tried)
+            tried += m
+            eyes = np.empty((m, 3))
+            eyes[:, :2] = rng.uniform(xy_lo, xy_hi, size=(m, 2))
+            eyes[:, 2] = np.clip(lo[2] + rng.uniform(*eye_height_range, size=m), lo[2], hi[2])
 
-        # Clearance / inside test for the whole batch in one cast.
-        dirs = np.broadcast_to(probe, (m, len(probe), 3))
-        t_hit, prim = renderer.cast_full(np.repeat(eyes[:, None], len(probe), 1), dirs)
-        hit = np.isfinite(t_hit)
-        back = renderer.hits_back_face(dirs, prim)
-        below = np.isfinite(renderer.cast(eyes, np.array([0.0, 0.0, -1.0])))
-        close = np.where(hit, t_hit, np.inf).min(1) < min_clearance
-        inside = (back.sum(1) > 0.3 * np.maximum(hit.sum(1), 1)) | ~below
+            # Clearance / inside test for the whole batch in one cast.
+            dirs = np.broadcast_to(probe, (m, len(probe), 3))
+            t_hit, prim = renderer.cast_full(np.repeat(eyes[:, None], len(probe), 1), dirs)
+            hit = np.isfinite(t_hit)
+            back = renderer.hits_back_face(dirs, prim)
+            below = np.isfinite(renderer.cast(eyes, np.array([0.0, 0.0, -1.0])))
+            close = np.where(hit, t_hit, np.inf).min(1) < min_clearance
+            inside = (back.sum(1) > 0.3 * np.maximum(hit.sum(1), 1)) | ~below
 
-        # Heading towards a content point; a few draws to get one far enough away.
-        tgt_idx = np.searchsorted(cdf, rng.random((m, 4)))
-        tgt_idx = np.minimum(tgt_idx, len(tri) - 1)
-        w = rng.dirichlet(np.ones(3), size=(m, 4))  # uniform point in each triangle
-        tgt = np.einsum("mjk,mjkd->mjd", w, tv[tri[tgt_idx]])  # (m, 4, 3)
-        hd = np.linalg.norm(tgt[..., :2] - eyes[:, None, :2], axis=-1)
-        pick = np.argmax(hd >= min_target_dist, axis=1)  # first far one (0 if none)
-        heading = tgt[np.arange(m), pick, :2] - eyes[:, :2]
-        heading /= np.maximum(np.linalg.norm(heading, axis=1, keepdims=True), 1e-9)
-        pitch = np.deg2rad(rng.uniform(*pitch_range_deg, size=m))
-        fwd = np.concatenate([heading * np.cos(pitch)[:, None], np.sin(pitch)[:, None]], axis=1)
+            # Heading towards a content point; a few draws to get one far enough away.
+            tgt_idx = np.searchsorted(cdf, rng.random((m, 4)))
+            tgt_idx = np.minimum(tgt_idx, len(tri) - 1)
+            w = rng.dirichlet(np.ones(3), size=(m, 4))  # uniform point in each triangle
+            tgt = np.einsum("mjk,mjkd->mjd", w, tv[tri[tgt_idx]])  # (m, 4, 3)
+            hd = np.linalg.norm(tgt[..., :2] - eyes[:, None, :2], axis=-1)
+            pick = np.argmax(hd >= min_target_dist, axis=1)  # first far one (0 if none)
+            heading = tgt[np.arange(m), pick, :2] - eyes[:, :2]
+            heading /= np.maximum(np.linalg.norm(heading, axis=1, keepdims=True), 1e-9)
+            pitch = np.deg2rad(rng.uniform(*pitch_range_deg, size=m))
+            fwd = np.concatenate([heading * np.cos(pitch)[:, None], np.sin(pitch)[:, None]], axis=1)
 
-        for i in range(m):
-            if len(poses) >= n_views:
-                break
-            if close[i]:
-                n_close += 1
-                continue
-            if inside[i]:
-                n_inside += 1
-                continue
-            T = look_at(eyes[i], eyes[i] + fwd[i])
-            depth, _ = renderer.render(K, T, width, height)
-            if np.count_nonzero(depth) < min_coverage * depth.size:
-                n_cover += 1
-                continue
-            poses.append(T)
+            for i in range(m):
+                if len(poses) >= n_views:
+                    break
+                if close[i]:
+                    n_close += 1
+                    continue
+                if inside[i]:
+                    n_inside += 1
+                    continue
+                T = look_at(eyes[i], eyes[i] + fwd[i])
+                depth, _ = renderer.render(K, T, width, height)
+                if np.count_nonzero(depth) < min_coverage * depth.size:
+                    n_cover += 1
+                    continue
+                poses.append(T)
+                bar.set(len(poses))
 
     if len(poses) < n_views:
         raise ValueError(
@@ -374,3 +379,14 @@ def _order_chain(poses: list[np.ndarray]) -> list[np.ndarray]:
         order.append(j)
         used[j] = True
     return [poses[i] for i in order]
+
+
+def render_views(renderer: MeshRenderer, K: np.ndarray, poses, width: int, height: int):
+    """Render every pose of ``poses`` ((4, 4) ``T_cw``): a list of (depth, labels) as
+    :meth:`MeshRenderer.render` returns them, shown as the stage "rendering views"."""
+    out = []
+    with progress.stage("rendering views", total=len(poses), unit="view") as bar:
+        for T in poses:  # loop over views
+            out.append(renderer.render(K, T, width, height))
+            bar.update()
+    return out

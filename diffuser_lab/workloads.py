@@ -22,6 +22,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from . import progress
 from .geometry import voxel_downsample
 from .scene import SCANNET20, Frame, Scene, Taxonomy
 
@@ -135,15 +136,19 @@ def room_workload(n_points: int, *, seed: int = 0, n_views: int = 30, width: int
     K = intrinsics(width, height, 70.0)
     poses = camera_trajectory(verts, n_views, rng, width=width, height=height, K=K, renderer=renderer)
     frames = []
-    for i, T in enumerate(poses):
-        depth, lab = renderer.render(K, T, width, height)
-        pred = simulate_predictions(lab, num_classes, np.random.default_rng([seed, i]), class_names=tax.names)
-        frames.append(Frame(name=f"view_{i:04d}", K=K.copy(), T_cw=T, depth=depth, labels=pred, gt_labels=lab))
+    with progress.stage("workload views: rendering + simulated 2D predictions", total=len(poses), unit="view") as bar:
+        for i, T in enumerate(poses):
+            depth, lab = renderer.render(K, T, width, height)
+            pred = simulate_predictions(lab, num_classes, np.random.default_rng([seed, i]), class_names=tax.names)
+            frames.append(Frame(name=f"view_{i:04d}", K=K.copy(), T_cw=T, depth=depth, labels=pred, gt_labels=lab))
+            bar.update()
     mass = None
     if with_mass:
         ev = Evidence.empty(len(pts), num_classes)
-        for f in frames:
-            add_frame(ev, pts, f)
+        with progress.stage("workload evidence", total=len(frames), unit="frame") as bar:
+            for f in frames:
+                add_frame(ev, pts, f)
+                bar.update()
         mass = ev.mass
         seen = np.flatnonzero(mass.any(1))
         noisy = rng.choice(seen, size=int(noise_votes * len(seen)), replace=False)

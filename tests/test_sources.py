@@ -5,91 +5,31 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from PIL import Image
 from plyfile import PlyData, PlyElement
 
 from diffuser_lab.evidence import visible_projection
 from diffuser_lab.geometry import backproject, project
-from diffuser_lab.render import MeshRenderer, intrinsics, look_at
-from diffuser_lab.scene import IGNORE, SCANNET20, SCANNET20_NYU40_IDS
-from diffuser_lab.sources.demo import demo_mesh
+from diffuser_lab.scene import IGNORE, SCANNET20
 from diffuser_lab.sources.rgbd_folder import LazyFrames, load_rgbd_folder, read_depth_png
-from diffuser_lab.sources.scannet import load_scannet, read_labelled_mesh, scaled_intrinsics
+from diffuser_lab.sources.scannet import load_scannet, read_labelled_mesh
+
+from datasets import BAD_POSE, CH, CW, EYES, H, NYU, TARGET, W, _c2w, _save_u16, _vertex_nyu, _write_mesh  # noqa: F401
+from datasets import make_world, write_rgbd, write_scannet
 
 SHARED = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
 SCANNET_REAL = SHARED / "scannet" / "scene0470_00"
 SEVEN_SCENES = SHARED / "7scenes_sample"
 
-W, H = 80, 60  # depth resolution of the fixtures
-CW, CH = 200, 150  # "colour" resolution (2.5x, like ScanNet's 1296x968 vs 640x480)
-EYES = [(2.0, 1.5, 1.6), (2.2, 1.5, 1.6), (2.4, 1.6, 1.6), (2.6, 1.7, 1.6)]
-TARGET = (3.8, 3.2, 0.6)
-BAD_POSE = 2  # frame written with an all -inf pose (ScanNet's "tracking lost")
-NYU = np.append(np.array(SCANNET20_NYU40_IDS), 0)  # SCANNET20 id -> NYU40 id; IGNORE (-1) -> 0
-
 
 @pytest.fixture(scope="module")
 def world():
     """Demo room mesh, its renderer, cameras and the rendered depth/label images."""
-    verts, tris, tri_lab = demo_mesh(0)
-    r = MeshRenderer(verts, tris, tri_lab)
-    K = intrinsics(W, H, 70.0)
-    Kc = scaled_intrinsics(K, (H, W), (CH, CW))
-    poses = [look_at(e, TARGET) for e in EYES]
-    views = []
-    for T in poses:  # loop over 4 views
-        depth, lab = r.render(K, T, W, H)
-        _, lab_c = r.render(Kc, T, CW, CH)
-        assert np.count_nonzero(depth) > 0.9 * depth.size
-        views.append((depth, lab, lab_c))
-    return dict(verts=verts, tris=tris, tri_lab=tri_lab, K=K, Kc=Kc, poses=poses, views=views)
-
-
-def _save_u16(path, arr):
-    Image.fromarray(np.asarray(arr, np.uint16)).save(path)
-
-
-def _write_mesh(path, verts, tris, labels=None):
-    dt = [("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1"), ("alpha", "u1")]
-    if labels is not None:
-        dt.append(("label", "u2"))
-    v = np.zeros(len(verts), dt)
-    v["x"], v["y"], v["z"] = verts.T
-    v["red"], v["green"], v["blue"], v["alpha"] = 100, 150, 200, 255
-    if labels is not None:
-        v["label"] = labels
-    f = np.zeros(len(tris), [("vertex_indices", "i4", (3,))])
-    f["vertex_indices"] = tris
-    PlyData([PlyElement.describe(v, "vertex"), PlyElement.describe(f, "face")]).write(str(path))
-
-
-def _vertex_nyu(world):
-    lab = np.zeros(len(world["verts"]), np.int64)
-    lab[world["tris"].ravel()] = np.repeat(NYU[world["tri_lab"]], 3)  # box vertices are not shared
-    return lab
-
-
-def _c2w(T_cw):
-    return np.linalg.inv(T_cw)
+    return make_world()
 
 
 @pytest.fixture
 def scannet_dir(tmp_path, world):
-    root = tmp_path / "scene0999_00"
-    for sub in ("color", "depth", "pose", "intrinsic", "label-filt"):
-        (root / sub).mkdir(parents=True)
-    _write_mesh(root / "scene0999_00_vh_clean_2.ply", world["verts"], world["tris"])
-    _write_mesh(root / "scene0999_00_vh_clean_2.labels.ply", world["verts"], world["tris"], _vertex_nyu(world))
-    for name, K in (("intrinsic_depth.txt", world["K"]), ("intrinsic_color.txt", world["Kc"])):
-        K4 = np.eye(4)
-        K4[:3, :3] = K
-        np.savetxt(root / "intrinsic" / name, K4)
-    for i, (T, (depth, _, lab_c)) in enumerate(zip(world["poses"], world["views"])):
-        _save_u16(root / "depth" / f"{i}.png", np.rint(depth * 1000))
-        _save_u16(root / "label-filt" / f"{i}.png", NYU[lab_c])
-        Image.fromarray(SCANNET20.colorize(lab_c)).save(root / "color" / f"{i}.jpg")
-        np.savetxt(root / "pose" / f"{i}.txt", np.full((4, 4), -np.inf) if i == BAD_POSE else _c2w(T))
-    return root
+    return write_scannet(tmp_path, world)
 
 
 def _check_round_trip(scene, world, ids):
@@ -176,23 +116,9 @@ def test_real_scannet_mesh():
     assert np.median(scene.normals[floor, 2]) > 0.9  # z up: winding-oriented normals face up
 
 
-# ------------------------------------------------------------------ rgbd folder
-
 @pytest.fixture
 def rgbd_dir(tmp_path, world):
-    root = tmp_path / "seq"
-    root.mkdir()
-    np.savetxt(root / "camera-intrinsics.txt", world["K"])
-    for i, (T, (depth, lab, lab_c)) in enumerate(zip(world["poses"], world["views"])):
-        stem = root / f"frame-{i:06d}"
-        d = np.rint(depth * 1000)
-        d[depth == 0] = 65535  # 7-Scenes' invalid marker
-        _save_u16(f"{stem}.depth.png", d)
-        np.savetxt(f"{stem}.pose.txt", _c2w(T))
-        Image.fromarray(SCANNET20.colorize(lab_c)).save(f"{stem}.color.jpg")  # colour at another size
-        if i != 1:
-            _save_u16(f"{stem}.label.png", NYU[lab_c])
-    return root
+    return write_rgbd(tmp_path, world)
 
 
 def test_rgbd_folder_round_trip_and_fused_cloud(rgbd_dir, world):

@@ -235,12 +235,15 @@ class RecordingHooks(RunHooks):
         self._later(finish)
 
     def close(self) -> None:
-        if self._worker is not None:
-            self._worker.close()  # what is queued is written first
-        for which in ("rerun", "mcap"):
-            rec = getattr(self, which)
-            if rec is not None:
-                self._guard(which, rec.close)
+        from .. import progress
+
+        with progress.stage(f"finishing records ({', '.join(self._wanted) or 'none'})"):
+            if self._worker is not None:
+                self._worker.close()  # what is queued is written first
+            for which in ("rerun", "mcap"):
+                rec = getattr(self, which)
+                if rec is not None:
+                    self._guard(which, rec.close)
 
     def files(self) -> dict:
         out = {k: v for k, v in self._files.items() if (k == "rrd" and "rerun" not in self.errors)

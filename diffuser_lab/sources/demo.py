@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..render import MeshRenderer, camera_trajectory, intrinsics, sample_surface
+from ..render import MeshRenderer, camera_trajectory, intrinsics, render_views, sample_surface
 from ..scene import SCANNET20, Frame, Scene
 
 __all__ = ["make_demo_scene", "demo_mesh"]
@@ -394,11 +394,9 @@ def make_demo_scene(
     K = intrinsics(image_width, image_height, fov_deg)
     poses = camera_trajectory(verts, n_views, rng, width=image_width, height=image_height,
                               K=K, renderer=renderer)
-    frames = []
-    for i, T in enumerate(poses):  # loop over views
-        depth, lab = renderer.render(K, T, image_width, image_height)
-        frames.append(Frame(name=f"view_{i:04d}", K=K.copy(), T_cw=T, depth=depth,
-                            labels=None, gt_labels=lab))
+    views = render_views(renderer, K, poses, image_width, image_height)
+    frames = [Frame(name=f"view_{i:04d}", K=K.copy(), T_cw=T, depth=depth, labels=None, gt_labels=lab)
+              for i, (T, (depth, lab)) in enumerate(zip(poses, views))]
     scene = Scene(name=f"demo_room_seed{seed}", points=points, taxonomy=SCANNET20,
                   frames=frames, normals=normals, gt_labels=labels)
     return scene, renderer

@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from ..mapping import load_mapping
-from ..render import MeshRenderer, camera_trajectory, intrinsics
+from .. import progress
+from ..render import MeshRenderer, camera_trajectory, intrinsics, render_views
 from ..scene import IGNORE, Frame, Scene, Taxonomy, SCANNET20
 
 
@@ -51,7 +52,8 @@ def load_mesh_views(path: str | Path, *, taxonomy: Taxonomy = SCANNET20, mapping
     from .scannet import read_labelled_mesh
 
     path = Path(path)
-    vertices, triangles, raw_labels, colors = read_labelled_mesh(path)
+    with progress.stage(f"reading mesh {path.name}"):
+        vertices, triangles, raw_labels, colors = read_labelled_mesh(path)
     if raw_labels is None:
         raise ValueError(f"{path}: the mesh has no per-vertex 'label' property; mesh_views needs a labelled mesh")
     if mapping is not None:
@@ -65,10 +67,9 @@ def load_mesh_views(path: str | Path, *, taxonomy: Taxonomy = SCANNET20, mapping
     rng = np.random.default_rng(seed)
     poses = camera_trajectory(vertices, n_views, rng, width=image_width, height=image_height, K=K,
                               renderer=renderer, min_coverage=min_coverage, eye_height_range=eye_height_range)
-    frames = []
-    for i, T in enumerate(poses):
-        depth, labels = renderer.render(K, T, image_width, image_height)
-        frames.append(Frame(name=f"view_{i:04d}", K=K, T_cw=T, depth=depth, gt_labels=labels))
+    views = render_views(renderer, K, poses, image_width, image_height)
+    frames = [Frame(name=f"view_{i:04d}", K=K, T_cw=T, depth=depth, gt_labels=labels)
+              for i, (T, (depth, labels)) in enumerate(zip(poses, views))]
     stem = path.name.split(".")[0]
     return Scene(name=name or f"{stem}_views{len(frames)}_seed{seed}", points=vertices.astype(np.float32),
                  taxonomy=taxonomy, frames=frames, normals=vertex_normals(vertices, triangles), colors=colors,

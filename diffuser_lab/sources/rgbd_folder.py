@@ -28,6 +28,7 @@ from typing import Callable
 
 import numpy as np
 
+from .. import progress
 from ..geometry import backproject, voxel_downsample
 from ..mapping import ClassMapping, load_mapping
 from ..prediction_files import open_image, read_label_png, resize_nearest
@@ -286,13 +287,15 @@ def load_rgbd_folder(
     if max_frames is not None:
         names = names[: int(max_frames)]
     poses, kept = [], []
-    for name in names:  # loop over frames: poses are tiny and validated up front
-        T_wc = read_pose_c2w(root / f"{name}.pose.txt")
-        if T_wc is None:
-            raise ValueError(f"{root / (name + '.pose.txt')}: pose has non-finite entries, "
-                             f"expected a 4x4 rigid camera-to-world transform")
-        poses.append(rigid_inverse(T_wc))
-        kept.append(name)
+    with progress.stage("reading poses", total=len(names), unit="pose") as bar:
+        for name in names:  # loop over frames: poses are tiny and validated up front
+            T_wc = read_pose_c2w(root / f"{name}.pose.txt")
+            if T_wc is None:
+                raise ValueError(f"{root / (name + '.pose.txt')}: pose has non-finite entries, "
+                                 f"expected a 4x4 rigid camera-to-world transform")
+            poses.append(rigid_inverse(T_wc))
+            kept.append(name)
+            bar.update()
 
     def load(i: int) -> Frame:
         name = kept[i]
@@ -312,7 +315,8 @@ def load_rgbd_folder(
 
     normals = colors = gt_points = None
     if cloud is not None:
-        pc = read_point_cloud_ply(cloud)
+        with progress.stage(f"reading point cloud {Path(cloud).name}"):
+            pc = read_point_cloud_ply(cloud)
         points, colors, normals = pc["points"], pc.get("colors"), pc.get("normals")
         if "labels" in pc:
             gt_points = _taxonomy_ids(pc["labels"], mapping, taxonomy, str(cloud))
@@ -344,9 +348,17 @@ def _fuse_depth(frames: Sequence[Frame], voxel_size: float, stride: int, max_dep
     scene's extent, not the number of frames.
     Returns (M, 3) float32 points and (M, 3) uint8 colours (grey 128 without colour).
     """
+    with progress.stage(f"fusing depth into a cloud ({voxel_size:g} m voxels)", total=len(frames),
+                        unit="frame") as bar:
+        return _fuse_depth_frames(frames, voxel_size, stride, max_depth, bar)
+
+
+def _fuse_depth_frames(frames: Sequence[Frame], voxel_size: float, stride: int, max_depth: float | None,
+                       bar: progress.Stage):
     acc_p, acc_c, acc_w = [], [], []
     merged_size, pending = 0, 0
     for k in range(len(frames)):  # loop over frames
+        bar.update()
         f = frames[k]
         depth = f.depth
         if max_depth is not None:

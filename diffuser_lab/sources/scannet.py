@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import progress
 from ..mapping import ClassMapping, load_mapping
 from ..prediction_files import read_label_png, resize_nearest
 from ..scene import SCANNET20, Frame, Scene
@@ -156,12 +157,14 @@ def load_scannet(root, *, frame_step: int = 10, max_frames: int | None = None,
     mesh_path = _find_mesh(root, "_vh_clean_2.ply")
     if mesh_path is None:
         raise FileNotFoundError(f"{root}: no {root.name}_vh_clean_2.ply mesh")
-    vertices, triangles, _, colors = read_labelled_mesh(mesh_path)
-    normals = _vertex_normals(vertices, triangles)
-    gt = None
     label_path = _find_mesh(root, "_vh_clean_2.labels.ply")
+    with progress.stage(f"reading mesh {mesh_path.name}" + (" + labels" if label_path is not None else "")):
+        vertices, triangles, _, colors = read_labelled_mesh(mesh_path)
+        normals = _vertex_normals(vertices, triangles)
+        if label_path is not None:
+            lv, _, vlabels, _ = read_labelled_mesh(label_path)
+    gt = None
     if label_path is not None:
-        lv, _, vlabels, _ = read_labelled_mesh(label_path)
         if vlabels is None or lv.shape != vertices.shape:
             raise ValueError(f"{label_path}: expected a per-vertex 'label' for each of the {len(vertices)} "
                              f"vertices of {mesh_path.name}")
@@ -193,15 +196,18 @@ def _scannet_frames(root: Path, frame_step: int, max_frames: int | None, mapping
         K_color = read_intrinsics(root / "intrinsic" / "intrinsic_color.txt")
 
     kept, poses, n_invalid = [], [], 0
-    for fid in ids[::frame_step]:  # loop over frames: validate poses up front (tiny files)
-        if max_frames is not None and len(kept) >= max_frames:
-            break
-        T_wc = read_pose_c2w(root / "pose" / f"{fid}.txt")
-        if T_wc is None:
-            n_invalid += 1  # tracking lost: ScanNet writes -inf poses
-            continue
-        kept.append(fid)
-        poses.append(rigid_inverse(T_wc))
+    selected = ids[::frame_step]
+    with progress.stage("reading poses", total=len(selected), unit="pose") as bar:
+        for fid in selected:  # loop over frames: validate poses up front (tiny files)
+            if max_frames is not None and len(kept) >= max_frames:
+                break
+            bar.update()
+            T_wc = read_pose_c2w(root / "pose" / f"{fid}.txt")
+            if T_wc is None:
+                n_invalid += 1  # tracking lost: ScanNet writes -inf poses
+                continue
+            kept.append(fid)
+            poses.append(rigid_inverse(T_wc))
     if not kept:
         raise ValueError(f"{root}: no frame with a valid pose among {len(ids[::frame_step])} selected "
                          f"(frame_step={frame_step}, {n_invalid} non-finite poses)")

@@ -1,0 +1,116 @@
+"""Small datasets the tests write in the layouts the loaders read: the demo room rendered from a
+few cameras, saved as a ScanNet export and as a posed RGB-D folder (7-Scenes naming), and the
+labelled mesh itself. Used by test_sources.py and by test_readme.py (the README's own-data commands)."""
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+from plyfile import PlyData, PlyElement
+
+from diffuser_lab.render import MeshRenderer, intrinsics, look_at
+from diffuser_lab.scene import SCANNET20, SCANNET20_NYU40_IDS
+from diffuser_lab.sources.demo import demo_mesh
+from diffuser_lab.sources.scannet import scaled_intrinsics
+
+W, H = 80, 60  # depth resolution of the fixtures
+CW, CH = 200, 150  # "colour" resolution (2.5x, like ScanNet's 1296x968 vs 640x480)
+EYES = [(2.0, 1.5, 1.6), (2.2, 1.5, 1.6), (2.4, 1.6, 1.6), (2.6, 1.7, 1.6)]
+TARGET = (3.8, 3.2, 0.6)
+BAD_POSE = 2  # frame written with an all -inf pose (ScanNet's "tracking lost")
+NYU = np.append(np.array(SCANNET20_NYU40_IDS), 0)  # SCANNET20 id -> NYU40 id; IGNORE (-1) -> 0
+
+
+def make_world() -> dict:
+    """Demo room mesh, its renderer, cameras and the rendered depth/label images."""
+    verts, tris, tri_lab = demo_mesh(0)
+    r = MeshRenderer(verts, tris, tri_lab)
+    K = intrinsics(W, H, 70.0)
+    Kc = scaled_intrinsics(K, (H, W), (CH, CW))
+    poses = [look_at(e, TARGET) for e in EYES]
+    views = []
+    for T in poses:  # loop over 4 views
+        depth, lab = r.render(K, T, W, H)
+        _, lab_c = r.render(Kc, T, CW, CH)
+        assert np.count_nonzero(depth) > 0.9 * depth.size, "the fixture cameras must see the room"
+        views.append((depth, lab, lab_c))
+    return dict(verts=verts, tris=tris, tri_lab=tri_lab, K=K, Kc=Kc, poses=poses, views=views)
+
+
+def _save_u16(path, arr):
+    Image.fromarray(np.asarray(arr, np.uint16)).save(path)
+
+
+def _write_mesh(path, verts, tris, labels=None):
+    dt = [("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1"), ("alpha", "u1")]
+    if labels is not None:
+        dt.append(("label", "u2"))
+    v = np.zeros(len(verts), dt)
+    v["x"], v["y"], v["z"] = verts.T
+    v["red"], v["green"], v["blue"], v["alpha"] = 100, 150, 200, 255
+    if labels is not None:
+        v["label"] = labels
+    f = np.zeros(len(tris), [("vertex_indices", "i4", (3,))])
+    f["vertex_indices"] = tris
+    PlyData([PlyElement.describe(v, "vertex"), PlyElement.describe(f, "face")]).write(str(path))
+
+
+def _vertex_nyu(world):
+    lab = np.zeros(len(world["verts"]), np.int64)
+    lab[world["tris"].ravel()] = np.repeat(NYU[world["tri_lab"]], 3)  # box vertices are not shared
+    return lab
+
+
+def _c2w(T_cw):
+    return np.linalg.inv(T_cw)
+
+
+def write_scannet(parent: Path, world: dict) -> Path:
+    """A ScanNet export ``parent/scene0999_00`` of the world (frame 2 has ScanNet's -inf "tracking lost" pose)."""
+    root = Path(parent) / "scene0999_00"
+    for sub in ("color", "depth", "pose", "intrinsic", "label-filt"):
+        (root / sub).mkdir(parents=True)
+    _write_mesh(root / "scene0999_00_vh_clean_2.ply", world["verts"], world["tris"])
+    _write_mesh(root / "scene0999_00_vh_clean_2.labels.ply", world["verts"], world["tris"], _vertex_nyu(world))
+    for name, K in (("intrinsic_depth.txt", world["K"]), ("intrinsic_color.txt", world["Kc"])):
+        K4 = np.eye(4)
+        K4[:3, :3] = K
+        np.savetxt(root / "intrinsic" / name, K4)
+    for i, (T, (depth, _, lab_c)) in enumerate(zip(world["poses"], world["views"])):
+        _save_u16(root / "depth" / f"{i}.png", np.rint(depth * 1000))
+        _save_u16(root / "label-filt" / f"{i}.png", NYU[lab_c])
+        Image.fromarray(SCANNET20.colorize(lab_c)).save(root / "color" / f"{i}.jpg")
+        np.savetxt(root / "pose" / f"{i}.txt", np.full((4, 4), -np.inf) if i == BAD_POSE else _c2w(T))
+    return root
+
+
+def write_rgbd(parent: Path, world: dict) -> Path:
+    """A posed RGB-D folder ``parent/seq`` (7-Scenes naming, 65535 = invalid depth; NYU40 label
+    images ``frame-XXXXXX.label.png`` for every frame but frame 1)."""
+    root = Path(parent) / "seq"
+    root.mkdir()
+    np.savetxt(root / "camera-intrinsics.txt", world["K"])
+    for i, (T, (depth, lab, lab_c)) in enumerate(zip(world["poses"], world["views"])):
+        stem = root / f"frame-{i:06d}"
+        d = np.rint(depth * 1000)
+        d[depth == 0] = 65535  # 7-Scenes' invalid marker
+        _save_u16(f"{stem}.depth.png", d)
+        np.savetxt(f"{stem}.pose.txt", _c2w(T))
+        Image.fromarray(SCANNET20.colorize(lab_c)).save(f"{stem}.color.jpg")  # colour at another size
+        if i != 1:
+            _save_u16(f"{stem}.label.png", NYU[lab_c])
+    return root
+
+
+def write_mesh_ply(path: Path, world: dict) -> Path:
+    """The room as a labelled mesh PLY (per-vertex NYU40 ``label``), as ScanNet's ``.labels.ply``."""
+    _write_mesh(path, world["verts"], world["tris"], _vertex_nyu(world))
+    return Path(path)
+
+
+def write_label_predictions(folder: Path, world: dict, names: list[str]) -> Path:
+    """A "network's" NYU40 label PNGs at depth resolution, one per frame name (the rendered truth)."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, (_, lab, _) in zip(names, world["views"]):
+        _save_u16(folder / f"{name}.png", NYU[lab])
+    return folder

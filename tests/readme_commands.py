@@ -1,0 +1,217 @@
+"""The commands of README.md's ``bash`` and ``python`` blocks: read, classified, their placeholders
+filled. Used by tests/test_readme.py (which runs them with a smaller scene appended to the long
+sweeps) and, to run every one of them verbatim in a checkout and print one line and the wall
+time of each, from the command line::
+
+    .venv/bin/python tests/readme_commands.py [--only REGEX] [--log FILE]   # from the checkout's root
+
+(the own-data placeholders are filled with the small datasets of tests/datasets.py, written to
+a temporary folder; a command that cannot run here prints why).
+"""
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+SHARED = ROOT.parent / "shared"
+README = ROOT / "README.md"
+EXPERIMENTS = sorted(p.stem for p in (ROOT / "conf" / "experiment").glob("*.yaml"))
+DEMO_SMALL = ["scene.demo.point_spacing=0.1"]  # ~8k points instead of ~51k
+SCANNET_SMALL = ["scene.voxel_size=0.05", "scene.mesh_views.image_width=80", "scene.mesh_views.image_height=60",
+                 "seed=0"]  # 5 cm voxels, 80x60 views, one seed of the three
+SINGLE_FRAME_SMALL = ["protocol.max_targets=8"]
+VENV = Path(sys.prefix)
+HAVE_SHARED = (SHARED / "data" / "scannet").is_dir()
+
+
+@dataclass
+class Command:
+    """One README command: where it stands, its text, and how this test runs it."""
+
+    line: int  # README line number
+    section: str
+    text: str  # as written (NAME expanded)
+    lang: str = "bash"
+    append: list[str] = field(default_factory=list)
+    skip: str = ""  # why it is not run here
+    key: str = ""  # what it does, for the checks
+
+    @property
+    def id(self) -> str:
+        short = re.sub(r"[^A-Za-z0-9=+._/-]+", "_", self.text.replace(".venv/bin/", ""))[:60]
+        return f"L{self.line}-{short}"
+
+
+def _blocks(text: str):
+    """(first line number, language, lines) of each fenced block."""
+    lines = text.splitlines()
+    i = 0
+    section = ""
+    while i < len(lines):
+        if lines[i].startswith("#"):
+            section = lines[i].lstrip("# ").strip()
+        m = re.match(r"^```(\w*)\s*$", lines[i])
+        if m:
+            j = i + 1
+            while j < len(lines) and not lines[j].startswith("```"):
+                j += 1
+            yield i + 2, m.group(1), lines[i + 1:j], section
+            i = j
+        i += 1
+
+
+def _strip_comment(line: str) -> str:
+    return re.split(r"\s+#\s", line, maxsplit=1)[0].rstrip()
+
+
+def readme_commands() -> list[Command]:
+    cmds: list[Command] = []
+    for first, lang, lines, section in _blocks(README.read_text()):
+        if lang == "python":
+            cmds.append(Command(first, section, "\n".join(lines), lang="python", key="python"))
+            continue
+        if lang != "bash":
+            continue
+        for k, raw in enumerate(lines):
+            text = _strip_comment(raw.strip())
+            if not text or text.startswith("#"):
+                continue
+            names = EXPERIMENTS if "+experiment=NAME" in text else [None]
+            for name in names:
+                t = text.replace("+experiment=NAME", f"+experiment={name}") if name else text
+                cmds.append(classify(Command(first + k, section, t)))
+    return cmds
+
+
+def classify(c: Command) -> Command:
+    """How each kind of README command runs here (first rule that matches)."""
+    t = c.text
+    if t.startswith("bash scripts/dev.sh test"):
+        c.skip = "the test command itself: CI runs it, this is that run"
+    elif re.match(r"^\.venv/bin/rerun \S+\.(rrd|mcap)$", t) or " --view" in t:
+        c.skip, c.key = "opens the Rerun viewer window (no display here); the file it opens is checked", "viewer"
+    elif "hydra/launcher=slurm" in t and not shutil.which("sbatch"):
+        c.skip, c.key = "no SLURM here (no sbatch): the same command line is composed and checked instead", "slurm"
+    elif t.startswith(".venv/bin/pip install"):
+        c.key, c.append = "pip", ["--dry-run"]  # resolves the extras together without changing the venv
+    elif " -m +experiment=" in t:
+        c.key = "sweep"
+        c.append = SCANNET_SMALL if "scene=scannet0470" in t else DEMO_SMALL
+    elif " -m " in t and "diffuser-lab " in t:
+        c.key = "multirun"
+    elif "diffuser-lab --cfg" in t:
+        c.key = "cfg"
+    elif re.match(r"^\.venv/bin/diffuser-lab( |$)", t) or t.startswith("bash scripts/dev.sh demo"):
+        c.key = "run"
+        if "protocol=single_frame" in t:
+            c.append = SINGLE_FRAME_SMALL
+    elif "diffuser-lab-inspect" in t:
+        c.key = "inspect"
+    elif "diffuser-lab-bench" in t:
+        c.key = "bench"
+    elif "-m analysis." in t:
+        c.key = "analysis"
+    else:
+        c.key = "shell"
+    if ("scannet0470" in t or "../shared" in t) and not HAVE_SHARED and not c.skip:
+        c.skip = f"needs the real data in {SHARED / 'data'} (absent)"
+    return c
+
+
+
+
+
+def _labelled_rgbd(root: Path, world: dict) -> Path:
+    """The RGB-D fixture with a label image for every frame (it leaves frame 1 out on purpose)."""
+    from datasets import NYU, _save_u16
+
+    _save_u16(root / "frame-000001.label.png", NYU[world["views"][1][2]])
+    return root
+
+
+def _newest(repo: Path, pattern: str) -> str:
+    hits = sorted(repo.glob(pattern), key=lambda p: p.stat().st_mtime)
+    assert hits, f"README placeholder {pattern!r}: nothing made by the commands before it matches"
+    return str(hits[-1].relative_to(repo))
+
+
+def resolve(text: str, work: dict) -> str:
+    """Fill the placeholders: <...> path parts from what earlier commands made, CAPS from datasets."""
+    for token in sorted(set(re.findall(r"[^\s\"']*<[a-z_]+>[^\s\"']*", text)), key=len, reverse=True):
+        text = text.replace(token, _newest(work["repo"], re.sub(r"<[a-z_]+>", "*", token)))
+    for name, value in work["placeholders"].items():
+        text = re.sub(rf"(?<![\w.]){re.escape(name)}(?![\w])", value, text)
+    return text
+
+
+def _env() -> dict:
+    env = {k: v for k, v in os.environ.items() if k not in ("HYDRA_FULL_ERROR",)}
+    env["PYTHONUNBUFFERED"] = "1"
+    return env
+
+
+def own_data(folder: Path) -> dict[str, str]:
+    """The CAPS placeholders of the own-data commands -> small datasets written under ``folder``."""
+    sys.path.insert(0, str(ROOT / "tests"))
+    from datasets import make_world, write_label_predictions, write_mesh_ply, write_rgbd, write_scannet
+
+    world = make_world()
+    folder.mkdir(parents=True, exist_ok=True)
+    return {
+        "MESH.ply": str(write_mesh_ply(folder / "room.labels.ply", world)),
+        "SCANNET_SCENE": str(write_scannet(folder, world)),
+        "RGBD_FOLDER": str(_labelled_rgbd(write_rgbd(folder, world), world)),
+        "PRED_DIR": str(write_label_predictions(folder / "predictions", world, ["0", "1", "2", "3"])),
+    }
+
+
+def main(argv=None) -> int:
+    """Run every README command verbatim from the current directory (a checkout's root)."""
+    import argparse
+    import subprocess
+    import tempfile
+    import time
+
+    ap = argparse.ArgumentParser(description=main.__doc__)
+    ap.add_argument("--only", help="run only the commands matching this regular expression")
+    ap.add_argument("--log", help="also write each command's full output to this file")
+    a = ap.parse_args(argv)
+    work = {"repo": Path.cwd(), "placeholders": own_data(Path(tempfile.mkdtemp(prefix="readme-data-")))}
+    log = open(a.log, "w") if a.log else None
+    failed = 0
+    for c in readme_commands():
+        if a.only and not re.search(a.only, c.text):
+            continue
+        if c.skip or c.key == "pip":
+            print(f"SKIP  {c.text}  ({c.skip or 'installs packages'})", flush=True)
+            continue
+        try:
+            text = resolve(c.text, work)
+        except AssertionError as exc:
+            print(f"FAIL  {c.text}  ({exc})", flush=True)
+            failed += 1
+            continue
+        t0 = time.perf_counter()
+        argv_ = [sys.executable, "-c", text] if c.lang == "python" else ["bash", "-c", text]
+        p = subprocess.run(argv_, env=_env(), capture_output=True, text=True)
+        dt = time.perf_counter() - t0
+        out = [ln for ln in p.stdout.splitlines() if ln.strip()]
+        said = r"^(sweep |diffuser |wrote |run folder|\{|\d+ runs|result )"
+        say = next((ln for ln in reversed(out) if re.match(said, ln)),
+                   out[-1] if out else (p.stderr.strip().splitlines() or [""])[-1])
+        print(f"{'ok  ' if p.returncode == 0 else 'FAIL'}  {dt:7.1f} s  {c.text.splitlines()[0][:110]}\n"
+              f"              -> {say[:150]}", flush=True)
+        failed += p.returncode != 0
+        if log:
+            log.write(f"$ {text}\n# exit {p.returncode}, {dt:.1f} s\n{p.stdout}{p.stderr}\n")
+            log.flush()
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,125 @@
+"""What a sweep tells (job count, job lines, the watcher of Ray/submitit jobs), the launchers'
+defaults, and a job's kernel threads following its launcher's CPUs."""
+import io
+import json
+import subprocess
+import sys
+
+import pytest
+
+from conftest import ROOT
+
+
+def _compose(overrides):
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from diffuser_lab import launchers
+    from diffuser_lab.config import register
+
+    register()
+    launchers.register()
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+            return compose("config", overrides=overrides, return_hydra_config=True)
+    finally:
+        GlobalHydra.instance().clear()
+
+
+@pytest.mark.parametrize("overrides,jobs", [
+    (["+experiment=smoke"], 4),
+    (["+experiment=k"], 15),
+    (["+experiment=k", "graph.k=8,16"], 6),  # the command line replaces the experiment's values
+    (["+experiment=k", "seed=0"], 5),
+    (["graph.use_normals=true,false", "predictions.seed=0,1,2"], 6),
+    (["graph.k=16"], 1),
+])
+def test_count_jobs_as_the_basic_sweeper(overrides, jobs):
+    from omegaconf import OmegaConf, open_dict
+
+    from diffuser_lab.sweep import count_jobs
+
+    cfg = _compose([o for o in overrides if "," not in o])  # compose() takes no sweeps
+    with open_dict(cfg):  # what Hydra puts there for a multirun: the command line as typed
+        cfg.hydra.overrides.task = OmegaConf.create(overrides)
+    assert count_jobs(cfg) == jobs
+
+
+def test_job_lines(tmp_path, monkeypatch):
+    from diffuser_lab.sweep import JOBS_ENV, job_line, job_tag
+
+    monkeypatch.setenv(JOBS_ENV, "15")
+    assert job_tag(2) == "[3/15]"
+    ok = {"status": "ok", "method": "diffuser", "metrics": {"miou": 73.71}, "baseline": {"bayesian": {"miou": 61.3}},
+          "timings_s": {"total": 3.84}}
+    assert job_line(2, tmp_path / "2_graph.k=24,seed=0", ok) == \
+        "[3/15] 2_graph.k=24,seed=0: diffuser mIoU 73.7 (bayesian 61.3) in 3.8 s"
+    bad = {"status": "failed", "error": "ConfigError: graph.k=0: expected >= 1"}
+    assert job_line(0, tmp_path / "0_graph.k=0", bad) == "[1/15] 0_graph.k=0: FAILED: ConfigError: graph.k=0: expected >= 1"
+    monkeypatch.delenv(JOBS_ENV)
+    assert job_tag(0) == "[1]"
+
+
+def test_watcher_prints_each_job_once(tmp_path, monkeypatch):
+    from diffuser_lab.sweep import JOBS_ENV, Watcher
+
+    monkeypatch.setenv(JOBS_ENV, "2")
+    out = io.StringIO()
+    w = Watcher(tmp_path, file=out)
+    for num in (0, 1):
+        (tmp_path / f"{num}_seed={num}").mkdir()
+    (tmp_path / "0_seed=0" / "summary.json").write_text(json.dumps({"status": "running", "overrides": ["seed=0"]}))
+    w.poll()
+    w.poll()
+    (tmp_path / "0_seed=0" / "summary.json").write_text(json.dumps(
+        {"status": "ok", "method": "diffuser", "metrics": {"miou": 50.0}, "baseline": {"bayesian": {"miou": 40.0}}}))
+    (tmp_path / "1_seed=1" / "summary.json").write_text(json.dumps({"status": "failed", "error": "boom"}))
+    w.poll()
+    w.poll()
+    assert out.getvalue().splitlines() == [
+        "[1/2] started seed=0",
+        "[1/2] 0_seed=0: diffuser mIoU 50.0 (bayesian 40.0)",
+        "[2/2] 1_seed=1: FAILED: boom",
+    ]
+
+
+def test_launcher_defaults():
+    pytest.importorskip("hydra_plugins.hydra_ray_launcher")
+    pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
+    ray = _compose(["+experiment=k", "hydra/launcher=ray"]).hydra.launcher
+    assert ray._target_.endswith("RayLauncher")
+    assert ray.ray.init.address is None and ray.ray.init.include_dashboard is False
+    assert ray.ray.remote.num_cpus == 1
+    two = _compose(["+experiment=k", "hydra/launcher=ray", "hydra.launcher.ray.remote.num_cpus=2"]).hydra.launcher
+    assert two.ray.remote.num_cpus == 2
+    local = _compose(["+experiment=k", "hydra/launcher=submitit_local"]).hydra.launcher
+    assert local._target_.endswith("LocalLauncher") and local.cpus_per_task == 1
+    folder = str(local._get_node("submitit_folder")._value())
+    assert folder == "${hydra.sweep.dir}/.submitit"  # no %j: submitit's local executor made a literal folder of it
+
+
+def test_experiment_sweep_dirs_resolve_before_hydra_config_is_set():
+    """Hydra resolves hydra.sweep.dir in the launcher before HydraConfig exists (the README's sweeps
+    failed for every user on ${hydra:...}); the experiments must use the plain interpolation."""
+    for path in sorted((ROOT / "conf" / "experiment").glob("*.yaml")):
+        text = path.read_text()
+        assert "${hydra:" not in text, path.name
+        assert f"logs/multirun/{path.stem}/" in text, path.name
+    cfg = _compose(["+experiment=k", "scene=scannet0470"])
+    assert str(cfg.hydra.sweep.dir).startswith("logs/multirun/k/") and str(cfg.hydra.sweep.dir).endswith("_scannet0470")
+
+
+@pytest.mark.parametrize("env,expected", [({}, None), ({"OMP_NUM_THREADS": "1"}, 1), ({"SLURM_CPUS_PER_TASK": "1"}, 1),
+                                          ({"NUMBA_NUM_THREADS": "2", "OMP_NUM_THREADS": "1"}, 2)])
+def test_kernel_threads_follow_the_launchers_cpus(env, expected):
+    pytest.importorskip("numba")
+    import os
+
+    e = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "SLURM_CPUS_PER_TASK", "NUMBA_NUM_THREADS")}
+    e.update(env)
+    code = "from diffuser_lab import kernels; print(kernels.n_threads()); kernels.limit_threads(1); print(kernels.n_threads())"
+    out = subprocess.run([sys.executable, "-c", code], env=e, capture_output=True, text=True, check=True).stdout.split()
+    cores = len(os.sched_getaffinity(0))
+    assert int(out[0]) == (expected if expected is not None else cores) or cores == 1
+    assert int(out[1]) == 1
