@@ -201,8 +201,9 @@ def main(argv=None) -> int:
         p = subprocess.run(argv_, env=_env(), capture_output=True, text=True)
         dt = time.perf_counter() - t0
         out = [ln for ln in p.stdout.splitlines() if ln.strip()]
-        said = r"^(sweep |diffuser |wrote |run folder|\{|\d+ runs|result )"
-        say = next((ln for ln in reversed(out) if re.match(said, ln)),
+        # the line that says most: a result row, a sweep's end, a file written, else the last one
+        said = [r"^(diffuser|ldls|direct|bayesian) ", r"^sweep .* jobs ok", r"^(wrote |\{|result )", r"^\d+ runs"]
+        say = next((ln for pat in said for ln in out if re.match(pat, ln)),
                    out[-1] if out else (p.stderr.strip().splitlines() or [""])[-1])
         print(f"{'ok  ' if p.returncode == 0 else 'FAIL'}  {dt:7.1f} s  {c.text.splitlines()[0][:110]}\n"
               f"              -> {say[:150]}", flush=True)
