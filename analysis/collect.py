@@ -12,7 +12,7 @@ import csv
 import sys
 from pathlib import Path
 
-from diffuser_lab.results import METRICS, aggregate, find_runs, is_nan, markdown, run_rows, swept_keys  # noqa: F401
+from diffuser_lab.runs.results import METRICS, aggregate, find_runs, is_nan, markdown, run_rows, swept_keys  # noqa: F401
 
 
 def write_csv(path: Path, cols: list[str], rows: list[dict]) -> None:

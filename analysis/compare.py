@@ -59,8 +59,8 @@ def _write_rrd(run_a: Path, run_b: Path, la: np.ndarray, lb: np.ndarray, rrd: Pa
     if "positions" not in pcd.point or pcd.point.positions.shape[0] != la.size:
         raise ValueError(f"{run_a / 'labels.ply'}: missing, or not the {la.size} points of labels.npy")
     pts = pcd.point.positions.numpy()
+    from diffuser_lab.data.scene import SCANNET20
     from diffuser_lab.recording.rerun_log import annotation_context, class_ids
-    from diffuser_lab.scene import SCANNET20
 
     tax = SCANNET20  # the taxonomy of every shipped source; colours follow the class ids
     rec = rr.RecordingStream("diffuser-lab-compare")

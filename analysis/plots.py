@@ -33,8 +33,9 @@ from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import Patch  # noqa: E402
 
 from analysis.runs import SEED_KEYS, Run, find_runs, number  # noqa: E402
+from diffuser_lab.method.fusion import METHODS  # noqa: E402
 
-METHOD_ORDER = ("direct", "bayesian", "ldls", "diffuser")
+METHOD_ORDER = tuple(METHODS)  # the registry's order (paper Table II)
 METHOD_COLORS = {"direct": "#dd8452", "bayesian": "#8c8c8c", "ldls": "#55a868", "diffuser": "#4c72b0"}
 BASELINE_COLOR = "#a0a0a0"
 BASELINE_LABEL = "bayesian (baseline)"
@@ -295,7 +296,7 @@ def _class_order(runs: list[Run]) -> list[str]:
     taxonomies = {r.summary.get("taxonomy") for r in runs}
     if taxonomies == {"scannet20"}:  # the taxonomy's order (wall, floor, ...), not the alphabet's
         try:
-            from diffuser_lab.scene import SCANNET20
+            from diffuser_lab.data.scene import SCANNET20
 
             order = {c: i for i, c in enumerate(SCANNET20.names)}
             return sorted(seen, key=lambda c: order.get(c, len(order)))

@@ -1,6 +1,6 @@
-"""Finding and reading run folders: :mod:`diffuser_lab.results` (the CLI prints the same sweep
+"""Finding and reading run folders: :mod:`diffuser_lab.runs.results` (the CLI prints the same sweep
 table at the end of a sweep), re-exported for the analysis scripts."""
-from diffuser_lab.results import (  # noqa: F401
+from diffuser_lab.runs.results import (  # noqa: F401 - re-exported
     Run,
     SEED_KEYS,
     experiment_name,
@@ -12,3 +12,5 @@ from diffuser_lab.results import (  # noqa: F401
     scene_name,
     scenes,
 )
+
+__all__ = ["Run", "SEED_KEYS", "experiment_name", "find_runs", "folder_name", "is_nan", "number", "parse_overrides", "scene_name", "scenes"]

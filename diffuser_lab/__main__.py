@@ -1,3 +1,3 @@
-from .cli import main
+from diffuser_lab.cli.main import main
 
 main()

@@ -43,13 +43,6 @@ class PredictionSource(Enum):
     files = "files"  # a 2D network's label images (mapped) or class probabilities (.npy/.npz)
 
 
-class MethodName(Enum):
-    diffuser = "diffuser"  # paper's method (Eqs. 1-16)
-    bayesian = "bayesian"  # per-point sum of pixel likelihoods / votes, argmax
-    direct = "direct"  # labels from a single view's projection
-    ldls = "ldls"  # distance-only graph + pixel neighbourhood (Wang et al. 2019)
-
-
 class NormalSign(Enum):
     auto = "auto"  # signed for input normals, invariant for estimated ones
     signed = "signed"  # |n_i - n_j|^2 exactly as Eq. 4
@@ -75,7 +68,7 @@ class BayesianMode(Enum):
 
 @dataclass
 class DemoSceneConfig:
-    """Procedural room (diffuser_lab.sources.demo)."""
+    """Procedural room (diffuser_lab.data.sources.demo)."""
 
     seed: int = 0
     room_size: List[float] = field(default_factory=lambda: [5.0, 4.0, 2.6])  # x, y, z metres
@@ -100,7 +93,7 @@ class DemoSceneConfig:
 
 @dataclass
 class MeshViewsConfig:
-    """Views rendered from a labelled mesh (diffuser_lab.sources.mesh_views)."""
+    """Views rendered from a labelled mesh (diffuser_lab.data.sources.mesh_views)."""
 
     path: Optional[str] = None  # required: PLY mesh with a per-vertex `label` (e.g. ScanNet's *_vh_clean_2.labels.ply)
     mapping: str = "nyu40_to_scannet20"  # mesh label ids -> taxonomy (name of a shipped table or a CSV path)
@@ -125,7 +118,7 @@ class MeshViewsConfig:
 
 @dataclass
 class ScannetConfig:
-    """A scene in ScanNet's export layout (diffuser_lab.sources.scannet)."""
+    """A scene in ScanNet's export layout (diffuser_lab.data.sources.scannet)."""
 
     root: Optional[str] = None  # required: folder holding color/ depth/ pose/ intrinsic/ label-filt/ and the PLYs
     frame_step: int = 10  # paper: every 10th frame
@@ -182,7 +175,7 @@ class SceneConfig:
 @dataclass
 class PredictionsConfig:
     """What the frames' 2D labels are. The simulated mistakes are documented knob by knob in
-    :func:`diffuser_lab.simulate.simulate_predictions` (defaults: 2D mIoU ~58 on the demo)."""
+    :func:`diffuser_lab.data.simulate.simulate_predictions` (defaults: 2D mIoU ~58 on the demo)."""
 
     source: PredictionSource = PredictionSource.simulated
     folder: Optional[str] = None  # files: the folder of per-frame predictions (named after the frames)
@@ -260,9 +253,16 @@ class SolverConfig:
 
 @dataclass
 class MethodConfig:
-    name: MethodName = MethodName.diffuser
+    """The fusion method: a name of the registry in :mod:`diffuser_lab.method.fusion`."""
+
+    name: str = "diffuser"  # diffuser | bayesian | direct | ldls
     view: int = 0  # frame index used by `direct` (negative counts from the end)
     bayesian_mode: BayesianMode = BayesianMode.likelihood
+
+    def __post_init__(self) -> None:
+        from diffuser_lab.method.fusion import get
+
+        get(self.name)  # one line naming method.name and the registry's names
 
 
 @dataclass
@@ -332,6 +332,11 @@ class Config:
     protocol: ProtocolConfig = field(default_factory=ProtocolConfig)
     record: RecordConfig = field(default_factory=RecordConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
+
+    def __post_init__(self) -> None:
+        from diffuser_lab.method.fusion import get
+
+        get(self.method.name).apply(self)  # what the method fixes (LDLS: no normals, 3x3 window)
 
 
 def register() -> None:

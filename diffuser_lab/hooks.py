@@ -1,6 +1,6 @@
 """The narrow hook through which records observe a run. Hooks read; they never change anything.
 
-:func:`diffuser_lab.pipeline.run` calls, in order:
+:func:`diffuser_lab.runs.pipeline.run` calls, in order:
     on_scene(scene)                                  once, after loading
     on_frame(index, frame)                           for every frame, with its predictions attached
     on_evidence(points, grid, evidence, bayesian)    once, on the cloud the diffusion runs on
@@ -19,10 +19,10 @@ class RunHooks:
     """No-op base: subclass and override what you need."""
 
     def on_scene(self, scene: Any) -> None:
-        """scene: :class:`~diffuser_lab.scene.Scene` (original points, gt labels, taxonomy)."""
+        """scene: :class:`~diffuser_lab.data.scene.Scene` (original points, gt labels, taxonomy)."""
 
     def on_frame(self, index: int, frame: Any) -> None:
-        """frame: :class:`~diffuser_lab.scene.Frame` with ``labels``/``probs`` set (predictions)."""
+        """frame: :class:`~diffuser_lab.data.scene.Frame` with ``labels``/``probs`` set (predictions)."""
 
     def on_evidence(self, points: np.ndarray, grid: Optional[Any], evidence: Any, bayesian: np.ndarray) -> None:
         """points: (M, 3) work cloud (world m); grid: VoxelGrid mapping original -> work points or
@@ -37,7 +37,7 @@ class RunHooks:
         solver reuses the memory for the next observed iteration); stats: ``residual``."""
 
     def on_result(self, result: Any) -> None:
-        """result: :class:`~diffuser_lab.pipeline.RunResult` (``result.diffusion.Z`` is the final Z)."""
+        """result: :class:`~diffuser_lab.runs.pipeline.RunResult` (``result.diffusion.Z`` is the final Z)."""
 
     def close(self) -> None:
         """Flush and close files (called even when the run fails)."""

@@ -3,7 +3,7 @@
 What it shows (on stderr, through tqdm): one line per stage that takes longer than
 :data:`DELAY` seconds. Stages with a known length show a bar: the scene's camera views and
 their rendering, the frames' 2D predictions + evidence, the diffusion iterations (updated every
-:func:`~diffuser_lab.diffusion.progress_chunk` iterations), the single-frame protocol's target
+:func:`~diffuser_lab.method.diffusion.progress_chunk` iterations), the single-frame protocol's target
 frames::
 
     frames: simulated 2D predictions + evidence:  40%|████      | 12/30 [00:02<00:03, 5.9frame/s]

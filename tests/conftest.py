@@ -24,7 +24,7 @@ def run_cli(*args: str, cwd: Path | None = None, env: dict | None = None) -> sub
 @pytest.fixture(scope="session")
 def small_demo_scene():
     from diffuser_lab.config import default_config
-    from diffuser_lab.pipeline import load_scene
+    from diffuser_lab.runs.pipeline import load_scene
 
     cfg = default_config(**{"scene.demo.n_views": 12, "scene.demo.point_spacing": 0.07})
     return load_scene(cfg.scene)

@@ -7,10 +7,10 @@ import numpy as np
 from PIL import Image
 from plyfile import PlyData, PlyElement
 
-from diffuser_lab.render import MeshRenderer, intrinsics, look_at
-from diffuser_lab.scene import SCANNET20, SCANNET20_NYU40_IDS
-from diffuser_lab.sources.demo import demo_mesh
-from diffuser_lab.sources.scannet import scaled_intrinsics
+from diffuser_lab.data.render import MeshRenderer, intrinsics, look_at
+from diffuser_lab.data.scene import SCANNET20, SCANNET20_NYU40_IDS
+from diffuser_lab.data.sources.demo import demo_mesh
+from diffuser_lab.data.sources.scannet import scaled_intrinsics
 
 W, H = 80, 60  # depth resolution of the fixtures
 CW, CH = 200, 150  # "colour" resolution (2.5x, like ScanNet's 1296x968 vs 640x480)

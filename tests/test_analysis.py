@@ -3,7 +3,6 @@ import csv
 import importlib.util
 
 import pytest
-
 from conftest import ROOT, run_cli
 
 

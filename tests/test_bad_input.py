@@ -7,12 +7,12 @@ import json
 
 import numpy as np
 import pytest
+from conftest import run_cli
 from PIL import Image
 from plyfile import PlyData, PlyElement
 
-from conftest import run_cli
-from diffuser_lab.render import intrinsics, look_at
-from diffuser_lab.sources.demo import make_demo_scene
+from diffuser_lab.data.render import intrinsics, look_at
+from diffuser_lab.data.sources.demo import make_demo_scene
 
 W, H = 64, 48
 

@@ -3,11 +3,9 @@ import json
 import subprocess
 import sys
 import zipfile
-from pathlib import Path
 
 import numpy as np
 import pytest
-
 from conftest import ROOT, SMALL_DEMO, run_cli
 
 SUMMARY_KEYS = {"method", "scene", "n_points", "n_frames", "n_classes", "metrics", "baseline", "predictions_2d",
@@ -100,7 +98,7 @@ def test_wheel_carries_the_configs(tmp_path):
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
     p = subprocess.run([sys.executable, "-c", "import sys; sys.path.insert(0, sys.argv[1]); sys.argv = ['diffuser-lab', "
-                        "'--cfg', 'job', 'graph.k=7', 'method=ldls']; import diffuser_lab.cli as c; "
+                        "'--cfg', 'job', 'graph.k=7', 'method=ldls']; import diffuser_lab.cli.main as c; "
                         "assert c.__file__.startswith(sys.path[0]), c.__file__; print(c.config_dir()); c.main()",
                         str(target)], cwd=elsewhere, capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr

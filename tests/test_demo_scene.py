@@ -1,11 +1,11 @@
-"""Procedural demo room (diffuser_lab.sources.demo)."""
+"""Procedural demo room (diffuser_lab.data.sources.demo)."""
 import time
 
 import numpy as np
 import pytest
 
-from diffuser_lab.scene import IGNORE, SCANNET20
-from diffuser_lab.sources.demo import demo_mesh, make_demo_scene
+from diffuser_lab.data.scene import IGNORE, SCANNET20
+from diffuser_lab.data.sources.demo import demo_mesh, make_demo_scene
 
 REQUIRED = ("wall", "floor", "cabinet", "chair", "table", "door", "window", "bookshelf", "picture")
 

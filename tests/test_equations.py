@@ -2,10 +2,10 @@
 import numpy as np
 import pytest
 
-from diffuser_lab.diffusion import diffuse, labels_from_scores, normalise
-from diffuser_lab.evidence import accumulate
-from diffuser_lab.graph import KnnGraph, build_graph, knn
-from diffuser_lab.scene import IGNORE, Frame
+from diffuser_lab.data.scene import IGNORE, Frame
+from diffuser_lab.method.diffusion import diffuse, labels_from_scores, normalise
+from diffuser_lab.method.evidence import accumulate
+from diffuser_lab.method.graph import KnnGraph, build_graph, knn
 
 K = np.array([[10.0, 0.0, 2.0], [0.0, 10.0, 1.0], [0.0, 0.0, 1.0]])  # 5 x 3 image
 

@@ -30,7 +30,7 @@ def test_killed_run_leaves_running_summary_and_readable_mcap(tmp_path):
         proc.wait(timeout=30)
     s = json.loads((run_dir / "summary.json").read_text())  # atomically replaced: always whole
     assert s["status"] == "running"
-    p = subprocess.run([sys.executable, "-m", "diffuser_lab.inspect_run", str(run_dir)], capture_output=True,
+    p = subprocess.run([sys.executable, "-m", "diffuser_lab.cli.inspect", str(run_dir)], capture_output=True,
                        text=True, timeout=120)
     assert p.returncode == 0, p.stderr
     assert "truncated" in p.stderr and "Traceback" not in p.stderr

@@ -1,12 +1,11 @@
 """A 2D network's outputs from files: mapped label PNGs (unmapped counted) and probabilities."""
-import dataclasses
 
 import numpy as np
 from PIL import Image
 
 from diffuser_lab.config import default_config
-from diffuser_lab.pipeline import run
-from diffuser_lab.scene import IGNORE, SCANNET20, SCANNET20_NYU40_IDS
+from diffuser_lab.data.scene import IGNORE, SCANNET20, SCANNET20_NYU40_IDS
+from diffuser_lab.runs.pipeline import run
 
 
 def test_label_pngs_in_nyu40_are_mapped_and_unmapped_counted(small_demo_scene, tmp_path):

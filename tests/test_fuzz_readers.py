@@ -12,12 +12,17 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from PIL import Image
 
-from diffuser_lab.mapping import load_mapping
-from diffuser_lab.prediction_files import read_label_png
-from diffuser_lab.scene import SCANNET20
-from diffuser_lab.sources.rgbd_folder import (load_rgbd_folder, read_depth_png, read_intrinsics, read_point_cloud_ply,
-                                              read_pose_c2w)
-from diffuser_lab.sources.scannet import read_labelled_mesh
+from diffuser_lab.data.mapping import load_mapping
+from diffuser_lab.data.prediction_files import read_label_png
+from diffuser_lab.data.scene import SCANNET20
+from diffuser_lab.data.sources.rgbd_folder import (
+    load_rgbd_folder,
+    read_depth_png,
+    read_intrinsics,
+    read_point_cloud_ply,
+    read_pose_c2w,
+)
+from diffuser_lab.data.sources.scannet import read_labelled_mesh
 
 FUZZ = settings(max_examples=40, deadline=2000, suppress_health_check=[HealthCheck.function_scoped_fixture])
 CLEAR = (ValueError, FileNotFoundError)

@@ -1,15 +1,15 @@
-"""The compiled graph pieces (diffuser_lab.knn) against plain references: the grid kNN gives the
+"""The compiled graph pieces (diffuser_lab.backends.numba.knn) against plain references: the grid kNN gives the
 brute-force neighbour sets (float64 distances, ties by sorted index), the Morton order is
 numpy's, and the fused normalisation is bit for bit the numpy one."""
 import numpy as np
 import pytest
 
-from diffuser_lab import kernels
-from diffuser_lab.diffusion import EDGE_FLOOR, normalise
-from diffuser_lab.geometry import morton_codes, quantize
-from diffuser_lab.graph import build_graph
+from diffuser_lab.backends import numba as nb
+from diffuser_lab.data.geometry import morton_codes, quantize
+from diffuser_lab.method.diffusion import EDGE_FLOOR, normalise
+from diffuser_lab.method.graph import build_graph
 
-pytestmark = pytest.mark.skipif(not kernels.available(), reason="numba (extra 'fast') not installed")
+pytestmark = pytest.mark.skipif(not nb.available(), reason="numba (extra 'fast') not installed")
 
 
 def brute(ps, k):
@@ -41,7 +41,7 @@ def clouds():
 
 @pytest.mark.parametrize("name,pts,k", list(clouds()), ids=[c[0] for c in clouds()])
 def test_grid_knn_is_brute_force(name, pts, k):
-    from diffuser_lab import knn
+    from diffuser_lab.backends.numba import knn
 
     pts = pts.astype(np.float32)
     order, P4, _, res = knn.sorted_knn(pts, None, k)

@@ -1,16 +1,16 @@
-"""Class mappings (diffuser_lab.mapping) and 2D prediction files (diffuser_lab.prediction_files)."""
+"""Class mappings (diffuser_lab.data.mapping) and 2D prediction files (diffuser_lab.data.prediction_files)."""
 import numpy as np
 import pytest
 from PIL import Image
 
-from diffuser_lab.mapping import identity_mapping, load_mapping, shipped_mappings
-from diffuser_lab.prediction_files import (
+from diffuser_lab.data.mapping import identity_mapping, load_mapping, shipped_mappings
+from diffuser_lab.data.prediction_files import (
     find_prediction,
     load_label_prediction,
     load_probability_prediction,
     resize_nearest,
 )
-from diffuser_lab.scene import IGNORE, SCANNET20, SCANNET20_NYU40_IDS
+from diffuser_lab.data.scene import IGNORE, SCANNET20, SCANNET20_NYU40_IDS
 
 WALL, C = SCANNET20.names.index("wall"), SCANNET20.num_classes
 

@@ -6,8 +6,8 @@ import pytest
 from scipy.spatial import cKDTree
 
 from diffuser_lab.config import default_config
-from diffuser_lab.pipeline import load_scene, run
-from diffuser_lab.scene import IGNORE
+from diffuser_lab.data.scene import IGNORE
+from diffuser_lab.runs.pipeline import run
 
 
 def test_permuting_points_permutes_labels(small_demo_scene):

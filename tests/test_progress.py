@@ -8,15 +8,17 @@ import warnings
 
 import numpy as np
 import pytest
-
 from conftest import SMALL_DEMO, run_cli
-from diffuser_lab import kernels, progress
-from diffuser_lab.config import default_config
-from diffuser_lab.diffusion import diffuse, normalise
-from diffuser_lab.graph import build_graph
-from diffuser_lab.pipeline import run
 
-needs_numba = pytest.mark.skipif(not kernels.available(), reason="numba not installed")
+from diffuser_lab import progress
+from diffuser_lab.backends import numba as nb
+from diffuser_lab.backends.numba import jacobi as kernels
+from diffuser_lab.config import default_config
+from diffuser_lab.method.diffusion import diffuse, normalise
+from diffuser_lab.method.graph import build_graph
+from diffuser_lab.runs.pipeline import run
+
+needs_numba = pytest.mark.skipif(not nb.available(), reason="numba not installed")
 
 
 class Terminal(io.StringIO):

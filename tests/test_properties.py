@@ -7,12 +7,12 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from diffuser_lab.config import default_config
-from diffuser_lab.diffusion import normalise
-from diffuser_lab.evidence import accumulate
-from diffuser_lab.graph import KnnGraph, build_graph
-from diffuser_lab.pipeline import run
-from diffuser_lab.render import intrinsics, look_at
-from diffuser_lab.scene import SCANNET20, Frame, Scene
+from diffuser_lab.data.render import intrinsics, look_at
+from diffuser_lab.data.scene import SCANNET20, Frame, Scene
+from diffuser_lab.method.diffusion import normalise
+from diffuser_lab.method.evidence import accumulate
+from diffuser_lab.method.graph import KnnGraph, build_graph
+from diffuser_lab.runs.pipeline import run
 
 PROPS = settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 W, H = 48, 36

@@ -17,9 +17,19 @@ import subprocess
 from pathlib import Path
 
 import pytest
-
-from readme_commands import EXPERIMENTS, HAVE_SHARED, README, ROOT, SHARED, VENV, Command, _env, own_data, \
-    readme_commands, resolve
+from readme_commands import (
+    EXPERIMENTS,
+    HAVE_SHARED,
+    README,
+    ROOT,
+    SHARED,
+    VENV,
+    Command,
+    _env,
+    own_data,
+    readme_commands,
+    resolve,
+)
 
 COMMANDS = readme_commands()
 
@@ -159,8 +169,8 @@ def check_slurm(c: Command, work):
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
-    from diffuser_lab import launchers
     from diffuser_lab.config import register
+    from diffuser_lab.runs import launchers
 
     args = resolve(c.text, work).split()[1:]
     assert args[0] == "-m"

@@ -2,7 +2,6 @@
 import dataclasses
 
 import pytest
-
 from conftest import SHARED
 
 MESH = SHARED / "data" / "scannet" / "scene0470_00" / "scene0470_00_vh_clean_2.labels.ply"
@@ -10,9 +9,10 @@ pytestmark = pytest.mark.skipif(not MESH.is_file(), reason=f"real ScanNet data a
 
 
 def compose(*overrides):
-    from hydra import compose as hcompose, initialize_config_dir
+    from hydra import compose as hcompose
+    from hydra import initialize_config_dir
 
-    from diffuser_lab.cli import config_dir
+    from diffuser_lab.cli.main import config_dir
     from diffuser_lab.config import register, to_object
 
     register()
@@ -24,13 +24,13 @@ def compose(*overrides):
 
 @pytest.fixture(scope="module")
 def scene():
-    from diffuser_lab.pipeline import load_scene
+    from diffuser_lab.runs.pipeline import load_scene
 
     return load_scene(compose().scene)
 
 
 def test_global_protocol_diffuser_beats_bayesian_by_8_points(scene):
-    from diffuser_lab.pipeline import run
+    from diffuser_lab.runs.pipeline import run
 
     cfg = compose()
     res = run(cfg, scene=scene)
@@ -45,7 +45,7 @@ def test_global_protocol_diffuser_beats_bayesian_by_8_points(scene):
 
 
 def test_single_frame_protocol_rows(scene):
-    from diffuser_lab.protocols import single_frame
+    from diffuser_lab.runs.protocols import single_frame
 
     cfg = compose("protocol=single_frame", "protocol.max_targets=8", "protocol.target_step=5")
     res = single_frame(cfg, scene=scene)

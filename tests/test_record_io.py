@@ -127,18 +127,19 @@ def test_float16_conversion_is_numpys_bit_for_bit(compiled, monkeypatch):
     """Z states in float16 are converted without numpy's slow subnormal path, to the same bits:
     normals, subnormals, ties (to even) at every float16 subnormal step, the largest values,
     zero (and, compiled, signs and overflow)."""
-    from diffuser_lab import kernels
+    from diffuser_lab.backends import numba as nb
+    from diffuser_lab.backends.numba import float16
     from diffuser_lab.recording.mcap_log import to_float16
 
     rng = np.random.default_rng(0)
     a = np.concatenate([rng.random(20000), 10 ** rng.uniform(-12, 0, 80000), np.arange(2049) * 2.0**-25,
                         [2.0**-14 * (1 - 2**-12), 2.0**-14, 65504, 1.0, 0.0, 1e-45]]).astype(np.float32)
     if compiled:
-        if not kernels.available():
+        if not nb.available():
             pytest.skip("numba (extra 'fast') not installed")
         a = np.concatenate([a, -a[:1000], np.float32([65519, 65520, 1e6, np.inf, -np.inf, -0.0])])
     else:
-        monkeypatch.setattr(kernels, "_NB", None)
+        monkeypatch.setattr(float16, "NB", None)
     with np.errstate(over="ignore"):
         want = a.astype("<f2")
     got = to_float16(a)

@@ -7,15 +7,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from conftest import SMALL_DEMO, run_cli
+
+from diffuser_lab.cli.inspect import main as inspect_main
 from diffuser_lab.config import default_config
-from diffuser_lab.diffusion import labels_from_scores
-from diffuser_lab.inspect_run import main as inspect_main
-from diffuser_lab.pipeline import run
+from diffuser_lab.method.diffusion import labels_from_scores
 from diffuser_lab.recording import make_hooks
 from diffuser_lab.recording.mcap_log import TOPIC_Z, read_run
 from diffuser_lab.recording.rerun_log import UNLABELED_ID
+from diffuser_lab.runs.pipeline import run
 
 RERUN = str(Path(sys.executable).with_name("rerun"))
 
@@ -146,7 +146,7 @@ def test_compiled_step_statistics_equal_numpy(small_demo_scene, voxels):
     """StepTracker's one compiled pass gives numpy's labels, changes, mIoU, accuracy, wrong
     points and coverage (confidence up to float32 summation order), with and without a voxel
     grid between the diffused and the original points, and without ground truth."""
-    from diffuser_lab.kernels import available
+    from diffuser_lab.backends.numba import available
     from diffuser_lab.recording import steps
 
     if not available():
@@ -393,7 +393,7 @@ def test_make_hooks_off_is_harmless(tmp_path):
 
 
 def test_view_opens_the_rrd_or_a_relogged_mcap(cli_runs, tmp_path, monkeypatch):
-    from diffuser_lab import inspect_run
+    from diffuser_lab.cli import inspect as inspect_run
 
     calls = []
     monkeypatch.setattr(inspect_run.subprocess, "call", lambda cmd: calls.append(cmd) or 0)

@@ -1,10 +1,10 @@
-"""Ray-cast rendering, surface sampling and camera trajectories (diffuser_lab.render)."""
+"""Ray-cast rendering, surface sampling and camera trajectories (diffuser_lab.data.render)."""
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from diffuser_lab.render import (
+from diffuser_lab.data.render import (
     MeshRenderer,
     camera_trajectory,
     intrinsics,
@@ -12,7 +12,7 @@ from diffuser_lab.render import (
     sample_surface,
     triangle_normals,
 )
-from diffuser_lab.scene import IGNORE
+from diffuser_lab.data.scene import IGNORE
 
 _SIGNS = np.array([[(i >> 0) & 1, (i >> 1) & 1, (i >> 2) & 1] for i in range(8)], float)
 _FACES = np.array([[0, 2, 1], [1, 2, 3], [4, 5, 6], [5, 7, 6], [0, 1, 4], [1, 5, 4],

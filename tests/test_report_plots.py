@@ -11,7 +11,6 @@ import matplotlib.colors as mcolors
 import matplotlib.pyplot as plt
 import numpy as np
 import pytest
-
 from conftest import ROOT, run_cli
 
 TINY = ["scene.demo.point_spacing=0.1", "n_views=6", "solver.max_iter=20"]

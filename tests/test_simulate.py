@@ -1,11 +1,11 @@
-"""Simulated 2D network mistakes (diffuser_lab.simulate)."""
+"""Simulated 2D network mistakes (diffuser_lab.data.simulate)."""
 import numpy as np
 import pytest
 from scipy import ndimage
 
-from diffuser_lab.scene import IGNORE, SCANNET20
-from diffuser_lab.simulate import simulate_predictions
-from diffuser_lab.sources.demo import make_demo_scene
+from diffuser_lab.data.scene import IGNORE, SCANNET20
+from diffuser_lab.data.simulate import simulate_predictions
+from diffuser_lab.data.sources.demo import make_demo_scene
 
 C = SCANNET20.num_classes
 N = SCANNET20.names.index

@@ -1,20 +1,34 @@
-"""Dataset loaders: ScanNet export layout and posed RGB-D folders (diffuser_lab.sources)."""
+"""Dataset loaders: ScanNet export layout and posed RGB-D folders (diffuser_lab.data.sources)."""
 import time
 import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
+from datasets import (  # noqa: F401
+    BAD_POSE,
+    CH,
+    CW,
+    EYES,
+    NYU,
+    TARGET,
+    H,
+    W,
+    _c2w,
+    _save_u16,
+    _vertex_nyu,
+    _write_mesh,
+    make_world,
+    write_rgbd,
+    write_scannet,
+)
 from plyfile import PlyData, PlyElement
 
-from diffuser_lab.evidence import visible_projection
-from diffuser_lab.geometry import backproject, project
-from diffuser_lab.scene import IGNORE, SCANNET20
-from diffuser_lab.sources.rgbd_folder import LazyFrames, load_rgbd_folder, read_depth_png
-from diffuser_lab.sources.scannet import load_scannet, read_labelled_mesh
-
-from datasets import BAD_POSE, CH, CW, EYES, H, NYU, TARGET, W, _c2w, _save_u16, _vertex_nyu, _write_mesh  # noqa: F401
-from datasets import make_world, write_rgbd, write_scannet
+from diffuser_lab.data.geometry import backproject, project
+from diffuser_lab.data.scene import IGNORE, SCANNET20
+from diffuser_lab.data.sources.rgbd_folder import LazyFrames, load_rgbd_folder, read_depth_png
+from diffuser_lab.data.sources.scannet import load_scannet, read_labelled_mesh
+from diffuser_lab.method.evidence import visible_projection
 
 SHARED = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
 SCANNET_REAL = SHARED / "scannet" / "scene0470_00"

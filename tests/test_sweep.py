@@ -6,7 +6,6 @@ import subprocess
 import sys
 
 import pytest
-
 from conftest import ROOT
 
 
@@ -14,8 +13,8 @@ def _compose(overrides):
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
-    from diffuser_lab import launchers
     from diffuser_lab.config import register
+    from diffuser_lab.runs import launchers
 
     register()
     launchers.register()
@@ -38,7 +37,7 @@ def _compose(overrides):
 def test_count_jobs_as_the_basic_sweeper(overrides, jobs):
     from omegaconf import OmegaConf, open_dict
 
-    from diffuser_lab.sweep import count_jobs
+    from diffuser_lab.runs.sweep import count_jobs
 
     cfg = _compose([o for o in overrides if "," not in o])  # compose() takes no sweeps
     with open_dict(cfg):  # what Hydra puts there for a multirun: the command line as typed
@@ -47,7 +46,7 @@ def test_count_jobs_as_the_basic_sweeper(overrides, jobs):
 
 
 def test_job_lines(tmp_path, monkeypatch):
-    from diffuser_lab.sweep import JOBS_ENV, job_line, job_tag
+    from diffuser_lab.runs.sweep import JOBS_ENV, job_line, job_tag
 
     monkeypatch.setenv(JOBS_ENV, "15")
     assert job_tag(2) == "[3/15]"
@@ -62,7 +61,7 @@ def test_job_lines(tmp_path, monkeypatch):
 
 
 def test_watcher_prints_each_job_once(tmp_path, monkeypatch):
-    from diffuser_lab.sweep import JOBS_ENV, Watcher
+    from diffuser_lab.runs.sweep import JOBS_ENV, Watcher
 
     monkeypatch.setenv(JOBS_ENV, "2")
     out = io.StringIO()
@@ -118,7 +117,7 @@ def test_kernel_threads_follow_the_launchers_cpus(env, expected):
 
     e = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "SLURM_CPUS_PER_TASK", "NUMBA_NUM_THREADS")}
     e.update(env)
-    code = "from diffuser_lab import kernels; print(kernels.n_threads()); kernels.limit_threads(1); print(kernels.n_threads())"
+    code = "from diffuser_lab.backends import numba as k; print(k.n_threads()); k.limit_threads(1); print(k.n_threads())"
     out = subprocess.run([sys.executable, "-c", code], env=e, capture_output=True, text=True, check=True).stdout.split()
     cores = len(os.sched_getaffinity(0))
     assert int(out[0]) == (expected if expected is not None else cores) or cores == 1

@@ -33,7 +33,8 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 
-from ..hooks import RunHooks
+from diffuser_lab.hooks import RunHooks
+
 from .heap import retain_freed_memory
 from .serial import SerialThread
 from .steps import Step, StepTracker, original_to_work
@@ -89,7 +90,8 @@ class RecordingHooks(RunHooks):
         self._files["rrd"] = RRD_NAME
 
     def _open_mcap(self, overrides: Sequence[str]) -> None:
-        from ..config import config_yaml
+        from diffuser_lab.config import config_yaml
+
         from .mcap_log import McapRecorder
 
         try:
@@ -235,7 +237,7 @@ class RecordingHooks(RunHooks):
         self._later(finish)
 
     def close(self) -> None:
-        from .. import progress
+        from diffuser_lab import progress
 
         with progress.stage(f"finishing records ({', '.join(self._wanted) or 'none'})"):
             if self._worker is not None:
@@ -254,7 +256,7 @@ class RecordingHooks(RunHooks):
 
 
 def _summary(res: Any, files: dict, recorded: list) -> dict:
-    """The result part of summary.json (see :func:`diffuser_lab.report.summary`; built here
+    """The result part of summary.json (see :func:`diffuser_lab.runs.report.summary`; built here
     from the plain fields so that nothing lazy of the result is computed twice)."""
     scene = res.scene
     d = res.diffusion

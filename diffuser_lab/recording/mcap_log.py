@@ -154,7 +154,7 @@ def z_state_bytes(iteration: int, Z: np.ndarray, dtype: str, out: Optional[bytea
     tail = schema.ZState(scale=scale, class_major=bool(class_major)).SerializeToString()
     mv, at = _with_bytes_field(head, 5, Z.size * stored.itemsize, tail, out)
     body = np.frombuffer(mv, stored, Z.size, at).reshape(Z.shape[::-1] if class_major else Z.shape)
-    from ..kernels import transpose_into  # numba: only where Z is written
+    from diffuser_lab.backends.numba.float16 import transpose_into  # numba: only where Z is written
 
     if stored == np.float32:
         if class_major:
@@ -181,7 +181,7 @@ def to_float16(a: np.ndarray) -> np.ndarray:
     values that become float16 subnormals (below 2^-14; Z has many) in a slow path (~50 ms on a
     1M-value Z state). Compiled where numba is; otherwise those values are rounded here as the
     multiple of 2^-24 nearest (ties to even), which is their float16 bit pattern."""
-    from ..kernels import to_float16 as compiled
+    from diffuser_lab.backends.numba.float16 import to_float16 as compiled
 
     out = compiled(a)
     if out is not None:
@@ -276,7 +276,7 @@ class McapRecorder:
                  zstd_level: int = ZSTD_LEVEL, writer_thread: bool | None = None):
         from mcap.writer import CompressionType
 
-        from .. import __version__
+        from diffuser_lab import __version__
 
         self.path = Path(path)
         self.z_dtype = z_dtype

@@ -24,7 +24,8 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from ..scene import IGNORE
+from diffuser_lab.data.scene import IGNORE
+
 from .steps import Step
 
 UNLABELED_ID = 65535

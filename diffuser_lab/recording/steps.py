@@ -8,9 +8,9 @@ from typing import Optional, Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..diffusion import labels_from_scores
-from ..metrics import score, scores_from_confusion
-from ..scene import IGNORE
+from diffuser_lab.data.scene import IGNORE
+from diffuser_lab.method.diffusion import labels_from_scores
+from diffuser_lab.method.metrics import score, scores_from_confusion
 
 
 @dataclass
@@ -47,7 +47,7 @@ class Step:
 
 def original_to_work(work_points: np.ndarray, points: np.ndarray) -> np.ndarray:
     """(N,) int64 index of the nearest work point of every original point: the same query as
-    :func:`diffuser_lab.geometry.nearest_transfer`, so transferred labels match the run's."""
+    :func:`diffuser_lab.data.geometry.nearest_transfer`, so transferred labels match the run's."""
     _, idx = cKDTree(work_points).query(points, k=1, workers=-1)
     return np.asarray(idx, np.int64)
 
@@ -62,9 +62,9 @@ def _fused():
     iteration on the 51k x 20 demo; this ~0.5 ms)."""
     global _FUSED
     if _FUSED is None:
-        from .. import kernels
+        from diffuser_lab.backends import numba as nb
 
-        if not kernels.available():
+        if not nb.available():
             _FUSED = False
         else:
             from numba import njit

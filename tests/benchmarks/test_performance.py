@@ -1,11 +1,11 @@
 """Issue 6 performance rows, measured with pytest-benchmark against a straightforward scipy float64
-implementation of Eqs. 3-15 (diffuser_lab.reference) on the same input.
+implementation of Eqs. 3-15 (diffuser_lab.method.reference) on the same input.
 
     .venv/bin/python -m pytest tests/benchmarks --benchmark-enable            # the real sizes
     DIFFUSER_BENCH_LARGE=1 .venv/bin/python -m pytest tests/benchmarks --benchmark-enable -k 3m
 
 The default test command runs every benchmark once on tiny inputs with benchmarking disabled
-(mechanics and label agreement only). Workloads: diffuser_lab.workloads (voxel-downsampled demo
+(mechanics and label agreement only). Workloads: diffuser_lab.runs.workloads (voxel-downsampled demo
 room, 21 classes, rendered 640x480 views with simulated 2D-network evidence, normals on).
 Timings are printed and stored in the benchmark's extra_info; the targets are reported, not
 asserted (the machine is shared); label agreement with the reference is asserted.
@@ -17,18 +17,18 @@ import os
 import subprocess
 import sys
 import textwrap
-import time
 import tracemalloc
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from diffuser_lab import kernels, reference as ref
-from diffuser_lab.diffusion import diffuse, labels_from_scores, normalise
-from diffuser_lab.evidence import Evidence, add_frame
-from diffuser_lab.graph import build_graph
-from diffuser_lab.workloads import CycledFrames, room_workload
+from diffuser_lab.backends import numba as nb
+from diffuser_lab.method import reference as ref
+from diffuser_lab.method.diffusion import diffuse, labels_from_scores, normalise
+from diffuser_lab.method.evidence import Evidence, add_frame
+from diffuser_lab.method.graph import build_graph
+from diffuser_lab.runs.workloads import CycledFrames, room_workload
 
 LARGE = os.environ.get("DIFFUSER_BENCH_LARGE", "") not in ("", "0")
 
@@ -102,7 +102,7 @@ def test_graph_and_diffusion(benchmark, enabled, n, iters, impl):
         lab = labels_from_scores(res.Z)
         agree = float(np.mean(lab == reference_labels(w, iters)))
         _report(benchmark, f"{impl} {n}", n_points=w.n, iterations=iters, agreement=agree,
-                numba=kernels.available())
+                numba=nb.available())
         # tiny default-run clouds: a couple of near-tied points out of ~1.5k weigh 0.1 % each
         assert agree >= (0.999 if enabled else 0.99)
     assert lab.shape == (w.n,)
@@ -145,8 +145,8 @@ def test_evidence_300_frames(benchmark, enabled, impl):
 _PIPELINE = textwrap.dedent("""
     import json, resource, sys, time
     from diffuser_lab.config import default_config
-    from diffuser_lab.pipeline import run
-    from diffuser_lab.workloads import room_workload
+    from diffuser_lab.runs.pipeline import run
+    from diffuser_lab.runs.workloads import room_workload
     t = time.perf_counter()
     w = room_workload(int(sys.argv[1]), n_views=int(sys.argv[2]), with_mass=False)
     t_make = time.perf_counter() - t

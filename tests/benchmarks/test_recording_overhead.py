@@ -12,11 +12,12 @@ settings, as a smoke test.
 """
 import shutil
 
+import numpy as np
 import pytest
 
 from diffuser_lab.config import default_config
-from diffuser_lab.pipeline import run
 from diffuser_lab.recording import make_hooks
+from diffuser_lab.runs.pipeline import run
 
 SMALL = {"scene.demo.n_views": 10, "scene.demo.point_spacing": 0.08, "solver.max_iter": 60}
 
@@ -113,7 +114,7 @@ def test_recording_content_cost_without_a_diffusion(benchmark, tmp_path):
         d = tmp_path / f"round{len(cpu)}"
         return (d,), {}
 
-    def replay(run_dir):
+    def replay(run_dir, keep=False):
         c = time.process_time()
         old = recording.ASYNC
         recording.ASYNC = False
@@ -127,13 +128,27 @@ def test_recording_content_cost_without_a_diffusion(benchmark, tmp_path):
         finally:
             hooks.close()
         cpu.append(time.process_time() - c)
-        shutil.rmtree(run_dir, ignore_errors=True)
+        if not keep:
+            shutil.rmtree(run_dir, ignore_errors=True)
+
+    # the replay records what the run observed: every observed iteration, readable back
+    from diffuser_lab.recording.mcap_log import read_run
+
+    replay(tmp_path / "check", keep=True)
+    cpu.clear()
+    observed = [args[0] for name, args in cap.calls if name == "observe"]
+    log = read_run(tmp_path / "check" / "run.mcap", z="last")
+    assert log.z_iterations == observed and not log.truncated
+    last_z = [args[1] for name, args in cap.calls if name == "observe"][-1]
+    np.testing.assert_array_equal(log.z[observed[-1]], last_z)  # float32 Z states are kept exactly
+    assert [m["iteration"] for m in log.metrics] == observed
+    assert (tmp_path / "check" / "run.rrd").stat().st_size > 10_000
 
     benchmark.pedantic(replay, setup=setup, rounds=5, iterations=1, warmup_rounds=1)
     med = sorted(cpu)[len(cpu) // 2]
     benchmark.extra_info.update(cpu_s=med, record_off_run_s=off_s, cpu_over_off=med / off_s)
     print(f"\n[recording content] cpu {med:.3f} s (all threads) vs record=off run {off_s:.3f} s: {med / off_s:.2f}")
-    assert sum(1 for name, _ in cap.calls if name == "observe") == (21 if not benchmark.disabled else 7)
+    assert len(observed) == (21 if not benchmark.disabled else 7)
 
 
 @pytest.mark.benchmark(group="recording-contention")
@@ -149,9 +164,9 @@ def test_what_a_busy_third_thread_costs_the_diffusion(benchmark):
     import numpy as np
     import zstandard
 
-    from diffuser_lab.diffusion import diffuse, normalise
-    from diffuser_lab.graph import build_graph
-    from diffuser_lab.workloads import room_workload
+    from diffuser_lab.method.diffusion import diffuse, normalise
+    from diffuser_lab.method.graph import build_graph
+    from diffuser_lab.runs.workloads import room_workload
 
     n, total_ms, rounds = (50_000, 100.0, 5) if not benchmark.disabled else (3_000, 5.0, 1)
     w = room_workload(n)
@@ -174,16 +189,19 @@ def test_what_a_busy_third_thread_costs_the_diffusion(benchmark):
         if th:
             th.start()
         t = time.perf_counter()
-        diffuse(system, max_iter=200, tol=0.0)
+        res = diffuse(system, max_iter=200, tol=0.0)
         wall = time.perf_counter() - t
         if th:
             th.join()
-        return wall, (cpu[0] if cpu else 0.0)
+        return wall, (cpu[0] if cpu else 0.0), res.Z
 
     alone, beside, cpu = [], [], []
+
     def both():
-        alone.append(once(False)[0])
-        wall, c = once(True)
+        wall_a, _, Za = once(False)
+        wall, c, Zb = once(True)
+        np.testing.assert_array_equal(Za, Zb)  # a busy neighbour costs time, never changes the result
+        alone.append(wall_a)
         beside.append(wall)
         cpu.append(c)
 

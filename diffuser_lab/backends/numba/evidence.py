@@ -1,0 +1,46 @@
+"""The fused evidence of one frame (Eqs. 1-2, 11-12 for hard labels) in one compiled pass:
+projection with OpenCV pixel centres, image bounds, the depth check and the vote; the numpy
+twin is :func:`diffuser_lab.method.evidence.add_frame`'s plain path."""
+from __future__ import annotations
+
+import numpy as np
+
+from . import NB
+
+if NB is not None:
+    from numba import njit, prange
+
+    @njit(cache=True, parallel=True, boundscheck=False)
+    def _evidence_hard(pts, R, t, K, depth, labels, tol, mass, links, seen):
+        n = pts.shape[0]
+        h, w = depth.shape
+        for i in prange(n):
+            x, y, z = np.float64(pts[i, 0]), np.float64(pts[i, 1]), np.float64(pts[i, 2])
+            xc = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]
+            yc = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]
+            zc = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
+            seen[i] = False
+            if not zc > 1e-6:
+                continue
+            u = K[0, 0] * (xc / zc) + K[0, 1] * (yc / zc) + K[0, 2]
+            v = K[1, 1] * (yc / zc) + K[1, 2]
+            col = np.rint(u)
+            row = np.rint(v)
+            if not (col >= 0 and col < w and row >= 0 and row < h):
+                continue
+            r, c = int(row), int(col)
+            d = depth[r, c]
+            if not (d > 0 and abs(zc - d) <= tol):
+                continue
+            seen[i] = True
+            lab = labels[r, c]
+            if lab >= 0:
+                mass[i, lab] += 1.0
+                links[i] += 1
+
+
+def evidence_hard(points, frame_R, frame_t, K, depth, labels, depth_tol, mass, links):
+    """Project, depth-check and add one frame's hard labels in one pass; returns (N,) bool seen."""
+    seen = np.empty(len(points), np.bool_)
+    _evidence_hard(points, frame_R, frame_t, K, depth, labels, float(depth_tol), mass, links, seen)
+    return seen

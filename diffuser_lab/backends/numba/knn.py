@@ -1,0 +1,809 @@
+"""Compiled (numba) pieces of :func:`diffuser_lab.method.graph.build_graph` and of the normalisation of
+its graph: Morton order, an exact kNN on a uniform grid processed cell by cell, the Eq. 4 edge
+weights and the rows of Eqs. 14-15.
+
+kNN: the points (in Morton order) are binned into cubic cells of ``L`` lattice steps, a little
+more than the K-th neighbour distance estimated on a sample, by a stable counting sort; cells
+are numbered x-major, so the 3 cells of a z-column of a 3x3x3 block are contiguous. Each occupied
+cell copies the candidates of its block once into small float64 arrays (9 contiguous runs) shared
+by all its points. Per point, one vectorised loop computes the squared distances to all of them;
+a threshold keeping exactly K is then found by counting (a vectorised compare per try, starting
+from the previous point's threshold and interpolating the counts), and those K are compacted with
+64-bit masks, so no step branches per candidate. Exact ties at the K-th distance are broken by
+index. The result is exact when the K-th distance is below the point's guaranteed radius (one
+cell plus its distance to its own cell's faces); the few other points are searched again in
+their 5x5x5 block, then (very rarely) with rings of cells growing until no closer point can
+remain. Distances are computed in float64 from the float32 coordinates exactly as in the KD-tree
+path, so the neighbour sets are those of a KD-tree (ties by index).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from diffuser_lab.data.geometry import MORTON_BITS, _spread_bits
+
+from . import NB, n_threads
+
+CELL_FACTOR = 1.1
+"""Cell side in units of the estimated K-th neighbour distance."""
+SAMPLE = 1024
+"""Contiguous Morton-sorted points used to estimate the K-th neighbour distance."""
+
+if NB is not None:
+    from numba import njit, prange
+
+    try:
+        from numba.cpython.unsafe.numbers import trailing_zeros  # LLVM's cttz
+    except ImportError:  # not public API: a portable count
+
+        @njit(cache=True, inline="always")
+        def trailing_zeros(x):
+            c = 0
+            while x & np.uint64(1) == 0:
+                x >>= np.uint64(1)
+                c += 1
+            return c
+
+    _QMAX = 2**MORTON_BITS - 1
+
+    # the numpy function compiles as is for one uint64
+    _spread = njit(cache=True, boundscheck=False, inline="always")(_spread_bits)
+
+    @njit(cache=True, boundscheck=False, inline="always")
+    def _lat(v, o, step):
+        """Lattice coordinate of one coordinate, as :func:`geometry.quantize` computes it."""
+        a = np.floor((np.float64(v) - o) / step)
+        if not a > 0.0:  # NaN too: never an index out of the grid
+            a = 0.0
+        return np.int64(min(a, np.float64(_QMAX)))
+
+    @njit(cache=True, boundscheck=False)
+    def _bbox(points):
+        """(3,) float64 lower and upper corners of the (N, 3) points."""
+        lo = np.full(3, np.inf)
+        hi = np.full(3, -np.inf)
+        for i in range(points.shape[0]):
+            for a in range(3):
+                v = np.float64(points[i, a])
+                lo[a] = min(lo[a], v)
+                hi[a] = max(hi[a], v)
+        return lo, hi
+
+    @njit(cache=True, parallel=True, boundscheck=False)
+    def _bbox_par(points, nparts):
+        """:func:`_bbox` in nparts parallel chunks."""
+        n = points.shape[0]
+        lo = np.full((nparts, 3), np.inf)
+        hi = np.full((nparts, 3), -np.inf)
+        for t in prange(nparts):
+            for i in range(t * n // nparts, (t + 1) * n // nparts):
+                for a in range(3):
+                    v = np.float64(points[i, a])
+                    lo[t, a] = min(lo[t, a], v)
+                    hi[t, a] = max(hi[t, a], v)
+        out_lo = np.empty(3)
+        out_hi = np.empty(3)
+        for a in range(3):
+            out_lo[a] = lo[:, a].min()
+            out_hi[a] = hi[:, a].max()
+        return out_lo, out_hi
+
+    @njit(cache=True, parallel=True, boundscheck=False)
+    def _morton_par(points, origin, step, q, out, nparts):
+        """Lattice coordinates q (N, 3) int32 and Morton codes (N,) uint64 of the points."""
+        n = points.shape[0]
+        for t in prange(nparts):
+            for i in range(t * n // nparts, (t + 1) * n // nparts):
+                qx = _lat(points[i, 0], origin[0], step)
+                qy = _lat(points[i, 1], origin[1], step)
+                qz = _lat(points[i, 2], origin[2], step)
+                q[i, 0] = qx
+                q[i, 1] = qy
+                q[i, 2] = qz
+                out[i] = (_spread(np.uint64(qx)) | (_spread(np.uint64(qy)) << np.uint64(1))
+                          | (_spread(np.uint64(qz)) << np.uint64(2)))
+
+    @njit(cache=True, parallel=True, boundscheck=False)
+    def _prep_par(points, normals, use_n, order, q, step, L, dims, P4, N4, cellof, b2, cnt, counting):
+        """Per sorted point i (in cnt.shape[0] chunks): its coordinates (and normal) in Morton
+        order as float64 rows of 4, its cell (linear, x-major) and the squared radius its cell's
+        3x3x3 block is sure to cover; cnt[t, c]: points of chunk t in cell c (if ``counting``)."""
+        n = order.shape[0]
+        nparts = cnt.shape[0]
+        h = L * step
+        fl = np.float64(L)
+        for t in prange(nparts):
+            for i in range(t * n // nparts, (t + 1) * n // nparts):
+                o = order[i]
+                f = L
+                lin = 0
+                for a in range(3):
+                    P4[i, a] = points[o, a]
+                    if use_n:
+                        N4[i, a] = normals[o, a]
+                    qa = np.int64(q[o, a])
+                    ca = np.int64(np.floor(qa / fl))  # exact: qa, L < 2^21
+                    c0 = ca * L
+                    f = min(f, min(qa - c0, c0 + L - qa))
+                    lin = lin * dims[a] + ca
+                P4[i, 3] = 0.0
+                if use_n:
+                    N4[i, 3] = 0.0
+                cellof[i] = lin
+                if counting:
+                    cnt[t, lin] += 1
+                # one cell plus the distance to the own cell's nearest face, one lattice step of
+                # slack for the quantisation; strict (nextafter): a candidate at exactly the
+                # bound may have a twin outside the block
+                r = h + (f - 1) * step
+                b2[i] = np.nextafter(r * r, -np.inf) if r > 0 else -1.0
+
+    @njit(cache=True, boundscheck=False)
+    def _offsets(cnt, start):
+        """start (ncell + 1,): first position of every cell in cell order; cnt[t, c] becomes the
+        first position of chunk t's points of cell c (a stable counting sort)."""
+        nparts, ncell = cnt.shape
+        pos = 0
+        for c in range(ncell):
+            start[c] = pos
+            for t in range(nparts):
+                m = cnt[t, c]
+                cnt[t, c] = pos
+                pos += m
+        start[ncell] = pos
+
+    @njit(cache=True, parallel=True, boundscheck=False)
+    def _scatter_par(P4, cellof, b2, fill, X, Y, Z, J, B2):
+        """Cell-ordered copies (SoA) of the sorted points, chunk t from fill[t] (:func:`_offsets`)."""
+        n = cellof.shape[0]
+        nparts = fill.shape[0]
+        for t in prange(nparts):
+            for i in range(t * n // nparts, (t + 1) * n // nparts):
+                c = cellof[i]
+                pos = fill[t, c]
+                fill[t, c] = pos + 1
+                X[pos] = P4[i, 0]
+                Y[pos] = P4[i, 1]
+                Z[pos] = P4[i, 2]
+                J[pos] = i
+                B2[pos] = b2[i]
+
+    @njit(cache=True, boundscheck=False, inline="always")
+    def _count_le(D, nc, t):
+        c = 0
+        for a in range(nc):
+            if D[a] <= t:
+                c += 1
+        return c
+
+    @njit(cache=True, boundscheck=False, inline="always")
+    def _compact(D, ncp, t, sd, sel):
+        """sd/sel[:m] = D and positions of D[:ncp] <= t, in order; returns m. Bit masks of 64
+        (a vectorised compare) and a loop over their set bits: no branch per candidate."""
+        m = 0
+        for b in range(0, ncp, 64):
+            msk = np.uint64(0)
+            for l in range(64):
+                msk |= np.uint64(D[b + l] <= t) << np.uint64(l)
+            while msk != 0:
+                l = trailing_zeros(msk)
+                sd[m] = D[b + l]
+                sel[m] = b + l
+                m += 1
+                msk &= msk - np.uint64(1)
+        return m
+
+    @njit(cache=True, boundscheck=False)
+    def _narrow(D, nc, k, kmax, tgt, t, t_lo, c_lo, t_hi, c_hi):
+        """Shrink the threshold t_hi (count(D[:nc] <= t_hi) = c_hi >= k) until the count is at most
+        kmax: interpolate the counts towards tgt (a surface: count ~ d2), bisect when that stalls;
+        stops early on exact ties. Returns (t_hi, c_hi)."""
+        it = 0
+        while c_hi > kmax and it < 16:
+            if not (t > t_lo and t < t_hi):
+                t = 0.5 * (max(t_lo, 0.0) + t_hi)
+                if not (t > t_lo and t < t_hi):
+                    break
+            c = _count_le(D, nc, t)
+            if c >= k:
+                t_hi = t
+                c_hi = c
+            else:
+                t_lo = t
+                c_lo = c
+            if t_lo < 0:
+                t = t_hi * tgt / c_hi
+            else:
+                t = t_lo + (t_hi - t_lo) * (tgt - c_lo) / (c_hi - c_lo)
+            it += 1
+        return t_hi, c_hi
+
+    @njit(cache=True, boundscheck=False)
+    def _threshold(D, nc, k, t, b2):
+        """A threshold keeping exactly k of D[:nc] (or, on exact ties, the fewest above k), found
+        by counting from the guess t and interpolating the counts (a surface: count ~ d2); never
+        above b2. Returns (threshold, count); count < k when fewer than k lie within b2."""
+        t = min(t, b2)
+        c = _count_le(D, nc, t)
+        t_lo = -1.0
+        c_lo = 0
+        while c < k:  # up to a threshold holding k
+            if t >= b2:
+                return t, c
+            t_lo = t
+            c_lo = c
+            t = min(t * (k + 0.5) / max(c, 1), b2) if t > 0 else b2
+            c = _count_le(D, nc, t)
+        return _narrow(D, nc, k, k, k + 0.5, t_lo + (t - t_lo) * (k + 0.5 - c_lo) / (c - c_lo) if t_lo >= 0
+                       else t * (k + 0.5) / c, t_lo, c_lo, t, c)
+
+    @njit(cache=True, boundscheck=False)
+    def _kth_sample(s, k, stride):
+        """Squared distance to the k-th neighbour (self excluded) of every stride-th point of the
+        (M, 3) float64 sample, among the sample (about; an estimate for the cell size)."""
+        m = s.shape[0]
+        kk = min(k, m - 1)
+        out = np.empty((m + stride - 1) // stride)
+        d = np.empty(m)
+        for t in range(out.shape[0]):
+            i = t * stride
+            dmax = 0.0
+            for j in range(m):
+                ex = s[j, 0] - s[i, 0]
+                ey = s[j, 1] - s[i, 1]
+                ez = s[j, 2] - s[i, 2]
+                d[j] = ex * ex + ey * ey + ez * ez
+                dmax = max(dmax, d[j])
+            d[i] = np.inf
+            th, c = _narrow(d, m, kk, kk, kk + 0.5, dmax * kk / (m - 1), -1.0, 0, dmax, m - 1)
+            dk = 0.0
+            for j in range(m):
+                if d[j] <= th:
+                    dk = max(dk, d[j])
+            out[t] = dk
+        return out
+
+    @njit(cache=True, boundscheck=False)
+    def _sort_select(sd, sj, m, k):
+        """Put the k best of sd/sj[:m] by (d2, index) first (rare: many exact ties)."""
+        o = np.argsort(sd[:m], kind="mergesort")
+        td = sd[:m][o]
+        tj = sj[:m][o]
+        dk = td[k - 1]
+        lo = k - 1
+        while lo > 0 and td[lo - 1] == dk:
+            lo -= 1
+        hi = k
+        while hi < m and td[hi] == dk:
+            hi += 1
+        if hi > k:  # ties with the k-th: the smallest indices win
+            tj[lo:hi] = np.sort(tj[lo:hi])
+        sd[:m] = td
+        sj[:m] = tj
+
+    @njit(cache=True, boundscheck=False)
+    def _gather(X, Y, Z, J, start, dims, cx, cy, cz, R, buf):
+        """Copy the points of the cells within R of cell (cx, cy, cz) into the candidate buffers
+        (a tuple CX, CY, CZ, CJ, D, sd, sj, sel; grown as needed), padded to a multiple of 64 with
+        infinitely far points. Returns (buffers, count, padded count, position of the first point
+        of the cell itself)."""
+        dx_, dy_, dz_ = dims[0], dims[1], dims[2]
+        z0 = max(cz - R, 0)
+        z1 = min(cz + R, dz_ - 1) + 1
+        x0, x1 = max(cx - R, 0), min(cx + R, dx_ - 1) + 1
+        y0, y1 = max(cy - R, 0), min(cy + R, dy_ - 1) + 1
+        total = 0
+        for ix in range(x0, x1):
+            for iy in range(y0, y1):
+                base = (ix * dy_ + iy) * dz_
+                total += start[base + z1] - start[base + z0]
+        ncp = (total + 63) & ~63  # whole blocks of 64 for the bit masks
+        CX, CY, CZ, CJ, D, sd, sj, sel = buf
+        if ncp > CX.shape[0]:
+            cap = 2 * ncp
+            CX, CY, CZ, D, sd = np.empty(cap), np.empty(cap), np.empty(cap), np.empty(cap), np.empty(cap)
+            CJ, sj, sel = np.empty(cap, np.int64), np.empty(cap, np.int64), np.empty(cap, np.int64)
+        # the columns of the block, each a contiguous run of cells along z (x-major cell order)
+        nc = 0
+        own = 0
+        for ix in range(x0, x1):
+            for iy in range(y0, y1):
+                base = (ix * dy_ + iy) * dz_
+                a0 = start[base + z0]
+                a1 = start[base + z1]
+                if ix == cx and iy == cy:
+                    own = nc + start[base + cz] - a0
+                for a in range(a0, a1):
+                    CX[nc + a - a0] = X[a]
+                    CY[nc + a - a0] = Y[a]
+                    CZ[nc + a - a0] = Z[a]
+                    CJ[nc + a - a0] = J[a]
+                nc += a1 - a0
+        for a in range(nc, ncp):
+            CX[a] = np.inf
+            CY[a] = np.inf
+            CZ[a] = np.inf
+        return (CX, CY, CZ, CJ, D, sd, sj, sel), nc, ncp, own
+
+    @njit(cache=True, boundscheck=False, inline="always")
+    def _select(buf, ncp, k, t_hi, c_hi, out_i, i):
+        """Row i = the k nearest candidates, c_hi of them (>= k) with D <= t_hi: on exact ties at
+        the k-th distance the smallest indices win. Returns the smallest positive d2 kept (inf if
+        none)."""
+        CX, CY, CZ, CJ, D, sd, sj, sel = buf
+        dmin = np.inf
+        m = _compact(D, ncp, t_hi, sd, sel)
+        if c_hi == k:  # the usual case: exactly k within t_hi, no ranking needed
+            for s in range(k):
+                out_i[i, s] = CJ[sel[s]]
+                if sd[s] > 0 and sd[s] < dmin:
+                    dmin = sd[s]
+            return dmin
+        for a in range(m):
+            sj[a] = CJ[sel[a]]
+        _sort_select(sd, sj, m, k)
+        for s in range(k):
+            out_i[i, s] = sj[s]
+            if sd[s] > 0:
+                dmin = min(dmin, sd[s])
+        return dmin
+
+    @njit(cache=True, boundscheck=False)
+    def _new_buf(cap):
+        """Candidate buffers of a block (see :func:`_gather`) for cap candidates."""
+        return (np.empty(cap), np.empty(cap), np.empty(cap), np.empty(cap, np.int64), np.empty(cap), np.empty(cap),
+                np.empty(cap, np.int64), np.empty(cap, np.int64))
+
+    @njit(cache=True, boundscheck=False)
+    def _knn_cells(X, Y, Z, J, B2, start, occ, dims, origin, step, L, k, t_est, c_lo, c_hi, out_i, d0):
+        """Rows of the points of cells occ[c_lo:c_hi] from their 3x3x3 blocks; a point whose
+        k-th neighbour may lie outside that block is searched in its 5x5x5 block, then in rings
+        of cells (:func:`_far_point`)."""
+        dy_, dz_ = dims[1], dims[2]
+        buf = _new_buf(256)
+        far = _new_buf(1024)
+        hd = np.empty(k)
+        hj = np.empty(k, np.int64)
+        for oc in range(c_lo, c_hi):
+            lin = occ[oc]
+            buf, nc, ncp, own = _gather(X, Y, Z, J, start, dims, lin // (dy_ * dz_), (lin // dz_) % dy_, lin % dz_,
+                                        1, buf)
+            CX, CY, CZ, CJ, D, sd, sj, sel = buf
+            s0 = start[lin]
+            guess = t_est
+            for p in range(s0, start[lin + 1]):
+                i = J[p]
+                px, py, pz = X[p], Y[p], Z[p]
+                for a in range(ncp):
+                    ex = CX[a] - px
+                    ey = CY[a] - py
+                    ez = CZ[a] - pz
+                    D[a] = ex * ex + ey * ey + ez * ez
+                D[own + p - s0] = np.inf  # the point itself
+                # the threshold keeping exactly k, from the previous point's (the sample's
+                # estimate for the first of a cell), within the block's guaranteed radius
+                t, c = _threshold(D, ncp, k, guess, B2[p])
+                if c < k:  # the k-th neighbour may lie outside the block
+                    far = _far_point(i, px, py, pz, X, Y, Z, J, start, dims, origin, step, L, k, t_est, far, hd, hj,
+                                     out_i, d0)
+                    continue
+                d0[i] = _select(buf, ncp, k, t, c, out_i, i)
+                guess = t
+
+    @njit(cache=True, parallel=True, boundscheck=False)
+    def _knn_cells_par(X, Y, Z, J, B2, start, occ, dims, origin, step, L, k, t_est, out_i, d0, bounds):
+        for t in prange(bounds.shape[0] - 1):
+            _knn_cells(X, Y, Z, J, B2, start, occ, dims, origin, step, L, k, t_est, bounds[t], bounds[t + 1], out_i,
+                       d0)
+
+    @njit(cache=True, boundscheck=False)
+    def _far_point(i, px, py, pz, X, Y, Z, J, start, dims, origin, step, L, k, t_est, buf, hd, hj, out_i, d0):
+        """Row i (at px, py, pz) from the 5x5x5 cells around its own, or, where the k-th neighbour
+        may lie outside those too, from rings of cells (:func:`_knn_ring`). Returns the buffers."""
+        qx = _lat(px, origin[0], step)
+        qy = _lat(py, origin[1], step)
+        qz = _lat(pz, origin[2], step)
+        f = L
+        for qa in (qx, qy, qz):
+            c0 = (qa // L) * L
+            f = min(f, min(qa - c0, c0 + L - qa))
+        bound = 2 * L * step + (f - 1) * step
+        b2 = np.nextafter(bound * bound, -np.inf) if bound > 0 else -1.0
+        buf, nc, ncp, own = _gather(X, Y, Z, J, start, dims, qx // L, qy // L, qz // L, 2, buf)
+        CX, CY, CZ, CJ, D, sd, sj, sel = buf
+        for a in range(ncp):
+            ex = CX[a] - px
+            ey = CY[a] - py
+            ez = CZ[a] - pz
+            D[a] = ex * ex + ey * ey + ez * ez
+        for a in range(nc):  # the point itself
+            if CJ[a] == i:
+                D[a] = np.inf
+        t, c = _threshold(D, ncp, k, t_est, b2)
+        if c >= k:
+            d0[i] = _select(buf, ncp, k, t, c, out_i, i)
+        else:
+            _knn_ring(i, px, py, pz, origin, step, L, X, Y, Z, J, start, dims, k, hd, hj, out_i, d0)
+        return buf
+
+    @njit(cache=True, boundscheck=False, inline="always")
+    def _worse(d1, j1, d2, j2):
+        return d1 > d2 or (d1 == d2 and j1 > j2)
+
+    @njit(cache=True, boundscheck=False, inline="always")
+    def _sift_down(hd, hj, size, d2, j):
+        """Put (d2, j) at the top of the max-heap hd/hj[:size] and sift it down."""
+        pos = 0
+        while True:
+            c = 2 * pos + 1
+            if c >= size:
+                break
+            if c + 1 < size and _worse(hd[c + 1], hj[c + 1], hd[c], hj[c]):
+                c += 1
+            if not _worse(hd[c], hj[c], d2, j):
+                break
+            hd[pos] = hd[c]
+            hj[pos] = hj[c]
+            pos = c
+        hd[pos] = d2
+        hj[pos] = j
+
+    @njit(cache=True, boundscheck=False, inline="always")
+    def _push(hd, hj, m, k, d2, j):
+        """Max-heap (by (d2, j)) of the k best candidates; returns the new size."""
+        if m < k:  # sift up
+            pos = m
+            m += 1
+            while pos > 0:
+                par = (pos - 1) >> 1
+                if not _worse(d2, j, hd[par], hj[par]):
+                    break
+                hd[pos] = hd[par]
+                hj[pos] = hj[par]
+                pos = par
+            hd[pos] = d2
+            hj[pos] = j
+            return m
+        if not _worse(hd[0], hj[0], d2, j):
+            return m
+        _sift_down(hd, hj, k, d2, j)
+        return m
+
+    @njit(cache=True, boundscheck=False)
+    def _knn_ring(i, px, py, pz, origin, step, L, X, Y, Z, J, start, dims, k, hd, hj, out_i, d0):
+        """Row i (at px, py, pz) from rings of cells around its own until no closer point can
+        remain (a max-heap hd/hj of the k best)."""
+        h = L * step
+        rmax = max(dims[0], max(dims[1], dims[2]))
+        qx = _lat(px, origin[0], step)
+        qy = _lat(py, origin[1], step)
+        qz = _lat(pz, origin[2], step)
+        cx, cy, cz = qx // L, qy // L, qz // L
+        f = L
+        for qa in (qx, qy, qz):
+            c0 = (qa // L) * L
+            f = min(f, min(qa - c0, c0 + L - qa))
+        face = (f - 1) * step
+        m = 0
+        r = 0
+        while True:
+            for ix in range(max(cx - r, 0), min(cx + r, dims[0] - 1) + 1):
+                ax = abs(ix - cx)
+                gx = max(max(ix * L - qx, qx - (ix + 1) * L), 0)
+                for iy in range(max(cy - r, 0), min(cy + r, dims[1] - 1) + 1):
+                    ay = max(ax, abs(iy - cy))
+                    gy = max(max(iy * L - qy, qy - (iy + 1) * L), 0)
+                    base = (ix * dims[1] + iy) * dims[2]
+                    for iz in range(max(cz - r, 0), min(cz + r, dims[2] - 1) + 1):
+                        if max(ay, abs(iz - cz)) != r:
+                            continue
+                        lin = base + iz
+                        s = start[lin]
+                        e = start[lin + 1]
+                        if s == e:
+                            continue
+                        if m == k:  # skip cells entirely beyond the current k-th distance
+                            gz = max(max(iz * L - qz, qz - (iz + 1) * L), 0)
+                            g2 = (max(gx - 1, 0) ** 2 + max(gy - 1, 0) ** 2 + max(gz - 1, 0) ** 2) * step * step
+                            if g2 > hd[0]:
+                                continue
+                        for a in range(s, e):
+                            j = J[a]
+                            if j == i:
+                                continue
+                            ex = X[a] - px
+                            ey = Y[a] - py
+                            ez = Z[a] - pz
+                            d2 = ex * ex + ey * ey + ez * ez
+                            if m < k or d2 <= hd[0]:
+                                m = _push(hd, hj, m, k, d2, j)
+            bound = r * h + face
+            if (m == k and bound > 0 and hd[0] < bound * bound) or r > rmax:
+                break
+            r += 1
+        dmin = np.inf
+        for e in range(k - 1, -1, -1):
+            out_i[i, e] = hj[0]
+            if hd[0] > 0:
+                dmin = hd[0]
+            _sift_down(hd, hj, e, hd[e], hj[e])
+        d0[i] = dmin
+
+    # exp(x) for x <= 0 to ~1e-14 relative, written without branches or calls so that it
+    # vectorises (numba's np.exp is a scalar libm call; no SVML here): x = n ln2 + r with
+    # |r| <= ln2/2, a degree-12 Taylor polynomial for exp(r), 2^n from its bits (a table would
+    # need gathers, which LLVM does not vectorise for this CPU).
+    _LN2_HI = 0.6931471803691238
+    _LN2_LO = 1.9082149292705877e-10
+    _INV_LN2 = 1.4426950408889634
+
+    @njit(cache=True, boundscheck=False)
+    def _weights_rows(P4, idx, N4, use_n, invariant, a_d, a_s, out_w, out_sum, lo, hi):
+        """Eq. 4 for rows lo..hi-1: out_w = exp(-d2 a_d - |n_i - n_j|^2 a_s) (float32; d2 and the
+        normal term in float64, as the numpy path), out_sum their float64 sums."""
+        k = idx.shape[1]
+        rows = 64  # exponents of 64 rows at a time: long vectorised loops for exp
+        ex = np.empty(rows * k)
+        pw = np.empty(rows * k, np.int64)
+        pwf = pw.view(np.float64)
+        wf = out_w.reshape(-1)
+        for r0 in range(lo, hi, rows):
+            r1 = min(r0 + rows, hi)
+            for i in range(r0, r1):
+                e0 = (i - r0) * k
+                px, py, pz = P4[i, 0], P4[i, 1], P4[i, 2]
+                if use_n:
+                    n0, n1, n2 = N4[i, 0], N4[i, 1], N4[i, 2]
+                    for s in range(k):
+                        j = idx[i, s]
+                        dx = P4[j, 0] - px
+                        dy = P4[j, 1] - py
+                        dz = P4[j, 2] - pz
+                        dot = n0 * N4[j, 0] + n1 * N4[j, 1] + n2 * N4[j, 2]
+                        if invariant:
+                            dot = abs(dot)
+                        t = 2.0 - 2.0 * dot
+                        t = t if t > 0.0 else 0.0
+                        ex[e0 + s] = -(dx * dx + dy * dy + dz * dz) * a_d - t * a_s
+                else:
+                    for s in range(k):
+                        j = idx[i, s]
+                        dx = P4[j, 0] - px
+                        dy = P4[j, 1] - py
+                        dz = P4[j, 2] - pz
+                        ex[e0 + s] = -(dx * dx + dy * dy + dz * dz) * a_d
+            ne = (r1 - r0) * k
+            for e in range(ne):
+                x = max(ex[e], -150.0)  # exp(-150) is 0 in float32
+                nf = np.rint(x * _INV_LN2)
+                r = (x - nf * _LN2_HI) - nf * _LN2_LO
+                p = 1.0 / 479001600.0
+                p = p * r + 1.0 / 39916800.0
+                p = p * r + 1.0 / 3628800.0
+                p = p * r + 1.0 / 362880.0
+                p = p * r + 1.0 / 40320.0
+                p = p * r + 1.0 / 5040.0
+                p = p * r + 1.0 / 720.0
+                p = p * r + 1.0 / 120.0
+                p = p * r + 1.0 / 24.0
+                p = p * r + 1.0 / 6.0
+                p = p * r + 0.5
+                p = p * r + 1.0
+                ex[e] = p * r + 1.0
+                pw[e] = (np.int64(nf) + 1023) << 52  # the bits of 2.0**nf
+            base = r0 * k
+            for e in range(ne):
+                wf[base + e] = np.float32(ex[e] * pwf[e])
+            for i in range(r0, r1):
+                acc = 0.0
+                for s in range(k):
+                    acc += np.float64(out_w[i, s])
+                out_sum[i] = acc
+
+    @njit(cache=True, parallel=True, boundscheck=False)
+    def _weights_par(P4, idx, N4, use_n, invariant, a_d, a_s, out_w, out_sum, nparts):
+        n = idx.shape[0]
+        for t in prange(nparts):
+            _weights_rows(P4, idx, N4, use_n, invariant, a_d, a_s, out_w, out_sum,
+                          t * n // nparts, (t + 1) * n // nparts)
+
+
+    # the normalised system (Eqs. 14-15) of a SortedKnnGraph, as diffusion.normalise computes it
+    # with numpy (same float32 operations, numpy's pairwise order for the row sums of the mass)
+
+    @njit(cache=True, boundscheck=False)
+    def _pairwise_row(mass, o, lo, n, lam):
+        """numpy's float32 sum of float32(mass[o, lo:lo + n]) * lam for n <= 128 (blocks of 8;
+        numpy halves longer rows recursively, which numba cannot cache)."""
+        if n < 8:
+            r = np.float32(0.0)
+            for c in range(lo, lo + n):
+                r += np.float32(mass[o, c]) * lam
+            return r
+        else:
+            r0 = np.float32(mass[o, lo]) * lam
+            r1 = np.float32(mass[o, lo + 1]) * lam
+            r2 = np.float32(mass[o, lo + 2]) * lam
+            r3 = np.float32(mass[o, lo + 3]) * lam
+            r4 = np.float32(mass[o, lo + 4]) * lam
+            r5 = np.float32(mass[o, lo + 5]) * lam
+            r6 = np.float32(mass[o, lo + 6]) * lam
+            r7 = np.float32(mass[o, lo + 7]) * lam
+            i = 8
+            while i < n - n % 8:
+                r0 += np.float32(mass[o, lo + i]) * lam
+                r1 += np.float32(mass[o, lo + i + 1]) * lam
+                r2 += np.float32(mass[o, lo + i + 2]) * lam
+                r3 += np.float32(mass[o, lo + i + 3]) * lam
+                r4 += np.float32(mass[o, lo + i + 4]) * lam
+                r5 += np.float32(mass[o, lo + i + 5]) * lam
+                r6 += np.float32(mass[o, lo + i + 6]) * lam
+                r7 += np.float32(mass[o, lo + i + 7]) * lam
+                i += 8
+            res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+            while i < n:
+                res += np.float32(mass[o, lo + i]) * lam
+                i += 1
+            return res
+
+    @njit(cache=True, parallel=True, boundscheck=False)
+    def _pixsum_par(mass, lam, out, nparts):
+        """out[o] = (mass[o].astype(float32) * lam).sum() as numpy computes it."""
+        n, c = mass.shape
+        for t in prange(nparts):
+            for o in range(t * n // nparts, (t + 1) * n // nparts):
+                out[o] = _pairwise_row(mass, o, 0, c, lam)
+
+    @njit(cache=True, parallel=True, boundscheck=False)
+    def _scale_rows_par(order, wsum, pixsum, w, floor, tiny, Ps, inv, nparts):
+        """Per sorted row s: inv = 1 / (float32(wsum[s]) + pixsum[order[s]]) (0 when that is not
+        above tiny), Ps[s] = w[s] * inv with entries below floor set to 0; inv kept per point."""
+        n, k = w.shape
+        for t in prange(nparts):
+            for s in range(t * n // nparts, (t + 1) * n // nparts):
+                o = order[s]
+                d = np.float32(wsum[s]) + pixsum[o]
+                iv = np.float32(1.0) / d if d > tiny else np.float32(0.0)
+                inv[o] = iv
+                for c in range(k):
+                    v = w[s, c] * iv
+                    Ps[s, c] = np.float32(0.0) if v < floor else v
+
+    @njit(cache=True, parallel=True, boundscheck=False)
+    def _pix_scaled_par(mass, lam, inv, B, nparts):
+        """B = (mass.astype(float32) * lam) * inv[:, None]."""
+        n, c = mass.shape
+        for t in prange(nparts):
+            for o in range(t * n // nparts, (t + 1) * n // nparts):
+                iv = inv[o]
+                for a in range(c):
+                    B[o, a] = (np.float32(mass[o, a]) * lam) * iv
+
+
+def _parts(n: int) -> int:
+    """Chunks for a parallel loop over n rows (several per thread, for balance)."""
+    return max(1, min(n_threads() * 8, n // 512 + 1))
+
+
+def morton_order(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, np.ndarray]:
+    """:func:`~diffuser_lab.data.geometry.quantize` + Morton codes + stable argsort, compiled.
+
+    Args:
+        points: (N, 3) float32 world points, metres (C-contiguous).
+    Returns:
+        order (N,) int64, equal to ``argsort(morton_codes(quantize(points)[0]), kind="stable")``;
+        the lattice origin (3,) float64 and step (metres); qmax (3,) int64 the largest lattice
+        coordinate per axis; q (N, 3) int32 the lattice coordinates (``quantize(points)[0]``).
+    """
+    n = points.shape[0]
+    lo, hi = _bbox_par(points, _parts(n)) if n > 100_000 else _bbox(points)  # a launch costs ~0.2 ms
+    extent = float((hi - lo).max()) if n else 0.0
+    step = extent / (2**MORTON_BITS - 1) if extent > 0 else 1.0
+    codes = np.empty(n, np.uint64)
+    q = np.empty((n, 3), np.int32)
+    _morton_par(points, lo, step, q, codes, _parts(n))
+    qmax = np.clip(np.floor((hi - lo) / step), 0, 2**MORTON_BITS - 1).astype(np.int64)
+    return np.argsort(codes, kind="stable"), lo, step, qmax, q
+
+
+def sorted_knn(points: np.ndarray, normals: np.ndarray | None, k: int):
+    """Morton order and exact K nearest neighbours (self excluded, ties by index).
+
+    Args:
+        points: (N, 3) float32 world points, metres; normals: (N, 3) float32 or None.
+    Returns:
+        order (N,) int64 (as :func:`morton_order`); P4 (N, 4) float64 ``points[order]`` padded
+        with a zero column, metres; N4 likewise the normals (None without normals); and either
+        (idx (N, K) int32 neighbours as sorted indices, in no particular order within a row,
+        d0 (N,) float64 the smallest positive squared distance per row in m^2, inf if none) or
+        None when the cloud is too sparse for a dense grid (the caller then uses a KD-tree).
+    """
+    points = np.ascontiguousarray(points, np.float32)
+    n = points.shape[0]
+    order, origin, step, qmax, q = morton_order(points)
+    use_n = normals is not None
+    nrm = np.ascontiguousarray(normals, np.float32) if use_n else np.zeros((1, 3), np.float32)
+    # cell side from the K-th neighbour distance of a contiguous, so spatially compact, run
+    m = min(n, SAMPLE)
+    lo = (n - m) // 2
+    sample = points[order[lo : lo + m]].astype(np.float64)
+    r_k = float(np.sqrt(np.median(_kth_sample(sample, k, max(1, m // 32)))))
+    L = int(max(1, np.ceil(CELL_FACTOR * r_k / step))) if r_k > 0 else 0
+    dims = np.asarray(qmax, np.int64) // max(L, 1) + 1
+    dense = L > 0 and float(np.prod(dims.astype(np.float64))) <= max(8.0 * n, 2.0**22)
+    ncell = int(np.prod(dims)) if dense else 1
+    P4 = np.empty((n, 4))
+    N4 = np.empty((n, 4)) if use_n else np.empty((1, 4))
+    cellof = np.empty(n, np.int64)
+    b2 = np.empty(n)
+    # one chunk per thread for the counting sort into cells (a count table each)
+    nt = max(1, min(n_threads(), n // 4096 + 1))
+    cnt = np.zeros((nt, ncell) if dense else (nt, 1), np.int64)
+    _prep_par(points, nrm, use_n, order, q, step, max(L, 1), dims if dense else np.ones(3, np.int64),
+              P4, N4, cellof, b2, cnt, dense)
+    N4 = N4 if use_n else None
+    if not dense:
+        return order, P4, N4, None
+    start = np.empty(ncell + 1, np.int64)
+    _offsets(cnt, start)
+    X, Y, Z, B2 = (np.empty(n) for _ in range(4))
+    J = np.empty(n, np.int64)
+    _scatter_par(P4, cellof, b2, cnt, X, Y, Z, J, B2)
+    occ = np.flatnonzero(start[1:] != start[:-1])
+    parts = _parts(n)
+    out_i = np.empty((n, k), np.int32)
+    d0 = np.empty(n)
+    bounds = np.searchsorted(start[occ], np.linspace(0, n, parts + 1)).astype(np.int64)
+    bounds[-1] = len(occ)
+    _knn_cells_par(X, Y, Z, J, B2, start, occ, dims, origin, step, L, k, r_k * r_k, out_i, d0, bounds)
+    return order, P4, N4, (out_i, d0)
+
+
+def edge_weights(P4: np.ndarray, idx: np.ndarray, N4: np.ndarray | None, invariant: bool,
+                 sigma_d: float, sigma_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 4 weights (N, K) float32 and their row sums (N,) float64.
+
+    Args:
+        P4: (N, 4) float64 points (x, y, z, 0), metres; idx: (N, K) int32 neighbours (rows of
+            P4); N4: (N, 4) float64 unit normals likewise, or None; sigma_d: metres; sigma_s.
+    """
+    n, k = idx.shape
+    out_w = np.empty((n, k), np.float32)
+    out_sum = np.empty(n, np.float64)
+    use_n = N4 is not None
+    nrm = N4 if use_n else np.zeros((1, 4))
+    # unsigned indices: no wrap-around handling of negative ones in the gathers
+    _weights_par(P4, idx.view(np.uint32), nrm, use_n, invariant, 0.5 / sigma_d**2, 0.5 / sigma_s**2, out_w,
+                 out_sum, _parts(n))
+    return out_w, out_sum
+
+
+def normalise_sorted(order: np.ndarray, sorted_weights: np.ndarray, sorted_row_sums: np.ndarray, mass: np.ndarray,
+                     pixel_weight: float, edge_floor: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """Eqs. 14-15 for a :class:`~diffuser_lab.method.graph.SortedKnnGraph` in three parallel passes,
+    bit for bit the numpy computation of :func:`diffuser_lab.method.diffusion.normalise`.
+
+    Args:
+        order: (N,) int64 Morton order; sorted_weights: (N, K) float32; sorted_row_sums: (N,)
+            float64; mass: (N, C) pixel mass (caller's order); pixel_weight: lambda;
+            edge_floor: transition weights below it become 0.
+    Returns:
+        (P (N, K) float32 in sorted order, B (N, C) float32 in the caller's order), or None for a
+        mass this path does not take (not a 2-D numeric array, or more than 128 classes).
+    """
+    mass = np.asarray(mass)
+    if mass.ndim != 2 or mass.dtype.kind not in "fiu" or mass.shape[0] != order.shape[0] or mass.shape[1] > 128:
+        return None
+    n = order.shape[0]
+    lam = np.float32(pixel_weight)
+    parts = _parts(n)
+    pixsum = np.empty(n, np.float32)
+    _pixsum_par(mass, lam, pixsum, parts)
+    Ps = np.empty_like(sorted_weights)
+    inv = np.empty(n, np.float32)
+    # numpy compares float32 arrays with Python floats in float32
+    _scale_rows_par(order, sorted_row_sums, pixsum, sorted_weights, np.float32(edge_floor), np.float32(1e-30), Ps,
+                    inv, parts)
+    B = np.empty(mass.shape, np.float32)
+    _pix_scaled_par(mass, lam, inv, B, parts)
+    return Ps, B

@@ -1,0 +1,282 @@
+"""`diffuser-lab-inspect`: read a run's records back.
+
+    diffuser-lab-inspect RUN                      summary + per-iteration table (RUN: run folder or run.mcap)
+    diffuser-lab-inspect RUN --config             also print the resolved config
+    diffuser-lab-inspect RUN --at 120 --out z.npy extract Z (M, C) float32 of a recorded iteration ("last" works)
+    diffuser-lab-inspect RUN --to-rrd OUT.rrd     re-log the run from its MCAP alone into a fresh .rrd
+    diffuser-lab-inspect RUN --view               open the run in the Rerun viewer (run.rrd, else
+                                                  the MCAP re-logged to a temporary .rrd)
+
+Everything is read from run.mcap (no summary section needed): a truncated file (killed run,
+cut copy) gives its complete leading iterations and a warning on stderr, exit code 0.
+Exit codes: 0 ok, 1 unreadable file, 2 bad arguments (missing file, iteration not recorded).
+"""
+from __future__ import annotations
+
+import argparse
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any, Optional, Sequence
+
+import numpy as np
+
+PROG = "diffuser-lab-inspect"
+
+
+class UsageError(Exception):
+    pass
+
+
+def _mcap_path(run: Path) -> Path:
+    if run.is_dir():
+        p = run / "run.mcap"
+        if not p.is_file():
+            raise UsageError(f"{run}: no run.mcap in this folder (was the run recorded with record=mcap|both?)")
+        return p
+    if not run.is_file():
+        raise UsageError(f"{run}: no such file or folder")
+    return run
+
+
+def _size(path: Path) -> str:
+    n = path.stat().st_size
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if n < 1024 or unit == "GiB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return ""
+
+
+def _f(x: Optional[float], spec: str = ".1f") -> str:
+    return "-" if x is None else format(x, spec)
+
+
+def _iters(its: Sequence[int]) -> str:
+    its = list(its)
+    if len(its) <= 8:
+        return ", ".join(map(str, its))
+    return ", ".join(map(str, its[:4])) + ", ..., " + ", ".join(map(str, its[-2:]))
+
+
+def _every(n: int) -> str:
+    if n <= 1:
+        return "every iteration"
+    suffix = "th" if 10 <= n % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
+    return f"every {n}{suffix}"
+
+
+def summary_text(log: Any) -> str:
+    """The run at a glance (see the README for an example)."""
+    info, run, s = log.info, log.run, log.summary
+    lines = [f"run.mcap: {log.path} ({_size(log.path)}, {'complete' if log.complete else 'TRUNCATED'})"]
+    scene = (info.scene if info is not None else run.get("scene")) or "?"
+    method = info.method if info is not None else (s or {}).get("method", "?")
+    names = log.class_names
+    n_pts = int(info.n_points) if info is not None else int(run.get("n_points", 0))
+    work = f" ({int(info.n_work_points):,} diffused)" if info is not None else ""
+    frames = f" | {len(info.cameras)} frames" if info is not None else ""
+    tax = info.taxonomy if info is not None else run.get("taxonomy", "")
+    lines.append(f"scene     {scene} | method {method} | {n_pts:,} points{work}{frames} | "
+                 f"{len(names)} classes ({tax})")
+    lines.append(f"classes   {', '.join(names)}")
+    lines.append(f"overrides {' '.join(log.overrides) if log.overrides else '(none)'}")
+    its = log.z_iterations
+    if not its:
+        lines.append("recorded  0 iterations (no diffusion recorded: static records only)")
+    elif info is not None:
+        zinfo = f"Z {info.z_dtype or 'float32'}, {int(info.n_work_points):,} x {len(names)}"
+        lines.append(f"recorded  {len(its)} iterations: {_iters(its)} ({_every(int(info.interval))}, "
+                     f"first and last; {zinfo})")
+    else:
+        lines.append(f"recorded  {len(its)} iterations: {_iters(its)}")
+    if s is not None:
+        d = s.get("diffusion") or {}
+        m = s.get("metrics") or {}
+        b = (s.get("baseline") or {}).get("bayesian") or {}
+        if d.get("iterations"):
+            how = "converged" if d.get("converged") else "max reached"
+            res = f"{d['iterations']} iterations ({how}, relative residual {_f(d.get('residual'), '.1e')})"
+        else:
+            res = "no diffusion (static records only)"
+        lines.append(f"result    {res} | mIoU {_f(m.get('miou'))}  acc {_f(m.get('accuracy'))}  "
+                     f"cover {_f(m.get('coverage'))} | bayesian mIoU {_f(b.get('miou'))}")
+    else:
+        lines.append("result    (no summary: the run did not finish)")
+    return "\n".join(lines)
+
+
+def table_text(metrics: Sequence[dict]) -> str:
+    """One line per recorded iteration."""
+    head = f"{'iter':>6s}  {'residual':>9s}  {'changed':>8s}  {'mIoU':>6s}  {'acc':>6s}  {'cover':>6s}  {'conf':>5s}"
+    rows = [head]
+    for m in metrics:
+        rows.append(f"{m['iteration']:6d}  {m['residual']:9.2e}  {m['n_changed']:8,d}  {_f(m['miou']):>6s}  "
+                    f"{_f(m['accuracy']):>6s}  {m['coverage']:6.1f}  {m['mean_confidence']:5.3f}")
+    return "\n".join(rows)
+
+
+def mcap_to_rrd(mcap_path: Path | str, rrd_path: Path | str, *, max_image_side: int = 320) -> Any:
+    """Re-log a run into a fresh .rrd from its run.mcap alone (same entities, blueprint and
+    per-iteration class ids as the live run.rrd; cameras without their images, which run.mcap
+    does not hold). Returns the :class:`~diffuser_lab.recording.mcap_log.RunLog` (truncation)."""
+    from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+
+    from diffuser_lab.recording import schema
+    from diffuser_lab.recording.mcap_log import (
+        TOPIC_METRICS,
+        TOPIC_RUN,
+        TOPIC_SCENE,
+        TOPIC_Z,
+        RunLog,
+        decode_point_cloud,
+        decode_z,
+        iter_run,
+        metrics_dict,
+    )
+    from diffuser_lab.recording.rerun_log import RerunRecorder
+    from diffuser_lab.recording.steps import StepTracker
+
+    log = RunLog(path=Path(mcap_path))
+    rec = RerunRecorder(Path(rrd_path), max_image_side=max_image_side)
+    tracker = None
+    points = gt = None
+    residual: dict[int, float] = {}
+    try:
+        for topic, data in iter_run(mcap_path, log):
+            if topic == TOPIC_SCENE:
+                import json
+
+                run = log.run
+                cloud = decode_point_cloud(PointCloud.FromString(data))
+                points = np.stack([cloud["x"], cloud["y"], cloud["z"]], 1)
+                has_gt = json.loads(run.get("has_gt", "true"))
+                has_col = json.loads(run.get("has_colors", "true"))
+                gt = cloud["label"].astype(np.int16) if has_gt and "label" in cloud else None
+                cols = np.stack([cloud["red"], cloud["green"], cloud["blue"]], 1) if has_col else None
+                names = json.loads(run.get("class_names", "[]"))
+                colors = np.asarray(json.loads(run.get("class_colors", "[]")), np.uint8).reshape(-1, 3)
+                rec.log_taxonomy(names, colors)
+                rec.log_scene(points, cols, gt)
+            elif topic == TOPIC_RUN:
+                info = schema.RunInfo.FromString(data)
+                log.info = info
+                for i, cam in enumerate(info.cameras):
+                    rec.log_camera(i, cam.name, np.reshape(cam.K, (3, 3)), np.reshape(cam.T_cw, (4, 4)),
+                                   cam.width, cam.height)
+                m = int(info.n_work_points)
+                work = np.frombuffer(info.work_points, "<f4").reshape(m, 3)
+                seen = np.frombuffer(info.seen, np.uint8).astype(bool)
+                bayes = np.frombuffer(info.bayesian_labels, "<i2")
+                to_work = np.frombuffer(info.original_to_work, "<i4") if info.original_to_work else None
+                rec.log_evidence(work, seen, bayes)
+                tracker = StepTracker(m, list(info.class_names), gt, to_work)
+            elif topic == TOPIC_METRICS:
+                d = metrics_dict(data)
+                log.metrics.append(d)
+                residual[d["iteration"]] = d["residual"]
+            elif topic == TOPIC_Z and tracker is not None:
+                msg = schema.ZState.FromString(data)
+                it = int(msg.iteration)
+                log.z_iterations.append(it)
+                rec.log_step(tracker.step(it, decode_z(msg), residual.get(it, float("nan"))), points)
+    finally:
+        rec.close()
+    return log
+
+
+def _viewer() -> list[str]:
+    exe = shutil.which("rerun") or str(Path(sys.executable).with_name("rerun"))
+    return [exe]
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    ap = argparse.ArgumentParser(prog=PROG, description="Summary, per-iteration table, Z states and replay of a "
+                                 "diffuser-lab run, read from its run.mcap.")
+    ap.add_argument("run", help="run folder (logs/runs/...) or a run.mcap file")
+    ap.add_argument("--at", metavar="ITER", help="a recorded iteration (or 'last') whose Z to extract")
+    ap.add_argument("--out", metavar="Z.npy", help="with --at: write Z there, (M, C) float32")
+    ap.add_argument("--to-rrd", metavar="OUT.rrd", help="re-log the run from its MCAP alone into OUT.rrd")
+    ap.add_argument("--view", action="store_true", help="open the run in the Rerun viewer")
+    ap.add_argument("--config", action="store_true", help="print the resolved config too")
+    ap.add_argument("--no-table", action="store_true", help="leave out the per-iteration table")
+    args = ap.parse_args(argv)
+    try:
+        return _main(args)
+    except UsageError as exc:
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        return 2
+    except Exception as exc:  # noqa: BLE001 - one line, not a traceback
+        print(f"{PROG}: error: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return 1
+
+
+def _warn_truncated(log: Any) -> None:
+    if log.truncated:
+        print(f"{PROG}: warning: {log.path} is truncated ({log.error}); read {len(log.z_iterations)} complete "
+              f"iteration(s){', last ' + str(log.z_iterations[-1]) if log.z_iterations else ''}", file=sys.stderr)
+
+
+def _main(args: argparse.Namespace) -> int:
+    from diffuser_lab.recording.mcap_log import read_run
+
+    run = Path(args.run)
+    if args.out and args.at is None:
+        raise UsageError("--out needs --at ITER")
+    if args.view and (run / "run.rrd").is_file() or (args.view and run.suffix == ".rrd"):
+        rrd = run if run.suffix == ".rrd" else run / "run.rrd"
+        print(f"opening {rrd} in the Rerun viewer")
+        return subprocess.call(_viewer() + [str(rrd)])
+    mcap = _mcap_path(run)
+    if args.to_rrd or args.view:
+        out = Path(args.to_rrd) if args.to_rrd else Path(tempfile.mkdtemp(prefix="diffuser-lab-")) / "replay.rrd"
+        log = mcap_to_rrd(mcap, out)
+        _warn_truncated(log)
+        print(f"wrote {out} ({_size(out)}): {len(log.z_iterations)} iterations re-logged from {mcap}")
+        if args.view:
+            return subprocess.call(_viewer() + [str(out)])
+        return 0
+    want = None
+    if args.at is not None:
+        want = "last" if args.at == "last" else [_int(args.at)]
+    log = read_run(mcap, z=want)
+    if log.info is None and not log.metadata and not log.truncated:
+        raise UsageError(f"{mcap}: not a diffuser-lab run.mcap (no run records)")
+    _warn_truncated(log)
+    if args.at is not None:
+        if not log.z_iterations:
+            raise UsageError(f"{mcap}: no Z state recorded (method without diffusion, or cut before the first)")
+        it = log.z_iterations[-1] if args.at == "last" else _int(args.at)
+        if it not in log.z:
+            raise UsageError(f"iteration {it} was not recorded; recorded: {_iters(log.z_iterations)}")
+        Z = log.z[it]
+        if args.out:
+            np.save(args.out, Z)
+            print(f"wrote {args.out}: Z at iteration {it}, {Z.shape[0]:,} x {Z.shape[1]} float32 "
+                  f"(dtype in run.mcap: {log.info.z_dtype if log.info is not None else '?'})")
+        else:
+            from diffuser_lab.method.diffusion import labels_from_scores
+
+            lab = labels_from_scores(Z)
+            print(f"Z at iteration {it}: {Z.shape[0]:,} x {Z.shape[1]} float32, max {Z.max():.3e}, "
+                  f"{int((lab >= 0).sum()):,} labelled points (use --out z.npy to save it)")
+        return 0
+    print(summary_text(log))
+    if args.config:
+        print("config:\n" + log.config_yaml)
+    if not args.no_table and log.metrics:
+        print(table_text(log.metrics))
+    return 0
+
+
+def _int(s: str) -> int:
+    try:
+        return int(s)
+    except ValueError:
+        raise UsageError(f"--at {s}: expected an iteration number or 'last'") from None
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,216 @@
+"""`diffuser-lab`: the Hydra command line. One run = one folder under logs/.
+
+Start-up order: the command line is composed and validated first (unknown keys, wrong
+types, values out of range -> one line naming the key, exit 2), then Hydra runs the job.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import sys
+import time
+import warnings
+from pathlib import Path
+from typing import Any, Optional
+
+from diffuser_lab.config import register
+from diffuser_lab.runs import launchers
+from diffuser_lab.runs.sweep import job_line, job_tag
+
+log = logging.getLogger("diffuser_lab")
+PROG = "diffuser-lab"
+
+
+def config_dir() -> str:
+    """The Hydra config folder: the wheel's ``diffuser_lab/conf`` when installed, else the
+    checkout's top-level ``conf/``."""
+    here = Path(__file__).resolve().parent.parent  # the package folder
+    for cand in (here / "conf", here.parent / "conf"):
+        if (cand / "config.yaml").is_file():
+            return str(cand)
+    raise FileNotFoundError(f"no Hydra config folder (config.yaml) in {here / 'conf'} or {here.parent / 'conf'}")
+
+
+def one_line(exc: BaseException) -> str:
+    """A config or input error as one line, naming the key when OmegaConf/Hydra know it."""
+    chain = []
+    e: Optional[BaseException] = exc
+    while e is not None and len(chain) < 8:
+        chain.append(e)
+        e = e.__cause__ or e.__context__
+    # OmegaConf's formatted error (the one with "full_key:") names the key and the problem
+    for e in chain:
+        lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
+        keys = [ln.split(":", 1)[1].strip() for ln in lines if ln.startswith("full_key:")]
+        if keys and lines:
+            return lines[0] if keys[0] in lines[0] else f"{keys[0]}: {lines[0]}"
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    if not lines:
+        return type(exc).__name__
+    msg = lines[0]
+    if any(ln.startswith("Available options") for ln in lines):  # Hydra: unknown group option
+        i = next(i for i, ln in enumerate(lines) if ln.startswith("Available options"))
+        opts = [ln for ln in lines[i + 1 :] if not ln.startswith(("Config search path", "provider="))]
+        msg += f" (available: {', '.join(opts)})"
+    return msg
+
+
+def _verbose() -> bool:
+    return os.environ.get("HYDRA_FULL_ERROR") == "1"
+
+
+def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> str:
+    return f"{PROG}: warning: {message}\n"
+
+
+def _prevalidate(argv: list[str]) -> None:
+    """Compose the single-run config the way Hydra will and check it; exit 2 with one line."""
+    if any(a.startswith("-") for a in argv):  # --help, --cfg, -m/--multirun: leave them to Hydra
+        return
+    for a in argv:  # an explicit run folder that already holds a run is never reused
+        if a.startswith("hydra.run.dir="):
+            d = Path(a.split("=", 1)[1])
+            if d.is_dir() and any(d.iterdir()):
+                print(f"{PROG}: error: hydra.run.dir={d} is not empty; earlier runs are never overwritten",
+                      file=sys.stderr)
+                sys.exit(2)
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from diffuser_lab.config import to_object
+
+    try:
+        with initialize_config_dir(config_dir=config_dir(), version_base="1.3", job_name="prevalidate"):
+            cfg = compose(config_name="config", overrides=argv, return_hydra_config=False)
+            to_object(cfg)
+    except Exception as exc:  # noqa: BLE001 - every start-up failure becomes one line
+        if _verbose():
+            raise
+        print(f"{PROG}: error: {one_line(exc)}", file=sys.stderr)
+        sys.exit(2)
+    finally:
+        GlobalHydra.instance().clear()
+
+
+def _task(cfg: Any) -> Optional[float]:
+    """The Hydra job: run the pipeline and write the run folder."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    from diffuser_lab.config import to_object
+    from diffuser_lab.runs import report
+    from diffuser_lab.runs.records import write_json_atomic, write_labels
+
+    t_start = time.perf_counter()
+    hc = HydraConfig.get()
+    run_dir = Path(hc.runtime.output_dir)
+    multirun = hc.mode == RunMode.MULTIRUN
+    if multirun and "BasicLauncher" not in str(hc.launcher.get("_target_", "")):
+        # jobs run side by side: say which one starts (the basic launcher's "#i :" line does)
+        print(f"{job_tag(hc.job.num)} started {' '.join(hc.overrides.task)}", flush=True)
+        if hc.launcher.get("cpus_per_task"):  # submitit: the job's share of the CPUs
+            from diffuser_lab.backends import numba as nb
+
+            nb.limit_threads(int(hc.launcher.cpus_per_task))
+    summary: dict[str, Any] = {"status": "running", "overrides": list(hc.overrides.task),
+                               "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+    summary_path = run_dir / "summary.json"
+    caught: list[str] = []
+    show = warnings.showwarning
+
+    def keep(message, category, filename, lineno, file=None, line=None):  # print and record
+        caught.append(str(message))
+        summary["warnings"] = caught
+        show(message, category, filename, lineno, file, line)
+
+    warnings.showwarning = keep
+    try:
+        if summary_path.exists():
+            raise FileExistsError(f"{run_dir} already holds a run (summary.json); refusing to overwrite it")
+        write_json_atomic(summary_path, summary)
+        conf = to_object(cfg)
+        summary["method"] = conf.method.name
+        write_json_atomic(summary_path, summary)
+
+        from diffuser_lab.config import Protocol
+
+        if conf.protocol.name == Protocol.single_frame:
+            from diffuser_lab.runs.protocols import single_frame, table
+
+            sf = single_frame(conf)
+            summary.update(report.single_frame_summary(sf))
+            summary["status"] = "ok"
+            write_json_atomic(summary_path, summary)
+            if multirun:
+                print(job_line(hc.job.num, run_dir, summary, time.perf_counter() - t_start), flush=True)
+            elif not conf.output.quiet:
+                print(table(sf) + f"\nrun folder: {run_dir}")
+            return summary["metrics"]["miou"]
+
+        from diffuser_lab.config import RecordMode
+        from diffuser_lab.runs.pipeline import run
+
+        hooks = None
+        if conf.record.mode != RecordMode.off:
+            from diffuser_lab.recording import make_hooks
+
+            hooks = make_hooks(conf, run_dir, overrides=list(hc.overrides.task))
+        try:
+            result = run(conf, hooks=hooks)
+        finally:
+            if hooks is not None:
+                hooks.close()
+        summary["records"] = hooks.files() if hooks is not None else {}
+        t_out = time.perf_counter()
+        files = write_labels(run_dir, result.scene.points, result.labels, result.scene.taxonomy,
+                             ply=conf.output.labels_ply)
+        result.timings_s["write"] = time.perf_counter() - t_out
+        summary.update(report.summary(result, conf))
+        summary["files"] = files
+        summary["status"] = "ok"
+        write_json_atomic(summary_path, summary)
+        if multirun:  # one line per job; the sweep's table comes at the end (sweep.print_table)
+            print(job_line(hc.job.num, run_dir, summary, time.perf_counter() - t_start), flush=True)
+        elif not conf.output.quiet:
+            print(report.table(result, run_dir))
+        return summary.get("metrics", {}).get("miou") if summary.get("metrics") else None
+    except Exception as exc:  # noqa: BLE001 - recorded, then reported as one line
+        summary["status"] = "failed"
+        summary["error"] = f"{type(exc).__name__}: {one_line(exc)}"
+        try:
+            write_json_atomic(summary_path, summary)
+        except OSError:
+            pass
+        if multirun:
+            print(job_line(hc.job.num, run_dir, summary), flush=True)
+        if multirun or _verbose():
+            raise  # Hydra marks this job failed and goes on with the others
+        print(f"{PROG}: error: {one_line(exc)}", file=sys.stderr)
+        sys.exit(1)
+    finally:
+        warnings.showwarning = show
+
+
+def main() -> None:
+    """Console entry point ``diffuser-lab``."""
+    import hydra
+
+    register()
+    launchers.register()
+    if "--verbose" in sys.argv:  # full tracebacks, as HYDRA_FULL_ERROR=1
+        sys.argv.remove("--verbose")
+        os.environ["HYDRA_FULL_ERROR"] = "1"
+    warnings.formatwarning = _one_line_warning
+    _prevalidate(sys.argv[1:])
+    os.environ.setdefault("RAY_DEDUP_LOGS", "0")  # Ray folds the jobs' similar result lines into one
+    app = hydra.main(config_path=config_dir(), config_name="config", version_base="1.3")(_task)
+    try:
+        app()
+    finally:  # also when a job failed: Hydra raises after the batch, the table still shows
+        from diffuser_lab.runs.sweep import print_table
+
+        print_table()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,156 @@
+"""2D predictions of any network stored as files, matched to frames by name.
+
+Two kinds of file per frame:
+- a label image (PNG, 8- or 16-bit single channel or palette) of source class ids,
+  turned into evaluation class ids by a :class:`~diffuser_lab.data.mapping.ClassMapping`;
+- class probabilities as ``.npy`` / ``.npz`` (first array, or the one keyed ``probs``),
+  (H, W, C) or (C, H, W) float, already in the evaluation taxonomy's class order.
+
+Predictions made at another resolution are resized with nearest neighbour to the
+frame's depth resolution (pixel-centre aligned, like Pillow's NEAREST: output pixel
+centre (c + 0.5) * W_in / W_out - 0.5 samples the input), which keeps ids/probability
+vectors intact; this assumes the prediction covers the same field of view as depth.
+"""
+from __future__ import annotations
+
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+
+from .mapping import ClassMapping
+
+__all__ = [
+    "resize_nearest",
+    "read_label_png",
+    "load_label_prediction",
+    "load_probability_prediction",
+    "find_prediction",
+    "DEFAULT_PATTERNS",
+]
+
+DEFAULT_PATTERNS = ("{name}.png", "{name}.label.png", "{name}.npy", "{name}.npz")
+
+
+def resize_nearest(img: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Nearest-neighbour resize of an (H, W, ...) array to ``shape`` = (H', W').
+
+    Output pixel (r, c) takes input pixel (floor((r + 0.5) H / H'), floor((c + 0.5) W / W')),
+    i.e. pixel centres are aligned (the same samples as Pillow's NEAREST). Returns the
+    input itself when the shape already matches.
+    """
+    h, w = img.shape[:2]
+    H, W = int(shape[0]), int(shape[1])
+    if (h, w) == (H, W):
+        return img
+    rows = np.minimum(((np.arange(H) + 0.5) * (h / H)).astype(np.int64), h - 1)
+    cols = np.minimum(((np.arange(W) + 0.5) * (w / W)).astype(np.int64), w - 1)
+    return img[rows[:, None], cols[None, :]]
+
+
+@contextmanager
+def open_image(path: str | Path, what: str):
+    """PIL image of ``path`` whose pixels are loaded; an unreadable, truncated or corrupt file
+    is one ValueError naming it (Pillow raises OSError and friends)."""
+    from PIL import Image, UnidentifiedImageError
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{what} {path} does not exist")
+    try:
+        im = Image.open(path)
+        im.load()
+    except (OSError, UnidentifiedImageError, SyntaxError, ValueError) as exc:
+        raise ValueError(f"{path}: unreadable {what} ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
+    with im:
+        yield im
+
+
+def read_label_png(path: str | Path) -> np.ndarray:
+    """Single-channel label image -> (H, W) int64 ids (8/16-bit grey, 32-bit int, or palette indices)."""
+    path = Path(path)
+    with open_image(path, "label image") as im:
+        if im.mode not in ("L", "P", "I", "I;16", "I;16B", "I;16L"):
+            raise ValueError(f"{path}: label image mode {im.mode}, expected single-channel 8/16-bit ids "
+                             f"(grey or palette), not colour-coded labels")
+        arr = np.asarray(im)
+    return arr.astype(np.int64)
+
+
+def load_label_prediction(path: str | Path, mapping: ClassMapping | None,
+                          shape: tuple[int, int]) -> tuple[np.ndarray, int]:
+    """A predicted label image for a frame of depth resolution ``shape`` = (H, W).
+
+    Args:
+        path: PNG of source class ids.
+        mapping: source ids -> evaluation ids; None = the file already holds
+            evaluation ids (IGNORE can then not be expressed; use a mapping with an
+            ``ignore`` row for a void id).
+        shape: (H, W) of the frame's depth image; the labels are resized nearest to it.
+    Returns:
+        labels: (H, W) int16 evaluation class ids, IGNORE for unmapped classes;
+        n_unmapped: pixels whose source class maps to ignore.
+    """
+    ids = resize_nearest(read_label_png(path), shape)
+    if mapping is not None:
+        try:
+            return mapping.apply(ids)
+        except ValueError as e:
+            raise ValueError(f"{path}: {e}") from None
+    if ids.size and ids.max() > np.iinfo(np.int16).max:
+        raise ValueError(f"{path}: label id {int(ids.max())} does not fit int16; give a class mapping")
+    return ids.astype(np.int16), 0
+
+
+def load_probability_prediction(path: str | Path, num_classes: int, shape: tuple[int, int]) -> np.ndarray:
+    """Per-pixel class probabilities for a frame of depth resolution ``shape`` = (H, W).
+
+    Args:
+        path: ``.npy`` or ``.npz`` (array ``probs`` if present, else the first array),
+            (H', W', C) or (C, H', W'); C must equal ``num_classes``.
+        num_classes: C of the evaluation taxonomy.
+        shape: (H, W) target resolution (nearest-neighbour resize).
+    Returns:
+        (H, W, C) float32 non-negative scores (not renormalised; evidence normalises rows).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"probability file {path} does not exist")
+    if path.suffix == ".npy":
+        arr = np.load(path, allow_pickle=False)
+    elif path.suffix == ".npz":
+        with np.load(path, allow_pickle=False) as z:
+            if not z.files:
+                raise ValueError(f"{path}: empty .npz, expected an array of class probabilities")
+            arr = z["probs"] if "probs" in z.files else z[z.files[0]]
+    else:
+        raise ValueError(f"{path}: probability file must be .npy or .npz, got {path.suffix or 'no suffix'}")
+    if arr.ndim != 3 or arr.dtype.kind not in "fiu":
+        raise ValueError(f"{path}: probabilities of shape {arr.shape} dtype {arr.dtype}, expected numeric "
+                         f"(H, W, {num_classes}) or ({num_classes}, H, W)")
+    last, first = arr.shape[2] == num_classes, arr.shape[0] == num_classes
+    if last and first:  # C == H or C == W: let the spatial size decide, else assume (H, W, C)
+        first = tuple(arr.shape[1:]) == tuple(shape) and tuple(arr.shape[:2]) != tuple(shape)
+        last = not first
+    if first and not last:
+        arr = np.moveaxis(arr, 0, 2)
+    elif not last:
+        raise ValueError(f"{path}: probabilities of shape {arr.shape} have no axis of {num_classes} classes "
+                         f"(expected (H, W, {num_classes}) or ({num_classes}, H, W))")
+    arr = arr.astype(np.float32, copy=False)
+    if not np.isfinite(arr).all() or (arr < 0).any():
+        raise ValueError(f"{path}: probabilities contain NaN/inf or negative values, expected scores >= 0")
+    return np.ascontiguousarray(resize_nearest(arr, shape))
+
+
+def find_prediction(folder: str | Path, frame_name: str, patterns=DEFAULT_PATTERNS) -> Path:
+    """First existing file ``folder / pattern.format(name=frame_name)`` among ``patterns``."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"prediction folder {folder} does not exist")
+    tried = [folder / p.format(name=frame_name) for p in patterns]
+    for p in tried:
+        if p.is_file():
+            return p
+    raise FileNotFoundError(f"no prediction for frame {frame_name!r} in {folder} "
+                            f"(tried {', '.join(t.name for t in tried)})")

@@ -1,0 +1,108 @@
+"""The frames' 2D labels: ground truth, or simulated 2D-network mistakes on it.
+
+Predictions are attached lazily, frame by frame, so a long sequence is never held in memory
+twice; each frame's simulation is seeded by (predictions.seed, frame index), so it does not
+depend on the order in which frames are visited.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable, Sequence
+
+import numpy as np
+
+from diffuser_lab.config import PredictionsConfig, PredictionSource
+
+from .scene import Frame, Taxonomy
+
+
+class MappedFrames(Sequence[Frame]):
+    """A read-only sequence whose item i is ``fn(i, frames[i])``, computed on access."""
+
+    def __init__(self, frames: Sequence[Frame], fn: Callable[[int, Frame], Frame], stats: dict | None = None):
+        self._frames, self._fn = frames, fn
+        self.stats = stats if stats is not None else {}  # e.g. unmapped pixel counts, filled on access
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    def __getitem__(self, i):  # type: ignore[override]
+        if isinstance(i, slice):
+            return [self[j] for j in range(*i.indices(len(self)))]
+        if i < 0:
+            i += len(self)
+        return self._fn(i, self._frames[i])
+
+
+def describe(cfg: PredictionsConfig) -> str:
+    """What the frames' 2D labels are, in a few words (progress lines name the frame stage with it)."""
+    if cfg.source == PredictionSource.gt:
+        return "ground-truth 2D labels"
+    if cfg.source == PredictionSource.simulated:
+        return "simulated 2D predictions"
+    return f"2D predictions from {cfg.folder}"
+
+
+def with_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy: Taxonomy) -> Sequence[Frame]:
+    """Frames whose ``labels`` are the configured predictions."""
+    if cfg.source == PredictionSource.gt:
+        def fn(i: int, f: Frame) -> Frame:
+            _need_gt(f)
+            return dataclasses.replace(f, labels=f.gt_labels, probs=None)
+    elif cfg.source == PredictionSource.simulated:
+        from .simulate import simulate_predictions
+
+        def fn(i: int, f: Frame) -> Frame:
+            _need_gt(f)
+            rng = np.random.default_rng([cfg.seed, i])
+            pred = simulate_predictions(
+                f.gt_labels, taxonomy.num_classes, rng, strength=cfg.strength, jitter_px=cfg.jitter_px,
+                jitter_scale_px=cfg.jitter_scale_px, confuse_prob=cfg.confuse_prob,
+                confuse_max_frac=cfg.confuse_max_frac, blob_count=cfg.blob_count, blob_radius=cfg.blob_radius,
+                blob_roughness=cfg.blob_roughness, class_names=taxonomy.names)
+            return dataclasses.replace(f, labels=pred, probs=None)
+    elif cfg.source == PredictionSource.files:
+        return _file_predictions(frames, cfg, taxonomy)
+    else:  # pragma: no cover - the config enum forbids it
+        raise ValueError(f"predictions.source={cfg.source}: unknown")
+    return MappedFrames(frames, fn)
+
+
+def _file_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy: Taxonomy) -> MappedFrames:
+    """A 2D network's outputs, one file per frame named after it: label images (mapped to the
+    taxonomy; unmapped ids become IGNORE and are counted) or class probabilities (soft evidence)."""
+    from pathlib import Path
+
+    from .mapping import load_mapping
+    from .prediction_files import find_prediction, load_label_prediction, load_probability_prediction
+
+    if not cfg.folder:
+        raise ValueError("predictions.folder is required for predictions.source=files")
+    folder = Path(cfg.folder)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"predictions.folder={folder}: no such folder")
+    mapping = load_mapping(cfg.mapping, taxonomy) if cfg.mapping else None
+    stats = {"unmapped_pixels": 0, "label_files": 0, "probability_files": 0}
+    seen: set[int] = set()
+
+    def fn(i: int, f: Frame) -> Frame:
+        path = find_prediction(folder, f.name)
+        if path.suffix in (".npy", ".npz"):
+            probs = load_probability_prediction(path, taxonomy.num_classes, f.shape)
+            if i not in seen:
+                stats["probability_files"] += 1
+                seen.add(i)
+            return dataclasses.replace(f, labels=None, probs=probs)
+        labels, n_unmapped = load_label_prediction(path, mapping, f.shape)
+        if i not in seen:  # count each frame once, however often it is read
+            stats["label_files"] += 1
+            stats["unmapped_pixels"] += int(n_unmapped)
+            seen.add(i)
+        return dataclasses.replace(f, labels=labels, probs=None)
+
+    return MappedFrames(frames, fn, stats)
+
+
+def _need_gt(f: Frame) -> None:
+    if f.gt_labels is None:
+        raise ValueError(f"frame {f.name}: predictions need ground-truth label images, which this scene lacks")

@@ -1,0 +1,393 @@
+"""Ray-cast rendering of labelled triangle meshes, surface sampling and camera paths.
+
+Used to build synthetic scenes whose every quantity is known exactly: z-depth and
+label images of posed pinhole views, and a labelled point cloud sampled on the
+same mesh.
+
+Conventions (see :mod:`diffuser_lab.data.scene`): world metres, ``T_cw`` world-to-camera,
+camera looks along +z with x right and y down. Pixel ``(u, v)`` (column, row) has its
+centre at image coordinate ``(u, v)`` (the OpenCV convention used by
+:mod:`diffuser_lab.data.geometry`), so a point projecting to ``(x, y)`` lands in pixel
+``(round(x), round(y))``. Open3D's ``create_rays_pinhole`` puts pixel centres at
+``(u + 0.5, v + 0.5)``; :meth:`MeshRenderer.render` shifts the principal point by half
+a pixel to match.
+"""
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+
+from diffuser_lab import progress
+
+from .scene import IGNORE
+
+__all__ = [
+    "look_at",
+    "intrinsics",
+    "MeshRenderer",
+    "triangle_normals",
+    "sample_surface",
+    "camera_trajectory",
+    "render_views",
+]
+
+
+def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """World-to-camera transform of a camera at ``eye`` looking at ``target``.
+
+    Args:
+        eye: (3,) camera centre, world metres.
+        target: (3,) point the optical axis (+z) goes through, world metres.
+        up: (3,) world up direction; the image's y axis (down) points against it.
+            When the gaze is (nearly) parallel to ``up`` another up is used.
+
+    Returns:
+        (4, 4) float64 ``T_cw`` with rows of the rotation = camera x, y, z axes in world.
+    """
+    eye = np.asarray(eye, np.float64)
+    z = np.asarray(target, np.float64) - eye
+    norm = np.linalg.norm(z)
+    if norm < 1e-12:
+        raise ValueError("look_at: eye and target coincide")
+    z /= norm
+    up = np.asarray(up, np.float64)
+    x = np.cross(z, up)
+    if np.linalg.norm(x) < 1e-6 * np.linalg.norm(up):
+        # Looking straight along up: any horizontal right vector will do.
+        alt = np.array([0.0, 1.0, 0.0]) if abs(z[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
+        x = np.cross(z, alt)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)  # image down = forward x right
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, y, z])
+    T[:3, 3] = -T[:3, :3] @ eye
+    return T
+
+
+def intrinsics(width: int, height: int, fov_deg: float) -> np.ndarray:
+    """(3, 3) float64 pinhole K with square pixels, horizontal field of view
+    ``fov_deg`` (degrees) and principal point at the image centre ((w-1)/2, (h-1)/2),
+    pixel centres at integer coordinates."""
+    f = 0.5 * width / np.tan(np.deg2rad(fov_deg) / 2.0)
+    return np.array([[f, 0.0, (width - 1) / 2.0], [0.0, f, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
+
+
+def triangle_normals(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals (T, 3) float64 (right-hand rule on the vertex order, zero for
+    degenerate triangles) and areas (T,) float64 m^2 of a triangle mesh."""
+    v = np.asarray(vertices, np.float64)
+    t = np.asarray(triangles, np.int64)
+    cr = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
+    norm = np.linalg.norm(cr, axis=1)
+    n = cr / np.maximum(norm, 1e-20)[:, None]
+    return n, 0.5 * norm
+
+
+class MeshRenderer:
+    """Ray caster for a labelled triangle mesh (Open3D Embree scene, built once).
+
+    Args:
+        vertices: (V, 3) world coordinates, metres.
+        triangles: (T, 3) int vertex indices.
+        triangle_labels: (T,) int class id of each triangle (IGNORE allowed).
+    """
+
+    def __init__(self, vertices: np.ndarray, triangles: np.ndarray, triangle_labels: np.ndarray):
+        self.vertices = np.ascontiguousarray(vertices, np.float32)
+        self.triangles = np.ascontiguousarray(triangles, np.uint32)
+        self.triangle_labels = np.asarray(triangle_labels, np.int16)
+        if self.triangle_labels.shape != (len(self.triangles),):
+            raise ValueError("triangle_labels must have one entry per triangle")
+        self.normals, _ = triangle_normals(self.vertices, self.triangles)
+        self.normals = self.normals.astype(np.float32)  # (T, 3) unit, winding order
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(o3d.core.Tensor(self.vertices), o3d.core.Tensor(self.triangles))
+        # Label lookup with a trailing IGNORE slot for "no hit" (INVALID_ID).
+        self._label_lut = np.append(self.triangle_labels, np.int16(IGNORE))
+
+    def _cast(self, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        ans = self.scene.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays, np.float32)))
+        t_hit = ans["t_hit"].numpy()
+        prim = ans["primitive_ids"].numpy().astype(np.int64)
+        prim[~np.isfinite(t_hit)] = len(self.triangles)
+        return t_hit, prim
+
+    def cast(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """First-hit ray parameter for rays ``origins + t * directions``.
+
+        Args:
+            origins: (..., 3) world metres. directions: (..., 3), not necessarily unit.
+
+        Returns:
+            (...,) float32 ``t`` in units of ``|direction|`` (metres for unit
+            directions); inf where nothing is hit.
+        """
+        o, d = np.broadcast_arrays(np.asarray(origins, np.float32), np.asarray(directions, np.float32))
+        return self._cast(np.concatenate([o, d], axis=-1))[0]
+
+    def cast_full(self, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Like :meth:`cast` but also returns the (...,) int64 hit triangle index
+        (``len(triangles)`` where nothing is hit)."""
+        o, d = np.broadcast_arrays(np.asarray(origins, np.float32), np.asarray(directions, np.float32))
+        return self._cast(np.concatenate([o, d], axis=-1))
+
+    def hits_back_face(self, directions: np.ndarray, prim: np.ndarray) -> np.ndarray:
+        """(...,) bool: the ray with (..., 3) ``directions`` hit triangle ``prim`` from
+        behind (direction along its normal), i.e. it started inside a closed solid or
+        behind a one-sided surface. False where nothing was hit."""
+        hit = prim < len(self.triangles)
+        n = self.normals[np.where(hit, prim, 0)]
+        return hit & (np.einsum("...k,...k->...", np.asarray(directions, np.float32), n) > 0)
+
+    def render(self, K: np.ndarray, T_cw: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+        """Render z-depth and label images of a pinhole view.
+
+        Args:
+            K: (3, 3) intrinsics, pixels. T_cw: (4, 4) world-to-camera, metres.
+            width, height: image size in pixels.
+
+        Returns:
+            depth: (H, W) float32 z-depth in metres along the optical axis, 0 = no hit.
+            labels: (H, W) int16 label of the hit triangle, IGNORE where nothing is hit.
+        """
+        K_o3d = np.array(K, np.float64)
+        K_o3d[:2, 2] += 0.5  # Open3D casts pixel (u, v) through (u + 0.5, v + 0.5)
+        rays = o3d.t.geometry.RaycastingScene.create_rays_pinhole(
+            o3d.core.Tensor(K_o3d), o3d.core.Tensor(np.asarray(T_cw, np.float64)),
+            int(width), int(height))
+        # Open3D scales each ray direction to unit camera-z, so t_hit is already z-depth.
+        t_hit, prim = self._cast(rays.numpy())
+        depth = np.where(np.isfinite(t_hit), t_hit, 0.0).astype(np.float32)
+        return depth, self._label_lut[prim]
+
+
+def sample_surface(
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    triangle_labels: np.ndarray,
+    spacing: float,
+    rng: np.random.Generator,
+    noise: float = 0.0,
+    *,
+    occlusion_offset: float = 1e-3,
+    occlusion_dist: float = 0.05,
+    backface_occludes: bool = True,
+    renderer: MeshRenderer | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Area-uniform random points on a labelled mesh, as a scanner would see them.
+
+    Each triangle gets ``area / spacing^2`` points in expectation (stochastic rounding
+    of the count, uniform barycentric positions). Points whose surface is covered by
+    other geometry (wall behind a picture, floor under a cabinet, touching box faces)
+    are dropped: a ray from each point along its normal (starting ``occlusion_offset``
+    off the surface) that hits geometry within ``occlusion_dist``, or hits the back
+    face of a triangle (the point lies inside another closed solid), marks it hidden.
+    Normals must therefore point to the visible side (outward winding).
+
+    Args:
+        vertices: (V, 3) world metres. triangles: (T, 3) int. triangle_labels: (T,) int.
+        spacing: metres; density is one point per ``spacing^2`` of area.
+        rng: random generator (all randomness comes from it).
+        noise: std of isotropic gaussian position noise, metres (applied after the
+            visibility test; normals stay the exact triangle normals).
+        occlusion_offset, occlusion_dist: metres, see above.
+        backface_occludes: apply the back-face rule (needs closed, outward-wound
+            solids; turn off for open scanned meshes with unreliable winding).
+        renderer: a :class:`MeshRenderer` of the same mesh to reuse, else one is built.
+
+    Returns:
+        points (N, 3) float32 world metres, normals (N, 3) float32 unit,
+        labels (N,) int16 triangle labels.
+    """
+    v = np.asarray(vertices, np.float64)
+    tri = np.asarray(triangles, np.int64)
+    tri_lab = np.asarray(triangle_labels, np.int16)
+    n_tri, area = triangle_normals(v, tri)
+
+    expected = area / float(spacing) ** 2
+    counts = np.floor(expected).astype(np.int64)
+    counts += rng.random(len(tri)) < (expected - counts)
+    idx = np.repeat(np.arange(len(tri)), counts)
+
+    # Uniform barycentric sampling: fold the unit square onto the triangle.
+    uv = rng.random((len(idx), 2))
+    flip = uv.sum(1) > 1.0
+    uv[flip] = 1.0 - uv[flip]
+    a, b, c = v[tri[idx, 0]], v[tri[idx, 1]], v[tri[idx, 2]]
+    pts = a + uv[:, :1] * (b - a) + uv[:, 1:] * (c - a)
+    nrm = n_tri[idx]
+
+    with progress.stage(f"sampling surface points ({len(idx):,} candidates)"):
+        if renderer is None:
+            renderer = MeshRenderer(v, tri, tri_lab)
+        t, prim = renderer.cast_full(pts + occlusion_offset * nrm, nrm)
+        # Near hit = covered by a touching/hung object; back-face hit = the ray starts
+        # inside another closed solid (e.g. a leg top under a table top).
+        keep = t > occlusion_dist
+        if backface_occludes:
+            keep &= ~renderer.hits_back_face(nrm, prim)
+    pts, nrm, idx = pts[keep], nrm[keep], idx[keep]
+
+    if noise > 0:
+        pts = pts + rng.normal(scale=noise, size=pts.shape)
+    return pts.astype(np.float32), nrm.astype(np.float32), tri_lab[idx]
+
+
+def _fibonacci_sphere(n: int) -> np.ndarray:
+    """(n, 3) float64 near-uniform unit directions (deterministic)."""
+    i = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * i / n
+    r = np.sqrt(1.0 - z**2)
+    phi = np.pi * (1.0 + 5**0.5) * i
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+def camera_trajectory(
+    vertices: np.ndarray,
+    n_views: int,
+    rng: np.random.Generator,
+    *,
+    width: int,
+    height: int,
+    K: np.ndarray,
+    renderer: MeshRenderer,
+    min_coverage: float = 0.3,
+    eye_height_range: tuple[float, float] = (1.2, 1.8),
+    margin: float = 0.5,
+    max_tries_factor: int = 20,
+    pitch_range_deg: tuple[float, float] = (-40.0, -5.0),
+    min_clearance: float = 0.3,
+    min_target_dist: float = 1.0,
+) -> list[np.ndarray]:
+    """Handheld-scan-like camera poses inside a room mesh, ordered like a video.
+
+    Eyes are uniform in the mesh's axis-aligned bounding box shrunk by ``margin``
+    (metres) in x and y, at a height drawn from ``eye_height_range`` (metres above
+    the floor = min z, clipped to the box). Each camera heads towards a point sampled
+    area-uniformly on the mesh (at least ``min_target_dist`` metres away horizontally
+    when possible), with a downward pitch drawn in ``pitch_range_deg`` (degrees,
+    negative = down), like someone scanning a room. A candidate is rejected when:
+    its eye is closer than ``min_clearance`` metres to geometry, it looks from inside
+    or behind a surface (most first hits around it are back faces, or nothing is
+    below it), or the fraction of pixels with valid depth is below ``min_coverage``.
+    Accepted views are chained greedily by nearest neighbour on (eye, point 1 m
+    ahead), so consecutive views overlap.
+
+    Args:
+        vertices: (V, 3) mesh vertices, world metres (z up).
+        n_views: number of poses to return.
+        rng: random generator.
+        width, height, K: image size (pixels) and (3, 3) intrinsics used for coverage.
+        renderer: :class:`MeshRenderer` of the mesh.
+        max_tries_factor: at most ``max_tries_factor * n_views`` candidates are tried.
+
+    Returns:
+        list of ``n_views`` (4, 4) float64 ``T_cw``.
+
+    Raises:
+        ValueError: when fewer than ``n_views`` acceptable poses are found.
+    """
+    v = np.asarray(vertices, np.float64)
+    lo, hi = v.min(0), v.max(0)
+    xy_lo, xy_hi = lo[:2] + margin, hi[:2] - margin
+    bad = xy_lo > xy_hi  # room narrower than 2 * margin: use its centre line
+    mid = 0.5 * (lo[:2] + hi[:2])
+    xy_lo, xy_hi = np.where(bad, mid, xy_lo), np.where(bad, mid, xy_hi)
+
+    # Area-weighted target sampling on the mesh (vertices are not uniform on box meshes).
+    tri = renderer.triangles.astype(np.int64)
+    tv = renderer.vertices.astype(np.float64)
+    _, area = triangle_normals(tv, tri)
+    cdf = np.cumsum(area)
+    cdf /= cdf[-1]
+
+    probe = _fibonacci_sphere(64)
+    max_tries = int(max_tries_factor * n_views)
+    batch = max(8, 2 * n_views)
+    poses: list[np.ndarray] = []
+    tried = 0
+    n_close = n_inside = n_cover = 0
+    with progress.stage("choosing camera views", total=n_views, unit="view") as bar:
+        while len(poses) < n_views and tried < max_tries:
+            m = min(batch, max_tries - tried)
+            tried += m
+            eyes = np.empty((m, 3))
+            eyes[:, :2] = rng.uniform(xy_lo, xy_hi, size=(m, 2))
+            eyes[:, 2] = np.clip(lo[2] + rng.uniform(*eye_height_range, size=m), lo[2], hi[2])
+
+            # Clearance / inside test for the whole batch in one cast.
+            dirs = np.broadcast_to(probe, (m, len(probe), 3))
+            t_hit, prim = renderer.cast_full(np.repeat(eyes[:, None], len(probe), 1), dirs)
+            hit = np.isfinite(t_hit)
+            back = renderer.hits_back_face(dirs, prim)
+            below = np.isfinite(renderer.cast(eyes, np.array([0.0, 0.0, -1.0])))
+            close = np.where(hit, t_hit, np.inf).min(1) < min_clearance
+            inside = (back.sum(1) > 0.3 * np.maximum(hit.sum(1), 1)) | ~below
+
+            # Heading towards a content point; a few draws to get one far enough away.
+            tgt_idx = np.searchsorted(cdf, rng.random((m, 4)))
+            tgt_idx = np.minimum(tgt_idx, len(tri) - 1)
+            w = rng.dirichlet(np.ones(3), size=(m, 4))  # uniform point in each triangle
+            tgt = np.einsum("mjk,mjkd->mjd", w, tv[tri[tgt_idx]])  # (m, 4, 3)
+            hd = np.linalg.norm(tgt[..., :2] - eyes[:, None, :2], axis=-1)
+            pick = np.argmax(hd >= min_target_dist, axis=1)  # first far one (0 if none)
+            heading = tgt[np.arange(m), pick, :2] - eyes[:, :2]
+            heading /= np.maximum(np.linalg.norm(heading, axis=1, keepdims=True), 1e-9)
+            pitch = np.deg2rad(rng.uniform(*pitch_range_deg, size=m))
+            fwd = np.concatenate([heading * np.cos(pitch)[:, None], np.sin(pitch)[:, None]], axis=1)
+
+            for i in range(m):
+                if len(poses) >= n_views:
+                    break
+                if close[i]:
+                    n_close += 1
+                    continue
+                if inside[i]:
+                    n_inside += 1
+                    continue
+                T = look_at(eyes[i], eyes[i] + fwd[i])
+                depth, _ = renderer.render(K, T, width, height)
+                if np.count_nonzero(depth) < min_coverage * depth.size:
+                    n_cover += 1
+                    continue
+                poses.append(T)
+                bar.set(len(poses))
+
+    if len(poses) < n_views:
+        raise ValueError(
+            f"camera_trajectory: found only {len(poses)} of {n_views} acceptable views in "
+            f"{tried} tries (rejected: {n_close} too close to geometry (<{min_clearance} m), "
+            f"{n_inside} inside/behind geometry, {n_cover} valid-depth fraction < {min_coverage}); "
+            f"lower min_coverage/margin or raise max_tries_factor")
+    return _order_chain(poses)
+
+
+def _order_chain(poses: list[np.ndarray]) -> list[np.ndarray]:
+    """Greedy nearest-neighbour chain on (eye, point 1 m ahead) so that consecutive
+    views are close in position and gaze; starts at the view nearest the scene's
+    min-x end of the eye cloud for a deterministic, open-ended path."""
+    R = np.stack([T[:3, :3] for T in poses])
+    t = np.stack([T[:3, 3] for T in poses])
+    eyes = -np.einsum("nji,nj->ni", R, t)  # -R^T t
+    feat = np.concatenate([eyes, eyes + R[:, 2]], axis=1)
+    d = np.linalg.norm(feat[:, None] - feat[None], axis=-1)
+    order = [int(np.argmin(eyes[:, 0]))]
+    used = np.zeros(len(poses), bool)
+    used[order[0]] = True
+    for _ in range(len(poses) - 1):  # loop over views, not points
+        row = np.where(used, np.inf, d[order[-1]])
+        j = int(np.argmin(row))
+        order.append(j)
+        used[j] = True
+    return [poses[i] for i in order]
+
+
+def render_views(renderer: MeshRenderer, K: np.ndarray, poses, width: int, height: int):
+    """Render every pose of ``poses`` ((4, 4) ``T_cw``): a list of (depth, labels) as
+    :meth:`MeshRenderer.render` returns them, shown as the stage "rendering views"."""
+    out = []
+    with progress.stage("rendering views", total=len(poses), unit="view") as bar:
+        for T in poses:  # loop over views
+            out.append(renderer.render(K, T, width, height))
+            bar.update()
+    return out

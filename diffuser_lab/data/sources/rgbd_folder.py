@@ -1,0 +1,381 @@
+"""Posed RGB-D folders in the ``frame-XXXXXX.*`` layout (7-Scenes, tsdf-fusion, SUN3D exports).
+
+Layout of ``root``::
+
+    camera-intrinsics.txt        3x3 K (pixels) of the depth image, shared by all frames
+    frame-000000.color.jpg       colour (any resolution; resized to the depth's)
+    frame-000000.depth.png       16-bit depth, ``depth_scale`` units per metre
+    frame-000000.pose.txt        4x4 camera-to-world, metres
+    frame-000000.<label_suffix>  optional ground-truth label image
+
+Depth PNG values differ between datasets: 7-Scenes / ScanNet / TUM-like exports store
+millimetres (``depth_scale=1000``; 7-Scenes marks invalid pixels 65535, others 0),
+TUM stores 1/5000 m, and SUN3D stores millimetres rotated left by 3 bits
+(``depth_bit_shift=3`` undoes it with a 16-bit circular right shift). The loader warns
+when the first frame's median depth looks like a wrong unit.
+
+Frames are read lazily (one frame's files per ``scene.frames[i]``), so memory does not
+grow with the sequence length. Also home of the readers shared with
+:mod:`diffuser_lab.data.sources.scannet`.
+"""
+from __future__ import annotations
+
+import re
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from diffuser_lab import progress
+from diffuser_lab.data.geometry import backproject, voxel_downsample
+from diffuser_lab.data.mapping import ClassMapping, load_mapping
+from diffuser_lab.data.prediction_files import open_image, read_label_png, resize_nearest
+from diffuser_lab.data.scene import IGNORE, SCANNET20, Frame, Scene, Taxonomy
+from diffuser_lab.data.validate import check_depth_unit
+
+__all__ = [
+    "load_rgbd_folder",
+    "LazyFrames",
+    "read_pose_c2w",
+    "read_intrinsics",
+    "read_depth_png",
+    "read_rgb",
+    "read_point_cloud_ply",
+    "rigid_inverse",
+]
+
+_FRAME_RE = re.compile(r"^frame-(\d+)\.")
+
+
+class LazyFrames(Sequence):
+    """Read-on-access sequence of :class:`Frame`: ``frames[i]`` calls ``loader(i)``.
+
+    Only the per-frame metadata (names, poses) lives in memory; images are read each
+    time a frame is indexed, so iterating once over thousands of frames stays small.
+    """
+
+    def __init__(self, names: Sequence[str], loader: Callable[[int], Frame], info: dict | None = None):
+        self.names = list(names)
+        self._loader = loader
+        self.info = dict(info or {})  # loader statistics (e.g. skipped frames), for reports
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            idx = range(len(self.names))[i]
+            return LazyFrames([self.names[k] for k in idx], lambda k: self._loader(idx[k]), self.info)
+        n = len(self.names)
+        if not -n <= i < n:
+            raise IndexError(f"frame index {i} out of range for {n} frames")
+        return self._loader(i % n)
+
+    def __repr__(self) -> str:
+        return f"LazyFrames({len(self)} frames)"
+
+
+def rigid_inverse(T: np.ndarray) -> np.ndarray:
+    """Inverse of a (4, 4) rigid transform (R^T, -R^T t), float64."""
+    R, t = T[:3, :3], T[:3, 3]
+    out = np.eye(4)
+    out[:3, :3] = R.T
+    out[:3, 3] = -R.T @ t
+    return out
+
+
+def _read_matrix(path: Path, what: str) -> np.ndarray:
+    if not path.is_file():
+        raise FileNotFoundError(f"{what} file {path} does not exist")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # an empty file is reported below, not as a warning
+            M = np.loadtxt(path, dtype=np.float64, ndmin=2)
+    except ValueError as e:
+        raise ValueError(f"{path}: cannot parse {what} as a numeric matrix ({str(e).splitlines()[0]})") from None
+    if M.size == 0:
+        raise ValueError(f"{path}: empty {what} file")
+    return M
+
+
+def read_pose_c2w(path: str | Path, tol: float = 1e-3) -> np.ndarray | None:
+    """4x4 camera-to-world pose file -> (4, 4) float64, or None when it has non-finite
+    entries (ScanNet marks failed tracking with -inf poses; the caller skips those).
+
+    Raises:
+        ValueError: not 4x4, or finite but not a rigid transform (R^T R != I within ``tol``,
+            det R != 1, last row != 0 0 0 1), naming the file.
+    """
+    path = Path(path)
+    T = _read_matrix(path, "pose")
+    if T.shape != (4, 4):
+        raise ValueError(f"{path}: pose of shape {T.shape}, expected a 4x4 camera-to-world matrix")
+    if not np.isfinite(T).all():
+        return None
+    R = T[:3, :3]
+    ortho = np.abs(R.T @ R - np.eye(3)).max()
+    det = np.linalg.det(R)
+    if ortho > tol or abs(det - 1.0) > tol or np.abs(T[3] - [0, 0, 0, 1]).max() > tol:
+        raise ValueError(f"{path}: pose is not a rigid transform (max|R^T R - I| = {ortho:.2g}, det R = {det:.4g}, "
+                         f"last row {T[3].tolist()}), expected 4x4 camera-to-world rotation + translation")
+    return T
+
+
+def read_intrinsics(path: str | Path) -> np.ndarray:
+    """3x3 intrinsics file (or 4x4 whose upper-left 3x3 is K, as ScanNet's) -> (3, 3) float64.
+
+    Raises:
+        ValueError: wrong shape, non-positive focal lengths or a non-[0 0 1] last row.
+    """
+    path = Path(path)
+    M = _read_matrix(path, "intrinsics")
+    if M.shape not in ((3, 3), (4, 4)):
+        raise ValueError(f"{path}: intrinsics of shape {M.shape}, expected 3x3 (or 4x4 with K upper-left)")
+    K = M[:3, :3].copy()
+    if not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0 or np.abs(K[2] - [0, 0, 1]).max() > 1e-6:
+        raise ValueError(f"{path}: intrinsics {K.tolist()} need positive focal lengths fx, fy and last row 0 0 1")
+    return K
+
+
+def read_depth_png(path: str | Path, depth_scale: float, bit_shift: int = 0,
+                   invalid=(0, 65535)) -> np.ndarray:
+    """16-bit depth PNG -> (H, W) float32 z-depth in metres, 0 = invalid.
+
+    Args:
+        depth_scale: stored units per metre (1000 for millimetres).
+        bit_shift: circular right shift of the raw 16-bit value before scaling (SUN3D: 3).
+        invalid: raw stored values (before the shift) meaning "no depth".
+    """
+    path = Path(path)
+    with open_image(path, "depth image") as im:
+        raw = np.asarray(im)
+    if raw.ndim != 2 or raw.dtype.kind not in "ui" or raw.dtype.itemsize < 2:
+        raise ValueError(f"{path}: depth image of dtype {raw.dtype} shape {raw.shape}, expected single-channel 16-bit")
+    raw = raw.astype(np.uint32) & 0xFFFF
+    bad = np.isin(raw, np.asarray(invalid, np.uint32))
+    if bit_shift:
+        s = int(bit_shift) % 16
+        raw = ((raw >> s) | (raw << (16 - s))) & 0xFFFF  # 16-bit rotate right
+    depth = raw.astype(np.float32) / np.float32(depth_scale)
+    depth[bad] = 0.0
+    return depth
+
+
+def read_rgb(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndarray:
+    """Colour image -> (H, W, 3) uint8, bilinearly resized to ``shape`` = (H, W) when given."""
+    from PIL import Image
+
+    path = Path(path)
+    with open_image(path, "colour image") as im:
+        im = im.convert("RGB")
+        if shape is not None and im.size != (shape[1], shape[0]):
+            im = im.resize((int(shape[1]), int(shape[0])), Image.BILINEAR)
+        return np.asarray(im, dtype=np.uint8).copy()
+
+
+def read_point_cloud_ply(path: str | Path) -> dict:
+    """PLY vertices -> dict with ``points`` (N, 3) float32 and, when present, ``colors``
+    (N, 3) uint8, ``normals`` (N, 3) float32 unit, ``labels`` (N,) int64 (property ``label``)."""
+    from plyfile import PlyData
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"point cloud {path} does not exist")
+    try:
+        ply = PlyData.read(str(path))
+    except Exception as e:  # plyfile raises several types for corrupt files
+        raise ValueError(f"{path}: not a readable PLY file ({type(e).__name__}: {e})") from None
+    if "vertex" not in ply:
+        raise ValueError(f"{path}: PLY has no 'vertex' element, expected points with x, y, z")
+    v = ply["vertex"].data
+    names = set(v.dtype.names or ())
+    if not {"x", "y", "z"} <= names or len(v) == 0:
+        raise ValueError(f"{path}: PLY vertices lack x/y/z or are empty, expected points in metres")
+    out = {"points": np.stack([v["x"], v["y"], v["z"]], 1).astype(np.float32)}
+    if {"red", "green", "blue"} <= names:
+        out["colors"] = np.stack([v["red"], v["green"], v["blue"]], 1).astype(np.uint8)
+    if {"nx", "ny", "nz"} <= names:
+        n = np.stack([v["nx"], v["ny"], v["nz"]], 1).astype(np.float32)
+        norm = np.linalg.norm(n, axis=1, keepdims=True)
+        out["normals"] = np.where(norm > 0, n / np.maximum(norm, 1e-12), 0).astype(np.float32)
+    if "label" in names:
+        out["labels"] = np.asarray(v["label"]).astype(np.int64)
+    return out
+
+
+def _as_mapping(mapping, taxonomy: Taxonomy) -> ClassMapping | None:
+    if mapping is None or isinstance(mapping, ClassMapping):
+        return mapping
+    return load_mapping(mapping, taxonomy)
+
+
+def _taxonomy_ids(ids: np.ndarray, mapping: ClassMapping | None, taxonomy: Taxonomy, what: str) -> np.ndarray:
+    """Raw label ids -> (same shape) int16 taxonomy ids, via ``mapping`` or checked as-is."""
+    if mapping is not None:
+        try:
+            return mapping.apply(ids)[0]
+        except ValueError as e:
+            raise ValueError(f"{what}: {e}") from None
+    if ids.size and (ids.min() < IGNORE or ids.max() >= taxonomy.num_classes):
+        raise ValueError(f"{what}: label ids in [{ids.min()}, {ids.max()}], expected {taxonomy.name} ids "
+                         f"0..{taxonomy.num_classes - 1}; pass mapping= to translate another label space")
+    return ids.astype(np.int16)
+
+
+def load_rgbd_folder(
+    root,
+    *,
+    depth_scale: float = 1000.0,
+    depth_bit_shift: int = 0,
+    invalid_depth=(0, 65535),
+    color_suffix: str | None = "color.jpg",
+    label_suffix: str | None = None,
+    taxonomy: Taxonomy = SCANNET20,
+    mapping: str | ClassMapping | None = None,
+    cloud=None,
+    voxel_size: float = 0.02,
+    cloud_stride: int = 4,
+    frame_step: int = 1,
+    max_frames: int | None = None,
+    max_depth: float | None = None,
+) -> Scene:
+    """Load a ``frame-XXXXXX.*`` posed RGB-D folder (see module docstring) as a Scene.
+
+    Args:
+        root: the folder.
+        depth_scale: stored depth units per metre. depth_bit_shift: 16-bit circular right
+            shift of raw depth before scaling (SUN3D: 3). invalid_depth: raw "no depth" values.
+        color_suffix: colour file suffix (``frame-XXXXXX.<suffix>``), None = no colour.
+        label_suffix: suffix of ground-truth label images (e.g. ``label.png``); frames
+            without that file get ``gt_labels=None``.
+        taxonomy: evaluation classes. mapping: label ids -> taxonomy (CSV name/path or
+            ClassMapping); None = label images (and a cloud's ``label``) hold taxonomy ids.
+        cloud: PLY path of the points to label (optional colours, normals, ``label``),
+            or None = fuse the frames' depth: every ``cloud_stride``-th pixel up to
+            ``max_depth`` metres (None = no cutoff), merged on a ``voxel_size`` grid,
+            colours averaged from the colour images. ``max_depth`` only affects this fusion.
+        frame_step, max_frames: use frames ``[::frame_step]``, at most ``max_frames`` of them.
+    Returns:
+        Scene with lazily loaded frames (``Frame.labels`` None, depth-resolution images);
+        normals only when the cloud PLY has them.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise FileNotFoundError(f"RGB-D folder {root} does not exist")
+    if depth_scale <= 0 or frame_step < 1 or cloud_stride < 1 or voxel_size <= 0:
+        raise ValueError(f"depth_scale={depth_scale}, frame_step={frame_step}, cloud_stride={cloud_stride}, "
+                         f"voxel_size={voxel_size}: expected positive values (steps >= 1)")
+    K = read_intrinsics(root / "camera-intrinsics.txt")
+    mapping = _as_mapping(mapping, taxonomy)
+    if mapping is not None and mapping.target.names != taxonomy.names:
+        raise ValueError(f"mapping {mapping.source} targets taxonomy {mapping.target.name}, expected {taxonomy.name}")
+
+    def stems(suffix: str) -> list[str]:
+        return sorted(p.name[: -len(suffix) - 1] for p in root.glob(f"frame-*.{suffix}") if _FRAME_RE.match(p.name))
+
+    depth_stems, pose_stems = stems("depth.png"), stems("pose.txt")
+    color_stems = stems(color_suffix) if color_suffix else depth_stems
+    if not depth_stems:
+        raise FileNotFoundError(f"{root}: no frame-XXXXXX.depth.png files")
+    if not (len(depth_stems) == len(pose_stems) == len(color_stems)) or \
+            not (depth_stems == pose_stems == color_stems):
+        raise ValueError(f"{root}: {len(depth_stems)} depth, {len(pose_stems)} pose and {len(color_stems)} "
+                         f"{color_suffix} files (or different frame numbers), expected one of each per frame")
+    names = depth_stems[::frame_step]
+    if max_frames is not None:
+        names = names[: int(max_frames)]
+    poses, kept = [], []
+    with progress.stage("reading poses", total=len(names), unit="pose") as bar:
+        for name in names:  # loop over frames: poses are tiny and validated up front
+            T_wc = read_pose_c2w(root / f"{name}.pose.txt")
+            if T_wc is None:
+                raise ValueError(f"{root / (name + '.pose.txt')}: pose has non-finite entries, "
+                                 f"expected a 4x4 rigid camera-to-world transform")
+            poses.append(rigid_inverse(T_wc))
+            kept.append(name)
+            bar.update()
+
+    def load(i: int) -> Frame:
+        name = kept[i]
+        depth = read_depth_png(root / f"{name}.depth.png", depth_scale, depth_bit_shift, invalid_depth)
+        rgb = read_rgb(root / f"{name}.{color_suffix}", depth.shape) if color_suffix else None
+        gt = None
+        if label_suffix:
+            lp = root / f"{name}.{label_suffix}"
+            if lp.is_file():
+                gt = _taxonomy_ids(resize_nearest(read_label_png(lp), depth.shape), mapping, taxonomy, str(lp))
+        return Frame(name=name, K=K.copy(), T_cw=poses[i], depth=depth, gt_labels=gt, rgb=rgb)
+
+    frames = LazyFrames(kept, load, {"n_frames_found": len(depth_stems)})
+    # checked here, before a wrong unit scales the back-projected cloud; the pipeline skips it then
+    check_depth_unit(frames[0], hint=f"depth_scale={depth_scale} (units per metre) / depth_bit_shift")
+    frames.info["depth_unit_checked"] = True
+
+    normals = colors = gt_points = None
+    if cloud is not None:
+        with progress.stage(f"reading point cloud {Path(cloud).name}"):
+            pc = read_point_cloud_ply(cloud)
+        points, colors, normals = pc["points"], pc.get("colors"), pc.get("normals")
+        if "labels" in pc:
+            gt_points = _taxonomy_ids(pc["labels"], mapping, taxonomy, str(cloud))
+    else:
+        points, colors = _fuse_depth(frames, voxel_size, cloud_stride, max_depth)
+        if points.shape[0] == 0:
+            raise ValueError(f"{root}: no valid depth to build a point cloud from (max_depth={max_depth})")
+    return Scene(name=root.name, points=points, taxonomy=taxonomy, frames=frames, normals=normals,
+                 colors=colors, gt_labels=gt_points)
+
+
+def _merge(pts: np.ndarray, cols: np.ndarray, w: np.ndarray, voxel_size: float):
+    """Weighted voxel merge: (N, 3) points, (N, 3) colours and (N,) weights (point counts)
+    -> (M, 3) float32 weighted centroids, (M, 3) float32 mean colours, (M,) float64 summed weights."""
+    grid = voxel_downsample(pts, voxel_size)
+    m = grid.points.shape[0]
+    wsum = np.bincount(grid.inverse, weights=w, minlength=m)
+    # Weight by point count so the result equals one voxelisation of all points (up to grid offsets).
+    P = np.stack([np.bincount(grid.inverse, weights=pts[:, j] * w, minlength=m) for j in range(3)], 1)
+    C = np.stack([np.bincount(grid.inverse, weights=cols[:, j] * w, minlength=m) for j in range(3)], 1)
+    return (P / wsum[:, None]).astype(np.float32), (C / wsum[:, None]).astype(np.float32), wsum
+
+
+def _fuse_depth(frames: Sequence[Frame], voxel_size: float, stride: int, max_depth: float | None):
+    """Back-project every frame's depth and merge on a voxel grid, one frame at a time.
+
+    Per-frame voxelisation bounds what is kept per frame; the partial clouds are merged
+    again whenever they grow past a few times the merged size, so memory follows the
+    scene's extent, not the number of frames.
+    Returns (M, 3) float32 points and (M, 3) uint8 colours (grey 128 without colour).
+    """
+    with progress.stage(f"fusing depth into a cloud ({voxel_size:g} m voxels)", total=len(frames),
+                        unit="frame") as bar:
+        return _fuse_depth_frames(frames, voxel_size, stride, max_depth, bar)
+
+
+def _fuse_depth_frames(frames: Sequence[Frame], voxel_size: float, stride: int, max_depth: float | None,
+                       bar: progress.Stage):
+    acc_p, acc_c, acc_w = [], [], []
+    merged_size, pending = 0, 0
+    for k in range(len(frames)):  # loop over frames
+        bar.update()
+        f = frames[k]
+        depth = f.depth
+        if max_depth is not None:
+            depth = np.where(depth <= max_depth, depth, 0).astype(np.float32)
+        pts, pix = backproject(depth, f.K, f.T_cw, stride)
+        if pts.shape[0] == 0:
+            continue
+        rgb = f.rgb[pix[:, 0], pix[:, 1]].astype(np.float32) if f.rgb is not None \
+            else np.full((pts.shape[0], 3), 128.0, np.float32)
+        p, c, w = _merge(pts, rgb, np.ones(pts.shape[0]), voxel_size)
+        acc_p.append(p), acc_c.append(c), acc_w.append(w)
+        pending += p.shape[0]
+        if pending > max(4 * merged_size, 2_000_000):
+            p, c, w = _merge(np.concatenate(acc_p), np.concatenate(acc_c), np.concatenate(acc_w), voxel_size)
+            acc_p, acc_c, acc_w = [p], [c], [w]
+            merged_size = pending = p.shape[0]
+    if not acc_p:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
+    p, c, _ = _merge(np.concatenate(acc_p), np.concatenate(acc_c), np.concatenate(acc_w), voxel_size)
+    return p, np.clip(np.rint(c), 0, 255).astype(np.uint8)

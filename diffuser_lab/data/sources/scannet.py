@@ -1,0 +1,240 @@
+"""ScanNet v2 scenes in the official export layout.
+
+``root`` = ``.../scans/<scene>`` after ScanNet's ``SensReader`` export and unzipping
+``<scene>_2d-label-filt.zip``::
+
+    <scene>_vh_clean_2.ply            mesh: the points to label (vertices) with colours
+    <scene>_vh_clean_2.labels.ply     same mesh, per-vertex ``ushort label`` = NYU40 id
+    color/<i>.jpg                     1296x968 colour
+    depth/<i>.png                     640x480 16-bit millimetres, 0 = no depth
+    pose/<i>.txt                      4x4 camera-to-world (some are all -inf: tracking lost)
+    intrinsic/intrinsic_depth.txt     4x4, upper-left 3x3 = K of the depth image
+    intrinsic/intrinsic_color.txt     4x4, K of the colour image
+    label-filt/<i>.png                NYU40 ids at colour resolution (train/val scenes only)
+
+Resolution choice: frames are built at the DEPTH resolution (640x480) with the depth
+intrinsics, because depth is what the occlusion check reads and it is never resampled
+(resampling depth mixes foreground and background at edges). Colour and label-filt are
+resized to it (bilinear / nearest, pixel-centre aligned). This is consistent because
+ScanNet's depth intrinsics are the colour intrinsics scaled by 640/1296 x 480/968 with
+pixel centres aligned (f' = f s, c' = (c + 0.5) s - 0.5, see :func:`scaled_intrinsics`):
+the common calibration colour fx, fy, cx, cy = 1169.621, 1167.105, 646.295, 489.927 gives
+exactly the common depth K 577.591, 578.730, 318.905, 242.684. Resizing labels to colour
+resolution instead would need depth upsampling and 4x the pixels for no extra geometry.
+The loader compares the two K files per scene and warns when they disagree by > 2 px.
+"""
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from diffuser_lab import progress
+from diffuser_lab.data.mapping import ClassMapping, load_mapping
+from diffuser_lab.data.prediction_files import read_label_png, resize_nearest
+from diffuser_lab.data.scene import SCANNET20, Frame, Scene
+
+from .rgbd_folder import LazyFrames, read_depth_png, read_intrinsics, read_pose_c2w, read_rgb, rigid_inverse
+
+__all__ = ["load_scannet", "read_labelled_mesh", "scaled_intrinsics"]
+
+
+def read_labelled_mesh(path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """Read a PLY triangle mesh with an optional per-vertex ``label`` property (plyfile;
+    open3d drops ushort properties).
+
+    Returns:
+        vertices (V, 3) float32 (file units, metres for ScanNet), triangles (T, 3) int64,
+        vertex_labels (V,) int64 or None, colors (V, 3) uint8 or None.
+    Raises:
+        FileNotFoundError / ValueError: missing file, no x/y/z, no faces, non-triangle faces
+        or out-of-range vertex indices.
+    """
+    from plyfile import PlyData
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"mesh file {path} does not exist")
+    try:
+        # Fixed list length: plyfile parses faces as one (T, 3) array instead of T Python lists.
+        ply = PlyData.read(str(path), known_list_len={"face": {"vertex_indices": 3, "vertex_index": 3}})
+    except Exception as e:  # plyfile raises several types (non-triangle faces, corrupt files)
+        try:
+            PlyData.read(str(path))
+        except Exception as e2:
+            raise ValueError(f"{path}: not a readable PLY file ({type(e2).__name__}: {e2})") from None
+        raise ValueError(f"{path}: faces are not all triangles ({e}), expected a triangle mesh") from None
+    if "vertex" not in ply or not {"x", "y", "z"} <= set(ply["vertex"].data.dtype.names or ()):
+        raise ValueError(f"{path}: PLY has no vertex x/y/z, expected a triangle mesh")
+    if "face" not in ply or len(ply["face"].data) == 0:
+        raise ValueError(f"{path}: PLY has no faces, expected a triangle mesh (element 'face')")
+    v = ply["vertex"].data
+    names = set(v.dtype.names)
+    vertices = np.stack([v["x"], v["y"], v["z"]], 1).astype(np.float32)
+    fdata = ply["face"].data
+    key = next((k for k in ("vertex_indices", "vertex_index") if k in fdata.dtype.names), None)
+    if key is None:
+        raise ValueError(f"{path}: faces have no vertex_indices list, expected a triangle mesh")
+    triangles = np.asarray(fdata[key]).astype(np.int64).reshape(-1, 3)
+    if triangles.min() < 0 or triangles.max() >= len(vertices):
+        raise ValueError(f"{path}: face vertex indices outside 0..{len(vertices) - 1}")
+    labels = np.asarray(v["label"]).astype(np.int64) if "label" in names else None
+    colors = np.stack([v["red"], v["green"], v["blue"]], 1).astype(np.uint8) \
+        if {"red", "green", "blue"} <= names else None
+    return vertices, triangles, labels, colors
+
+
+def _vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """(V, 3) float32 unit area-weighted vertex normals (open3d), oriented by the mesh
+    winding; vertices in no triangle get a local-PCA normal instead of zero."""
+    import open3d as o3d
+
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices.astype(np.float64)),
+                                     o3d.utility.Vector3iVector(triangles.astype(np.int32)))
+    mesh.compute_vertex_normals(normalized=True)
+    n = np.asarray(mesh.vertex_normals, dtype=np.float32)
+    bad = ~(np.abs(np.linalg.norm(n, axis=1) - 1.0) < 1e-3)
+    if bad.any():  # isolated or only-degenerate-face vertices
+        from diffuser_lab.data.geometry import estimate_normals
+        n[bad] = estimate_normals(vertices)[bad]
+    return n
+
+
+def scaled_intrinsics(K: np.ndarray, src_shape: tuple[int, int], dst_shape: tuple[int, int]) -> np.ndarray:
+    """(3, 3) K of an image of (H, W) ``src_shape`` resized to ``dst_shape`` with pixel centres
+    aligned (pixel centre at integer coordinates): f' = f s, c' = (c + 0.5) s - 0.5 per axis."""
+    sy, sx = dst_shape[0] / src_shape[0], dst_shape[1] / src_shape[1]
+    out = np.array(K, np.float64)
+    out[0, 0], out[0, 1] = K[0, 0] * sx, K[0, 1] * sx
+    out[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
+    out[1, 1] = K[1, 1] * sy
+    out[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
+    return out
+
+
+def _find_mesh(root: Path, suffix: str) -> Path | None:
+    p = root / f"{root.name}{suffix}"
+    if p.is_file():
+        return p
+    hits = sorted(root.glob(f"*{suffix}"))
+    return hits[0] if len(hits) == 1 else None
+
+
+def _frame_ids(folder: Path, ext: str) -> list[int]:
+    ids = []
+    for p in folder.glob(f"*{ext}"):  # loop over files
+        if p.stem.isdigit():
+            ids.append(int(p.stem))
+    return sorted(ids)
+
+
+def load_scannet(root, *, frame_step: int = 10, max_frames: int | None = None,
+                 mapping: str | ClassMapping = "nyu40_to_scannet20", with_frames: bool = True) -> Scene:
+    """Load one ScanNet scene (layout in the module docstring).
+
+    Args:
+        root: the scene folder (its name, e.g. ``scene0470_00``, prefixes the PLY files).
+        frame_step: use every frame_step-th frame (by sorted frame number).
+        max_frames: at most this many frames (after dropping invalid poses).
+        mapping: NYU40 -> evaluation classes (shipped CSV name, path or ClassMapping);
+            its target taxonomy becomes the scene's.
+        with_frames: False = mesh only (color/depth/pose folders may be absent).
+    Returns:
+        Scene: points = mesh vertices (V, 3) float32 metres, colors (V, 3) uint8,
+        normals (V, 3) float32 unit vertex normals (winding-oriented), gt_labels (V,) int16
+        (None without the labels PLY), frames lazily loaded at depth resolution with
+        ``gt_labels`` from label-filt (None without it) and ``labels=None``. Frames whose
+        pose is non-finite are skipped; ``scene.frames.info["n_invalid_pose"]`` counts them.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise FileNotFoundError(f"ScanNet scene folder {root} does not exist")
+    if frame_step < 1:
+        raise ValueError(f"frame_step={frame_step}, expected >= 1")
+    mapping = mapping if isinstance(mapping, ClassMapping) else load_mapping(mapping, SCANNET20)
+    taxonomy = mapping.target
+
+    mesh_path = _find_mesh(root, "_vh_clean_2.ply")
+    if mesh_path is None:
+        raise FileNotFoundError(f"{root}: no {root.name}_vh_clean_2.ply mesh")
+    label_path = _find_mesh(root, "_vh_clean_2.labels.ply")
+    with progress.stage(f"reading mesh {mesh_path.name}" + (" + labels" if label_path is not None else "")):
+        vertices, triangles, _, colors = read_labelled_mesh(mesh_path)
+        normals = _vertex_normals(vertices, triangles)
+        if label_path is not None:
+            lv, _, vlabels, _ = read_labelled_mesh(label_path)
+    gt = None
+    if label_path is not None:
+        if vlabels is None or lv.shape != vertices.shape:
+            raise ValueError(f"{label_path}: expected a per-vertex 'label' for each of the {len(vertices)} "
+                             f"vertices of {mesh_path.name}")
+        try:
+            gt = mapping.apply(vlabels)[0]
+        except ValueError as e:
+            raise ValueError(f"{label_path}: {e}") from None
+
+    frames: LazyFrames | list = []
+    if with_frames:
+        frames = _scannet_frames(root, frame_step, max_frames, mapping)
+    return Scene(name=root.name, points=vertices, taxonomy=taxonomy, frames=frames, normals=normals,
+                 colors=colors, gt_labels=gt)
+
+
+def _scannet_frames(root: Path, frame_step: int, max_frames: int | None, mapping: ClassMapping) -> LazyFrames:
+    for sub in ("color", "depth", "pose", "intrinsic"):
+        if not (root / sub).is_dir():
+            raise FileNotFoundError(f"{root}: missing folder {sub}/ of the ScanNet export "
+                                    f"(use with_frames=False for the mesh only)")
+    K = read_intrinsics(root / "intrinsic" / "intrinsic_depth.txt")
+    ids = _frame_ids(root / "depth", ".png")
+    if not ids:
+        raise FileNotFoundError(f"{root / 'depth'}: no <frame>.png depth images")
+    label_dir = root / "label-filt"
+    has_labels = label_dir.is_dir()
+    K_color = None
+    if (root / "intrinsic" / "intrinsic_color.txt").is_file():
+        K_color = read_intrinsics(root / "intrinsic" / "intrinsic_color.txt")
+
+    kept, poses, n_invalid = [], [], 0
+    selected = ids[::frame_step]
+    with progress.stage("reading poses", total=len(selected), unit="pose") as bar:
+        for fid in selected:  # loop over frames: validate poses up front (tiny files)
+            if max_frames is not None and len(kept) >= max_frames:
+                break
+            bar.update()
+            T_wc = read_pose_c2w(root / "pose" / f"{fid}.txt")
+            if T_wc is None:
+                n_invalid += 1  # tracking lost: ScanNet writes -inf poses
+                continue
+            kept.append(fid)
+            poses.append(rigid_inverse(T_wc))
+    if not kept:
+        raise ValueError(f"{root}: no frame with a valid pose among {len(ids[::frame_step])} selected "
+                         f"(frame_step={frame_step}, {n_invalid} non-finite poses)")
+    checked = {"done": False}
+
+    def load(i: int) -> Frame:
+        fid = kept[i]
+        depth = read_depth_png(root / "depth" / f"{fid}.png", 1000.0, 0, (0,))
+        color_path = root / "color" / f"{fid}.jpg"
+        rgb = read_rgb(color_path, depth.shape)
+        gt = None
+        if has_labels:
+            lp = label_dir / f"{fid}.png"
+            ids_img = read_label_png(lp)
+            if K_color is not None and not checked["done"]:
+                checked["done"] = True
+                Ks = scaled_intrinsics(K_color, ids_img.shape, depth.shape)
+                err = np.abs(Ks[:2, :3] - K[:2, :3]).max()
+                if err > 2.0:  # label pixels would not line up with depth pixels
+                    warnings.warn(f"{root}: colour K scaled to depth resolution differs from intrinsic_depth by "
+                                  f"{err:.1f} px; label-filt resized to depth may be misaligned", stacklevel=3)
+            try:
+                gt = mapping.apply(resize_nearest(ids_img, depth.shape))[0]
+            except ValueError as e:
+                raise ValueError(f"{lp}: {e}") from None
+        return Frame(name=str(fid), K=K.copy(), T_cw=poses[i], depth=depth, gt_labels=gt, rgb=rgb)
+
+    return LazyFrames([str(f) for f in kept], load,
+                      {"n_invalid_pose": n_invalid, "n_frames_found": len(ids)})

@@ -1,0 +1,82 @@
+"""The fusion methods, one registry entry each: what it needs and how it labels.
+
+A method turns the frames' pixel evidence into point labels. Each entry says in code
+
+- whether it diffuses over the kNN graph (Eqs. 3-4, 10-16) or labels from the evidence alone,
+- which part of the graph and evidence it fixes (LDLS: no normal term, a 3x3 pixel window),
+- which evidence it reads (the frames' evidence as configured, the Bayesian baseline's, one view's),
+- the rows it has in the single-frame protocol (1 view, W views; paper Table II),
+
+and :meth:`FusionMethod.label` does the labelling. ``runs/pipeline.py`` and
+``runs/protocols.py`` both ask :data:`METHODS`; the config accepts exactly its names. Adding a
+method is one entry here plus ``conf/method/<name>.yaml``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Optional
+
+import numpy as np
+
+EVIDENCE = "evidence"  # the frames' evidence with the method's pixel window (Eqs. 11-13)
+BASELINE = "baseline"  # the Bayesian baseline's: single pixel, likelihoods or votes (method.bayesian_mode)
+ONE_VIEW = "one_view"  # the evidence of one frame (method.view)
+
+
+@dataclass(frozen=True)
+class FusionMethod:
+    """One fusion method. ``normals`` / ``pixel_radius``: None = as ``graph.use_normals`` /
+    ``evidence.pixel_radius`` say; a value = fixed by the method's definition."""
+
+    name: str
+    description: str
+    graph: bool
+    evidence: str = EVIDENCE
+    normals: Optional[bool] = None
+    pixel_radius: Optional[int] = None
+    multi_view_row: bool = True  # a W-view row in the single-frame protocol besides the 1-view one
+    label_fn: Optional[Callable] = None  # labels from (mass, system, solver, observer) if not the default
+
+    def apply(self, cfg) -> None:
+        """Set what the method fixes in ``cfg`` (a :class:`~diffuser_lab.config.Config`), so the
+        config a run records is the one that ran."""
+        if self.normals is not None:
+            cfg.graph.use_normals = self.normals
+        if self.pixel_radius is not None:
+            cfg.evidence.pixel_radius = self.pixel_radius
+
+    def label(self, mass: np.ndarray, *, system=None, solver=None, observer=None):
+        """(M,) int16 labels (IGNORE where no evidence reaches a point) and the DiffusionResult
+        (None for methods without a graph). ``mass``: (M, C) the evidence the method reads;
+        ``system``: the normalised graph system of Eqs. 14-15 for graph methods."""
+        from .diffusion import labels_from_scores, solve
+
+        if self.label_fn is not None:
+            return self.label_fn(mass, system=system, solver=solver, observer=observer)
+        if not self.graph:
+            return labels_from_scores(mass), None
+        diff = solve(system, solver, observer=observer)
+        return labels_from_scores(diff.Z), diff
+
+    def single_frame_rows(self, window: int) -> list[int]:
+        """Views of this method's rows in the single-frame protocol."""
+        return [1, window] if self.multi_view_row and window > 1 else [1]
+
+
+METHODS: dict[str, FusionMethod] = {m.name: m for m in [  # the order of the paper's Table II
+    FusionMethod("direct", "labels projected from a single view (method.view)", graph=False, evidence=ONE_VIEW,
+                 multi_view_row=False),
+    FusionMethod("ldls", "LDLS (Wang et al. 2019): distance-only graph, 3x3 pixel window", graph=True,
+                 normals=False, pixel_radius=1, multi_view_row=False),
+    FusionMethod("bayesian", "per-point sum of pixel likelihoods (or votes), argmax", graph=False,
+                 evidence=BASELINE),
+    FusionMethod("diffuser", "the paper's method: the evidence diffused over the kNN graph", graph=True),
+]}
+
+
+def get(name: str) -> FusionMethod:
+    if name not in METHODS:
+        from diffuser_lab.config import ConfigError
+
+        raise ConfigError(f"method.name={name!r}: expected one of {', '.join(sorted(METHODS))}")
+    return METHODS[name]

@@ -1,0 +1,238 @@
+"""One run, in the order the data flows: load -> evidence + graph -> diffusion -> labels -> metrics.
+
+Nothing here writes files; :mod:`diffuser_lab.cli.main` turns a :class:`RunResult` into records.
+"""
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field
+from typing import Optional, Sequence
+
+import numpy as np
+
+from diffuser_lab import progress
+from diffuser_lab.config import BayesianMode, Config, SceneConfig, SceneSource
+from diffuser_lab.data import validate
+from diffuser_lab.data.geometry import VoxelGrid, nearest_transfer, voxel_downsample
+from diffuser_lab.data.predictions import describe as describe_predictions
+from diffuser_lab.data.predictions import with_predictions
+from diffuser_lab.data.scene import IGNORE, Frame, Scene
+from diffuser_lab.hooks import RunHooks
+from diffuser_lab.method import evidence as evidence_mod
+from diffuser_lab.method import fusion
+from diffuser_lab.method.diffusion import DiffusionResult, Observer, labels_from_scores, normalise
+from diffuser_lab.method.graph import KnnGraph, graph_stage, make_graph
+from diffuser_lab.method.metrics import confusion_matrix, score, scores_from_confusion
+
+
+def _required(value, key: str, source: str):
+    if value in (None, ""):
+        raise ValueError(f"{key} is required for scene.source={source}")
+    return value
+
+
+def load_scene(cfg: SceneConfig) -> Scene:
+    """The configured source -> :class:`Scene` whose frames carry ground-truth labels when known.
+    Relative paths are taken from the current directory."""
+    src = cfg.source
+    with progress.stage(f"loading scene ({src.value})"):  # its own steps show inside
+        if src == SceneSource.demo:
+            from diffuser_lab.data.sources.demo import make_demo_scene
+
+            d = cfg.demo
+            scene, _ = make_demo_scene(seed=d.seed, room_size=tuple(d.room_size), n_views=d.n_views,
+                                       image_width=d.image_width, image_height=d.image_height,
+                                       fov_deg=d.fov_deg, point_spacing=d.point_spacing, point_noise=d.point_noise)
+        elif src == SceneSource.mesh_views:
+            from diffuser_lab.data.sources.mesh_views import load_mesh_views
+
+            m = cfg.mesh_views
+            scene = load_mesh_views(_required(m.path, "scene.mesh_views.path", src.value), mapping=m.mapping,
+                                    n_views=m.n_views, seed=m.seed, image_width=m.image_width,
+                                    image_height=m.image_height, fov_deg=m.fov_deg, min_coverage=m.min_coverage,
+                                    eye_height_range=(m.eye_height_min, m.eye_height_max))
+        elif src == SceneSource.scannet:
+            from diffuser_lab.data.sources.scannet import load_scannet
+
+            c = cfg.scannet
+            scene = load_scannet(_required(c.root, "scene.scannet.root", src.value), frame_step=c.frame_step,
+                                 max_frames=c.max_frames, mapping=c.mapping)
+        elif src == SceneSource.rgbd_folder:
+            from diffuser_lab.data.sources.rgbd_folder import load_rgbd_folder
+
+            r = cfg.rgbd_folder
+            scene = load_rgbd_folder(_required(r.root, "scene.rgbd_folder.root", src.value), depth_scale=r.depth_scale,
+                                     depth_bit_shift=r.depth_bit_shift, invalid_depth=tuple(r.invalid_depth),
+                                     color_suffix=r.color_suffix, label_suffix=r.label_suffix, mapping=r.mapping,
+                                     cloud=r.cloud, voxel_size=r.cloud_voxel, cloud_stride=r.cloud_stride,
+                                     frame_step=r.frame_step, max_frames=r.max_frames, max_depth=r.max_depth)
+        else:  # pragma: no cover - the enum forbids it
+            raise ValueError(f"scene.source={src}: unknown")
+    if cfg.name:
+        scene.name = cfg.name
+    return scene
+
+
+@dataclass
+class RunResult:
+    """Everything a run produced. Arrays on the original points have N rows; ``work_*`` arrays
+    are on the (possibly voxel-downsampled) cloud the diffusion ran on, M rows."""
+
+    scene: Scene
+    frames: Sequence[Frame]  # frames with their predictions attached
+    method: str
+    labels: np.ndarray  # (N,) int16, IGNORE = unlabeled
+    bayesian_labels: np.ndarray  # (N,) int16
+    work_points: np.ndarray  # (M, 3) float32 world metres
+    work_normals: Optional[np.ndarray]  # (M, 3) float32
+    evidence: evidence_mod.Evidence  # on the work points
+    voxels: Optional[VoxelGrid]
+    graph: Optional[KnnGraph] = None
+    diffusion: Optional[DiffusionResult] = None
+    metrics: Optional[dict] = None
+    baseline: dict = field(default_factory=dict)  # {"bayesian": scores}
+    predictions_2d: Optional[dict] = None
+    predictions_stats: dict = field(default_factory=dict)  # e.g. unmapped pixels of file predictions
+    timings_s: dict = field(default_factory=dict)
+
+
+def _work_cloud(scene: Scene, voxel_size: float) -> tuple[np.ndarray, Optional[np.ndarray], Optional[VoxelGrid]]:
+    if voxel_size <= 0:
+        return scene.points, scene.normals, None
+    with progress.stage(f"voxel grid ({voxel_size:g} m, {scene.n_points:,} points)"):
+        grid = voxel_downsample(scene.points, voxel_size)
+        normals = None
+        if scene.normals is not None:
+            n = grid.mean(scene.normals)
+            normals = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    return grid.points, normals, grid
+
+
+def _to_original(scene: Scene, grid: Optional[VoxelGrid], work_labels: np.ndarray) -> np.ndarray:
+    if grid is None:
+        return work_labels
+    return nearest_transfer(grid.points, work_labels, scene.points)
+
+
+class _Observe:
+    """Adapts :class:`RunHooks` (and a plain observer callable) to the diffusion's observer."""
+
+    def __init__(self, hooks: RunHooks, fn: Optional[Observer]):
+        self.hooks, self.fn = hooks, fn
+
+    def wants(self, it: int) -> bool:
+        return self.fn is not None or self.hooks.wants(it)
+
+    def __call__(self, it: int, Z: np.ndarray, stats: dict) -> None:
+        if self.fn is not None:
+            self.fn(it, Z, stats)
+        if self.hooks.wants(it):
+            self.hooks.observe(it, Z, stats)
+
+
+def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observer] = None,
+        hooks: Optional[RunHooks] = None) -> RunResult:
+    """Label ``scene`` (default: the configured source) with ``cfg.method``; Bayesian fusion of
+    the same evidence is always computed beside it. ``observer(iteration, Z, stats)`` and
+    ``hooks`` (see :mod:`diffuser_lab.hooks`) watch the run without changing it."""
+    hooks = hooks or RunHooks()
+    t = {}
+    t0 = time.perf_counter()
+    if scene is None:
+        scene = load_scene(cfg.scene)
+    tax = scene.taxonomy
+    validate.check_points(scene)
+    t["load"] = time.perf_counter() - t0
+    hooks.on_scene(scene)
+
+    # One pass over the frames: each is loaded (and its predictions made) once, scored in 2D
+    # against its ground truth, and added to the evidence; memory stays independent of their number.
+    frames = with_predictions(scene.frames, cfg.predictions, tax)
+    pts, nrm, grid = _work_cloud(scene, cfg.scene.voxel_size)
+    validate.check_memory(scene.n_points, pts.shape[0], tax.num_classes, cfg.graph.k, cfg.memory_budget_gb)
+    method = fusion.get(cfg.method.name)  # what the method needs; cfg already has what it fixes
+    if method.graph and cfg.graph.k >= pts.shape[0]:
+        raise ValueError(f"graph.k={cfg.graph.k} must be smaller than the number of points ({pts.shape[0]})")
+    centres, inverted = [], []
+    ev_kw = dict(depth_tol=cfg.evidence.depth_tol, pixel_radius=cfg.evidence.pixel_radius)
+    ev = evidence_mod.Evidence.empty(pts.shape[0], tax.num_classes)
+    # The Bayesian baseline is always the standard one (single projected pixel), so it is
+    # the same in every run on the same frames whatever the method's pixel neighbourhood.
+    votes = cfg.method.bayesian_mode == BayesianMode.votes
+    separate_base = votes or cfg.evidence.pixel_radius != 0
+    ev_base = evidence_mod.Evidence.empty(pts.shape[0], tax.num_classes) if separate_base else ev
+    conf2d = None
+    t["predictions"] = t["evidence"] = 0.0
+    with progress.stage(f"frames: {describe_predictions(cfg.predictions)} + evidence", total=len(frames),
+                        unit="frame") as bar:
+        for i in range(len(frames)):
+            tp = time.perf_counter()
+            f = frames[i]
+            validate.check_frame(f)
+            if i == 0 and not getattr(scene.frames, "info", {}).get("depth_unit_checked"):
+                validate.check_depth_unit(f)
+            centres.append(validate.camera_centre(f))
+            inverted.append(np.asarray(f.T_cw, float)[:3, 3])  # the centre if T_cw were camera-to-world
+            if f.gt_labels is not None:
+                pred = f.labels if f.labels is not None else np.argmax(f.probs, axis=2)
+                c = confusion_matrix(pred, f.gt_labels, tax.num_classes)
+                conf2d = c if conf2d is None else conf2d + c
+            hooks.on_frame(i, f)
+            te = time.perf_counter()
+            evidence_mod.add_frame(ev, pts, f, **ev_kw)
+            if separate_base:
+                evidence_mod.add_frame(ev_base, pts, f, depth_tol=cfg.evidence.depth_tol, hard=votes)
+            t["predictions"] += te - tp
+            t["evidence"] += time.perf_counter() - te
+            bar.update()
+    pred2d = None if conf2d is None else scores_from_confusion(conf2d, tax.names)
+    validate.check_pose_convention(pts, np.array(centres).reshape(-1, 3), np.array(inverted).reshape(-1, 3))
+    if not ev.seen.any():
+        warnings.warn(f"no frame sees any point ({len(frames)} frames): nothing is labelled; check the poses "
+                      f"(world-to-camera), intrinsics and evidence.depth_tol", stacklevel=2)
+    bayes_work = labels_from_scores(ev_base.mass)
+    hooks.on_evidence(pts, grid, ev, bayes_work)
+
+    graph = diff = system = None
+    if method.evidence == fusion.BASELINE:
+        mass = ev_base.mass
+    elif method.evidence == fusion.ONE_VIEW:
+        n_frames = len(frames)
+        if not -n_frames <= cfg.method.view < n_frames:
+            raise ValueError(f"method.view={cfg.method.view}: the scene has {n_frames} frames")
+        mass = evidence_mod.accumulate(pts, [frames[cfg.method.view]], tax.num_classes, **ev_kw).mass
+    else:
+        mass = ev.mass
+    if method.graph:
+        tg = time.perf_counter()
+        with graph_stage(pts.shape[0], cfg.graph, cfg.graph.use_normals and nrm is None):
+            nrm, graph = make_graph(pts, nrm, cfg.graph)
+            system = normalise(graph, mass, cfg.evidence.pixel_weight)
+        t["graph"] = time.perf_counter() - tg
+    td = time.perf_counter()
+    work_labels, diff = method.label(mass, system=system, solver=cfg.solver, observer=_Observe(hooks, observer))
+    if method.graph:
+        t["diffusion"] = time.perf_counter() - td
+
+    tl = time.perf_counter()
+    with progress.stage(f"labels to the {scene.n_points:,} original points"):  # instant without voxels
+        labels = _to_original(scene, grid, work_labels).astype(np.int16)
+        bayes = _to_original(scene, grid, bayes_work).astype(np.int16)
+    t["labels"] = time.perf_counter() - tl
+
+    res = RunResult(scene=scene, frames=frames, method=method.name, labels=labels, bayesian_labels=bayes,
+                    work_points=pts, work_normals=nrm, evidence=ev, voxels=grid, graph=graph, diffusion=diff,
+                    predictions_2d=pred2d, predictions_stats=dict(getattr(frames, "stats", {})))
+    if scene.gt_labels is not None:
+        tm = time.perf_counter()
+        res.metrics = score(labels, scene.gt_labels, tax.names)
+        res.baseline["bayesian"] = score(bayes, scene.gt_labels, tax.names)
+        t["metrics"] = time.perf_counter() - tm
+    t["total"] = time.perf_counter() - t0
+    res.timings_s = t
+    hooks.on_result(res)
+    return res
+
+
+__all__ = ["RunResult", "run", "load_scene", "IGNORE"]

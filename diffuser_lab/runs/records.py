@@ -1,0 +1,63 @@
+"""Files a run writes into its own folder: summary.json (atomically replaced), labels.npy, labels.ply."""
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from diffuser_lab.data.scene import Taxonomy
+
+
+def _clean(obj: Any) -> Any:
+    """JSON-safe copy: numpy scalars -> Python, NaN/inf -> None."""
+    if isinstance(obj, dict):
+        return {str(k): _clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_clean(v) for v in obj]
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def write_json_atomic(path: Path, data: dict) -> None:
+    """Write ``data`` to ``path`` through a temporary file and os.replace, so a reader (or a
+    run killed mid-write) never sees a half-written file."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w") as fh:
+        json.dump(_clean(data), fh, indent=2)
+        fh.write("\n")
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def write_labels(run_dir: Path, points: np.ndarray, labels: np.ndarray, taxonomy: Taxonomy, ply: bool = True) -> dict:
+    """labels.npy ((N,) int16, -1 = unlabeled) and labels.ply (points coloured by class, with a
+    per-vertex ``label`` property). Returns the file names written."""
+    from diffuser_lab import progress
+
+    run_dir = Path(run_dir)
+    with progress.stage(f"writing labels.npy{' + labels.ply' if ply else ''}"):
+        return _write_labels(run_dir, points, labels, taxonomy, ply)
+
+
+def _write_labels(run_dir: Path, points: np.ndarray, labels: np.ndarray, taxonomy: Taxonomy, ply: bool) -> dict:
+    np.save(run_dir / "labels.npy", labels.astype(np.int16))
+    out = {"labels": "labels.npy"}
+    if ply:
+        import open3d as o3d
+
+        pcd = o3d.t.geometry.PointCloud(o3d.core.Tensor(np.asarray(points, np.float32)))
+        pcd.point.colors = o3d.core.Tensor(taxonomy.colorize(labels))
+        pcd.point.label = o3d.core.Tensor(labels.astype(np.int32)[:, None])
+        if not o3d.t.io.write_point_cloud(str(run_dir / "labels.ply"), pcd, write_ascii=False):
+            raise OSError(f"could not write {run_dir / 'labels.ply'}")
+        out["labels_ply"] = "labels.ply"
+    return out

@@ -1,0 +1,96 @@
+"""What a run tells: the summary.json dictionary and the table printed at the end."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from diffuser_lab.config import Config
+from diffuser_lab.data.scene import IGNORE
+
+from .pipeline import RunResult
+
+STAGES = ("load", "predictions", "evidence", "graph", "diffusion", "labels", "metrics", "write", "total")
+
+
+def summary(res: RunResult, cfg: Config) -> dict:
+    """summary.json content (keys as in shared/DESIGN.md; mIoU, accuracy, coverage in percent)."""
+    scene = res.scene
+    out: dict = {
+        "method": res.method,
+        "scene": scene.name,
+        "n_points": scene.n_points,
+        "n_points_diffused": int(res.work_points.shape[0]),
+        "n_frames": len(res.frames),
+        "n_classes": scene.taxonomy.num_classes,
+        "taxonomy": scene.taxonomy.name,
+        "coverage_evidence": float(100.0 * res.evidence.seen.mean()),
+        "n_unlabeled": int((res.labels == IGNORE).sum()),
+        "metrics": res.metrics,
+        "baseline": {"bayesian": res.baseline.get("bayesian")},
+        "predictions_2d": res.predictions_2d,
+        "predictions_stats": res.predictions_stats,
+        "timings_s": {k: round(v, 4) for k, v in res.timings_s.items()},
+    }
+    if res.diffusion is not None:
+        out["diffusion"] = {"iterations": res.diffusion.iterations, "converged": res.diffusion.converged,
+                            "residual": res.diffusion.residual}
+    else:
+        out["diffusion"] = {"iterations": 0, "converged": None, "residual": None}
+    if res.graph is not None:
+        out["graph"] = {"k": int(res.graph.neighbors.shape[1]), "rho_m": res.graph.rho,
+                        "sigma_d_m": res.graph.sigma_d, "normals": cfg.graph.use_normals}
+    return out
+
+
+def _fmt(x, spec=".1f") -> str:
+    return "-" if x is None else format(x, spec)
+
+
+def table(res: RunResult, run_dir: Path | None = None) -> str:
+    """A short human-readable result table."""
+    s = res.scene
+    lines = [f"diffuser-lab | scene {s.name} | {s.n_points:,} points ({res.work_points.shape[0]:,} diffused) | "
+             f"{len(res.frames)} frames | {s.taxonomy.num_classes} classes"]
+    lines.append(f"{'':22s}{'mIoU':>7s}{'acc':>7s}{'cover':>7s}")
+    rows = [(res.method, res.metrics)]
+    if res.method != "bayesian":
+        rows.append(("bayesian (baseline)", res.baseline.get("bayesian")))
+    for name, m in rows:
+        m = m or {}
+        lines.append(f"{name:22s}{_fmt(m.get('miou')):>7s}{_fmt(m.get('accuracy')):>7s}{_fmt(m.get('coverage')):>7s}")
+    if res.predictions_2d is not None:
+        p = res.predictions_2d
+        lines.append(f"{'2D predictions':22s}{_fmt(p.get('miou')):>7s}{_fmt(p.get('accuracy')):>7s}")
+    if res.diffusion is not None:
+        d = res.diffusion
+        lines.append(f"iterations {d.iterations} ({'converged' if d.converged else 'max reached'}, "
+                     f"relative residual {d.residual:.1e})")
+    lines.append("time [s]  " + "  ".join(f"{k} {res.timings_s[k]:.2f}" for k in STAGES if k in res.timings_s))
+    if run_dir is not None:
+        lines.append(f"run folder: {run_dir}")
+    return "\n".join(lines)
+
+
+def single_frame_summary(sf) -> dict:
+    """summary.json content of a single-frame protocol run; ``metrics`` is the Diffuser
+    W-view row, ``baseline.bayesian`` the Bayesian W-view row, ``rows`` all of Table II."""
+    rows = sf.rows
+    pick = {(r["method"], r["views"]): r for r in rows}
+    main = pick.get(("diffuser", sf.window))
+    bayes = pick.get(("bayesian", sf.window))
+    return {
+        "protocol": "single_frame",
+        "method": "diffuser",
+        "scene": sf.scene.name,
+        "n_points": sf.mean_points,
+        "n_frames": len(sf.scene.frames),
+        "n_targets": len(sf.targets),
+        "window": sf.window,
+        "n_classes": sf.scene.taxonomy.num_classes,
+        "metrics": {"miou": main["miou"], "accuracy": main["accuracy"], "per_class_iou": main["per_class_iou"]},
+        "baseline": {"bayesian": {"miou": bayes["miou"], "accuracy": bayes["accuracy"]}},
+        "rows": rows,
+        "predictions_2d": sf.predictions_2d,
+        "diffusion": {},
+        "timings_s": {k: round(v, 4) for k, v in sf.timings_s.items()},
+        "records": {},
+    }
