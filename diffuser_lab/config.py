@@ -300,7 +300,7 @@ class RecordConfig:
     z_precision: ZPrecision = ZPrecision.float32  # precision of Z in run.mcap
     max_image_side: int = 320  # frames' images in run.rrd are downsampled to at most this many pixels
     zstd_level: int = -20  # run.mcap chunks: -131072 (fastest) .. 22 (smallest); see mcap_log.ZSTD_LEVEL
-    retain_heap_mb: int = 256  # glibc keeps this much freed memory for reuse (0: its defaults); see recording.heap
+    retain_heap_mb: int = 256  # diffuser-lab (the CLI) has glibc keep this much freed memory for reuse (0: its defaults)
 
     def __post_init__(self) -> None:
         _check(self.interval >= 1, "record.interval", self.interval, ">= 1")

@@ -36,7 +36,7 @@ python_env() {
   if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
     [ -x "$VENV/bin/python" ] || python3 -m venv "$VENV"
     "$VENV/bin/python" -m pip install -q --upgrade pip
-    "$VENV/bin/python" -m pip install -q -e '.[test,fast]'
+    "$VENV/bin/python" -m pip install -q -e '.[test]'
     touch "$stamp"
   fi
 }

@@ -9,7 +9,7 @@ from diffuser_lab.data.geometry import morton_codes, quantize
 from diffuser_lab.method.diffusion import EDGE_FLOOR, normalise
 from diffuser_lab.method.graph import build_graph
 
-pytestmark = pytest.mark.skipif(not nb.available(), reason="numba (extra 'fast') not installed")
+pytestmark = pytest.mark.skipif(not nb.available(), reason="numba not importable or DIFFUSER_LAB_NUMBA=0")
 
 
 def brute(ps, k):

@@ -231,6 +231,13 @@ CHECKS = {"run": check_run, "sweep": check_sweep, "multirun": check_multirun, "a
           "cfg": lambda c, p, w: "graph:" in p.stdout or pytest.fail(p.stdout[-1000:])}
 
 
+def test_readme_is_short():
+    """The README is for users (at most 15,000 bytes); measurements and references live in docs/."""
+    assert len(README.read_bytes()) <= 15_000
+    for link in re.findall(r"\]\((docs/[\w.-]+)\)", README.read_text()):
+        assert (ROOT / link).is_file(), link
+
+
 def test_readme_lists_every_experiment():
     listed = set(re.findall(r"^\| `(\w+)` \|.*\| \d+ \|$", README.read_text(), re.M))
     assert listed == set(EXPERIMENTS), (listed, EXPERIMENTS)

@@ -153,6 +153,9 @@ def _task(cfg: Any) -> Optional[float]:
         hooks = None
         if conf.record.mode != RecordMode.off:
             from diffuser_lab.recording import make_hooks
+            from diffuser_lab.recording.heap import retain_freed_memory
+
+            retain_freed_memory(conf.record.retain_heap_mb)  # process-wide: the command line's choice
 
             hooks = make_hooks(conf, run_dir, overrides=list(hc.overrides.task))
         try:

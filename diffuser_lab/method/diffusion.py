@@ -163,7 +163,7 @@ def _resolve_backend(backend: str) -> str:
     if backend == "auto":
         return "numba" if nb.available() else "scipy"
     if backend == "numba" and not nb.available():
-        raise RuntimeError("solver.backend=numba: numba is not installed (pip install 'diffuser-lab[fast]') "
+        raise RuntimeError("solver.backend=numba: numba is not importable (it is a dependency: pip install numba) "
                            "or DIFFUSER_LAB_NUMBA=0 is set")
     if backend not in ("numba", "scipy", "torch"):
         raise ValueError(f"solver.backend={backend}: expected auto, scipy, numba or torch")

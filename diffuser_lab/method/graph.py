@@ -175,7 +175,7 @@ def build_graph(points: np.ndarray, k: int = 24, normals: np.ndarray | None = No
     if k >= n:
         raise ValueError(f"graph.k={k} must be smaller than the number of points ({n})")
     if backend == "numba" and not nb.available():
-        raise RuntimeError("graph backend numba: numba is not installed (pip install 'diffuser-lab[fast]')")
+        raise RuntimeError("graph backend numba: numba is not importable (it is a dependency: pip install numba) or DIFFUSER_LAB_NUMBA=0 is set")
     use_nb = backend != "scipy" and nb.available()
     if use_nb:
         from diffuser_lab.backends.numba import knn as _knn

@@ -35,7 +35,6 @@ import numpy as np
 
 from diffuser_lab.hooks import RunHooks
 
-from .heap import retain_freed_memory
 from .serial import SerialThread
 from .steps import Step, StepTracker, original_to_work
 
@@ -75,7 +74,6 @@ class RecordingHooks(RunHooks):
         self.tracker: Optional[StepTracker] = None
         self._z_free: queue.SimpleQueue = queue.SimpleQueue()  # recorded-Z buffers back from the worker
         self._z_made = 0
-        retain_freed_memory(int(getattr(conf.record, "retain_heap_mb", 0)))
         self._worker = SerialThread("diffuser-lab-record", QUEUE_SIZE, stop_on_error=False) if ASYNC else None
         if rerun:
             self._later(self._guard, "rerun", self._open_rerun)
