@@ -101,12 +101,13 @@ def test_launcher_defaults():
 def test_experiment_sweep_dirs_resolve_before_hydra_config_is_set():
     """Hydra resolves hydra.sweep.dir in the launcher before HydraConfig exists (the README's sweeps
     failed for every user on ${hydra:...}); the experiments must use the plain interpolation."""
-    for path in sorted((ROOT / "conf" / "experiment").glob("*.yaml")):
-        text = path.read_text()
-        assert "${hydra:" not in text, path.name
-        assert f"logs/multirun/{path.stem}/" in text, path.name
-    cfg = _compose(["+experiment=k", "scene=scannet0470"])
-    assert str(cfg.hydra.sweep.dir).startswith("logs/multirun/k/") and str(cfg.hydra.sweep.dir).endswith("_scannet0470")
+    for path in [*sorted((ROOT / "conf" / "experiment").glob("*.yaml")), ROOT / "conf" / "sweep" / "ablation.yaml"]:
+        assert "${hydra:" not in path.read_text(), path.name
+    for path in sorted((ROOT / "conf" / "experiment").glob("*.yaml")):  # the shared preamble names each one's folder
+        cfg = _compose([f"+experiment={path.stem}", "scene=scannet0470"])
+        assert str(cfg.hydra.sweep.dir).startswith(f"logs/multirun/{path.stem}/"), cfg.hydra.sweep.dir
+        assert str(cfg.hydra.sweep.dir).endswith("_scannet0470")
+        assert cfg.record.mode.name == "mcap" and cfg.record.z_precision.name == "float16" and cfg.record.interval == 20
 
 
 @pytest.mark.parametrize("env,expected", [({}, None), ({"OMP_NUM_THREADS": "1"}, 1), ({"SLURM_CPUS_PER_TASK": "1"}, 1),
