@@ -393,7 +393,7 @@ def _read_curves(runs: list[Run]) -> list[tuple[Run, list[dict]]]:
     recorded = [r for r in runs if r.status == "ok" and (r.path / "run.mcap").is_file()]
     if not recorded:
         return []
-    from diffuser_lab.recording.mcap_log import read_run
+    from diffuser_lab.recording.mcap_read import read_run
 
     out = []
     for r in recorded:

@@ -1,8 +1,8 @@
 """Finding and reading run folders: :mod:`diffuser_lab.runs.results` (the CLI prints the same sweep
 table at the end of a sweep), re-exported for the analysis scripts."""
 from diffuser_lab.runs.results import (  # noqa: F401 - re-exported
-    Run,
     SEED_KEYS,
+    Run,
     experiment_name,
     find_runs,
     folder_name,

@@ -299,7 +299,7 @@ class RecordConfig:
     interval: int = 10  # record every n-th iteration; the first and the last always
     z_precision: ZPrecision = ZPrecision.float32  # precision of Z in run.mcap
     max_image_side: int = 320  # frames' images in run.rrd are downsampled to at most this many pixels
-    zstd_level: int = -20  # run.mcap chunks: -131072 (fastest) .. 22 (smallest); see mcap_log.ZSTD_LEVEL
+    zstd_level: int = -20  # run.mcap chunks: -131072 (fastest) .. 22 (smallest); see recording.mcap_write.ZSTD_LEVEL
     retain_heap_mb: int = 256  # diffuser-lab (the CLI) has glibc keep this much freed memory for reuse (0: its defaults)
 
     def __post_init__(self) -> None:

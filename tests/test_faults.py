@@ -35,7 +35,7 @@ def test_killed_run_leaves_running_summary_and_readable_mcap(tmp_path):
     assert p.returncode == 0, p.stderr
     assert "truncated" in p.stderr and "Traceback" not in p.stderr
 
-    from diffuser_lab.recording.mcap_log import read_run
+    from diffuser_lab.recording.mcap_read import read_run
 
     log = read_run(mcap, z="all")
     assert log.truncated and len(log.z_iterations) >= 2

@@ -129,7 +129,7 @@ def test_float16_conversion_is_numpys_bit_for_bit(compiled, monkeypatch):
     zero (and, compiled, signs and overflow)."""
     from diffuser_lab.backends import numba as nb
     from diffuser_lab.backends.numba import float16
-    from diffuser_lab.recording.mcap_log import to_float16
+    from diffuser_lab.recording.mcap_encode import to_float16
 
     rng = np.random.default_rng(0)
     a = np.concatenate([rng.random(20000), 10 ** rng.uniform(-12, 0, 80000), np.arange(2049) * 2.0**-25,

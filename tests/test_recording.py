@@ -13,7 +13,8 @@ from diffuser_lab.cli.inspect import main as inspect_main
 from diffuser_lab.config import default_config
 from diffuser_lab.method.diffusion import labels_from_scores
 from diffuser_lab.recording import make_hooks
-from diffuser_lab.recording.mcap_log import TOPIC_Z, read_run
+from diffuser_lab.recording.mcap_encode import TOPIC_Z
+from diffuser_lab.recording.mcap_read import read_run
 from diffuser_lab.recording.rerun_log import UNLABELED_ID
 from diffuser_lab.runs.pipeline import run
 
@@ -102,7 +103,9 @@ def test_every_recorded_z_and_label_cloud_is_that_iterations(small_demo_scene, t
 
     from diffuser_lab import recording
     from diffuser_lab.hooks import RunHooks
-    from diffuser_lab.recording.mcap_log import TOPIC_LABELS, McapRecorder, decode_point_cloud, iter_run
+    from diffuser_lab.recording.mcap_encode import TOPIC_LABELS, decode_point_cloud
+    from diffuser_lab.recording.mcap_read import iter_run
+    from diffuser_lab.recording.mcap_write import McapRecorder
 
     monkeypatch.setattr(recording, "ASYNC", mode != "in-line")
     if mode == "background-slow":
@@ -180,7 +183,7 @@ def test_compiled_step_statistics_equal_numpy(small_demo_scene, voxels):
 
 def test_z_state_bytes_is_the_protobuf_serialisation():
     from diffuser_lab.recording import schema
-    from diffuser_lab.recording.mcap_log import decode_z, z_state_bytes
+    from diffuser_lab.recording.mcap_encode import decode_z, z_state_bytes
 
     Z = np.random.default_rng(0).random((50, 7), dtype=np.float32) * 1e-3
     pool = bytearray(10_000)  # larger than needed: reused, only the filled part is the message
@@ -205,7 +208,7 @@ def test_z_state_bytes_is_the_protobuf_serialisation():
 
 
 def test_point_cloud_bytes_is_the_protobuf_serialisation():
-    from diffuser_lab.recording.mcap_log import _cloud_dtype, _point_cloud, point_cloud_bytes
+    from diffuser_lab.recording.mcap_encode import _cloud_dtype, _point_cloud, point_cloud_bytes
 
     buf = np.zeros(300, _cloud_dtype())
     buf["x"], buf["label"], buf["red"] = np.arange(300) * 0.5, np.arange(300) % 7 - 1, 200
@@ -370,12 +373,12 @@ def test_methods_without_diffusion_record_the_static_part(method, small_demo_sce
 
 
 def test_a_failing_recorder_is_switched_off_and_the_run_goes_on(small_demo_scene, tmp_path, monkeypatch, caplog):
-    from diffuser_lab.recording import mcap_log
+    from diffuser_lab.recording import mcap_write
 
     def boom(self, step):
         raise OSError("disk full")
 
-    monkeypatch.setattr(mcap_log.McapRecorder, "log_step", boom)
+    monkeypatch.setattr(mcap_write.McapRecorder, "log_step", boom)
     cfg = default_config(**{"solver.max_iter": 20})
     res, hooks = recorded(cfg, small_demo_scene, tmp_path)
     files = hooks.files()

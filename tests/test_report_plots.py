@@ -45,7 +45,7 @@ def _legend(fig, title):
 
 
 def _final_mious(runs):
-    from diffuser_lab.recording.mcap_log import read_run
+    from diffuser_lab.recording.mcap_read import read_run
 
     out = {}
     for r in runs:

@@ -121,21 +121,19 @@ def table_text(metrics: Sequence[dict]) -> str:
 def mcap_to_rrd(mcap_path: Path | str, rrd_path: Path | str, *, max_image_side: int = 320) -> Any:
     """Re-log a run into a fresh .rrd from its run.mcap alone (same entities, blueprint and
     per-iteration class ids as the live run.rrd; cameras without their images, which run.mcap
-    does not hold). Returns the :class:`~diffuser_lab.recording.mcap_log.RunLog` (truncation)."""
+    does not hold). Returns the :class:`~diffuser_lab.recording.mcap_read.RunLog` (truncation)."""
     from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 
     from diffuser_lab.recording import schema
-    from diffuser_lab.recording.mcap_log import (
+    from diffuser_lab.recording.mcap_encode import (
         TOPIC_METRICS,
         TOPIC_RUN,
         TOPIC_SCENE,
         TOPIC_Z,
-        RunLog,
         decode_point_cloud,
         decode_z,
-        iter_run,
-        metrics_dict,
     )
+    from diffuser_lab.recording.mcap_read import RunLog, iter_run, metrics_dict
     from diffuser_lab.recording.rerun_log import RerunRecorder
     from diffuser_lab.recording.steps import StepTracker
 
@@ -220,7 +218,7 @@ def _warn_truncated(log: Any) -> None:
 
 
 def _main(args: argparse.Namespace) -> int:
-    from diffuser_lab.recording.mcap_log import read_run
+    from diffuser_lab.recording.mcap_read import read_run
 
     run = Path(args.run)
     if args.out and args.at is None:

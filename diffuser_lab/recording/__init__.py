@@ -90,7 +90,7 @@ class RecordingHooks(RunHooks):
     def _open_mcap(self, overrides: Sequence[str]) -> None:
         from diffuser_lab.config import config_yaml
 
-        from .mcap_log import McapRecorder
+        from .mcap_write import McapRecorder
 
         try:
             yaml = config_yaml(self.conf)

@@ -132,7 +132,7 @@ def test_recording_content_cost_without_a_diffusion(benchmark, tmp_path):
             shutil.rmtree(run_dir, ignore_errors=True)
 
     # the replay records what the run observed: every observed iteration, readable back
-    from diffuser_lab.recording.mcap_log import read_run
+    from diffuser_lab.recording.mcap_read import read_run
 
     replay(tmp_path / "check", keep=True)
     cpu.clear()

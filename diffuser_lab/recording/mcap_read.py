@@ -1,0 +1,142 @@
+"""Reading run.mcap back (also a truncated one: every complete iteration): the one reader that
+``diffuser-lab-inspect``, its MCAP -> .rrd conversion and the analysis scripts use."""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Iterator, Optional
+
+from . import schema
+from .mcap_encode import MAGIC, TOPIC_METRICS, TOPIC_RUN, TOPIC_SCENE, TOPIC_Z, decode_point_cloud, decode_z
+
+
+@dataclass
+class RunLog:
+    """What :func:`read_run` found in a run.mcap.
+
+    Attributes:
+        metadata: {record name: {key: value}} (config, run, summary when the run finished).
+        info: the RunInfo message, or None.
+        metrics: per recorded iteration, dicts with the IterationMetrics fields (None for NaN).
+        z_iterations: iterations whose Z state was read completely, in order.
+        z: {iteration: (M, C) float32 Z} for the iterations asked for.
+        scene: {field: array} of the /scene/points cloud (x y z red green blue alpha label), or None.
+        truncated: the file ended before its footer (killed run or cut copy).
+        error: what stopped the reading early, or None.
+    """
+
+    path: Path
+    metadata: dict = field(default_factory=dict)
+    info: Any = None
+    metrics: list = field(default_factory=list)
+    z_iterations: list = field(default_factory=list)
+    z: dict = field(default_factory=dict)
+    scene: Optional[dict] = None
+    truncated: bool = False
+    error: Optional[str] = None
+    complete: bool = False
+
+    @property
+    def config_yaml(self) -> str:
+        return self.metadata.get("diffuser_lab.config", {}).get("yaml", "")
+
+    @property
+    def overrides(self) -> list:
+        return json.loads(self.metadata.get("diffuser_lab.config", {}).get("overrides", "[]"))
+
+    @property
+    def summary(self) -> Optional[dict]:
+        s = self.metadata.get("diffuser_lab.summary")
+        return json.loads(s["json"]) if s else None
+
+    @property
+    def run(self) -> dict:
+        return self.metadata.get("diffuser_lab.run", {})
+
+    @property
+    def class_names(self) -> list:
+        if self.info is not None:
+            return list(self.info.class_names)
+        return json.loads(self.run.get("class_names", "[]"))
+
+
+def iter_run(path: Path | str, log: "RunLog") -> Iterator[tuple[str, Any]]:
+    """Read run.mcap front to back (no summary section needed, so a truncated file works),
+    yielding ``(topic, raw message bytes)`` for every message and ``("metadata:<name>", dict)``
+    for metadata records. Sets ``log.complete`` / ``log.truncated`` / ``log.error`` at the end;
+    only whole records are yielded."""
+    from mcap.records import Channel, Footer, Message, Metadata
+    from mcap.stream_reader import StreamReader
+
+    topics: dict[int, str] = {}
+    with open(path, "rb") as fh:
+        if fh.read(8) != MAGIC:
+            raise ValueError(f"{path}: not an MCAP file")
+        fh.seek(0)
+        reader = StreamReader(fh, validate_crcs=True)
+        try:
+            for rec in reader.records:
+                if isinstance(rec, Channel):
+                    topics[rec.id] = rec.topic
+                elif isinstance(rec, Metadata):
+                    log.metadata[rec.name] = dict(rec.metadata)
+                    yield f"metadata:{rec.name}", dict(rec.metadata)
+                elif isinstance(rec, Message):
+                    yield topics.get(rec.channel_id, ""), rec.data
+                elif isinstance(rec, Footer):
+                    log.complete = True
+        except Exception as exc:  # noqa: BLE001 - a cut file ends in any of several ways
+            log.truncated = True
+            log.error = (f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__)[:300]
+    if not log.complete and not log.truncated:
+        log.truncated, log.error = True, "the file ends without its footer"
+
+
+def metrics_dict(data: bytes) -> dict:
+    """IterationMetrics bytes -> dict (NaN mIoU / accuracy -> None)."""
+    m = schema.IterationMetrics.FromString(data)
+    d = {f: getattr(m, f) for f in ("iteration", "residual", "n_changed", "previous_iteration", "miou",
+                                    "accuracy", "coverage", "mean_confidence")}
+    for k in ("miou", "accuracy"):
+        if d[k] != d[k]:
+            d[k] = None
+    return d
+
+
+def read_run(path: Path | str, *, z: Optional[Iterable[int]] | str = None, scene: bool = False) -> RunLog:
+    """Read a run.mcap, also a truncated one (see :func:`iter_run`).
+
+    Args:
+        z: iterations whose Z to decode (``"all"`` for every one, ``"last"`` for the last
+            complete one); None: none.
+        scene: also decode the /scene/points cloud.
+    Returns:
+        :class:`RunLog`; ``truncated``/``error`` say whether the file ended early. An iteration
+        counts as recorded only when its Z arrived whole.
+    """
+    from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+
+    want_all, want_last = z == "all", z == "last"
+    want = set() if (z is None or isinstance(z, str)) else {int(i) for i in z}
+    out = RunLog(path=Path(path))
+    for topic, data in iter_run(path, out):
+        if topic == TOPIC_METRICS:
+            out.metrics.append(metrics_dict(data))
+        elif topic == TOPIC_Z:
+            msg = schema.ZState.FromString(data)
+            out.z_iterations.append(int(msg.iteration))
+            if want_last:
+                out.z = {int(msg.iteration): decode_z(msg)}
+            elif want_all or msg.iteration in want:
+                out.z[int(msg.iteration)] = decode_z(msg)
+        elif topic == TOPIC_RUN:
+            out.info = schema.RunInfo.FromString(data)
+        elif topic == TOPIC_SCENE and scene:
+            out.scene = decode_point_cloud(PointCloud.FromString(data))
+    done = set(out.z_iterations)
+    out.metrics = [m for m in out.metrics if m["iteration"] in done]
+    return out
+
+
+__all__ = ["RunLog", "read_run", "iter_run", "metrics_dict"]

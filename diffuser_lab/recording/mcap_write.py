@@ -1,0 +1,280 @@
+"""Writing run.mcap: the diffusion as MCAP (zstd chunks, protobuf messages with their schemas inside).
+
+Channels (message encoding ``protobuf``; schemas in :mod:`diffuser_lab.recording.schema`)::
+
+    /scene/points        foxglove.PointCloud, once: input cloud (x y z float32, red green blue alpha
+                         uint8 = input colours, else ground-truth colours, label int16 = ground truth)
+    /evidence/bayesian   foxglove.PointCloud, once: work cloud coloured by Bayesian labels
+    /diffuser_lab/run    diffuser_lab.RunInfo, once: taxonomy, work cloud, cameras
+    /diffusion/labels    foxglove.PointCloud, per recorded iteration: work cloud coloured by label
+                         (fields as above, label = the iteration's class ids)
+    /diffuser_lab/metrics  diffuser_lab.IterationMetrics, per recorded iteration
+    /diffuser_lab/z      diffuser_lab.ZState, per recorded iteration: the full (M, C) Z, stored
+                         class-major (Z transposed: it compresses ~25% better; decode_z undoes it)
+
+Metadata records: ``diffuser_lab.config`` (``yaml``: the resolved config, ``overrides``: JSON list),
+``diffuser_lab.run`` (scene, method, sizes, taxonomy as JSON) and, once the run has finished,
+``diffuser_lab.summary`` (``json``: the summary.json content).
+
+Each recorded iteration ends its chunk and flushes the file, so a run that is killed leaves
+every completed iteration readable (:func:`.mcap_read.read_run` reads such a truncated file).
+Compression and writing happen on one background thread (in order, a short bounded queue), so
+the diffusion does not wait for zstd; :meth:`McapRecorder.close` drains it. The file is written
+with ``O_DIRECT`` where the file system allows (:mod:`.direct_file`): no page-cache copies.
+Message ``sequence`` is the diffusion iteration; ``log_time`` is the wall clock (ns).
+"""
+from __future__ import annotations
+
+import functools
+import json
+import queue
+import time
+from pathlib import Path
+from typing import Any, Optional, Sequence
+
+import numpy as np
+
+from . import schema
+from .direct_file import open_direct
+from .mcap_encode import (
+    TOPIC_EVIDENCE,
+    TOPIC_LABELS,
+    TOPIC_METRICS,
+    TOPIC_RUN,
+    TOPIC_SCENE,
+    TOPIC_Z,
+    _cloud,
+    _point_cloud,
+    _RawMessage,
+    point_cloud_bytes,
+    z_state_bytes,
+)
+from .serial import SerialThread
+from .steps import Step
+
+WRITER_THREAD = True
+"""Compress and write on a background thread (False: in the caller's thread)."""
+ZSTD_LEVEL = -20
+"""Default zstd level of run.mcap's chunks (``record.zstd_level``). Float32 Z is mostly mantissa
+noise and barely compresses, and compressing it is most of the cost of recording. Measured on
+one 51k x 20 demo Z state (4 MB): level 3 25 ms -> 0.56x, -3 8.3 ms -> 0.61x, -20 3.2 ms -> 0.78x,
+-100 1.3 ms -> 0.95x. -20 keeps a quarter of the bytes off the disk at an eighth of level 3's cost."""
+
+
+@functools.lru_cache(maxsize=None)
+def _writer_class(level: int = ZSTD_LEVEL):
+    """mcap's Writer with chunks compressed at zstd ``level``.
+
+    mcap 1.x compresses chunks with ``zstandard.compress(data)`` (level 3) and has no option
+    for the level, so the subclass carries a copy of the chunk-finishing method whose global
+    ``zstandard`` is a shim with the level set; mcap's own module is not touched. Falls back to
+    the stock Writer when mcap's internals differ from what this expects."""
+    import types
+
+    import zstandard
+    from mcap.writer import Writer
+
+    fn = getattr(Writer, "_Writer__finalize_chunk", None)
+    if fn is None or "zstandard" not in fn.__code__.co_names:
+        return Writer
+
+    class _Zstd:
+        def __getattr__(self, name: str) -> Any:
+            return getattr(zstandard, name)
+
+        @staticmethod
+        def compress(data: bytes) -> bytes:
+            return zstandard.compress(data, level)
+
+    glb = dict(fn.__globals__)
+    glb["zstandard"] = _Zstd()
+
+    class FastZstdWriter(Writer):
+        pass
+
+    FastZstdWriter._Writer__finalize_chunk = types.FunctionType(  # type: ignore[attr-defined]
+        fn.__code__, glb, fn.__name__, fn.__defaults__, fn.__closure__)
+    return FastZstdWriter
+
+
+class McapRecorder:
+    """Writes run.mcap as the run goes (see the module doc). ``writer_thread``: compress and
+    write on a thread of its own (default :data:`WRITER_THREAD`); False when the caller records
+    on a background thread already (:mod:`diffuser_lab.recording`)."""
+
+    file_key = "mcap"
+
+    def __init__(self, path: Path, *, z_dtype: str = "float32", config_yaml: str = "",
+                 overrides: Sequence[str] = (), interval: int = 1, max_iter: int = 0,
+                 zstd_level: int = ZSTD_LEVEL, writer_thread: bool | None = None):
+        from mcap.writer import CompressionType
+
+        from diffuser_lab import __version__
+
+        self.path = Path(path)
+        self.z_dtype = z_dtype
+        self.interval, self.max_iter = int(interval), int(max_iter)
+        self._fh = open_direct(self.path)  # O_DIRECT where possible: no page-cache copies
+        # no CRCs: on 4 MB Z chunks crc32 costs half as much as compressing them; records keep
+        # their lengths, so a cut file is still read up to its last complete chunk
+        self.w = _writer_class(int(zstd_level))(self._fh, compression=CompressionType.ZSTD, enable_crcs=False)
+        self.w.start(profile="", library=f"diffuser-lab {__version__}")
+        from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+
+        self._channels: dict[str, int] = {}
+        self._schema_ids: dict[str, int] = {}
+        for topic, cls in ((TOPIC_SCENE, PointCloud), (TOPIC_EVIDENCE, PointCloud), (TOPIC_RUN, schema.RunInfo),
+                           (TOPIC_LABELS, PointCloud), (TOPIC_METRICS, schema.IterationMetrics),
+                           (TOPIC_Z, schema.ZState)):
+            sid = self._schema(cls)
+            self._channels[topic] = self.w.register_channel(topic=topic, message_encoding="protobuf", schema_id=sid)
+        self.w.add_metadata("diffuser_lab.config", {"yaml": config_yaml, "overrides": json.dumps(list(overrides))})
+        self._cameras: list[Any] = []
+        self._labels_buf: Optional[np.ndarray] = None
+        self._rgba: Optional[np.ndarray] = None  # (C + 1,) colours packed as the cloud's 4 rgba bytes
+        # per-iteration message buffers, reused once the writer has copied them (a fresh 4 MB
+        # buffer per recorded iteration costs more in page faults than the copy itself)
+        self._free: dict[str, queue.SimpleQueue] = {TOPIC_LABELS: queue.SimpleQueue(), TOPIC_Z: queue.SimpleQueue()}
+        self._closed = False
+        # the writer thread, when there is one, is the only user of self.w from here on
+        self._writer: Optional[SerialThread] = None
+        if WRITER_THREAD if writer_thread is None else writer_thread:
+            self._writer = SerialThread("diffuser-lab-mcap", 32, stop_on_error=True)  # ~8 iterations queued
+
+    @property
+    def _error(self) -> Optional[BaseException]:
+        return None if self._writer is None else self._writer.error
+
+    def _submit(self, fn, *args) -> None:
+        if self._error is not None:
+            raise RuntimeError(f"writing {self.path.name} failed: {self._error}") from self._error
+        if self._writer is None:
+            fn(*args)
+        else:
+            self._writer.submit(fn, *args)
+
+    def _add(self, topic: str, msg: Any, sequence: int, t: int) -> None:
+        self.w.add_message(self._channels[topic], log_time=t, publish_time=t, sequence=sequence,
+                           data=msg.SerializeToString())
+        if getattr(msg, "done", None) is not None:
+            msg.done()
+
+    def _schema(self, cls) -> int:
+        name = cls.DESCRIPTOR.full_name
+        if name not in self._schema_ids:
+            self._schema_ids[name] = self.w.register_schema(name=name, encoding="protobuf",
+                                                            data=schema.file_descriptor_set(cls))
+        return self._schema_ids[name]
+
+    def _write(self, topic: str, msg: Any, sequence: int = 0) -> None:
+        """Queue ``msg`` (which must not change afterwards) for the writer thread."""
+        self._submit(self._add, topic, msg, int(sequence), time.time_ns())
+
+    def _flush(self) -> None:
+        self._submit(self.w.flush)
+
+    def _paint(self, buf: np.ndarray, labels: np.ndarray) -> None:
+        """Colour the cloud ``buf`` by ``labels`` (taxonomy colours, IGNORE grey) and store them
+        as its label field."""
+        rgba = buf.view(np.dtype({"names": ["rgba"], "formats": ["<u4"], "offsets": [12],
+                                  "itemsize": buf.dtype.itemsize}))
+        rgba["rgba"] = self._rgba[labels]  # red green blue alpha at offsets 12-15
+        buf["label"] = labels
+
+    # -- static ----------------------------------------------------------------------------
+    def log_scene(self, scene: Any) -> None:
+        tax = scene.taxonomy
+        colors = np.vstack([tax.colors, np.array([[70, 70, 70]], np.uint8)])  # last: unlabeled
+        rgba = np.concatenate([colors, np.full((len(colors), 1), 255, np.uint8)], 1)
+        self._rgba = np.ascontiguousarray(rgba).view("<u4").ravel()  # index -1 (IGNORE): unlabeled
+        gt = scene.gt_labels
+        self._submit(self.w.add_metadata, "diffuser_lab.run", {
+            "scene": scene.name, "n_points": str(scene.n_points), "taxonomy": tax.name,
+            "class_names": json.dumps(list(tax.names)), "class_colors": json.dumps(tax.colors.tolist()),
+            "has_colors": json.dumps(scene.colors is not None), "has_gt": json.dumps(gt is not None)})
+        buf = _cloud(scene.points)
+        if gt is not None:
+            self._paint(buf, gt)
+        if scene.colors is not None:  # input colours win over the ground truth's
+            buf["red"], buf["green"], buf["blue"] = scene.colors[:, 0], scene.colors[:, 1], scene.colors[:, 2]
+        elif gt is None:
+            buf["red"] = buf["green"] = buf["blue"] = 160
+        self._write(TOPIC_SCENE, _point_cloud(buf, time.time_ns()))
+
+    def log_camera(self, index: int, frame: Any) -> None:
+        h, w = frame.shape
+        self._cameras.append(schema.Camera(name=str(frame.name), width=int(w), height=int(h),
+                                           K=np.asarray(frame.K, float).ravel().tolist(),
+                                           T_cw=np.asarray(frame.T_cw, float).ravel().tolist()))
+
+    def log_evidence(self, scene: Any, method: str, work_points: np.ndarray, to_work: Optional[np.ndarray],
+                     seen: np.ndarray, bayesian: np.ndarray) -> None:
+        tax = scene.taxonomy
+        m = len(work_points)
+        info = schema.RunInfo(scene=scene.name, method=method, taxonomy=tax.name, class_names=list(tax.names),
+                              class_colors=np.asarray(tax.colors, np.uint8).tobytes(), n_points=scene.n_points,
+                              n_work_points=m, work_points=np.ascontiguousarray(work_points, "<f4").tobytes(),
+                              original_to_work=b"" if to_work is None else to_work.astype("<i4").tobytes(),
+                              bayesian_labels=np.asarray(bayesian, "<i2").tobytes(),
+                              seen=np.asarray(seen, np.uint8).tobytes(), interval=self.interval,
+                              max_iter=self.max_iter, z_dtype=self.z_dtype)
+        info.cameras.extend(self._cameras)
+        self._write(TOPIC_RUN, info)
+        buf = _cloud(work_points)
+        self._paint(buf, bayesian)
+        self._write(TOPIC_EVIDENCE, _point_cloud(buf, time.time_ns()))
+        self._labels_buf = _cloud(work_points)  # the per-iteration cloud: positions filled once
+        self._flush()
+
+    # -- per iteration ------------------------------------------------------------------------
+    def log_step(self, step: Step) -> None:
+        nan = float("nan")
+        self._write(TOPIC_METRICS, schema.IterationMetrics(
+            iteration=step.iteration, residual=step.residual, n_changed=step.n_changed,
+            previous_iteration=step.previous, miou=nan if step.miou is None else step.miou,
+            accuracy=nan if step.accuracy is None else step.accuracy, coverage=step.coverage,
+            mean_confidence=step.mean_confidence), step.iteration)
+        if self._labels_buf is not None:
+            buf = self._labels_buf
+            self._paint(buf, step.labels)
+            self._write_pooled(TOPIC_LABELS, point_cloud_bytes(buf, time.time_ns(), self._pooled(TOPIC_LABELS)),
+                               step.iteration)
+        self._write_pooled(TOPIC_Z, z_state_bytes(step.iteration, step.Z, self.z_dtype, self._pooled(TOPIC_Z)),
+                           step.iteration)
+        self._flush()  # ends the chunk: a killed run keeps this iteration
+
+    def _pooled(self, topic: str) -> Optional[bytearray]:
+        try:
+            return self._free[topic].get_nowait()
+        except queue.Empty:
+            return None
+
+    def _write_pooled(self, topic: str, mv: memoryview, sequence: int) -> None:
+        """Queue a serialized message whose buffer returns to ``topic``'s pool once written."""
+        self._write(topic, _RawMessage(mv, functools.partial(self._free[topic].put, mv.obj)), sequence)
+
+    def log_summary(self, summary: dict) -> None:
+        self._submit(self.w.add_metadata, "diffuser_lab.summary",
+                     {"json": json.dumps(summary, default=_json_default)})
+        self._flush()
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._submit(self.w.finish)
+            if self._writer is not None:
+                self._writer.close()
+        finally:
+            self._fh.close()
+        if self._error is not None:
+            raise RuntimeError(f"writing {self.path.name} failed: {self._error}") from self._error
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    return str(o)
