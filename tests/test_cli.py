@@ -116,3 +116,22 @@ def test_config_yaml_is_omegaconfs_text(overrides):
     assert config_yaml(conf) == OmegaConf.to_yaml(OmegaConf.structured(conf))
     dc = OmegaConf.structured(conf)
     assert config_yaml(dc) == OmegaConf.to_yaml(dc)
+
+
+def test_summary_file_is_built_in_one_place(tmp_path):
+    """summary.json: written as `running` at once, warnings kept, finished `failed` with the
+    error; a folder that holds a run is refused and its summary left as it was."""
+    from diffuser_lab.runs.report import SummaryFile
+
+    s = SummaryFile(tmp_path, ["graph.k=8"])
+    first = json.loads((tmp_path / "summary.json").read_text())
+    assert first["status"] == "running" and first["overrides"] == ["graph.k=8"] and "started" in first
+    s.warn("depth looks like millimetres")
+    s.update(method="diffuser")
+    s.failed("ValueError: bad frame")
+    last = json.loads((tmp_path / "summary.json").read_text())
+    assert last["status"] == "failed" and last["error"] == "ValueError: bad frame"
+    assert last["warnings"] == ["depth looks like millimetres"] and last["method"] == "diffuser"
+    with pytest.raises(FileExistsError, match="refusing to overwrite"):
+        SummaryFile(tmp_path, [])
+    assert json.loads((tmp_path / "summary.json").read_text()) == last

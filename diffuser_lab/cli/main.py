@@ -99,7 +99,7 @@ def _task(cfg: Any) -> Optional[float]:
 
     from diffuser_lab.config import to_object
     from diffuser_lab.runs import report
-    from diffuser_lab.runs.records import write_json_atomic, write_labels
+    from diffuser_lab.runs.records import write_labels
 
     t_start = time.perf_counter()
     hc = HydraConfig.get()
@@ -112,25 +112,22 @@ def _task(cfg: Any) -> Optional[float]:
             from diffuser_lab.backends import numba as nb
 
             nb.limit_threads(int(hc.launcher.cpus_per_task))
-    summary: dict[str, Any] = {"status": "running", "overrides": list(hc.overrides.task),
-                               "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
-    summary_path = run_dir / "summary.json"
-    caught: list[str] = []
+    summary: Optional[report.SummaryFile] = None
+    early: list[str] = []  # warnings before the summary exists
     show = warnings.showwarning
 
     def keep(message, category, filename, lineno, file=None, line=None):  # print and record
-        caught.append(str(message))
-        summary["warnings"] = caught
+        if summary is not None:
+            summary.warn(str(message))
+        else:
+            early.append(str(message))
         show(message, category, filename, lineno, file, line)
 
     warnings.showwarning = keep
     try:
-        if summary_path.exists():
-            raise FileExistsError(f"{run_dir} already holds a run (summary.json); refusing to overwrite it")
-        write_json_atomic(summary_path, summary)
+        summary = report.SummaryFile(run_dir, hc.overrides.task)
         conf = to_object(cfg)
-        summary["method"] = conf.method.name
-        write_json_atomic(summary_path, summary)
+        summary.update(method=conf.method.name, **({"warnings": early} if early else {}))
 
         from diffuser_lab.config import Protocol
 
@@ -138,14 +135,12 @@ def _task(cfg: Any) -> Optional[float]:
             from diffuser_lab.runs.protocols import single_frame, table
 
             sf = single_frame(conf)
-            summary.update(report.single_frame_summary(sf))
-            summary["status"] = "ok"
-            write_json_atomic(summary_path, summary)
+            done = summary.single_frame(sf)
             if multirun:
-                print(job_line(hc.job.num, run_dir, summary, time.perf_counter() - t_start), flush=True)
+                print(job_line(hc.job.num, run_dir, done, time.perf_counter() - t_start), flush=True)
             elif not conf.output.quiet:
                 print(table(sf) + f"\nrun folder: {run_dir}")
-            return summary["metrics"]["miou"]
+            return done["metrics"]["miou"]
 
         from diffuser_lab.config import RecordMode
         from diffuser_lab.runs.pipeline import run
@@ -156,36 +151,27 @@ def _task(cfg: Any) -> Optional[float]:
             from diffuser_lab.recording.heap import retain_freed_memory
 
             retain_freed_memory(conf.record.retain_heap_mb)  # process-wide: the command line's choice
-
             hooks = make_hooks(conf, run_dir, overrides=list(hc.overrides.task))
         try:
             result = run(conf, hooks=hooks)
         finally:
             if hooks is not None:
                 hooks.close()
-        summary["records"] = hooks.files() if hooks is not None else {}
         t_out = time.perf_counter()
         files = write_labels(run_dir, result.scene.points, result.labels, result.scene.taxonomy,
                              ply=conf.output.labels_ply)
         result.timings_s["write"] = time.perf_counter() - t_out
-        summary.update(report.summary(result, conf))
-        summary["files"] = files
-        summary["status"] = "ok"
-        write_json_atomic(summary_path, summary)
+        done = summary.result(result, conf, records=hooks.files() if hooks is not None else {}, files=files)
         if multirun:  # one line per job; the sweep's table comes at the end (sweep.print_table)
-            print(job_line(hc.job.num, run_dir, summary, time.perf_counter() - t_start), flush=True)
+            print(job_line(hc.job.num, run_dir, done, time.perf_counter() - t_start), flush=True)
         elif not conf.output.quiet:
             print(report.table(result, run_dir))
-        return summary.get("metrics", {}).get("miou") if summary.get("metrics") else None
+        return (done.get("metrics") or {}).get("miou")
     except Exception as exc:  # noqa: BLE001 - recorded, then reported as one line
-        summary["status"] = "failed"
-        summary["error"] = f"{type(exc).__name__}: {one_line(exc)}"
-        try:
-            write_json_atomic(summary_path, summary)
-        except OSError:
-            pass
+        error = f"{type(exc).__name__}: {one_line(exc)}"
+        failed = summary.failed(error) if summary is not None else {"status": "failed", "error": error}
         if multirun:
-            print(job_line(hc.job.num, run_dir, summary), flush=True)
+            print(job_line(hc.job.num, run_dir, failed), flush=True)
         if multirun or _verbose():
             raise  # Hydra marks this job failed and goes on with the others
         print(f"{PROG}: error: {one_line(exc)}", file=sys.stderr)

@@ -1,7 +1,10 @@
-"""What a run tells: the summary.json dictionary and the table printed at the end."""
+"""What a run tells: summary.json (built here only, :class:`SummaryFile`) and the table printed
+at the end."""
 from __future__ import annotations
 
+import time
 from pathlib import Path
+from typing import Any, Optional, Sequence
 
 from diffuser_lab.config import Config
 from diffuser_lab.data.scene import IGNORE
@@ -94,3 +97,50 @@ def single_frame_summary(sf) -> dict:
         "timings_s": {k: round(v, 4) for k, v in sf.timings_s.items()},
         "records": {},
     }
+
+
+class SummaryFile:
+    """A run folder's summary.json, the one place it is built. Written as soon as the run starts
+    (``status: running``: a run that dies leaves it), rewritten atomically at every change, and
+    finished ``ok`` with the result (:meth:`result`, :meth:`single_frame`) or ``failed`` with the
+    error (:meth:`failed`). Never overwrites an earlier run's summary."""
+
+    def __init__(self, run_dir: Path, overrides: Sequence[str]):
+        self.path = Path(run_dir) / "summary.json"
+        if self.path.exists():
+            raise FileExistsError(f"{run_dir} already holds a run (summary.json); refusing to overwrite it")
+        self.data: dict[str, Any] = {"status": "running", "overrides": list(overrides),
+                                     "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+        self.write()
+
+    def write(self) -> None:
+        from .records import write_json_atomic
+
+        write_json_atomic(self.path, self.data)
+
+    def update(self, **values: Any) -> None:
+        self.data.update(values)
+        self.write()
+
+    def warn(self, message: str) -> None:
+        """Keep a warning (the data only; the next write stores it)."""
+        self.data.setdefault("warnings", []).append(message)
+
+    def result(self, res: RunResult, cfg: Config, *, records: dict, files: dict) -> dict:
+        self.data.update(summary(res, cfg))
+        self.update(records=records, files=files, status="ok")
+        return self.data
+
+    def single_frame(self, sf) -> dict:
+        self.data.update(single_frame_summary(sf))
+        self.update(status="ok")
+        return self.data
+
+    def failed(self, error: str) -> Optional[dict]:
+        self.data.update(status="failed", error=error)
+        try:
+            self.write()
+        except OSError:  # the folder went away: the error is reported on the terminal anyway
+            pass
+        return self.data
+
