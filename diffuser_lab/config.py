@@ -170,6 +170,14 @@ class SceneConfig:
 
     def __post_init__(self) -> None:
         _check(self.voxel_size >= 0.0, "scene.voxel_size", self.voxel_size, ">= 0 metres (0 = off)")
+        # the selected source's required path: missing, it stops at start-up naming the key (exit 2)
+        required = {SceneSource.mesh_views: ("scene.mesh_views.path", self.mesh_views.path, "a labelled mesh PLY"),
+                    SceneSource.scannet: ("scene.scannet.root", self.scannet.root, "a ScanNet scene folder"),
+                    SceneSource.rgbd_folder: ("scene.rgbd_folder.root", self.rgbd_folder.root, "a posed RGB-D folder")}
+        if self.source in required:
+            key, value, what = required[self.source]
+            if value in (None, ""):
+                raise ConfigError(f"{key} is required for scene={self.source.value}: {what}")
 
 
 @dataclass

@@ -93,8 +93,12 @@ def test_missing_folder(tmp_path):
     one_error(cli(tmp_path / "nope", cwd=tmp_path), "does not exist")
 
 
-def test_missing_required_root(tmp_path):
-    one_error(run_cli("scene=rgbd_folder", "record=off", cwd=tmp_path), "scene.rgbd_folder.root is required")
+@pytest.mark.parametrize("scene,key", [("rgbd_folder", "scene.rgbd_folder.root"), ("scannet", "scene.scannet.root"),
+                                       ("mesh_views", "scene.mesh_views.path")])
+def test_missing_required_path_stops_at_start_up(scene, key, tmp_path):
+    p = run_cli(f"scene={scene}", cwd=tmp_path)
+    one_error(p, f"{key} is required for scene={scene}")
+    assert p.returncode == 2 and not (tmp_path / "logs").exists()  # nothing was started
 
 
 def test_frame_counts_differ(good, tmp_path):

@@ -26,12 +26,6 @@ from diffuser_lab.method.graph import KnnGraph, graph_stage, make_graph
 from diffuser_lab.method.metrics import confusion_matrix, score, scores_from_confusion
 
 
-def _required(value, key: str, source: str):
-    if value in (None, ""):
-        raise ValueError(f"{key} is required for scene.source={source}")
-    return value
-
-
 def load_scene(cfg: SceneConfig) -> Scene:
     """The configured source -> :class:`Scene` whose frames carry ground-truth labels when known.
     Relative paths are taken from the current directory."""
@@ -48,7 +42,7 @@ def load_scene(cfg: SceneConfig) -> Scene:
             from diffuser_lab.data.sources.mesh_views import load_mesh_views
 
             m = cfg.mesh_views
-            scene = load_mesh_views(_required(m.path, "scene.mesh_views.path", src.value), mapping=m.mapping,
+            scene = load_mesh_views(m.path, mapping=m.mapping,
                                     n_views=m.n_views, seed=m.seed, image_width=m.image_width,
                                     image_height=m.image_height, fov_deg=m.fov_deg, min_coverage=m.min_coverage,
                                     eye_height_range=(m.eye_height_min, m.eye_height_max))
@@ -56,13 +50,13 @@ def load_scene(cfg: SceneConfig) -> Scene:
             from diffuser_lab.data.sources.scannet import load_scannet
 
             c = cfg.scannet
-            scene = load_scannet(_required(c.root, "scene.scannet.root", src.value), frame_step=c.frame_step,
+            scene = load_scannet(c.root, frame_step=c.frame_step,
                                  max_frames=c.max_frames, mapping=c.mapping)
         elif src == SceneSource.rgbd_folder:
             from diffuser_lab.data.sources.rgbd_folder import load_rgbd_folder
 
             r = cfg.rgbd_folder
-            scene = load_rgbd_folder(_required(r.root, "scene.rgbd_folder.root", src.value), depth_scale=r.depth_scale,
+            scene = load_rgbd_folder(r.root, depth_scale=r.depth_scale,
                                      depth_bit_shift=r.depth_bit_shift, invalid_depth=tuple(r.invalid_depth),
                                      color_suffix=r.color_suffix, label_suffix=r.label_suffix, mapping=r.mapping,
                                      cloud=r.cloud, voxel_size=r.cloud_voxel, cloud_stride=r.cloud_stride,
