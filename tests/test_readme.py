@@ -95,8 +95,7 @@ def check_run(c: Command, p, work):
     m = re.search(r"^run folder: (\S+)$", p.stdout, re.M)
     assert m, f"no 'run folder:' line in\n{p.stdout[-2000:]}"
     run_dir = Path(m.group(1))
-    assert run_dir.is_relative_to(work["repo"].resolve() / "logs" / "runs") or \
-        str(run_dir).startswith(str(work["repo"] / "logs" / "runs")), run_dir
+    assert run_dir.resolve().is_relative_to((work["repo"] / "logs" / "runs").resolve()), run_dir
     s = json.loads((run_dir / "summary.json").read_text())
     assert s["status"] == "ok"
     if s.get("protocol") != "single_frame":

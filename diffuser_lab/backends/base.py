@@ -49,19 +49,37 @@ class JacobiBackend:
     """Steps of Eq. 10 ``Z <- P Z + B`` (Z from 0, entries below ``floor`` flushed to 0).
 
     ``steps(count)`` runs up to ``count`` steps and returns their (done, 2) float32 array of
-    (max change, max Z), stopping after the first step whose :func:`residual` is <= ``tol``;
-    ``paper_units(out)`` gives Z (N, C) float32 in the caller's order and the paper's units
-    (``out``, if given, is filled: its inactive columns must be 0); ``close()`` frees threads.
+    (max change, max Z), stopping after the first step whose :func:`residual` is <= ``tol``; a
+    backend gives ``step()`` (one step, its (change, top)) or, to run many steps in compiled
+    code, its own ``steps``. ``paper_units(out)`` gives Z (N, C) float32 in the caller's order
+    and the paper's units (``out``, if given, is filled: its inactive columns must be 0);
+    ``close()`` frees threads; ``details()`` says what ran (``info`` of the result).
     """
 
     name = "?"
-    compiling = False  # the backend's kernels compile in this run (the progress line says so)
 
     def __init__(self, inputs: IterationInputs, tol: float):
         self.inputs, self.tol = inputs, float(tol)
 
-    def steps(self, count: int) -> np.ndarray:  # pragma: no cover - interface
+    @property
+    def compiling(self) -> bool:
+        """Whether the backend's kernels compile in this run (the progress line says so)."""
+        return False
+
+    def details(self) -> dict:
+        return {"backend": self.name}
+
+    def step(self) -> tuple[float, float]:  # pragma: no cover - interface
         raise NotImplementedError
+
+    def steps(self, count: int) -> np.ndarray:
+        out = []
+        for _ in range(count):
+            change, top = self.step()
+            out.append((change, top))
+            if residual(change, top) <= self.tol:
+                break
+        return np.array(out, np.float32).reshape(-1, 2)
 
     def paper_units(self, out: Optional[np.ndarray] = None) -> np.ndarray:  # pragma: no cover - interface
         raise NotImplementedError

@@ -7,7 +7,7 @@ from typing import Optional
 import numpy as np
 import scipy.sparse as sp
 
-from .base import IterationInputs, JacobiBackend, residual
+from .base import IterationInputs, JacobiBackend
 
 
 class ScipyJacobi(JacobiBackend):
@@ -22,20 +22,15 @@ class ScipyJacobi(JacobiBackend):
         self.B = np.ascontiguousarray(inputs.B[:, inputs.active]) / inputs.scale  # iterate on Z / max(B)
         self.Z = np.zeros_like(self.B)
 
-    def steps(self, count: int) -> np.ndarray:
-        out = []
-        for _ in range(count):
-            Z = self.Z
-            Z_new = self.P @ Z
-            Z_new += self.B
-            np.multiply(Z_new, Z_new >= self.inputs.floor, out=Z_new)
-            top = float(Z_new.max()) if Z_new.size else 0.0  # Z >= 0 throughout
-            change = float(np.abs(Z_new - Z).max()) if Z_new.size else 0.0
-            self.Z = Z_new
-            out.append((change, top))
-            if residual(change, top) <= self.tol:
-                break
-        return np.array(out, np.float32).reshape(-1, 2)
+    def step(self) -> tuple[float, float]:
+        Z = self.Z
+        Z_new = self.P @ Z
+        Z_new += self.B
+        np.multiply(Z_new, Z_new >= self.inputs.floor, out=Z_new)
+        top = float(Z_new.max()) if Z_new.size else 0.0  # Z >= 0 throughout
+        change = float(np.abs(Z_new - Z).max()) if Z_new.size else 0.0
+        self.Z = Z_new
+        return change, top
 
     def paper_units(self, out: Optional[np.ndarray] = None) -> np.ndarray:
         inp = self.inputs

@@ -12,7 +12,7 @@ from typing import Optional
 
 import numpy as np
 
-from .base import IterationInputs, JacobiBackend, residual
+from .base import IterationInputs, JacobiBackend
 
 
 def cuda_available() -> bool:
@@ -50,20 +50,17 @@ class TorchJacobi(JacobiBackend):
         self.Z = torch.zeros_like(self.B)
         self.order = None if inputs.order is None else torch.from_numpy(inputs.order).to(dev)
 
-    def steps(self, count: int) -> np.ndarray:
-        torch, floor = self.torch, float(self.inputs.floor)
-        out = []
-        for _ in range(count):
-            Z = self.Z
-            Zn = torch.sparse.mm(self.P, Z) if Z.shape[1] else Z.clone()
-            Zn += self.B
-            Zn = torch.where(Zn >= floor, Zn, torch.zeros((), device=self.device, dtype=Zn.dtype))
-            top, change = torch.stack([Zn.max(), (Zn - Z).abs().max()]).tolist() if Zn.numel() else (0.0, 0.0)
-            self.Z = Zn
-            out.append((change, top))
-            if residual(change, top) <= self.tol:
-                break
-        return np.array(out, np.float32).reshape(-1, 2)
+    def details(self) -> dict:
+        return {"backend": self.name, "device": str(self.device)}
+
+    def step(self) -> tuple[float, float]:
+        torch, Z = self.torch, self.Z
+        Zn = torch.sparse.mm(self.P, Z) if Z.shape[1] else Z.clone()
+        Zn += self.B
+        Zn = torch.where(Zn >= float(self.inputs.floor), Zn, torch.zeros((), device=self.device, dtype=Zn.dtype))
+        top, change = torch.stack([Zn.max(), (Zn - Z).abs().max()]).tolist() if Zn.numel() else (0.0, 0.0)
+        self.Z = Zn
+        return change, top
 
     def paper_units(self, out: Optional[np.ndarray] = None) -> np.ndarray:
         inp = self.inputs

@@ -113,21 +113,18 @@ def _task(cfg: Any) -> Optional[float]:
 
             nb.limit_threads(int(hc.launcher.cpus_per_task))
     summary: Optional[report.SummaryFile] = None
-    early: list[str] = []  # warnings before the summary exists
     show = warnings.showwarning
 
     def keep(message, category, filename, lineno, file=None, line=None):  # print and record
         if summary is not None:
             summary.warn(str(message))
-        else:
-            early.append(str(message))
         show(message, category, filename, lineno, file, line)
 
     warnings.showwarning = keep
     try:
         summary = report.SummaryFile(run_dir, hc.overrides.task)
         conf = to_object(cfg)
-        summary.update(method=conf.method.name, **({"warnings": early} if early else {}))
+        summary.update(method=conf.method.name)
 
         from diffuser_lab.config import Protocol
 
@@ -191,7 +188,6 @@ def main() -> None:
         os.environ["HYDRA_FULL_ERROR"] = "1"
     warnings.formatwarning = _one_line_warning
     _prevalidate(sys.argv[1:])
-    os.environ.setdefault("RAY_DEDUP_LOGS", "0")  # Ray folds the jobs' similar result lines into one
     app = hydra.main(config_path=config_dir(), config_name="config", version_base="1.3")(_task)
     try:
         app()

@@ -230,8 +230,11 @@ def diffuse(system: System, *, max_iter: int = 200, tol: float = 1e-4,
     it = 0
     seen_buf: Optional[np.ndarray] = None  # what observers see (valid during their call only)
     with _backend(name, inputs, tol, device) as steps:
-        label = f"diffusion (jacobi, {name}{' ' + str(steps.device) if name == 'torch' else ''}, {n:,} points)"
-        with progress.stage(label + (progress.COMPILING if steps.compiling else ""), total=max_iter, unit="it") as bar:
+        info = {"solver": "jacobi", **steps.details()}
+        label = f"diffusion (jacobi, {' '.join(str(v) for v in steps.details().values())}, {n:,} points)"
+        if progress.enabled() and steps.compiling:  # a look at numba's cache only when a line can show it
+            label += progress.COMPILING
+        with progress.stage(label, total=max_iter, unit="it") as bar:
             # run up to the next iteration an observer wants to see without returning to Python, at most
             # SEGMENT_ROW_STEPS row updates (and, while a progress line is shown, progress_chunk() steps)
             # at a time: the steps and their stopping rule do not depend on where the run is split
@@ -258,9 +261,6 @@ def diffuse(system: System, *, max_iter: int = 200, tol: float = 1e-4,
                     converged = True
                     break
         Z = steps.paper_units()
-    info = {"solver": "jacobi", "backend": name}
-    if name == "torch":
-        info["device"] = str(steps.device)
     return DiffusionResult(Z=Z, iterations=it, converged=converged, residual=residuals[-1] if residuals else 0.0,
                            residuals=residuals, info=info)
 

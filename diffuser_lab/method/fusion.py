@@ -14,7 +14,7 @@ method is one entry here plus ``conf/method/<name>.yaml``.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Optional
+from typing import Optional
 
 import numpy as np
 
@@ -35,7 +35,6 @@ class FusionMethod:
     normals: Optional[bool] = None
     pixel_radius: Optional[int] = None
     multi_view_row: bool = True  # a W-view row in the single-frame protocol besides the 1-view one
-    label_fn: Optional[Callable] = None  # labels from (mass, system, solver, observer) if not the default
 
     def apply(self, cfg) -> None:
         """Set what the method fixes in ``cfg`` (a :class:`~diffuser_lab.config.Config`), so the
@@ -51,8 +50,6 @@ class FusionMethod:
         ``system``: the normalised graph system of Eqs. 14-15 for graph methods."""
         from .diffusion import labels_from_scores, solve
 
-        if self.label_fn is not None:
-            return self.label_fn(mass, system=system, solver=solver, observer=observer)
         if not self.graph:
             return labels_from_scores(mass), None
         diff = solve(system, solver, observer=observer)

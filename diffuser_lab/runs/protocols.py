@@ -83,6 +83,11 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None) -> SingleFrameResul
     W = cfg.protocol.window
     targets = list(range(0, n, cfg.protocol.target_step))[: cfg.protocol.max_targets]
     order = [(m.name, v) for m in fusion.METHODS.values() for v in m.single_frame_rows(W)]
+    settings = {}  # each method: (entry, the run's config with what it fixes applied, evidence pixel window)
+    for m in fusion.METHODS.values():
+        mc = replace(cfg, graph=replace(cfg.graph), evidence=replace(cfg.evidence))
+        m.apply(mc)
+        settings[m.name] = (m, mc, 0 if m.evidence == fusion.BASELINE else mc.evidence.pixel_radius)
     rows = {key: Row(*key) for key in order}
     pred2d = Row("2d", 1)
     cache: dict[int, Frame] = {}
@@ -125,10 +130,7 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None) -> SingleFrameResul
             # graph built once per target frame and shared between the rows that use them
             evidence, graphs, work_labels = {}, {}, {}
             for name, views in order:
-                m = fusion.METHODS[name]
-                mc = replace(cfg, graph=replace(cfg.graph), evidence=replace(cfg.evidence))
-                m.apply(mc)
-                radius = 0 if m.evidence == fusion.BASELINE else mc.evidence.pixel_radius
+                m, mc, radius = settings[name]
                 ekey = (views, radius)
                 if ekey not in evidence:
                     te = time.perf_counter()

@@ -24,7 +24,7 @@ from hydra.experimental.callback import Callback
 
 JOBS_ENV = "DIFFUSER_LAB_SWEEP_JOBS"
 WATCHED_LAUNCHERS = ("ray_launcher", "submitit")  # whose jobs' stdout does not reach this terminal
-_started: dict[str, Any] = {}  # the sweep this process launched: {"dir": Path, "jobs": int, "watcher": ...}
+_started: dict[str, Any] = {}  # the sweep this process launched: {"dir": Path, "watcher": Watcher}
 
 
 def count_jobs(config: Any) -> Optional[int]:
@@ -52,7 +52,7 @@ class SweepProgress(Callback):
     def on_multirun_start(self, config: Any, **kwargs: Any) -> None:
         n = count_jobs(config)
         sweep_dir = Path(str(config.hydra.sweep.dir))
-        _started.update(dir=sweep_dir, jobs=n)
+        _started["dir"] = sweep_dir
         if n is not None:
             os.environ[JOBS_ENV] = str(n)
         launcher = str(config.hydra.launcher.get("_target_", ""))

@@ -284,10 +284,13 @@ class NumbaJacobi(JacobiBackend):
             self.blocks.append([first, cnt, width, Bb, np.zeros_like(Bb), np.zeros_like(Bb)])
         self.nbr, self.wts = fixed_rows(inputs.indptr, inputs.indices, inputs.data)
         self.ident = np.arange(n, dtype=np.int64) if inputs.order is None else inputs.order
+        self.runner = StepRunner(n)
+
+    @property
+    def compiling(self) -> bool:
         from . import first_compile
 
-        self.compiling = bool(self.blocks) and first_compile(*{_step_kernels()[b[2]] for b in self.blocks})
-        self.runner = StepRunner(n)
+        return bool(self.blocks) and first_compile(*{_step_kernels()[b[2]] for b in self.blocks})
 
     def steps(self, count: int) -> np.ndarray:
         floor, tol = self.inputs.floor, self.tol
