@@ -8,6 +8,10 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 SHARED = ROOT.parent / "shared"
 
+# The suite compiles numba's kernels in the foreground: a CLI run in a subprocess would otherwise
+# take the numpy/scipy path while the cache is cold (tests/test_first_run.py covers that path).
+os.environ.setdefault("DIFFUSER_LAB_NUMBA", "1")
+
 # Small demo settings for tests that only need the mechanics (seconds, not tens of seconds).
 SMALL_DEMO = ["scene.demo.n_views=10", "scene.demo.point_spacing=0.08", "solver.max_iter=60"]
 

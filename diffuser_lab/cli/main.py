@@ -121,10 +121,12 @@ def _task(cfg: Any) -> Optional[float]:
         show(message, category, filename, lineno, file, line)
 
     warnings.showwarning = keep
+    deferred = False
     try:
         summary = report.SummaryFile(run_dir, hc.overrides.task)
         conf = to_object(cfg)
         summary.update(method=conf.method.name)
+        deferred = _defer_compile(conf)
 
         from diffuser_lab.config import Protocol
 
@@ -175,6 +177,27 @@ def _task(cfg: Any) -> Optional[float]:
         sys.exit(1)
     finally:
         warnings.showwarning = show
+        if deferred:  # after the run: the compile does not compete with it for the CPUs
+            from diffuser_lab.backends import numba as nb
+
+            nb.compile_in_background()
+
+
+def _defer_compile(conf: Any) -> bool:
+    """On an empty numba cache, run this job on the numpy/scipy path (same labels) and say so in
+    one line, rather than compile for ~25 s first; ``DIFFUSER_LAB_NUMBA=1`` or an explicit
+    ``solver.backend`` compiles in the foreground."""
+    from diffuser_lab.backends import numba as nb
+
+    if not nb.available() or nb.forced() or str(getattr(conf.solver.backend, "value", conf.solver.backend)) != "auto":
+        return False
+    if not nb.cold():
+        return False
+    nb.defer_compile()
+    print(f"{PROG}: numba kernels are not compiled yet: this run takes the numpy/scipy path; they compile "
+          "in the background when it ends (~25 s, once; DIFFUSER_LAB_NUMBA=1 compiles them first)",
+          file=sys.stderr, flush=True)
+    return True
 
 
 def main() -> None:

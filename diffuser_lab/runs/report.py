@@ -35,7 +35,8 @@ def summary(res: RunResult, cfg: Config) -> dict:
     }
     if res.diffusion is not None:
         out["diffusion"] = {"iterations": res.diffusion.iterations, "converged": res.diffusion.converged,
-                            "residual": res.diffusion.residual}
+                            "residual": res.diffusion.residual,
+                            "backend": res.diffusion.info.get("backend")}
     else:
         out["diffusion"] = {"iterations": 0, "converged": None, "residual": None}
     if res.graph is not None:

@@ -6,6 +6,12 @@ meeting at a barrier, ``_sync.py``; generated row kernels in ``_unrolled.py``), 
 This module is the one switch: numba is used when it is installed and ``DIFFUSER_LAB_NUMBA`` is
 not ``0`` (:func:`available`); every kernel has a numpy/scipy twin that runs otherwise. It also
 sets how many threads the kernels use (:func:`n_threads`).
+
+Compiling the kernels takes ~25 s once per machine (numba caches them on disk). The command line
+does not make a user wait for that: on an empty cache (:func:`cold`) its run takes the numpy/scipy
+path (:func:`defer_compile`; same labels, 3-6x slower diffusion) and, once it has finished, fills
+the cache in a background process (:func:`compile_in_background`, ``python -m
+diffuser_lab.backends.numba.warm``). ``DIFFUSER_LAB_NUMBA=1`` compiles in the foreground instead.
 """
 from __future__ import annotations
 
@@ -31,9 +37,67 @@ NB = _numba()
 """The numba module, or None when the compiled kernels are off."""
 
 
+_deferred: list[bool] = []  # set by defer_compile()
+
+
 def available() -> bool:
-    """Whether the compiled kernels can be used (numba installed and not disabled)."""
-    return NB is not None
+    """Whether the compiled kernels are used (numba installed, not disabled, not deferred)."""
+    return NB is not None and not _deferred
+
+
+def forced() -> bool:
+    """Whether ``DIFFUSER_LAB_NUMBA=1`` asks for the compiled kernels even on an empty cache."""
+    return os.environ.get("DIFFUSER_LAB_NUMBA", "").strip().lower() in ("1", "true", "yes", "on")
+
+
+def defer_compile() -> None:
+    """Use the numpy/scipy twins in this process (until :func:`undefer`): the kernels are not compiled here."""
+    _deferred[:] = [True]
+
+
+def undefer() -> None:
+    _deferred[:] = []
+
+
+def cold() -> bool:
+    """Whether numba's on-disk cache holds none of the kernels a run needs first (the kNN graph
+    and the evidence kernels), i.e. the next run would compile them (~25 s)."""
+    if NB is None:
+        return False
+    from . import evidence, knn
+
+    return first_compile(knn, evidence)
+
+
+def _lock_path():
+    from pathlib import Path
+
+    from . import knn
+
+    base = Path(NB.config.CACHE_DIR) if NB.config.CACHE_DIR else Path(knn.__file__).with_name("__pycache__")
+    return base / "diffuser_lab_warm.lock"
+
+
+def compile_in_background() -> bool:
+    """Start ``python -m diffuser_lab.backends.numba.warm`` detached (its output discarded) unless
+    one is already running; it fills numba's cache for the next runs. True if one was started."""
+    import subprocess
+    import sys
+    import time
+
+    lock = _lock_path()
+    try:
+        lock.parent.mkdir(parents=True, exist_ok=True)
+        if lock.exists() and time.time() - lock.stat().st_mtime < 300:  # one compiling already
+            return False
+        lock.write_text(str(os.getpid()))
+        env = {k: v for k, v in os.environ.items() if k != "DIFFUSER_LAB_NUMBA"}
+        subprocess.Popen([sys.executable, "-m", "diffuser_lab.backends.numba.warm", str(lock)],
+                         stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                         start_new_session=True, env=env, close_fds=True)
+    except OSError:  # a read-only install: the next run compiles in the foreground
+        return False
+    return True
 
 
 @contextlib.contextmanager

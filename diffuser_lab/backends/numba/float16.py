@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import NB
+from . import NB, available
 
 if NB is not None:
     from numba import njit
@@ -53,7 +53,7 @@ if NB is not None:
 def transpose_into(a: np.ndarray, out: np.ndarray) -> None:
     """out[...] = a.T for a 2-D ``a`` (M, C) and a C-contiguous ``out`` (C, M) of the same dtype:
     compiled for float32 (4x numpy's strided copy at 51k x 20), numpy otherwise."""
-    if NB is not None and a.dtype == np.float32 and out.dtype == np.float32 and a.flags.c_contiguous:
+    if available() and a.dtype == np.float32 and out.dtype == np.float32 and a.flags.c_contiguous:
         _transpose_f32(a, out)
     else:
         np.copyto(out, a.T)
@@ -63,7 +63,7 @@ def to_float16(a: np.ndarray) -> np.ndarray | None:
     """``a.astype("<f2")`` for C-contiguous float32 ``a``, bit for bit, compiled (numpy takes a
     slow path for values that become float16 subnormals: ~50 ms on a 1M-value Z state); None
     without numba."""
-    if NB is None or a.dtype != np.float32 or not a.flags.c_contiguous:
+    if not available() or a.dtype != np.float32 or not a.flags.c_contiguous:
         return None
     out = np.empty(a.shape, "<f2")
     _f32_to_f16_bits(a.reshape(-1).view(np.uint32), out.reshape(-1).view(np.uint16))
