@@ -54,7 +54,7 @@ def test_default_run_folders_are_distinct(tmp_path):
     ("method=foo", "method/foo"),
     ("method.name=foo", "method.name"),
     ("solver.max_iter=0", "solver.max_iter"),
-    ("record.zstd_level=23", "record.zstd_level=23"),
+    ("record.compression=gzip", "record.compression"),
     ("record.retain_heap_mb=-1", "record.retain_heap_mb=-1"),
     ("+nonsense=1", "nonsense"),
 ])

@@ -273,7 +273,7 @@ def test_rerun_reads_the_mcap(cli_runs):
     path = cli_runs["both"] / "run.mcap"
     p = subprocess.run([RERUN, "mcap", "info", str(path)], capture_output=True, text=True, timeout=120)
     assert p.returncode == 0, p.stderr
-    assert "/diffuser_lab/z" in p.stdout and "diffuser_lab.ZState" in p.stdout and "zstd" in p.stdout
+    assert "/diffuser_lab/z" in p.stdout and "diffuser_lab.ZState" in p.stdout and "lz4" in p.stdout
     from rerun.chunk import McapReader
 
     cols: dict = {}

@@ -99,7 +99,7 @@ class RecordingHooks(RunHooks):
         # on the recording thread already: the MCAP recorder compresses and writes in it too
         self.mcap = McapRecorder(self.run_dir / MCAP_NAME, z_dtype=str(_value(self.conf.record.z_precision)),
                                  config_yaml=yaml, overrides=overrides, interval=self.interval,
-                                 max_iter=self.max_iter, zstd_level=int(getattr(self.conf.record, "zstd_level", -20)),
+                                 max_iter=self.max_iter, compression=str(_value(getattr(self.conf.record, "compression", "lz4"))),
                                  writer_thread=self._worker is None)
         self._files["mcap"] = MCAP_NAME
 

@@ -1,4 +1,4 @@
-"""Writing run.mcap: the diffusion as MCAP (zstd chunks, protobuf messages with their schemas inside).
+"""Writing run.mcap: the diffusion as MCAP (lz4 chunks by default, protobuf messages with their schemas inside).
 
 Channels (message encoding ``protobuf``; schemas in :mod:`diffuser_lab.recording.schema`)::
 
@@ -19,7 +19,7 @@ Metadata records: ``diffuser_lab.config`` (``yaml``: the resolved config, ``over
 Each recorded iteration ends its chunk and flushes the file, so a run that is killed leaves
 every completed iteration readable (:func:`.mcap_read.read_run` reads such a truncated file).
 Compression and writing happen on one background thread (in order, a short bounded queue), so
-the diffusion does not wait for zstd; :meth:`McapRecorder.close` drains it. The file is written
+the diffusion does not wait for the compression; :meth:`McapRecorder.close` drains it. The file is written
 with ``O_DIRECT`` where the file system allows (:mod:`.direct_file`): no page-cache copies.
 Message ``sequence`` is the diffusion iteration; ``log_time`` is the wall clock (ns).
 """
@@ -54,47 +54,11 @@ from .steps import Step
 
 WRITER_THREAD = True
 """Compress and write on a background thread (False: in the caller's thread)."""
-ZSTD_LEVEL = -20
-"""Default zstd level of run.mcap's chunks (``record.zstd_level``). Float32 Z is mostly mantissa
-noise and barely compresses, and compressing it is most of the cost of recording. Measured on
-one 51k x 20 demo Z state (4 MB): level 3 25 ms -> 0.56x, -3 8.3 ms -> 0.61x, -20 3.2 ms -> 0.78x,
--100 1.3 ms -> 0.95x. -20 keeps a quarter of the bytes off the disk at an eighth of level 3's cost."""
-
-
-@functools.lru_cache(maxsize=None)
-def _writer_class(level: int = ZSTD_LEVEL):
-    """mcap's Writer with chunks compressed at zstd ``level``.
-
-    mcap 1.x compresses chunks with ``zstandard.compress(data)`` (level 3) and has no option
-    for the level, so the subclass carries a copy of the chunk-finishing method whose global
-    ``zstandard`` is a shim with the level set; mcap's own module is not touched. Falls back to
-    the stock Writer when mcap's internals differ from what this expects."""
-    import types
-
-    import zstandard
-    from mcap.writer import Writer
-
-    fn = getattr(Writer, "_Writer__finalize_chunk", None)
-    if fn is None or "zstandard" not in fn.__code__.co_names:
-        return Writer
-
-    class _Zstd:
-        def __getattr__(self, name: str) -> Any:
-            return getattr(zstandard, name)
-
-        @staticmethod
-        def compress(data: bytes) -> bytes:
-            return zstandard.compress(data, level)
-
-    glb = dict(fn.__globals__)
-    glb["zstandard"] = _Zstd()
-
-    class FastZstdWriter(Writer):
-        pass
-
-    FastZstdWriter._Writer__finalize_chunk = types.FunctionType(  # type: ignore[attr-defined]
-        fn.__code__, glb, fn.__name__, fn.__defaults__, fn.__closure__)
-    return FastZstdWriter
+COMPRESSION = "lz4"
+"""Default compression of run.mcap's chunks (``record.compression``): lz4, zstd (mcap's level 3)
+or none. Float32 Z is mostly mantissa noise and compresses little; compressing it is most of the
+cost of recording. Measured on one 51k x 20 demo Z state (4 MB, 30 iterations): zstd 8.0 ms ->
+0.46x, lz4 2.4 ms -> 0.50x (see docs/recording.md)."""
 
 
 class McapRecorder:
@@ -106,8 +70,8 @@ class McapRecorder:
 
     def __init__(self, path: Path, *, z_dtype: str = "float32", config_yaml: str = "",
                  overrides: Sequence[str] = (), interval: int = 1, max_iter: int = 0,
-                 zstd_level: int = ZSTD_LEVEL, writer_thread: bool | None = None):
-        from mcap.writer import CompressionType
+                 compression: str = COMPRESSION, writer_thread: bool | None = None):
+        from mcap.writer import CompressionType, Writer
 
         from diffuser_lab import __version__
 
@@ -117,7 +81,10 @@ class McapRecorder:
         self._fh = open_direct(self.path)  # O_DIRECT where possible: no page-cache copies
         # no CRCs: on 4 MB Z chunks crc32 costs half as much as compressing them; records keep
         # their lengths, so a cut file is still read up to its last complete chunk
-        self.w = _writer_class(int(zstd_level))(self._fh, compression=CompressionType.ZSTD, enable_crcs=False)
+        kinds = {"lz4": CompressionType.LZ4, "zstd": CompressionType.ZSTD, "none": CompressionType.NONE}
+        if compression not in kinds:
+            raise ValueError(f"record.compression={compression}: expected one of {', '.join(kinds)}")
+        self.w = Writer(self._fh, compression=kinds[compression], enable_crcs=False)
         self.w.start(profile="", library=f"diffuser-lab {__version__}")
         from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 
