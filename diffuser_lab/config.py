@@ -13,7 +13,7 @@ from enum import Enum
 from typing import Any, List, Optional
 
 from hydra.core.config_store import ConfigStore
-from omegaconf import OmegaConf
+from omegaconf import MISSING, OmegaConf
 
 
 class ConfigError(ValueError):
@@ -95,7 +95,7 @@ class DemoSceneConfig:
 class MeshViewsConfig:
     """Views rendered from a labelled mesh (diffuser_lab.data.sources.mesh_views)."""
 
-    path: Optional[str] = None  # required: PLY mesh with a per-vertex `label` (e.g. ScanNet's *_vh_clean_2.labels.ply)
+    path: str = MISSING  # PLY mesh with a per-vertex `label` (e.g. ScanNet's *_vh_clean_2.labels.ply)
     mapping: str = "nyu40_to_scannet20"  # mesh label ids -> taxonomy (name of a shipped table or a CSV path)
     n_views: int = 40
     seed: int = 0
@@ -120,7 +120,7 @@ class MeshViewsConfig:
 class ScannetConfig:
     """A scene in ScanNet's export layout (diffuser_lab.data.sources.scannet)."""
 
-    root: Optional[str] = None  # required: folder holding color/ depth/ pose/ intrinsic/ label-filt/ and the PLYs
+    root: str = MISSING  # folder holding color/ depth/ pose/ intrinsic/ label-filt/ and the PLYs
     frame_step: int = 10  # paper: every 10th frame
     max_frames: Optional[int] = None
     mapping: str = "nyu40_to_scannet20"
@@ -135,7 +135,7 @@ class ScannetConfig:
 class RgbdFolderConfig:
     """A posed RGB-D folder: frame-XXXXXX.{color.*,depth.png,pose.txt} + camera-intrinsics.txt."""
 
-    root: Optional[str] = None  # required
+    root: str = MISSING  # the folder
     depth_scale: float = 1000.0  # raw depth units per metre (1000 = millimetres)
     depth_bit_shift: int = 0  # circular right shift of the raw 16-bit depth (SUN3D: 3)
     invalid_depth: List[int] = field(default_factory=lambda: [0, 65535])
@@ -158,26 +158,29 @@ class RgbdFolderConfig:
         _check(self.frame_step >= 1, "scene.rgbd_folder.frame_step", self.frame_step, ">= 1")
 
 
+REQUIRED = {"mesh_views": "path", "scannet": "root", "rgbd_folder": "root"}
+"""Each scene source's required key (MISSING in its dataclass)."""
+
+
 @dataclass
 class SceneConfig:
     source: SceneSource = SceneSource.demo
     name: Optional[str] = None  # display name; null = derived from the source
+    # one dataclass per source; a source's own settings are set (by its conf/scene/*.yaml) only
+    # when it is the selected one, so its required keys (MISSING) are asked for only then
     demo: DemoSceneConfig = field(default_factory=DemoSceneConfig)
-    mesh_views: MeshViewsConfig = field(default_factory=MeshViewsConfig)
-    scannet: ScannetConfig = field(default_factory=ScannetConfig)
-    rgbd_folder: RgbdFolderConfig = field(default_factory=RgbdFolderConfig)
+    mesh_views: Optional[MeshViewsConfig] = None
+    scannet: Optional[ScannetConfig] = None
+    rgbd_folder: Optional[RgbdFolderConfig] = None
     voxel_size: float = 0.0  # metres; > 0: voxel-downsample before diffusion, labels transferred back
 
     def __post_init__(self) -> None:
         _check(self.voxel_size >= 0.0, "scene.voxel_size", self.voxel_size, ">= 0 metres (0 = off)")
-        # the selected source's required path: missing, it stops at start-up naming the key (exit 2)
-        required = {SceneSource.mesh_views: ("scene.mesh_views.path", self.mesh_views.path, "a labelled mesh PLY"),
-                    SceneSource.scannet: ("scene.scannet.root", self.scannet.root, "a ScanNet scene folder"),
-                    SceneSource.rgbd_folder: ("scene.rgbd_folder.root", self.rgbd_folder.root, "a posed RGB-D folder")}
-        if self.source in required:
-            key, value, what = required[self.source]
-            if value in (None, ""):
-                raise ConfigError(f"{key} is required for scene={self.source.value}: {what}")
+        # a source selected by scene.source alone (its settings never set): its required key
+        own = getattr(self, self.source.value)
+        if own is None:
+            key = REQUIRED[self.source.value]
+            raise ConfigError(f"scene.{self.source.value}.{key} is required for scene={self.source.value}")
 
 
 @dataclass

@@ -42,6 +42,8 @@ def one_line(exc: BaseException) -> str:
     for e in chain:
         lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
         keys = [ln.split(":", 1)[1].strip() for ln in lines if ln.startswith("full_key:")]
+        if keys and lines and "missing mandatory value" in lines[0].lower():  # a MISSING key of the schema
+            return f"{keys[0]} is required (pass {keys[0]}=...)"
         if keys and lines:
             return lines[0] if keys[0] in lines[0] else f"{keys[0]}: {lines[0]}"
     lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
