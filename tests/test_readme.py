@@ -126,8 +126,8 @@ def _sweep(p, work) -> tuple[int, Path, list[dict]]:
 
 
 def _readme_jobs(name: str) -> int:
-    m = re.search(rf"^\| `{name}` \|.*\| (\d+) \|$", README.read_text(), re.M)
-    assert m, f"the README's experiment table has no row for {name} with its number of jobs"
+    m = re.search(rf"^\| `{name}` \|.*\| (\d+) \|$", (ROOT / "docs" / "sweeps.md").read_text(), re.M)
+    assert m, f"docs/sweeps.md's experiment table has no row for {name} with its number of jobs"
     return int(m.group(1))
 
 
