@@ -183,7 +183,8 @@ def load_tum(
     if max_frames is not None:
         sel = sel[: int(max_frames)]
     if len(sel) == 0:
-        raise ValueError(f"{root}: none of the {len(t_d)} depth images has a pose{' and an RGB image' if rgb_list else ''} "
+        need = "a pose and an RGB image" if rgb_list else "a pose"
+        raise ValueError(f"{root}: none of the {len(t_d)} depth images has {need} "
                          f"within max_time_diff={max_time_diff} s ({n_no_pose} without pose, {n_no_rgb} without RGB)")
     if n_no_pose + n_no_rgb > 0.5 * len(t_d):
         warnings.warn(f"{root}: {n_no_pose + n_no_rgb} of {len(t_d)} depth images dropped ({n_no_pose} without a "
