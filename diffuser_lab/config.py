@@ -171,7 +171,7 @@ class RgbdFolderConfig:
     A frame's files are ``<frame_prefix><digits>.<suffix>``; docs/layouts.md describes each key."""
 
     root: str = MISSING  # the folder
-    intrinsics_file: str = "camera-intrinsics.txt"  # 3x3 K of the depth image, in root
+    intrinsics_file: str = "camera-intrinsics.txt"  # 3x3 K of the depth image, relative to root
     frame_prefix: str = "frame-"  # a frame's name = prefix + digits (frame-000000)
     depth_suffix: str = "depth.png"
     pose_suffix: str = "pose.txt"
@@ -197,12 +197,12 @@ class RgbdFolderConfig:
         _check(self.cloud_voxel > 0, "scene.rgbd_folder.cloud_voxel", self.cloud_voxel, "> 0 metres")
         _check(self.cloud_stride >= 1, "scene.rgbd_folder.cloud_stride", self.cloud_stride, ">= 1")
         _check(self.frame_step >= 1, "scene.rgbd_folder.frame_step", self.frame_step, ">= 1")
-        for key in ("intrinsics_file", "depth_suffix", "pose_suffix", "color_suffix", "label_suffix"):
+        for key in ("depth_suffix", "pose_suffix", "color_suffix", "label_suffix"):
             v = getattr(self, key)
             _check(v is None or (v and "/" not in v and "*" not in v), f"scene.rgbd_folder.{key}", v,
-                   "a non-empty file name (suffix) inside root, without / or *")
-        _check(self.depth_suffix is not None and self.pose_suffix is not None, "scene.rgbd_folder.depth/pose_suffix",
-               (self.depth_suffix, self.pose_suffix), "file suffixes (required)")
+                   "a non-empty file name suffix, without / or *")
+        _check(bool(self.intrinsics_file) and "*" not in self.intrinsics_file, "scene.rgbd_folder.intrinsics_file",
+               self.intrinsics_file, "a file name relative to root")
         _check("/" not in self.frame_prefix and "*" not in self.frame_prefix, "scene.rgbd_folder.frame_prefix",
                self.frame_prefix, "a file name prefix without / or *")
 
