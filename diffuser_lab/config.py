@@ -30,6 +30,7 @@ class SceneSource(Enum):
     mesh_views = "mesh_views"  # labelled mesh (PLY with per-vertex label) + rendered views
     scannet = "scannet"  # ScanNet export layout (color/ depth/ pose/ intrinsic/ label-filt/ + PLYs)
     rgbd_folder = "rgbd_folder"  # frame-XXXXXX.{color,depth,pose} + camera-intrinsics.txt
+    tum = "tum"  # TUM RGB-D: rgb.txt depth.txt groundtruth.txt, associated by timestamp
 
 
 class Protocol(Enum):
@@ -116,30 +117,70 @@ class MeshViewsConfig:
                (self.eye_height_min, self.eye_height_max), "0 < min <= max")
 
 
+def _check_pattern(value: str, key: str, placeholder: str) -> None:
+    _check(isinstance(value, str) and value.count("{" + placeholder + "}") == 1 and
+           value.replace("{" + placeholder + "}", "").count("{") == 0, key, value,
+           f"a relative file name with one {{{placeholder}}} and no other {{...}}")
+
+
 @dataclass
 class ScannetConfig:
-    """A scene in ScanNet's export layout (diffuser_lab.data.sources.scannet)."""
+    """A scene in ScanNet's export layout (diffuser_lab.data.sources.scannet). File names are
+    relative to ``root``; ``{scene}`` = the root folder's name, ``{frame}`` = the frame number."""
 
     root: str = MISSING  # folder holding color/ depth/ pose/ intrinsic/ label-filt/ and the PLYs
     frame_step: int = 10  # paper: every 10th frame
     max_frames: Optional[int] = None
     mapping: str = "nyu40_to_scannet20"
+    mesh: str = "{scene}_vh_clean_2.ply"  # the points to label (mesh vertices)
+    labels_mesh: str = "{scene}_vh_clean_2.labels.ply"  # per-vertex ground truth; optional file
+    depth: str = "depth/{frame}.png"  # 16-bit, depth_scale units per metre; frames are found by this
+    color: str = "color/{frame}.jpg"  # optional: without it frames carry no RGB
+    pose: str = "pose/{frame}.txt"  # 4x4 camera-to-world
+    labels: str = "label-filt/{frame}.png"  # optional ground-truth label images (mapping's source ids)
+    intrinsic_depth: str = "intrinsic/intrinsic_depth.txt"
+    intrinsic_color: str = "intrinsic/intrinsic_color.txt"  # optional, only checked against intrinsic_depth
+    depth_scale: float = 1000.0  # raw depth units per metre
 
     def __post_init__(self) -> None:
         _check(self.frame_step >= 1, "scene.scannet.frame_step", self.frame_step, ">= 1")
         _check(self.max_frames is None or self.max_frames >= 1, "scene.scannet.max_frames", self.max_frames,
                ">= 1 or null")
+        _check(self.depth_scale > 0, "scene.scannet.depth_scale", self.depth_scale, "> 0")
+        for key in ("depth", "color", "pose", "labels"):
+            _check_pattern(getattr(self, key), f"scene.scannet.{key}", "frame")
+        for key in ("mesh", "labels_mesh"):
+            v = getattr(self, key)
+            _check(v.replace("{scene}", "").count("{") == 0, f"scene.scannet.{key}", v,
+                   "a file name, optionally with {scene}")
+
+
+class DepthShiftKind(Enum):
+    circular = "circular"  # 16-bit rotate right (SUN3D stores depth rotated left by 3 bits)
+    plain = "plain"  # raw >> shift, the low bits dropped (e.g. (raw >> 3) / 1e4 m)
+
+
+class PoseConvention(Enum):
+    camera_to_world = "camera_to_world"  # the pose maps camera coordinates to world (7-Scenes, ScanNet, TUM)
+    world_to_camera = "world_to_camera"  # the pose maps world coordinates to camera (extrinsics)
 
 
 @dataclass
 class RgbdFolderConfig:
-    """A posed RGB-D folder: frame-XXXXXX.{color.*,depth.png,pose.txt} + camera-intrinsics.txt."""
+    """A posed RGB-D folder: frame-XXXXXX.{color.*,depth.png,pose.txt} + camera-intrinsics.txt.
+    A frame's files are ``<frame_prefix><digits>.<suffix>``; docs/layouts.md describes each key."""
 
     root: str = MISSING  # the folder
-    depth_scale: float = 1000.0  # raw depth units per metre (1000 = millimetres)
-    depth_bit_shift: int = 0  # circular right shift of the raw 16-bit depth (SUN3D: 3)
-    invalid_depth: List[int] = field(default_factory=lambda: [0, 65535])
-    color_suffix: str = "color.jpg"
+    intrinsics_file: str = "camera-intrinsics.txt"  # 3x3 K of the depth image, relative to root
+    frame_prefix: str = "frame-"  # a frame's name = prefix + digits (frame-000000)
+    depth_suffix: str = "depth.png"
+    pose_suffix: str = "pose.txt"
+    pose_convention: PoseConvention = PoseConvention.camera_to_world
+    depth_scale: float = 1000.0  # metres = (raw, shifted) / depth_scale (1000 = millimetres)
+    depth_bit_shift: int = 0  # right shift of the raw 16-bit depth before scaling (SUN3D: 3)
+    depth_shift_kind: DepthShiftKind = DepthShiftKind.circular  # circular (SUN3D) | plain (raw >> shift)
+    invalid_depth: List[int] = field(default_factory=lambda: [0, 65535])  # raw values, before the shift
+    color_suffix: Optional[str] = "color.jpg"  # null = no colour; no such file at all = no colour (warning)
     label_suffix: Optional[str] = None  # ground-truth label images frame-XXXXXX.<suffix>, if any
     mapping: Optional[str] = None  # label ids -> taxonomy; null = ids are taxonomy ids
     cloud: Optional[str] = None  # PLY point cloud; null = back-project and voxel-merge the depth frames
@@ -156,9 +197,64 @@ class RgbdFolderConfig:
         _check(self.cloud_voxel > 0, "scene.rgbd_folder.cloud_voxel", self.cloud_voxel, "> 0 metres")
         _check(self.cloud_stride >= 1, "scene.rgbd_folder.cloud_stride", self.cloud_stride, ">= 1")
         _check(self.frame_step >= 1, "scene.rgbd_folder.frame_step", self.frame_step, ">= 1")
+        for key in ("depth_suffix", "pose_suffix", "color_suffix", "label_suffix"):
+            v = getattr(self, key)
+            _check(v is None or (v and "/" not in v and "*" not in v), f"scene.rgbd_folder.{key}", v,
+                   "a non-empty file name suffix, without / or *")
+        _check(bool(self.intrinsics_file) and "*" not in self.intrinsics_file, "scene.rgbd_folder.intrinsics_file",
+               self.intrinsics_file, "a file name relative to root")
+        _check("/" not in self.frame_prefix and "*" not in self.frame_prefix, "scene.rgbd_folder.frame_prefix",
+               self.frame_prefix, "a file name prefix without / or *")
 
 
-REQUIRED = {"mesh_views": "path", "scannet": "root", "rgbd_folder": "root"}
+class TumCamera(Enum):
+    """Intrinsics presets of the TUM RGB-D benchmark's calibration page (colour camera, to which the
+    depth images are registered): fx fy cx cy in pixels at 640x480."""
+
+    auto = "auto"  # freiburg1/2/3 from the root folder's name (rgbd_dataset_freiburg1_xyz), else ros_default
+    fr1 = "fr1"  # 517.3 516.5 318.6 255.3
+    fr2 = "fr2"  # 520.9 521.0 325.1 249.7
+    fr3 = "fr3"  # 535.4 539.2 320.1 247.6
+    ros_default = "ros_default"  # 525.0 525.0 319.5 239.5 (OpenNI's default, TUM's point-cloud example)
+
+
+@dataclass
+class TumConfig:
+    """A TUM RGB-D sequence (diffuser_lab.data.sources.tum): rgb.txt, depth.txt, groundtruth.txt with
+    timestamps, associated by nearest timestamp; frames named after their RGB image's stem."""
+
+    root: str = MISSING  # the sequence folder (rgbd_dataset_freiburg1_xyz)
+    rgb_list: Optional[str] = "rgb.txt"  # 'timestamp file' lines; null = no colour
+    depth_list: str = "depth.txt"  # 'timestamp file' lines; the frames
+    groundtruth: str = "groundtruth.txt"  # 'timestamp tx ty tz qx qy qz qw', camera-to-world
+    max_time_diff: float = 0.02  # seconds: nearest RGB / pose farther than this drops the frame (associate.py)
+    depth_scale: float = 5000.0  # raw units per metre (TUM: 5000)
+    camera: TumCamera = TumCamera.auto
+    fx: Optional[float] = None  # pixels; set all four to override the camera preset
+    fy: Optional[float] = None
+    cx: Optional[float] = None
+    cy: Optional[float] = None
+    cloud_voxel: float = 0.02  # metres, for the back-projected cloud
+    cloud_stride: int = 4
+    max_depth: Optional[float] = None  # metres; ignore depth beyond it in the cloud
+    frame_step: int = 1
+    max_frames: Optional[int] = None
+
+    def __post_init__(self) -> None:
+        _check(self.max_time_diff > 0, "scene.tum.max_time_diff", self.max_time_diff, "> 0 seconds")
+        _check(self.depth_scale > 0, "scene.tum.depth_scale", self.depth_scale, "> 0")
+        given = [v is not None for v in (self.fx, self.fy, self.cx, self.cy)]
+        _check(all(given) or not any(given), "scene.tum.fx/fy/cx/cy", (self.fx, self.fy, self.cx, self.cy),
+               "all four set (pixels) or all null (= scene.tum.camera's preset)")
+        _check(not any(given) or (self.fx > 0 and self.fy > 0), "scene.tum.fx/fy", (self.fx, self.fy), "> 0 pixels")
+        _check(self.cloud_voxel > 0, "scene.tum.cloud_voxel", self.cloud_voxel, "> 0 metres")
+        _check(self.cloud_stride >= 1, "scene.tum.cloud_stride", self.cloud_stride, ">= 1")
+        _check(self.frame_step >= 1, "scene.tum.frame_step", self.frame_step, ">= 1")
+        _check(self.max_frames is None or self.max_frames >= 1, "scene.tum.max_frames", self.max_frames,
+               ">= 1 or null")
+
+
+REQUIRED = {"mesh_views": "path", "scannet": "root", "rgbd_folder": "root", "tum": "root"}
 """Each scene source's required key (MISSING in its dataclass)."""
 
 
@@ -172,6 +268,7 @@ class SceneConfig:
     mesh_views: Optional[MeshViewsConfig] = None
     scannet: Optional[ScannetConfig] = None
     rgbd_folder: Optional[RgbdFolderConfig] = None
+    tum: Optional[TumConfig] = None
     voxel_size: float = 0.0  # metres; > 0: voxel-downsample before diffusion, labels transferred back
 
     def __post_init__(self) -> None:
@@ -191,6 +288,8 @@ class PredictionsConfig:
     source: PredictionSource = PredictionSource.simulated
     folder: Optional[str] = None  # files: the folder of per-frame predictions (named after the frames)
     mapping: Optional[str] = None  # files: network label ids -> taxonomy (e.g. nyu40_to_scannet20)
+    # files: a frame's file name(s), {name} = the frame's name; a string or a list searched in order
+    pattern: Any = field(default_factory=lambda: ["{name}.png", "{name}.label.png", "{name}.npy", "{name}.npz"])
     seed: int = 0
     strength: float = 1.0  # scales every simulated mistake; 0 = perfect labels
     jitter_px: float = 3.0  # std of the smooth boundary displacement field, pixels
@@ -202,6 +301,12 @@ class PredictionsConfig:
     blob_roughness: float = 0.35  # irregularity of blob outlines, 0 = discs
 
     def __post_init__(self) -> None:
+        if isinstance(self.pattern, str):
+            self.pattern = [self.pattern]
+        self.pattern = list(self.pattern)
+        for p in self.pattern:
+            _check_pattern(p, "predictions.pattern", "name")
+        _check(len(self.pattern) >= 1, "predictions.pattern", self.pattern, "at least one file name")
         _check(self.strength >= 0.0, "predictions.strength", self.strength, ">= 0")
         _check(self.jitter_px >= 0.0, "predictions.jitter_px", self.jitter_px, ">= 0")
         _check(self.jitter_scale_px > 0.0, "predictions.jitter_scale_px", self.jitter_scale_px, "> 0")

@@ -114,3 +114,75 @@ def write_label_predictions(folder: Path, world: dict, names: list[str]) -> Path
     for name, (_, lab, _) in zip(names, world["views"]):
         _save_u16(folder / f"{name}.png", NYU[lab])
     return folder
+
+
+def encode_depth(depth_m, scale: float, shift: int = 0, kind: str = "plain", flags: int = 0) -> np.ndarray:
+    """Metres -> raw 16-bit values as a depth camera writes them: round(d * scale), then shifted left
+    by ``shift`` with ``flags`` in the freed low bits (``plain``) or rotated left (``circular``, SUN3D)."""
+    v = np.rint(np.asarray(depth_m, np.float64) * scale).astype(np.uint32)
+    if kind == "plain":
+        out = (v << shift) | (np.uint32(flags) & ((1 << shift) - 1))
+        out[v == 0] = 0
+        assert (out <= 0xFFFF).all(), "depth does not fit 16 bits with this scale and shift"
+    else:
+        assert (v <= 0xFFFF).all(), "depth does not fit 16 bits with this scale"
+        out = ((v << shift) | (v >> (16 - shift))) if shift else v
+    return (out & 0xFFFF).astype(np.uint16)
+
+
+def write_lab_layout(parent: Path, world: dict, *, name: str = "lab", intrinsics_file="camera-intrinsics.color.txt",
+                     prefix="frame-", color="color.png", depth="depth.png", pose="pose.txt", segm="segm.png",
+                     label=None, depth_scale=1000.0, shift=3, kind="plain", world_to_camera=False) -> Path:
+    """A posed RGB-D folder in another lab's layout (the names are arguments): colour, depth encoded by
+    :func:`encode_depth` (flags 0b101 in the low bits for ``plain``; 0 = no depth), 4x4 poses
+    (camera-to-world unless ``world_to_camera``), a network's NYU40 ids at colour resolution
+    (``segm``) and optionally ground truth (``label``) in the same space."""
+    root = Path(parent) / name
+    root.mkdir(parents=True)
+    np.savetxt(root / intrinsics_file, world["K"])
+    for i, (T, (d, lab, lab_c)) in enumerate(zip(world["poses"], world["views"])):
+        stem = root / f"{prefix}{i:06d}"
+        _save_u16(f"{stem}.{depth}", encode_depth(d, depth_scale, shift, kind, flags=5))
+        np.savetxt(f"{stem}.{pose}", T if world_to_camera else _c2w(T))
+        if color:
+            Image.fromarray(SCANNET20.colorize(lab_c)).save(f"{stem}.{color}")
+        if segm:
+            _save_u16(f"{stem}.{segm}", NYU[lab_c])
+        if label:
+            _save_u16(f"{stem}.{label}", NYU[lab_c])
+    return root
+
+
+def write_tum(parent: Path, world: dict, name: str = "rgbd_dataset_freiburg2_fixture") -> tuple[Path, dict]:
+    """A TUM RGB-D sequence of the world's views: rgb/ depth/ PNGs (depth x 5000), rgb.txt, depth.txt,
+    groundtruth.txt (quaternion camera-to-world poses). The clocks differ: RGB 5 ms after depth, poses 3 ms
+    before; two extra depth images are unmatched: one has its RGB 50 ms away, one no pose within 0.02 s.
+    Returns the folder and the expected association (depth index -> view, RGB stems, depth times)."""
+    from scipy.spatial.transform import Rotation
+
+    root = Path(parent) / name
+    (root / "rgb").mkdir(parents=True)
+    (root / "depth").mkdir()
+    t0 = 1305031102.0
+    views = list(range(len(world["views"])))
+    t_depth = [t0 + 0.1 * k for k in views] + [t0 + 1.0, t0 + 2.0]  # two extras, dropped
+    t_rgb = [t + 0.005 for t in t_depth[:-2]] + [t0 + 1.05, t0 + 2.005]
+    t_pose = [t - 0.003 for t in t_depth[:-2]] + [t0 + 1.003, t0 + 2.5]
+    src = views + [0, 1]  # the extras show views 0 and 1 again
+    rgb_lines, depth_lines, gt_lines = ["# color images", "# timestamp filename"], ["# depth maps"], \
+        ["# ground truth trajectory", "# timestamp tx ty tz qx qy qz qw"]
+    for td, tr, tp, v in zip(t_depth, t_rgb, t_pose, src):
+        d, _, lab_c = world["views"][v]
+        _save_u16(root / "depth" / f"{td:.6f}.png", np.rint(d * 5000))
+        Image.fromarray(SCANNET20.colorize(world["views"][v][1])).save(root / "rgb" / f"{tr:.6f}.png")
+        depth_lines.append(f"{td:.6f} depth/{td:.6f}.png")
+        rgb_lines.append(f"{tr:.6f} rgb/{tr:.6f}.png")
+        T_wc = _c2w(world["poses"][v])
+        q = Rotation.from_matrix(T_wc[:3, :3]).as_quat()  # x y z w
+        gt_lines.append(f"{tp:.6f} " + " ".join(f"{x:.9f}" for x in (*T_wc[:3, 3], *q)))
+    # the lists are not required to be sorted: write rgb.txt reversed
+    (root / "rgb.txt").write_text("\n".join(rgb_lines[:2] + rgb_lines[2:][::-1]) + "\n")
+    (root / "depth.txt").write_text("\n".join(depth_lines) + "\n")
+    (root / "groundtruth.txt").write_text("\n".join(gt_lines) + "\n")
+    expected = {"views": views, "rgb_stems": [f"{t:.6f}" for t in t_rgb[:-2]], "t_depth": t_depth[:-2]}
+    return root, expected

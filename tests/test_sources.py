@@ -102,10 +102,10 @@ def test_scannet_frame_step_and_missing_folders(scannet_dir):
     s3 = load_scannet(scannet_dir, frame_step=3)
     assert s3.frames.names == ["0", "3"] and s3.frames.info["n_invalid_pose"] == 0
     assert load_scannet(scannet_dir, frame_step=1, max_frames=2).frames.names == ["0", "1"]
-    for p in (scannet_dir / "color").iterdir():
+    for p in (scannet_dir / "depth").iterdir():
         p.unlink()
-    (scannet_dir / "color").rmdir()
-    with pytest.raises(FileNotFoundError, match="color"):
+    (scannet_dir / "depth").rmdir()
+    with pytest.raises(FileNotFoundError, match=r"depth/\{frame\}\.png.*scene\.scannet\.depth"):
         load_scannet(scannet_dir)
     assert len(load_scannet(scannet_dir, with_frames=False).frames) == 0
 
@@ -168,7 +168,7 @@ def test_rgbd_folder_cloud_from_ply(rgbd_dir, world):
 
 def test_rgbd_folder_validation(rgbd_dir):
     (rgbd_dir / "frame-000003.pose.txt").unlink()
-    with pytest.raises(ValueError, match=r"4 depth, 3 pose and 4 color\.jpg files"):
+    with pytest.raises(ValueError, match=r"4 depth\.png, 3 pose\.txt and 4 color\.jpg files"):
         load_rgbd_folder(rgbd_dir)
     T = np.eye(4)
     T[:3, :3] *= 1.1  # scaled, not rigid

@@ -29,7 +29,7 @@ __all__ = [
     "DEFAULT_PATTERNS",
 ]
 
-DEFAULT_PATTERNS = ("{name}.png", "{name}.label.png", "{name}.npy", "{name}.npz")
+DEFAULT_PATTERNS = ("{name}.png", "{name}.label.png", "{name}.npy", "{name}.npz")  # = predictions.pattern's default
 
 
 def resize_nearest(img: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -144,13 +144,16 @@ def load_probability_prediction(path: str | Path, num_classes: int, shape: tuple
 
 
 def find_prediction(folder: str | Path, frame_name: str, patterns=DEFAULT_PATTERNS) -> Path:
-    """First existing file ``folder / pattern.format(name=frame_name)`` among ``patterns``."""
+    """First existing file ``folder / pattern.format(name=frame_name)`` among ``patterns``
+    (``predictions.pattern``: e.g. ``{name}.segm.png``; a ``.npy`` / ``.npz`` is read as probabilities,
+    anything else as a label image)."""
     folder = Path(folder)
     if not folder.is_dir():
         raise FileNotFoundError(f"prediction folder {folder} does not exist")
+    patterns = [patterns] if isinstance(patterns, str) else patterns
     tried = [folder / p.format(name=frame_name) for p in patterns]
     for p in tried:
         if p.is_file():
             return p
     raise FileNotFoundError(f"no prediction for frame {frame_name!r} in {folder} "
-                            f"(tried {', '.join(t.name for t in tried)})")
+                            f"(tried {', '.join(t.relative_to(folder).as_posix() for t in tried)}; predictions.pattern)")

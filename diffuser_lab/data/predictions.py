@@ -86,7 +86,7 @@ def _file_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy:
     seen: set[int] = set()
 
     def fn(i: int, f: Frame) -> Frame:
-        path = find_prediction(folder, f.name)
+        path = find_prediction(folder, f.name, cfg.pattern)
         if path.suffix in (".npy", ".npz"):
             probs = load_probability_prediction(path, taxonomy.num_classes, f.shape)
             if i not in seen:

@@ -47,20 +47,35 @@ def load_scene(cfg: SceneConfig) -> Scene:
                                     image_height=m.image_height, fov_deg=m.fov_deg, min_coverage=m.min_coverage,
                                     eye_height_range=(m.eye_height_min, m.eye_height_max))
         elif src == SceneSource.scannet:
-            from diffuser_lab.data.sources.scannet import load_scannet
+            from diffuser_lab.data.sources.scannet import ScannetLayout, load_scannet
 
             c = cfg.scannet
+            layout = ScannetLayout(mesh=c.mesh, labels_mesh=c.labels_mesh, depth=c.depth, color=c.color,
+                                   pose=c.pose, labels=c.labels, intrinsic_depth=c.intrinsic_depth,
+                                   intrinsic_color=c.intrinsic_color, depth_scale=c.depth_scale)
             scene = load_scannet(c.root, frame_step=c.frame_step,
-                                 max_frames=c.max_frames, mapping=c.mapping)
+                                 max_frames=c.max_frames, mapping=c.mapping, layout=layout)
         elif src == SceneSource.rgbd_folder:
             from diffuser_lab.data.sources.rgbd_folder import load_rgbd_folder
 
             r = cfg.rgbd_folder
-            scene = load_rgbd_folder(r.root, depth_scale=r.depth_scale,
-                                     depth_bit_shift=r.depth_bit_shift, invalid_depth=tuple(r.invalid_depth),
+            scene = load_rgbd_folder(r.root, depth_scale=r.depth_scale, depth_bit_shift=r.depth_bit_shift,
+                                     depth_shift_kind=r.depth_shift_kind.value, invalid_depth=tuple(r.invalid_depth),
+                                     intrinsics_file=r.intrinsics_file, frame_prefix=r.frame_prefix,
+                                     depth_suffix=r.depth_suffix, pose_suffix=r.pose_suffix,
+                                     pose_convention=r.pose_convention.value,
                                      color_suffix=r.color_suffix, label_suffix=r.label_suffix, mapping=r.mapping,
                                      cloud=r.cloud, voxel_size=r.cloud_voxel, cloud_stride=r.cloud_stride,
                                      frame_step=r.frame_step, max_frames=r.max_frames, max_depth=r.max_depth)
+        elif src == SceneSource.tum:
+            from diffuser_lab.data.sources.tum import load_tum
+
+            c = cfg.tum
+            scene = load_tum(c.root, rgb_list=c.rgb_list, depth_list=c.depth_list, groundtruth=c.groundtruth,
+                             max_time_diff=c.max_time_diff, depth_scale=c.depth_scale, camera=c.camera.value,
+                             intrinsics=None if c.fx is None else (c.fx, c.fy, c.cx, c.cy),
+                             voxel_size=c.cloud_voxel, cloud_stride=c.cloud_stride, max_depth=c.max_depth,
+                             frame_step=c.frame_step, max_frames=c.max_frames)
         else:  # pragma: no cover - the enum forbids it
             raise ValueError(f"scene.source={src}: unknown")
     if cfg.name:

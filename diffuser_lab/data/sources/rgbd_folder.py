@@ -1,22 +1,23 @@
 """Posed RGB-D folders in the ``frame-XXXXXX.*`` layout (7-Scenes, tsdf-fusion, SUN3D exports).
 
-Layout of ``root``::
+Layout of ``root`` (every name is a key; docs/layouts.md)::
 
-    camera-intrinsics.txt        3x3 K (pixels) of the depth image, shared by all frames
-    frame-000000.color.jpg       colour (any resolution; resized to the depth's)
-    frame-000000.depth.png       16-bit depth, ``depth_scale`` units per metre
-    frame-000000.pose.txt        4x4 camera-to-world, metres
+    camera-intrinsics.txt        3x3 K (pixels) of the depth image, shared by all frames (intrinsics_file)
+    frame-000000.color.jpg       colour (any resolution; resized to the depth's)    (frame_prefix, color_suffix)
+    frame-000000.depth.png       16-bit depth                                        (depth_suffix)
+    frame-000000.pose.txt        4x4 camera-to-world, metres (pose_convention)       (pose_suffix)
     frame-000000.<label_suffix>  optional ground-truth label image
 
-Depth PNG values differ between datasets: 7-Scenes / ScanNet / TUM-like exports store
-millimetres (``depth_scale=1000``; 7-Scenes marks invalid pixels 65535, others 0),
-TUM stores 1/5000 m, and SUN3D stores millimetres rotated left by 3 bits
-(``depth_bit_shift=3`` undoes it with a 16-bit circular right shift). The loader warns
-when the first frame's median depth looks like a wrong unit.
+Depth PNG values differ between datasets: metres = decode(raw) / ``depth_scale``, where decode is
+``raw`` itself, a 16-bit circular right shift by ``depth_bit_shift`` (``depth_shift_kind=circular``:
+SUN3D stores millimetres rotated left by 3 bits) or a plain right shift (``plain``: ``raw >> 3``,
+the low bits carry flags, as in ``(raw >> 3) / 1e4`` m). 7-Scenes / ScanNet store millimetres
+(``depth_scale=1000``; 7-Scenes marks invalid pixels 65535, others 0), TUM stores 1/5000 m. The
+loader warns when the first frame's median depth looks like a wrong unit.
 
 Frames are read lazily (one frame's files per ``scene.frames[i]``), so memory does not
-grow with the sequence length. Also home of the readers shared with
-:mod:`diffuser_lab.data.sources.scannet`.
+grow with the sequence length. Also home of the readers and the depth-to-cloud fusion shared with
+:mod:`diffuser_lab.data.sources.scannet` and :mod:`diffuser_lab.data.sources.tum`.
 """
 from __future__ import annotations
 
@@ -39,6 +40,8 @@ __all__ = [
     "load_rgbd_folder",
     "LazyFrames",
     "read_pose_c2w",
+    "pose_to_world_to_camera",
+    "fuse_depth",
     "read_intrinsics",
     "read_depth_png",
     "read_rgb",
@@ -46,7 +49,7 @@ __all__ = [
     "rigid_inverse",
 ]
 
-_FRAME_RE = re.compile(r"^frame-(\d+)\.")
+CAMERA_TO_WORLD, WORLD_TO_CAMERA = "camera_to_world", "world_to_camera"  # pose file conventions
 
 
 class LazyFrames(Sequence):
@@ -100,9 +103,10 @@ def _read_matrix(path: Path, what: str) -> np.ndarray:
     return M
 
 
-def read_pose_c2w(path: str | Path, tol: float = 1e-3) -> np.ndarray | None:
-    """4x4 camera-to-world pose file -> (4, 4) float64, or None when it has non-finite
+def read_pose_c2w(path: str | Path, tol: float = 1e-3, convention: str = CAMERA_TO_WORLD) -> np.ndarray | None:
+    """4x4 pose file -> (4, 4) float64 as stored, or None when it has non-finite
     entries (ScanNet marks failed tracking with -inf poses; the caller skips those).
+    ``convention`` only words the errors; :func:`pose_to_world_to_camera` applies it.
 
     Raises:
         ValueError: not 4x4, or finite but not a rigid transform (R^T R != I within ``tol``,
@@ -111,7 +115,7 @@ def read_pose_c2w(path: str | Path, tol: float = 1e-3) -> np.ndarray | None:
     path = Path(path)
     T = _read_matrix(path, "pose")
     if T.shape != (4, 4):
-        raise ValueError(f"{path}: pose of shape {T.shape}, expected a 4x4 camera-to-world matrix")
+        raise ValueError(f"{path}: pose of shape {T.shape}, expected a 4x4 {convention.replace('_', '-')} matrix")
     if not np.isfinite(T).all():
         return None
     R = T[:3, :3]
@@ -119,8 +123,17 @@ def read_pose_c2w(path: str | Path, tol: float = 1e-3) -> np.ndarray | None:
     det = np.linalg.det(R)
     if ortho > tol or abs(det - 1.0) > tol or np.abs(T[3] - [0, 0, 0, 1]).max() > tol:
         raise ValueError(f"{path}: pose is not a rigid transform (max|R^T R - I| = {ortho:.2g}, det R = {det:.4g}, "
-                         f"last row {T[3].tolist()}), expected 4x4 camera-to-world rotation + translation")
+                         f"last row {T[3].tolist()}), expected 4x4 {convention.replace('_', '-')} rotation + translation")
     return T
+
+
+def pose_to_world_to_camera(T: np.ndarray, convention: str) -> np.ndarray:
+    """A stored (4, 4) rigid pose in ``convention`` (camera_to_world | world_to_camera) -> T_cw."""
+    if convention == CAMERA_TO_WORLD:
+        return rigid_inverse(T)
+    if convention == WORLD_TO_CAMERA:
+        return np.array(T, np.float64)
+    raise ValueError(f"pose convention {convention!r}: expected {CAMERA_TO_WORLD} or {WORLD_TO_CAMERA}")
 
 
 def read_intrinsics(path: str | Path) -> np.ndarray:
@@ -140,14 +153,18 @@ def read_intrinsics(path: str | Path) -> np.ndarray:
 
 
 def read_depth_png(path: str | Path, depth_scale: float, bit_shift: int = 0,
-                   invalid=(0, 65535)) -> np.ndarray:
+                   invalid=(0, 65535), shift_kind: str = "circular") -> np.ndarray:
     """16-bit depth PNG -> (H, W) float32 z-depth in metres, 0 = invalid.
 
     Args:
-        depth_scale: stored units per metre (1000 for millimetres).
-        bit_shift: circular right shift of the raw 16-bit value before scaling (SUN3D: 3).
+        depth_scale: stored units per metre (1000 for millimetres), applied after the shift.
+        bit_shift: right shift of the raw 16-bit value before scaling.
         invalid: raw stored values (before the shift) meaning "no depth".
+        shift_kind: ``circular`` = 16-bit rotate right (SUN3D, ``bit_shift=3``), ``plain`` =
+            ``raw >> bit_shift`` (low bits dropped, e.g. ``(raw >> 3) / 1e4`` m).
     """
+    if shift_kind not in ("circular", "plain"):
+        raise ValueError(f"depth shift kind {shift_kind!r}: expected circular or plain")
     path = Path(path)
     with open_image(path, "depth image") as im:
         raw = np.asarray(im)
@@ -155,7 +172,9 @@ def read_depth_png(path: str | Path, depth_scale: float, bit_shift: int = 0,
         raise ValueError(f"{path}: depth image of dtype {raw.dtype} shape {raw.shape}, expected single-channel 16-bit")
     raw = raw.astype(np.uint32) & 0xFFFF
     bad = np.isin(raw, np.asarray(invalid, np.uint32))
-    if bit_shift:
+    if bit_shift and shift_kind == "plain":
+        raw = raw >> int(bit_shift)
+    elif bit_shift:
         s = int(bit_shift) % 16
         raw = ((raw >> s) | (raw << (16 - s))) & 0xFFFF  # 16-bit rotate right
     depth = raw.astype(np.float32) / np.float32(depth_scale)
@@ -229,7 +248,13 @@ def load_rgbd_folder(
     *,
     depth_scale: float = 1000.0,
     depth_bit_shift: int = 0,
+    depth_shift_kind: str = "circular",
     invalid_depth=(0, 65535),
+    intrinsics_file: str = "camera-intrinsics.txt",
+    frame_prefix: str = "frame-",
+    depth_suffix: str = "depth.png",
+    pose_suffix: str = "pose.txt",
+    pose_convention: str = CAMERA_TO_WORLD,
     color_suffix: str | None = "color.jpg",
     label_suffix: str | None = None,
     taxonomy: Taxonomy = SCANNET20,
@@ -241,13 +266,19 @@ def load_rgbd_folder(
     max_frames: int | None = None,
     max_depth: float | None = None,
 ) -> Scene:
-    """Load a ``frame-XXXXXX.*`` posed RGB-D folder (see module docstring) as a Scene.
+    """Load a posed RGB-D folder (see module docstring) as a Scene.
 
     Args:
         root: the folder.
-        depth_scale: stored depth units per metre. depth_bit_shift: 16-bit circular right
-            shift of raw depth before scaling (SUN3D: 3). invalid_depth: raw "no depth" values.
-        color_suffix: colour file suffix (``frame-XXXXXX.<suffix>``), None = no colour.
+        depth_scale: stored depth units per metre (after the shift). depth_bit_shift,
+            depth_shift_kind: right shift of the raw 16-bit depth, ``circular`` (SUN3D) or
+            ``plain`` (``raw >> shift``). invalid_depth: raw "no depth" values (before the shift).
+        intrinsics_file: name of the 3x3 K file in ``root``.
+        frame_prefix: a frame's name is ``<frame_prefix><digits>``; its files are
+            ``<name>.<depth_suffix>``, ``<name>.<pose_suffix>``, ``<name>.<color_suffix>``.
+        pose_convention: what the pose files hold, ``camera_to_world`` or ``world_to_camera``.
+        color_suffix: colour file suffix, None = no colour; when no frame has such a file the
+            frames carry no RGB (a warning says so) and the fused cloud is a neutral grey.
         label_suffix: suffix of ground-truth label images (e.g. ``label.png``); frames
             without that file get ``gt_labels=None``.
         taxonomy: evaluation classes. mapping: label ids -> taxonomy (CSV name/path or
@@ -267,39 +298,49 @@ def load_rgbd_folder(
     if depth_scale <= 0 or frame_step < 1 or cloud_stride < 1 or voxel_size <= 0:
         raise ValueError(f"depth_scale={depth_scale}, frame_step={frame_step}, cloud_stride={cloud_stride}, "
                          f"voxel_size={voxel_size}: expected positive values (steps >= 1)")
-    K = read_intrinsics(root / "camera-intrinsics.txt")
+    pose_to_world_to_camera(np.eye(4), pose_convention)  # a wrong name fails before any file is read
+    K = read_intrinsics(root / intrinsics_file)
     mapping = _as_mapping(mapping, taxonomy)
     if mapping is not None and mapping.target.names != taxonomy.names:
         raise ValueError(f"mapping {mapping.source} targets taxonomy {mapping.target.name}, expected {taxonomy.name}")
+    name_re = re.compile(re.escape(frame_prefix) + r"\d+")
 
     def stems(suffix: str) -> list[str]:
-        return sorted(p.name[: -len(suffix) - 1] for p in root.glob(f"frame-*.{suffix}") if _FRAME_RE.match(p.name))
+        return sorted(n for n in (p.name[: -len(suffix) - 1] for p in root.glob(f"{frame_prefix}*.{suffix}"))
+                      if name_re.fullmatch(n))
 
-    depth_stems, pose_stems = stems("depth.png"), stems("pose.txt")
-    color_stems = stems(color_suffix) if color_suffix else depth_stems
+    depth_stems, pose_stems = stems(depth_suffix), stems(pose_suffix)
     if not depth_stems:
-        raise FileNotFoundError(f"{root}: no frame-XXXXXX.depth.png files")
-    if not (len(depth_stems) == len(pose_stems) == len(color_stems)) or \
-            not (depth_stems == pose_stems == color_stems):
-        raise ValueError(f"{root}: {len(depth_stems)} depth, {len(pose_stems)} pose and {len(color_stems)} "
-                         f"{color_suffix} files (or different frame numbers), expected one of each per frame")
+        raise FileNotFoundError(f"{root}: no {frame_prefix}XXXXXX.{depth_suffix} files "
+                                f"(keys frame_prefix={frame_prefix!r}, depth_suffix={depth_suffix!r})")
+    color_stems = stems(color_suffix) if color_suffix else depth_stems
+    if color_suffix and not color_stems:
+        warnings.warn(f"{root}: no {frame_prefix}XXXXXX.{color_suffix} colour images: frames have no RGB and "
+                      f"the cloud is grey (set color_suffix=null to say so)", stacklevel=2)
+        color_suffix, color_stems = None, depth_stems
+    if not (depth_stems == pose_stems == color_stems):
+        raise ValueError(f"{root}: {len(depth_stems)} {depth_suffix}, {len(pose_stems)} {pose_suffix} and "
+                         f"{len(color_stems)} {color_suffix} files (or different frame numbers), expected one "
+                         f"of each per frame")
     names = depth_stems[::frame_step]
     if max_frames is not None:
         names = names[: int(max_frames)]
     poses, kept = [], []
     with progress.stage("reading poses", total=len(names), unit="pose") as bar:
         for name in names:  # loop over frames: poses are tiny and validated up front
-            T_wc = read_pose_c2w(root / f"{name}.pose.txt")
-            if T_wc is None:
-                raise ValueError(f"{root / (name + '.pose.txt')}: pose has non-finite entries, "
-                                 f"expected a 4x4 rigid camera-to-world transform")
-            poses.append(rigid_inverse(T_wc))
+            path = root / f"{name}.{pose_suffix}"
+            T = read_pose_c2w(path, convention=pose_convention)
+            if T is None:
+                raise ValueError(f"{path}: pose has non-finite entries, expected a 4x4 rigid "
+                                 f"{pose_convention.replace('_', '-')} transform")
+            poses.append(pose_to_world_to_camera(T, pose_convention))
             kept.append(name)
             bar.update()
 
     def load(i: int) -> Frame:
         name = kept[i]
-        depth = read_depth_png(root / f"{name}.depth.png", depth_scale, depth_bit_shift, invalid_depth)
+        depth = read_depth_png(root / f"{name}.{depth_suffix}", depth_scale, depth_bit_shift, invalid_depth,
+                               depth_shift_kind)
         rgb = read_rgb(root / f"{name}.{color_suffix}", depth.shape) if color_suffix else None
         gt = None
         if label_suffix:
@@ -310,7 +351,8 @@ def load_rgbd_folder(
 
     frames = LazyFrames(kept, load, {"n_frames_found": len(depth_stems)})
     # checked here, before a wrong unit scales the back-projected cloud; the pipeline skips it then
-    check_depth_unit(frames[0], hint=f"depth_scale={depth_scale} (units per metre) / depth_bit_shift")
+    check_depth_unit(frames[0], hint=f"depth_scale={depth_scale} (units per metre) / depth_bit_shift="
+                                     f"{depth_bit_shift} / depth_shift_kind={depth_shift_kind}")
     frames.info["depth_unit_checked"] = True
 
     normals = colors = gt_points = None
@@ -321,7 +363,7 @@ def load_rgbd_folder(
         if "labels" in pc:
             gt_points = _taxonomy_ids(pc["labels"], mapping, taxonomy, str(cloud))
     else:
-        points, colors = _fuse_depth(frames, voxel_size, cloud_stride, max_depth)
+        points, colors = fuse_depth(frames, voxel_size, cloud_stride, max_depth)
         if points.shape[0] == 0:
             raise ValueError(f"{root}: no valid depth to build a point cloud from (max_depth={max_depth})")
     return Scene(name=root.name, points=points, taxonomy=taxonomy, frames=frames, normals=normals,
@@ -340,7 +382,7 @@ def _merge(pts: np.ndarray, cols: np.ndarray, w: np.ndarray, voxel_size: float):
     return (P / wsum[:, None]).astype(np.float32), (C / wsum[:, None]).astype(np.float32), wsum
 
 
-def _fuse_depth(frames: Sequence[Frame], voxel_size: float, stride: int, max_depth: float | None):
+def fuse_depth(frames: Sequence[Frame], voxel_size: float, stride: int, max_depth: float | None):
     """Back-project every frame's depth and merge on a voxel grid, one frame at a time.
 
     Per-frame voxelisation bounds what is kept per frame; the partial clouds are merged

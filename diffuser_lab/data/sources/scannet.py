@@ -22,10 +22,17 @@ the common calibration colour fx, fy, cx, cy = 1169.621, 1167.105, 646.295, 489.
 exactly the common depth K 577.591, 578.730, 318.905, 242.684. Resizing labels to colour
 resolution instead would need depth upsampling and 4x the pixels for no extra geometry.
 The loader compares the two K files per scene and warns when they disagree by > 2 px.
+
+Every file name above is a key of :class:`ScannetLayout` (``scene.scannet.*``, docs/layouts.md).
+Only the mesh, depth, pose and intrinsic_depth are required: without ``color/`` the frames carry
+no RGB (the points keep the mesh's colours; predictions from files, ground truth or simulated
+ones do not need it), without ``label-filt/`` they carry no ground truth.
 """
 from __future__ import annotations
 
+import re
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -37,7 +44,23 @@ from diffuser_lab.data.scene import SCANNET20, Frame, Scene
 
 from .rgbd_folder import LazyFrames, read_depth_png, read_intrinsics, read_pose_c2w, read_rgb, rigid_inverse
 
-__all__ = ["load_scannet", "read_labelled_mesh", "scaled_intrinsics"]
+__all__ = ["load_scannet", "read_labelled_mesh", "scaled_intrinsics", "ScannetLayout"]
+
+
+@dataclass(frozen=True)
+class ScannetLayout:
+    """File names of a ScanNet export, relative to the scene folder: ``{scene}`` = its name,
+    ``{frame}`` = a frame's number as written in the file name (ScanNetConfig has the same keys)."""
+
+    mesh: str = "{scene}_vh_clean_2.ply"
+    labels_mesh: str = "{scene}_vh_clean_2.labels.ply"
+    depth: str = "depth/{frame}.png"
+    color: str = "color/{frame}.jpg"
+    pose: str = "pose/{frame}.txt"
+    labels: str = "label-filt/{frame}.png"
+    intrinsic_depth: str = "intrinsic/intrinsic_depth.txt"
+    intrinsic_color: str = "intrinsic/intrinsic_color.txt"
+    depth_scale: float = 1000.0  # raw units per metre
 
 
 def read_labelled_mesh(path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
@@ -113,24 +136,25 @@ def scaled_intrinsics(K: np.ndarray, src_shape: tuple[int, int], dst_shape: tupl
     return out
 
 
-def _find_mesh(root: Path, suffix: str) -> Path | None:
-    p = root / f"{root.name}{suffix}"
+def _find_mesh(root: Path, pattern: str) -> Path | None:
+    """``root / pattern`` with ``{scene}`` = the folder name, else the only file matching it with any scene."""
+    p = root / pattern.format(scene=root.name)
     if p.is_file():
         return p
-    hits = sorted(root.glob(f"*{suffix}"))
+    hits = sorted(root.glob(pattern.replace("{scene}", "*")))
     return hits[0] if len(hits) == 1 else None
 
 
-def _frame_ids(folder: Path, ext: str) -> list[int]:
-    ids = []
-    for p in folder.glob(f"*{ext}"):  # loop over files
-        if p.stem.isdigit():
-            ids.append(int(p.stem))
-    return sorted(ids)
+def _frame_ids(root: Path, pattern: str) -> list[str]:
+    """Frame numbers (as written) of the files matching ``pattern`` (one ``{frame}``), by number."""
+    rx = re.compile(re.escape(pattern).replace(re.escape("{frame}"), r"(\d+)"))
+    found = (rx.fullmatch(p.relative_to(root).as_posix()) for p in root.glob(pattern.replace("{frame}", "*")))
+    return sorted((m.group(1) for m in found if m), key=int)
 
 
 def load_scannet(root, *, frame_step: int = 10, max_frames: int | None = None,
-                 mapping: str | ClassMapping = "nyu40_to_scannet20", with_frames: bool = True) -> Scene:
+                 mapping: str | ClassMapping = "nyu40_to_scannet20", with_frames: bool = True,
+                 layout: ScannetLayout = ScannetLayout()) -> Scene:
     """Load one ScanNet scene (layout in the module docstring).
 
     Args:
@@ -140,11 +164,13 @@ def load_scannet(root, *, frame_step: int = 10, max_frames: int | None = None,
         mapping: NYU40 -> evaluation classes (shipped CSV name, path or ClassMapping);
             its target taxonomy becomes the scene's.
         with_frames: False = mesh only (color/depth/pose folders may be absent).
+        layout: the file names (defaults: ScanNet's export); colour and label-filt are optional.
     Returns:
         Scene: points = mesh vertices (V, 3) float32 metres, colors (V, 3) uint8,
         normals (V, 3) float32 unit vertex normals (winding-oriented), gt_labels (V,) int16
         (None without the labels PLY), frames lazily loaded at depth resolution with
-        ``gt_labels`` from label-filt (None without it) and ``labels=None``. Frames whose
+        ``gt_labels`` from label-filt (None without it), ``rgb`` from color/ (None without it)
+        and ``labels=None``. Frames whose
         pose is non-finite are skipped; ``scene.frames.info["n_invalid_pose"]`` counts them.
     """
     root = Path(root)
@@ -155,10 +181,10 @@ def load_scannet(root, *, frame_step: int = 10, max_frames: int | None = None,
     mapping = mapping if isinstance(mapping, ClassMapping) else load_mapping(mapping, SCANNET20)
     taxonomy = mapping.target
 
-    mesh_path = _find_mesh(root, "_vh_clean_2.ply")
+    mesh_path = _find_mesh(root, layout.mesh)
     if mesh_path is None:
-        raise FileNotFoundError(f"{root}: no {root.name}_vh_clean_2.ply mesh")
-    label_path = _find_mesh(root, "_vh_clean_2.labels.ply")
+        raise FileNotFoundError(f"{root}: no {layout.mesh.format(scene=root.name)} mesh (scene.scannet.mesh)")
+    label_path = _find_mesh(root, layout.labels_mesh)
     with progress.stage(f"reading mesh {mesh_path.name}" + (" + labels" if label_path is not None else "")):
         vertices, triangles, _, colors = read_labelled_mesh(mesh_path)
         normals = _vertex_normals(vertices, triangles)
@@ -176,25 +202,21 @@ def load_scannet(root, *, frame_step: int = 10, max_frames: int | None = None,
 
     frames: LazyFrames | list = []
     if with_frames:
-        frames = _scannet_frames(root, frame_step, max_frames, mapping)
+        frames = _scannet_frames(root, frame_step, max_frames, mapping, layout)
     return Scene(name=root.name, points=vertices, taxonomy=taxonomy, frames=frames, normals=normals,
                  colors=colors, gt_labels=gt)
 
 
-def _scannet_frames(root: Path, frame_step: int, max_frames: int | None, mapping: ClassMapping) -> LazyFrames:
-    for sub in ("color", "depth", "pose", "intrinsic"):
-        if not (root / sub).is_dir():
-            raise FileNotFoundError(f"{root}: missing folder {sub}/ of the ScanNet export "
-                                    f"(use with_frames=False for the mesh only)")
-    K = read_intrinsics(root / "intrinsic" / "intrinsic_depth.txt")
-    ids = _frame_ids(root / "depth", ".png")
+def _scannet_frames(root: Path, frame_step: int, max_frames: int | None, mapping: ClassMapping,
+                    L: ScannetLayout) -> LazyFrames:
+    K = read_intrinsics(root / L.intrinsic_depth)
+    ids = _frame_ids(root, L.depth)
     if not ids:
-        raise FileNotFoundError(f"{root / 'depth'}: no <frame>.png depth images")
-    label_dir = root / "label-filt"
-    has_labels = label_dir.is_dir()
+        raise FileNotFoundError(f"{root}: no {L.depth} depth images (scene.scannet.depth; "
+                                f"use with_frames=False for the mesh only)")
     K_color = None
-    if (root / "intrinsic" / "intrinsic_color.txt").is_file():
-        K_color = read_intrinsics(root / "intrinsic" / "intrinsic_color.txt")
+    if (root / L.intrinsic_color).is_file():
+        K_color = read_intrinsics(root / L.intrinsic_color)
 
     kept, poses, n_invalid = [], [], 0
     selected = ids[::frame_step]
@@ -203,7 +225,7 @@ def _scannet_frames(root: Path, frame_step: int, max_frames: int | None, mapping
             if max_frames is not None and len(kept) >= max_frames:
                 break
             bar.update()
-            T_wc = read_pose_c2w(root / "pose" / f"{fid}.txt")
+            T_wc = read_pose_c2w(root / L.pose.format(frame=fid))
             if T_wc is None:
                 n_invalid += 1  # tracking lost: ScanNet writes -inf poses
                 continue
@@ -212,16 +234,18 @@ def _scannet_frames(root: Path, frame_step: int, max_frames: int | None, mapping
     if not kept:
         raise ValueError(f"{root}: no frame with a valid pose among {len(ids[::frame_step])} selected "
                          f"(frame_step={frame_step}, {n_invalid} non-finite poses)")
+    # colour and labels are optional: present when the first frame has them (then every frame must)
+    has_color = (root / L.color.format(frame=kept[0])).is_file()
+    has_labels = (root / L.labels.format(frame=kept[0])).is_file()
     checked = {"done": False}
 
     def load(i: int) -> Frame:
         fid = kept[i]
-        depth = read_depth_png(root / "depth" / f"{fid}.png", 1000.0, 0, (0,))
-        color_path = root / "color" / f"{fid}.jpg"
-        rgb = read_rgb(color_path, depth.shape)
+        depth = read_depth_png(root / L.depth.format(frame=fid), L.depth_scale, 0, (0,))
+        rgb = read_rgb(root / L.color.format(frame=fid), depth.shape) if has_color else None
         gt = None
         if has_labels:
-            lp = label_dir / f"{fid}.png"
+            lp = root / L.labels.format(frame=fid)
             ids_img = read_label_png(lp)
             if K_color is not None and not checked["done"]:
                 checked["done"] = True
@@ -234,7 +258,7 @@ def _scannet_frames(root: Path, frame_step: int, max_frames: int | None, mapping
                 gt = mapping.apply(resize_nearest(ids_img, depth.shape))[0]
             except ValueError as e:
                 raise ValueError(f"{lp}: {e}") from None
-        return Frame(name=str(fid), K=K.copy(), T_cw=poses[i], depth=depth, gt_labels=gt, rgb=rgb)
+        return Frame(name=fid, K=K.copy(), T_cw=poses[i], depth=depth, gt_labels=gt, rgb=rgb)
 
-    return LazyFrames([str(f) for f in kept], load,
-                      {"n_invalid_pose": n_invalid, "n_frames_found": len(ids)})
+    return LazyFrames(kept, load, {"n_invalid_pose": n_invalid, "n_frames_found": len(ids),
+                                   "has_color": has_color, "has_labels": has_labels})
