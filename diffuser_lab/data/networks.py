@@ -59,14 +59,36 @@ CACHE_VERSION = 1  # bump when the cached file's content changes meaning
 
 def check_target(spec: dict) -> Any:
     """The object ``spec['_target_']`` names (imported, not called); ValueError naming the key."""
-    from hydra.utils import get_object
-
-    target = spec.get("_target_")
+    target = str(spec.get("_target_"))
     try:
-        return get_object(str(target))
+        return _locate(target)
     except Exception as exc:  # noqa: BLE001 - import errors of user code come in many types
         raise ValueError(f"predictions.model._target_={target}: cannot import it "
                          f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
+
+
+def _locate(path: str) -> Any:
+    """``pkg.mod.attr.attr`` -> the object: the longest importable module prefix, then attributes.
+    A module that exists but fails to import (e.g. a missing dependency of it) raises its error."""
+    import importlib
+
+    parts = path.split(".")
+    if not all(parts):
+        raise ImportError(f"{path!r} is not a dotted import path (pkg.module.name)")
+    for i in range(len(parts), 0, -1):
+        name = ".".join(parts[:i])
+        try:
+            obj = importlib.import_module(name)
+        except ModuleNotFoundError as e:
+            if e.name and (name == e.name or name.startswith(e.name + ".")):
+                continue  # this prefix is not a module: try a shorter one
+            raise
+        for attr in parts[i:]:
+            if not hasattr(obj, attr):
+                raise AttributeError(f"{name} has no attribute {attr!r}")
+            obj = getattr(obj, attr)
+        return obj
+    raise ModuleNotFoundError(f"no module named {parts[0]!r} (is it installed, or on PYTHONPATH?)")
 
 
 def _is_frame_function(obj: Any, kwargs: dict) -> bool:
