@@ -207,7 +207,7 @@ class OnnxConfig:
 
     path: str = MISSING  # the .onnx file
     input_size: Optional[List[int]] = None  # [H, W] the network takes; null = its fixed size, else the frame's
-    mean: List[float] = field(default_factory=lambda: [0.485, 0.456, 0.406])  # per channel, pixel / 255 units
+    mean: List[float] = field(default_factory=lambda: [0.485, 0.456, 0.406])  # per input channel (network's order), pixel / 255
     std: List[float] = field(default_factory=lambda: [0.229, 0.224, 0.225])  # (ImageNet); [1,1,1] and 0 = raw
     channels: ChannelOrder = ChannelOrder.rgb  # channel order the network expects
     layout: TensorLayout = TensorLayout.nchw  # input tensor layout

@@ -106,14 +106,20 @@ def npz_files(cache: Path) -> dict:
     return {p: p.stat().st_mtime_ns for p in sorted(cache.rglob("*.npz"))}
 
 
-def tiny_onnx(path, weight, bias, *, head="softmax", hw=("H", "W")):
+def tiny_onnx(path, weight, bias, *, head="softmax", hw=("H", "W"), nhwc=False):
     """A 1x1 Conv (3 -> C channels) segmentation network, NCHW float input of size ``hw``
-    (symbolic = any), with ``head``: softmax (probabilities), none (logits) or argmax (ids)."""
+    (symbolic = any), with ``head``: softmax (probabilities), none (logits) or argmax (ids);
+    ``nhwc``: input and output (1, H, W, channels) instead (TensorFlow's layout)."""
     onnx = pytest.importorskip("onnx")
     from onnx import TensorProto, helper, numpy_helper
 
     C = weight.shape[0]
-    nodes = [helper.make_node("Conv", ["image", "w", "b"], ["logits"], kernel_shape=[1, 1])]
+    first = "image"
+    nodes = []
+    if nhwc:
+        nodes.append(helper.make_node("Transpose", ["image"], ["nchw"], perm=[0, 3, 1, 2]))
+        first = "nchw"
+    nodes.append(helper.make_node("Conv", [first, "w", "b"], ["logits"], kernel_shape=[1, 1]))
     out, kind = "logits", TensorProto.FLOAT
     if head == "softmax":
         nodes.append(helper.make_node("Softmax", ["logits"], ["probs"], axis=1))
@@ -121,9 +127,13 @@ def tiny_onnx(path, weight, bias, *, head="softmax", hw=("H", "W")):
     elif head == "argmax":
         nodes.append(helper.make_node("ArgMax", ["logits"], ["ids"], axis=1, keepdims=0))
         out, kind = "ids", TensorProto.INT64
+    shape_out = [1, *hw] if head == "argmax" else [1, C, *hw]
+    if nhwc and head != "argmax":
+        nodes.append(helper.make_node("Transpose", [out], ["out_nhwc"], perm=[0, 2, 3, 1]))
+        out, shape_out = "out_nhwc", [1, *hw, C]
     graph = helper.make_graph(
-        nodes, "tiny_seg", [helper.make_tensor_value_info("image", TensorProto.FLOAT, [1, 3, *hw])],
-        [helper.make_tensor_value_info(out, kind, [1, *hw] if head == "argmax" else [1, C, *hw])],
+        nodes, "tiny_seg", [helper.make_tensor_value_info("image", TensorProto.FLOAT, [1, *hw, 3] if nhwc else [1, 3, *hw])],
+        [helper.make_tensor_value_info(out, kind, shape_out)],
         [numpy_helper.from_array(weight.reshape(C, 3, 1, 1).astype(np.float32), "w"),
          numpy_helper.from_array(bias.astype(np.float32), "b")])
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
@@ -374,3 +384,20 @@ def test_cli_model_end_to_end(mapping_csv, tmp_path):
     assert "0 frames run, 3 from cache" in s1
     assert j0["metrics"] is None and j0["status"] == "ok" and j1["predictions_stats"]["cached_frames"] == 3
     assert np.array_equal(np.load(tmp_path / "run0" / "labels.npy"), np.load(tmp_path / "run1" / "labels.npy"))
+
+
+
+@needs_7scenes
+def test_onnx_nhwc_bgr(scene, mapping_csv, tmp_path):
+    pytest.importorskip("onnxruntime")
+    net = tiny_onnx(tmp_path / "tf.onnx", W4, B4, nhwc=True)
+    mean, std = [0.4, 0.45, 0.5], [0.25, 0.2, 0.3]  # in the network's (BGR) order
+    frames, st = frames_of(scene, "predictions=onnx", f"predictions.onnx.path={net}", "predictions.onnx.output=probs",
+                           "predictions.onnx.layout=nhwc", "predictions.onnx.output_layout=nhwc",
+                           "predictions.onnx.channels=bgr", f"predictions.onnx.mean={mean}",
+                           f"predictions.onnx.std={std}", f"predictions.mapping={mapping_csv}",
+                           f"predictions.cache_dir={tmp_path / 'c'}")
+    assert st["model_calls"] == 5
+    f = frames[3]
+    ref = numpy_net(f.rgb[..., ::-1], np.array(mean, np.float32), np.array(std, np.float32))
+    np.testing.assert_allclose(f.probs, map_columns(ref), atol=2e-3)

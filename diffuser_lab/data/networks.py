@@ -143,8 +143,9 @@ class OnnxModel:
     """An ONNX segmentation network on onnxruntime's CPU provider, as a callable
     ``model(rgb (H, W, 3) uint8) -> ids (h, w) int64 | probabilities (h, w, C) float32``.
 
-    Preprocessing: resize to the input size (bilinear, Pillow), ``(rgb / 255 - mean) / std``,
-    channel order and layout as configured, batch of one. Logits get a softmax over classes.
+    Preprocessing: resize to the input size (bilinear, Pillow), channel order as configured,
+    ``(x / 255 - mean) / std`` (mean/std in the network's channel order), layout as configured,
+    batch of one. Logits get a softmax over classes.
     """
 
     def __init__(self, cfg: OnnxConfig):
@@ -199,9 +200,9 @@ class OnnxModel:
         cfg = self.cfg
         if self.size is not None and tuple(rgb.shape[:2]) != self.size:
             rgb = np.asarray(Image.fromarray(rgb).resize((self.size[1], self.size[0]), Image.BILINEAR))
-        x = (rgb.astype(np.float32) / 255.0 - self.mean) / self.std
         if cfg.channels == ChannelOrder.bgr:
-            x = x[..., ::-1]
+            rgb = rgb[..., ::-1]
+        x = (rgb.astype(np.float32) / 255.0 - self.mean) / self.std  # mean/std in the network's order
         x = x.transpose(2, 0, 1) if cfg.layout == TensorLayout.nchw else x
         x = np.ascontiguousarray(x[None], dtype=self.input_dtype)
         out = np.asarray(self.session.run([self.output_name], {self.input_name: x})[0])
