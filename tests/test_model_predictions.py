@@ -225,6 +225,23 @@ def test_resize_bilinear_matches_pillow():
     assert resize_bilinear(a, (7, 9)) is a
 
 
+def test_onnx_bad_files(tmp_path):
+    from diffuser_lab.config import OnnxConfig
+    from diffuser_lab.data.networks import OnnxModel, onnx_key
+
+    with pytest.raises(FileNotFoundError, match=r"predictions.onnx.path=.*nothing.onnx does not exist"):
+        onnx_key(OnnxConfig(path=str(tmp_path / "nothing.onnx")))
+    pytest.importorskip("onnxruntime")
+    (tmp_path / "junk.onnx").write_bytes(b"not a graph")
+    with pytest.raises(ValueError, match=r"predictions.onnx.path=.*junk.onnx: not a loadable ONNX model"):
+        OnnxModel(OnnxConfig(path=str(tmp_path / "junk.onnx")))
+    net = tiny_onnx(tmp_path / "fixed.onnx", W4, B4, hw=(12, 16))
+    with pytest.raises(ValueError, match=r"predictions.onnx.input_size=\[10, 10\]: .* fixed at \[1, 3, 12, 16\]"):
+        OnnxModel(OnnxConfig(path=str(net), input_size=[10, 10]))
+    with pytest.raises(ValueError, match="predictions.onnx.output_name=nope: the graph's outputs are probs"):
+        OnnxModel(OnnxConfig(path=str(net), output_name="nope"))
+
+
 def test_cache_keys():
     from diffuser_lab.data.networks import model_key
 

@@ -149,7 +149,10 @@ class OnnxModel:
     """
 
     def __init__(self, cfg: OnnxConfig):
-        import onnxruntime as ort
+        try:
+            import onnxruntime as ort
+        except ImportError:
+            raise ModuleNotFoundError("predictions=onnx needs onnxruntime: pip install 'diffuser-lab[onnx]'") from None
 
         self.cfg = cfg
         path = Path(cfg.path).expanduser()
