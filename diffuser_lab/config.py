@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import Any, List, Optional
+from typing import Any, Dict, List, Optional
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, OmegaConf
@@ -42,6 +42,24 @@ class PredictionSource(Enum):
     simulated = "simulated"  # simulated 2D-network mistakes on ground-truth label images
     gt = "gt"  # ground-truth label images (perfect 2D labels)
     files = "files"  # a 2D network's label images (mapped) or class probabilities (.npy/.npz)
+    model = "model"  # a Python callable (Hydra _target_) run on each frame's RGB
+    onnx = "onnx"  # an exported ONNX segmentation network run with onnxruntime on the CPU
+
+
+class ChannelOrder(Enum):
+    rgb = "rgb"
+    bgr = "bgr"  # OpenCV / Caffe-trained networks
+
+
+class TensorLayout(Enum):
+    nchw = "nchw"  # (1, C, H, W): PyTorch exports
+    nhwc = "nhwc"  # (1, H, W, C): TensorFlow exports
+
+
+class OnnxOutput(Enum):
+    logits = "logits"  # class scores, softmax applied here
+    probs = "probs"  # class probabilities (softmax inside the graph)
+    ids = "ids"  # class ids (argmax inside the graph), (1, H, W) or (H, W)
 
 
 class NormalSign(Enum):
@@ -281,6 +299,29 @@ class SceneConfig:
 
 
 @dataclass
+class OnnxConfig:
+    """predictions=onnx: an exported segmentation network (diffuser_lab/data/networks.py)."""
+
+    path: str = MISSING  # the .onnx file
+    input_size: Optional[List[int]] = None  # [H, W] the network takes; null = its fixed size, else the frame's
+    mean: List[float] = field(default_factory=lambda: [0.485, 0.456, 0.406])  # per input channel (network's order), pixel / 255
+    std: List[float] = field(default_factory=lambda: [0.229, 0.224, 0.225])  # (ImageNet); [1,1,1] and 0 = raw
+    channels: ChannelOrder = ChannelOrder.rgb  # channel order the network expects
+    layout: TensorLayout = TensorLayout.nchw  # input tensor layout
+    output: OnnxOutput = OnnxOutput.logits  # what the (first, or output_name) output holds
+    output_layout: TensorLayout = TensorLayout.nchw  # layout of logits / probs outputs
+    output_name: Optional[str] = None  # null = the graph's first output
+    threads: int = 0  # onnxruntime intra-op threads; 0 = its default (all cores)
+
+    def __post_init__(self) -> None:
+        _check(self.input_size is None or (len(self.input_size) == 2 and min(self.input_size) >= 1),
+               "predictions.onnx.input_size", self.input_size, "[H, W] >= 1 or null")
+        _check(len(self.mean) == 3, "predictions.onnx.mean", self.mean, "3 values (one per channel)")
+        _check(len(self.std) == 3 and min(self.std) > 0, "predictions.onnx.std", self.std, "3 values > 0")
+        _check(self.threads >= 0, "predictions.onnx.threads", self.threads, ">= 0 (0 = onnxruntime's default)")
+
+
+@dataclass
 class PredictionsConfig:
     """What the frames' 2D labels are. The simulated mistakes are documented knob by knob in
     :func:`diffuser_lab.data.simulate.simulate_predictions` (defaults: 2D mIoU ~58 on the demo)."""
@@ -299,6 +340,12 @@ class PredictionsConfig:
     blob_count: float = 2.0  # mean number of wrong-class blobs per image (Poisson)
     blob_radius: float = 0.1  # mean blob radius, fraction of the image width
     blob_roughness: float = 0.35  # irregularity of blob outlines, 0 = discs
+    # model / onnx: a network run on each frame's RGB, its outputs (ids or probabilities in its own
+    # label space) translated by ``mapping`` and cached on disk (docs/networks.md)
+    model: Optional[Dict[str, Any]] = None  # model: {_target_: pkg.mod.callable, **kwargs}
+    pass_depth: bool = False  # model: call model(rgb, depth) instead of model(rgb)
+    onnx: Optional[OnnxConfig] = None  # onnx: set by conf/predictions/onnx.yaml
+    cache_dir: Optional[str] = "~/.cache/diffuser-lab/predictions"  # model / onnx outputs; null = no cache
 
     def __post_init__(self) -> None:
         if isinstance(self.pattern, str):
@@ -307,6 +354,12 @@ class PredictionsConfig:
         for p in self.pattern:
             _check_pattern(p, "predictions.pattern", "name")
         _check(len(self.pattern) >= 1, "predictions.pattern", self.pattern, "at least one file name")
+        if self.source == PredictionSource.model:
+            target = (self.model or {}).get("_target_")
+            _check(isinstance(target, str) and bool(target.strip()), "predictions.model._target_", target,
+                   "a Python callable's import path (pkg.module.name) for predictions=model")
+        if self.source == PredictionSource.onnx and self.onnx is None:
+            raise ConfigError("predictions.onnx.path is required for predictions=onnx (pass predictions.onnx.path=...)")
         _check(self.strength >= 0.0, "predictions.strength", self.strength, ">= 0")
         _check(self.jitter_px >= 0.0, "predictions.jitter_px", self.jitter_px, ">= 0")
         _check(self.jitter_scale_px > 0.0, "predictions.jitter_scale_px", self.jitter_scale_px, "> 0")

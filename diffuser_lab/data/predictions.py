@@ -1,4 +1,5 @@
-"""The frames' 2D labels: ground truth, or simulated 2D-network mistakes on it.
+"""The frames' 2D labels: ground truth, simulated 2D-network mistakes on it, a network's output
+files, or a network run in the loop (:mod:`diffuser_lab.data.networks`).
 
 Predictions are attached lazily, frame by frame, so a long sequence is never held in memory
 twice; each frame's simulation is seeded by (predictions.seed, frame index), so it does not
@@ -40,11 +41,19 @@ def describe(cfg: PredictionsConfig) -> str:
         return "ground-truth 2D labels"
     if cfg.source == PredictionSource.simulated:
         return "simulated 2D predictions"
+    if cfg.source == PredictionSource.model:
+        return f"2D predictions of {(cfg.model or {}).get('_target_')}"
+    if cfg.source == PredictionSource.onnx:
+        from pathlib import Path
+
+        return f"2D predictions of {Path(cfg.onnx.path).name} (onnx)"
     return f"2D predictions from {cfg.folder}"
 
 
-def with_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy: Taxonomy) -> Sequence[Frame]:
-    """Frames whose ``labels`` are the configured predictions."""
+def with_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy: Taxonomy,
+                     scene_name: str = "") -> Sequence[Frame]:
+    """Frames whose ``labels`` (or ``probs``) are the configured predictions; ``scene_name`` is
+    part of a network's cache entries (:mod:`diffuser_lab.data.networks`)."""
     if cfg.source == PredictionSource.gt:
         def fn(i: int, f: Frame) -> Frame:
             _need_gt(f)
@@ -63,6 +72,10 @@ def with_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy: 
             return dataclasses.replace(f, labels=pred, probs=None)
     elif cfg.source == PredictionSource.files:
         return _file_predictions(frames, cfg, taxonomy)
+    elif cfg.source in (PredictionSource.model, PredictionSource.onnx):
+        from .networks import network_predictions
+
+        return network_predictions(frames, cfg, taxonomy, scene_name)
     else:  # pragma: no cover - the config enum forbids it
         raise ValueError(f"predictions.source={cfg.source}: unknown")
     return MappedFrames(frames, fn)

@@ -157,7 +157,7 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
 
     # One pass over the frames: each is loaded (and its predictions made) once, scored in 2D
     # against its ground truth, and added to the evidence; memory stays independent of their number.
-    frames = with_predictions(scene.frames, cfg.predictions, tax)
+    frames = with_predictions(scene.frames, cfg.predictions, tax, scene_name=scene.name)
     pts, nrm, grid = _work_cloud(scene, cfg.scene.voxel_size)
     validate.check_memory(scene.n_points, pts.shape[0], tax.num_classes, cfg.graph.k, cfg.memory_budget_gb)
     method = fusion.get(cfg.method.name)  # what the method needs; cfg already has what it fixes
@@ -178,6 +178,8 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
         for i in range(len(frames)):
             tp = time.perf_counter()
             f = frames[i]
+            if bar.enabled and "cached_frames" in getattr(frames, "stats", {}):  # a network's outputs
+                bar.note(f"{frames.stats['cached_frames']} from cache")
             validate.check_frame(f)
             if i == 0 and not getattr(scene.frames, "info", {}).get("depth_unit_checked"):
                 validate.check_depth_unit(f)

@@ -76,7 +76,7 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None) -> SingleFrameResul
     if scene is None:
         scene = load_scene(cfg.scene)
     tax, names = scene.taxonomy, scene.taxonomy.names
-    frames = with_predictions(scene.frames, cfg.predictions, tax)
+    frames = with_predictions(scene.frames, cfg.predictions, tax, scene_name=scene.name)
     n = len(frames)
     if n == 0:
         raise ValueError(f"scene {scene.name}: no frames for the single-frame protocol")

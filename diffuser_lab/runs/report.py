@@ -6,6 +6,8 @@ import time
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
+import numpy as np
+
 from diffuser_lab.config import Config
 from diffuser_lab.data.scene import IGNORE
 
@@ -54,13 +56,26 @@ def table(res: RunResult, run_dir: Path | None = None) -> str:
     s = res.scene
     lines = [f"diffuser-lab | scene {s.name} | {s.n_points:,} points ({res.work_points.shape[0]:,} diffused) | "
              f"{len(res.frames)} frames | {s.taxonomy.num_classes} classes"]
-    lines.append(f"{'':22s}{'mIoU':>7s}{'acc':>7s}{'cover':>7s}")
-    rows = [(res.method, res.metrics)]
-    if res.method != "bayesian":
-        rows.append(("bayesian (baseline)", res.baseline.get("bayesian")))
-    for name, m in rows:
-        m = m or {}
-        lines.append(f"{name:22s}{_fmt(m.get('miou')):>7s}{_fmt(m.get('accuracy')):>7s}{_fmt(m.get('coverage')):>7s}")
+    if res.metrics is None:  # e.g. a posed RGB-D folder without label images: nothing to score
+        lab = res.labels[res.labels != IGNORE].astype(np.int64)
+        counts = np.bincount(lab, minlength=s.taxonomy.num_classes)
+        top = np.argsort(-counts, kind="stable")[:4]
+        share = ", ".join(f"{s.taxonomy.names[c]} {100 * counts[c] / max(lab.size, 1):.0f}%" for c in top if counts[c])
+        lines.append(f"no ground truth: no mIoU; {res.method} labelled {lab.size:,} of {s.n_points:,} points "
+                     f"({100 * lab.size / max(s.n_points, 1):.1f}%){': ' + share if share else ''}")
+    else:
+        lines.append(f"{'':22s}{'mIoU':>7s}{'acc':>7s}{'cover':>7s}")
+        rows = [(res.method, res.metrics)]
+        if res.method != "bayesian":
+            rows.append(("bayesian (baseline)", res.baseline.get("bayesian")))
+        for name, m in rows:
+            m = m or {}
+            lines.append(f"{name:22s}{_fmt(m.get('miou')):>7s}{_fmt(m.get('accuracy')):>7s}"
+                         f"{_fmt(m.get('coverage')):>7s}")
+    st = res.predictions_stats
+    if "model_calls" in st:  # a network in the loop (diffuser_lab/data/networks.py)
+        lines.append(f"2D predictions: {st['model']}, {st['model_calls']} frames run, {st['cached_frames']} from "
+                     f"cache{'' if st.get('cache') else ' (cache off)'}")
     if res.predictions_2d is not None:
         p = res.predictions_2d
         lines.append(f"{'2D predictions':22s}{_fmt(p.get('miou')):>7s}{_fmt(p.get('accuracy')):>7s}")
