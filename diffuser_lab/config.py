@@ -73,6 +73,12 @@ class SolverName(Enum):
     exact = "exact"  # the fixed point (I - P) Z = B solved directly (Krylov / factorisation)
 
 
+class SparseClasses(Enum):
+    auto = "auto"  # sparse above 32 active classes on numba when a point's neighbourhood sees few classes
+    on = "on"  # every point keeps at most solver.classes_per_point classes (bounded approximation)
+    off = "off"  # dense Z (N x C) throughout
+
+
 class SolverBackend(Enum):
     auto = "auto"  # the fastest available CPU backend
     scipy = "scipy"  # pure numpy/scipy
@@ -414,10 +420,13 @@ class SolverConfig:
     max_iter: int = 200
     tol: float = 1e-4  # jacobi: stop when max|Z_t - Z_{t-1}| <= tol * max|Z_t|; exact: relative residual
     backend: SolverBackend = SolverBackend.auto
+    sparse_classes: SparseClasses = SparseClasses.auto  # jacobi: a sparse per-point class set (docs/many-classes.md)
+    classes_per_point: int = 16  # sparse_classes: the classes each point keeps (the M largest scores)
 
     def __post_init__(self) -> None:
         _check(self.max_iter >= 1, "solver.max_iter", self.max_iter, ">= 1")
         _check(self.tol >= 0.0, "solver.tol", self.tol, ">= 0")
+        _check(1 <= self.classes_per_point <= 1024, "solver.classes_per_point", self.classes_per_point, "in 1..1024")
 
 
 @dataclass

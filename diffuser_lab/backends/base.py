@@ -69,6 +69,10 @@ class JacobiBackend:
     def details(self) -> dict:
         return {"backend": self.name}
 
+    def report(self) -> dict:
+        """What the run's ``info`` adds after the last step (e.g. an approximation's figures)."""
+        return {}
+
     def step(self) -> tuple[float, float]:  # pragma: no cover - interface
         raise NotImplementedError
 

@@ -13,7 +13,8 @@ reference`` runs the straightforward scipy float64 implementation of
 int16 labels (-1 = unlabeled) if ``--out`` is given. ``--repeat R`` times R runs and reports the
 median of each figure. ``--write-demo-input FILE.npz`` writes such a file for the benchmarks'
 demo-room workload (``--points`` points, 30 rendered 640x480 views of simulated 2D-network
-evidence, 21 classes; :mod:`diffuser_lab.runs.workloads`) and exits.
+evidence, 21 classes or ``--classes C`` split by space; :mod:`diffuser_lab.runs.workloads`) and exits.
+``--sparse-classes auto|on|off`` and ``--classes-per-point M``: solver.sparse_classes (docs/many-classes.md).
 """
 from __future__ import annotations
 
@@ -44,17 +45,18 @@ def _load(path: str):
 
 
 def run_once(pts, nrm, ev, *, iters: int, k: int, solver: str, backend: str, pixel_weight: float,
-             sigma_s: float, sigma_d_factor: float):
+             sigma_s: float, sigma_d_factor: float, sparse_classes: str = "auto", classes_per_point: int = 16):
     """One timed run: returns (labels, figures dict). No progress lines (they would be timed too)."""
     from diffuser_lab import progress
 
     with progress.quiet():
         return _run_once(pts, nrm, ev, iters=iters, k=k, solver=solver, backend=backend, pixel_weight=pixel_weight,
-                         sigma_s=sigma_s, sigma_d_factor=sigma_d_factor)
+                         sigma_s=sigma_s, sigma_d_factor=sigma_d_factor, sparse_classes=sparse_classes,
+                         classes_per_point=classes_per_point)
 
 
 def _run_once(pts, nrm, ev, *, iters: int, k: int, solver: str, backend: str, pixel_weight: float,
-              sigma_s: float, sigma_d_factor: float):
+              sigma_s: float, sigma_d_factor: float, sparse_classes: str = "auto", classes_per_point: int = 16):
     from diffuser_lab.method.diffusion import diffuse, labels_from_scores, normalise
     from diffuser_lab.method.exact import solve_exact
     from diffuser_lab.method.graph import build_graph
@@ -79,20 +81,25 @@ def _run_once(pts, nrm, ev, *, iters: int, k: int, solver: str, backend: str, pi
     if solver == "exact":
         res = solve_exact(system, backend=backend)
     else:
-        res = diffuse(system, max_iter=iters, tol=0.0, backend=backend)
+        res = diffuse(system, max_iter=iters, tol=0.0, backend=backend, sparse_classes=sparse_classes,
+                      classes_per_point=classes_per_point)
     lab = labels_from_scores(res.Z)
     t2 = time.perf_counter()
     return lab, dict(graph_s=t1 - t0, diffusion_s=t2 - t1, total_s=t2 - t0, iterations=res.iterations,
-                     solver=solver, backend=res.info.get("backend", backend), residual=res.residual)
+                     solver=solver, backend=res.info.get("backend", backend), residual=res.residual,
+                     **{key: res.info[key] for key in ("sparse_classes", "certified") if key in res.info})
 
 
-def _write_demo_input(path: str, n_points: int) -> int:
+def _write_demo_input(path: str, n_points: int, num_classes: int = 21) -> int:
     from diffuser_lab.runs.workloads import room_workload
 
     if n_points < 1000:
         print(f"diffuser-lab-bench: error: --points {n_points}: expected >= 1000", file=sys.stderr)
         return 2
-    w = room_workload(n_points)
+    if num_classes < 21:
+        print(f"diffuser-lab-bench: error: --classes {num_classes}: expected >= 21", file=sys.stderr)
+        return 2
+    w = room_workload(n_points, num_classes=num_classes)
     np.savez(path, points=w.points, normals=w.normals, evidence=w.mass)
     print(f"wrote {path}: {w.points.shape[0]:,} points, {w.mass.shape[1]} classes "
           f"({w.mass.any(1).mean():.1%} of the points with evidence)")
@@ -105,6 +112,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--write-demo-input", metavar="FILE.npz",
                     help="write the demo-room benchmark workload as such a file, then exit")
     ap.add_argument("--points", type=int, default=30_000, help="with --write-demo-input: about this many points")
+    ap.add_argument("--classes", type=int, default=21,
+                    help="with --write-demo-input: classes (default 21; more split the 21 by space, see "
+                         "diffuser_lab.runs.workloads)")
+    ap.add_argument("--sparse-classes", default="auto", choices=["auto", "on", "off"],
+                    help="jacobi: the sparse per-point class set (docs/many-classes.md; default auto)")
+    ap.add_argument("--classes-per-point", type=int, default=16, help="with --sparse-classes: M (default 16)")
     ap.add_argument("--iters", type=int, default=100, help="Jacobi iterations (default 100)")
     ap.add_argument("--k", type=int, default=24, help="neighbours per point (default 24)")
     ap.add_argument("--solver", default="jacobi", choices=["jacobi", "exact", "reference"])
@@ -117,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", help="write the (N,) int16 labels here (.npy)")
     a = ap.parse_args(argv)
     if a.write_demo_input:
-        return _write_demo_input(a.write_demo_input, a.points)
+        return _write_demo_input(a.write_demo_input, a.points, a.classes)
     if not a.input:
         ap.error("--input FILE.npz is required (make one with --write-demo-input FILE.npz)")
     try:
@@ -125,7 +138,8 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError("--iters, --k and --repeat must be >= 1")
         pts, nrm, ev = _load(a.input)
         kw = dict(iters=a.iters, k=a.k, solver=a.solver, backend=a.backend, pixel_weight=a.pixel_weight,
-                  sigma_s=a.sigma_s, sigma_d_factor=a.sigma_d_factor)
+                  sigma_s=a.sigma_s, sigma_d_factor=a.sigma_d_factor, sparse_classes=a.sparse_classes,
+                  classes_per_point=a.classes_per_point)
         if a.warmup:
             run_once(pts, nrm, ev, **kw)
         runs = [run_once(pts, nrm, ev, **kw) for _ in range(a.repeat)]
@@ -137,6 +151,9 @@ def main(argv: list[str] | None = None) -> int:
     out = {"n_points": int(pts.shape[0]), **{k: round(v, 6) for k, v in figs.items()},
            "iterations": runs[-1][1]["iterations"], "solver": runs[-1][1]["solver"],
            "backend": runs[-1][1]["backend"], "repeat": a.repeat}
+    for key in ("sparse_classes", "certified"):
+        if key in runs[-1][1]:
+            out[key] = runs[-1][1][key]
     if "residual" in runs[-1][1]:
         out["residual"] = float(runs[-1][1]["residual"])
     print(json.dumps(out))

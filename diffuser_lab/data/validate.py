@@ -84,19 +84,32 @@ def check_pose_convention(points: np.ndarray, centres: np.ndarray, inverted_cent
                       f"poses look like the inverse convention (camera-to-world vs world-to-camera)", stacklevel=2)
 
 
-def estimate_memory(n_points: int, n_work: int, num_classes: int, k: int) -> int:
+def estimate_memory(n_points: int, n_work: int, num_classes: int, k: int, sparse_classes: int = 0) -> int:
     """Rough peak bytes of a run: kNN query (float64 distances, int64 indices for K+1 columns),
-    graph and transition matrix, the N x C score matrices, and the original cloud's arrays."""
+    graph and transition matrix, the N x C score matrices and the original cloud's arrays.
+
+    Dense Jacobi holds 8 N x C float32 matrices (evidence, baseline evidence, B, B in the
+    iteration's order, the class blocks' B, Z and Z_new, the final Z); with ``sparse_classes`` M > 0
+    (:mod:`diffuser_lab.backends.sparse`) the last state and the iteration are two sparse states
+    of N x (2M + 5) x 4 bytes plus B as CSR, so 5 dense matrices remain."""
     knn = n_work * (k + 1) * 16
     graph = n_work * k * (4 + 4 + 4 + 4)
-    scores = n_work * num_classes * 4 * 5  # evidence, baseline evidence, B, Z, Z_new
+    if sparse_classes:
+        scores = n_work * num_classes * 4 * 5 + 2 * n_work * (2 * sparse_classes + 5) * 4 + n_work * 8 * 4
+    else:
+        scores = n_work * num_classes * 4 * 8
     cloud = n_points * (12 * 3 + 8) + n_work * 64
     return int(knn + graph + scores + cloud)
 
 
-def check_memory(n_points: int, n_work: int, num_classes: int, k: int, budget_gb: float) -> None:
-    need = estimate_memory(n_points, n_work, num_classes, k)
+def check_memory(n_points: int, n_work: int, num_classes: int, k: int, budget_gb: float,
+                 sparse_classes: int = 0) -> None:
+    """Refuse a run whose :func:`estimate_memory` exceeds ``budget_gb`` GiB, up front, with the estimate."""
+    need = estimate_memory(n_points, n_work, num_classes, k, sparse_classes)
     if need > budget_gb * GIB:
+        layout = f"sparse class set of {sparse_classes}" if sparse_classes else "dense scores"
+        hint = "" if sparse_classes or num_classes <= 32 else \
+            ", solver.sparse_classes=on (keeps solver.classes_per_point classes per point)"
         raise MemoryError(f"this run needs about {need / GIB:.1f} GiB ({n_points:,} points, {n_work:,} diffused, "
-                          f"K={k}, {num_classes} classes) > memory_budget_gb={budget_gb:g}; raise the budget or "
-                          f"set scene.voxel_size to diffuse fewer points")
+                          f"K={k}, {num_classes} classes, {layout}) > memory_budget_gb={budget_gb:g}; raise the "
+                          f"budget{hint} or set scene.voxel_size to diffuse fewer points")

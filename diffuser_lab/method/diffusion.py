@@ -187,7 +187,52 @@ def iteration_inputs(system: System) -> IterationInputs:
                            P.indices.astype(np.int32), P.data.astype(np.float32), system.B)
 
 
-def _backend(name: str, inputs: IterationInputs, tol: float, device: Optional[str]) -> JacobiBackend:
+SPARSE_ABOVE = 32
+"""``sparse_classes=auto`` considers the sparse class set above this many active classes (the
+dense numba kernels go one step at a time in class blocks beyond it)."""
+SPARSE_DENSE_BYTES = 2 * 1024**3
+"""... and only where the dense iteration state (B, Z, Z_new: 3 x N x C float32) exceeds this:
+measured on 30k-300k points the sparse set is not faster than the dense kernels (docs/many-classes.md),
+it saves memory."""
+
+
+def sparse_by_size(n_points: int, n_classes: int) -> bool:
+    """The size part of ``sparse_classes=auto`` (also what the memory check assumes)."""
+    return n_classes > SPARSE_ABOVE and 3 * 4 * n_points * n_classes > SPARSE_DENSE_BYTES
+
+
+def sparse_choice(inputs: IterationInputs, mode: str, per_point: int, backend: str) -> bool:
+    """Whether the Jacobi steps run on the sparse per-point class set (:mod:`diffuser_lab.backends.sparse`).
+
+    ``on``: always (numba or scipy); ``off``: never; ``auto``: on the numba backend when
+    :func:`sparse_by_size` (more than :data:`SPARSE_ABOVE` active classes and a dense state over
+    :data:`SPARSE_DENSE_BYTES`) and a point's 1-hop neighbourhood sees on average at most
+    ``per_point / 2`` classes (:func:`~diffuser_lab.backends.sparse.neighbourhood_classes`), so
+    that little is dropped."""
+    mode = getattr(mode, "value", mode)
+    if mode not in ("auto", "on", "off"):
+        raise ValueError(f"solver.sparse_classes={mode}: expected auto, on or off")
+    if mode == "on" and backend == "torch":
+        raise ValueError("solver.sparse_classes=on runs on the numba or scipy backend, not solver.backend=torch")
+    if mode != "auto":
+        return mode == "on"
+    if backend != "numba" or not sparse_by_size(inputs.shape[0], len(inputs.active)):
+        return False
+    from diffuser_lab.backends.sparse import neighbourhood_classes
+
+    return neighbourhood_classes(inputs) <= per_point / 2
+
+
+def _backend(name: str, inputs: IterationInputs, tol: float, device: Optional[str],
+             sparse: int = 0, rel: float = 0.0, refresh: int = 1) -> JacobiBackend:
+    if sparse:
+        if name == "numba":
+            from diffuser_lab.backends.numba.sparse import NumbaSparseJacobi
+
+            return NumbaSparseJacobi(inputs, tol, sparse, rel, refresh)
+        from diffuser_lab.backends.sparse import SparseClassesJacobi
+
+        return SparseClassesJacobi(inputs, tol, sparse, rel)
     if name == "numba":
         from diffuser_lab.backends.numba.jacobi import NumbaJacobi
 
@@ -213,23 +258,29 @@ def progress_chunk(max_iter: int) -> int:
 
 
 def diffuse(system: System, *, max_iter: int = 200, tol: float = 1e-4,
-            observer: Optional[Observer] = None, backend: str = "auto", device: Optional[str] = None) -> DiffusionResult:
+            observer: Optional[Observer] = None, backend: str = "auto", device: Optional[str] = None,
+            sparse_classes: str = "auto", classes_per_point: int = 16, sparse_rel: float = 0.0,
+            sparse_refresh: int = 1) -> DiffusionResult:
     """Iterate Eq. 10 from Z = 0 until max|Z_t - Z_{t-1}| <= tol * max|Z_t| or ``max_iter``.
 
     The change is measured relative to Z's scale because Z carries lambda-sized values.
     ``backend``: ``numba`` (compiled, threaded), ``scipy`` (CSR products), ``torch`` (CUDA;
     ``device`` another torch device), ``auto`` = numba when installed. A :class:`SortedSystem`
-    is iterated in its Morton order. The loop, the observer calls and the early stop are here,
-    once; a backend (:class:`~diffuser_lab.backends.base.JacobiBackend`) only runs the steps.
+    is iterated in its Morton order. ``sparse_classes`` (auto | on | off, :func:`sparse_choice`)
+    keeps at most ``classes_per_point`` classes per point (:mod:`diffuser_lab.backends.sparse`:
+    the approximation, its bound and ``info``'s figures of it). The loop, the observer calls and
+    the early stop are here, once; a backend (:class:`~diffuser_lab.backends.base.JacobiBackend`)
+    only runs the steps.
     """
     name = _resolve_backend(backend)
     inputs = iteration_inputs(system)
+    sparse = int(classes_per_point) if sparse_choice(inputs, sparse_classes, classes_per_point, name) else 0
     n = inputs.shape[0]
     residuals: list[float] = []
     converged = False
     it = 0
     seen_buf: Optional[np.ndarray] = None  # what observers see (valid during their call only)
-    with _backend(name, inputs, tol, device) as steps:
+    with _backend(name, inputs, tol, device, sparse, sparse_rel, sparse_refresh) as steps:
         info = {"solver": "jacobi", **steps.details()}
         label = f"diffusion (jacobi, {' '.join(str(v) for v in steps.details().values())}, {n:,} points)"
         if progress.enabled() and steps.compiling:  # a look at numba's cache only when a line can show it
@@ -261,6 +312,7 @@ def diffuse(system: System, *, max_iter: int = 200, tol: float = 1e-4,
                     converged = True
                     break
         Z = steps.paper_units()
+        info.update(steps.report())
     return DiffusionResult(Z=Z, iterations=it, converged=converged, residual=residuals[-1] if residuals else 0.0,
                            residuals=residuals, info=info)
 
@@ -277,7 +329,8 @@ def solve(system: System, cfg, observer: Optional[Observer] = None) -> Diffusion
     name = getattr(cfg.name, "value", cfg.name)
     backend = getattr(cfg.backend, "value", cfg.backend)
     if name == "jacobi":
-        return diffuse(system, max_iter=cfg.max_iter, tol=cfg.tol, observer=observer, backend=backend)
+        return diffuse(system, max_iter=cfg.max_iter, tol=cfg.tol, observer=observer, backend=backend,
+                       sparse_classes=cfg.sparse_classes, classes_per_point=cfg.classes_per_point)
     if name == "exact":
         from .exact import solve_exact
 

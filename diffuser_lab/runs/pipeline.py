@@ -140,6 +140,21 @@ class _Observe:
             self.hooks.observe(it, Z, stats)
 
 
+def _sparse_classes(solver, n_work: int, num_classes: int) -> int:
+    """The per-point class count the diffusion will use (0 = dense), for the memory check:
+    ``solver.sparse_classes`` on / off, or auto's size rule (diffusion.sparse_by_size)."""
+    from diffuser_lab.backends import numba as nb
+    from diffuser_lab.method.diffusion import sparse_by_size
+
+    mode = getattr(solver.sparse_classes, "value", solver.sparse_classes)
+    jacobi = getattr(solver.name, "value", solver.name) == "jacobi"
+    if not jacobi or mode == "off":
+        return 0
+    if mode == "on" or (nb.available() and sparse_by_size(n_work, num_classes)):
+        return int(solver.classes_per_point)
+    return 0
+
+
 def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observer] = None,
         hooks: Optional[RunHooks] = None) -> RunResult:
     """Label ``scene`` (default: the configured source) with ``cfg.method``; Bayesian fusion of
@@ -159,7 +174,8 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
     # against its ground truth, and added to the evidence; memory stays independent of their number.
     frames = with_predictions(scene.frames, cfg.predictions, tax, scene_name=scene.name)
     pts, nrm, grid = _work_cloud(scene, cfg.scene.voxel_size)
-    validate.check_memory(scene.n_points, pts.shape[0], tax.num_classes, cfg.graph.k, cfg.memory_budget_gb)
+    validate.check_memory(scene.n_points, pts.shape[0], tax.num_classes, cfg.graph.k, cfg.memory_budget_gb,
+                          _sparse_classes(cfg.solver, pts.shape[0], tax.num_classes))
     method = fusion.get(cfg.method.name)  # what the method needs; cfg already has what it fixes
     if method.graph and cfg.graph.k >= pts.shape[0]:
         raise ValueError(f"graph.k={cfg.graph.k} must be smaller than the number of points ({pts.shape[0]})")

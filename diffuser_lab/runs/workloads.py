@@ -10,6 +10,13 @@ a real network's scattered mistakes do, so the diffusion works on all ``num_clas
 Above ``tile_points`` points the room is repeated side by side (``tiles`` copies, 1 m apart), each
 copy with its own translated views, so 3M-point clouds do not need a 3M-point surface sampling.
 
+With ``num_classes`` C above 21 (the many-classes rows: 64, 150, 200, as ScanNet-200, ADE20K-150
+or MSeg-194 would give), each of the 21 base classes b is split into sub-classes b, b + 21,
+b + 42, ... < C by space (:func:`split_classes`): a point's votes and ground truth for b go to the
+sub-class picked by a hash of its 1 m grid cell. So a point sees the few classes of its
+surroundings, as in a real 200-class scene, while every class occurs somewhere; the random
+single votes then go to any of the C classes. The frames keep the 21 base classes.
+
 Points come in the order :func:`~diffuser_lab.data.geometry.voxel_downsample` leaves them (sorted by
 voxel key, x-major), as a voxelised scan would; nothing here orders them for the solver.
 """
@@ -33,6 +40,28 @@ def taxonomy21() -> Taxonomy:
     """ScanNet-20 plus an ``otherprop`` class: the 21 classes of the benchmark rows."""
     colors = np.vstack([SCANNET20.colors, np.array([[120, 120, 120]], np.uint8)])
     return Taxonomy(name="scannet20+other", names=SCANNET20.names + ("otherprop",), colors=colors)
+
+
+def split_classes(points: np.ndarray, labels: np.ndarray, num_classes: int, base: int = 21,
+                  cell: float = 1.0) -> np.ndarray:
+    """Per point, the sub-class of base class ``labels`` (N,) in ``num_classes`` C >= ``base``
+    classes: b + base * (h % n_b), h a hash of the point's ``cell``-metre grid cell and
+    n_b = ceil((C - b) / base) the sub-classes of b (module doc). IGNORE (negative) stays."""
+    ijk = np.floor(points / cell).astype(np.int64)
+    h = (ijk[:, 0] * 73856093) ^ (ijk[:, 1] * 19349663) ^ (ijk[:, 2] * 83492791)
+    lab = np.asarray(labels, np.int64)
+    n_sub = np.maximum((num_classes - np.clip(lab, 0, None) + base - 1) // base, 1)
+    out = lab + base * (np.abs(h) % n_sub)
+    return np.where(lab < 0, lab, out)
+
+
+def taxonomy_many(num_classes: int) -> Taxonomy:
+    """The workload's C-class taxonomy: sub-class b + 21 v is ``{name of b}_{v}`` (module doc)."""
+    base = taxonomy21()
+    ids = np.arange(num_classes)
+    names = tuple(f"{base.names[c % 21]}_{c // 21}" for c in ids)
+    colors = base.colors[ids % 21].astype(np.int64) + 7 * (ids // 21)[:, None]
+    return Taxonomy(name=f"bench{num_classes}", names=names, colors=(colors % 256).astype(np.uint8))
 
 
 @dataclass
@@ -125,9 +154,11 @@ def room_workload(n_points: int, *, seed: int = 0, n_views: int = 30, width: int
     from diffuser_lab.data.sources.demo import demo_mesh
     from diffuser_lab.method.evidence import Evidence, add_frame
 
-    tax = taxonomy21() if num_classes == 21 else SCANNET20
-    if tax.num_classes != num_classes:
-        raise ValueError("num_classes must be 20 or 21")
+    if num_classes not in (20, 21) and not 21 < num_classes <= 32767:
+        raise ValueError(f"num_classes={num_classes}: expected 20, 21 or 22..32767")
+    many = num_classes > 21
+    tax = taxonomy21() if num_classes == 21 else SCANNET20 if num_classes == 20 else taxonomy_many(num_classes)
+    base_classes = 21 if many else num_classes
     rng = np.random.default_rng(seed)
     verts, tris, labs = demo_mesh(seed)
     renderer = MeshRenderer(verts, tris, labs)
@@ -139,20 +170,28 @@ def room_workload(n_points: int, *, seed: int = 0, n_views: int = 30, width: int
     with progress.stage("workload views: rendering + simulated 2D predictions", total=len(poses), unit="view") as bar:
         for i, T in enumerate(poses):
             depth, lab = renderer.render(K, T, width, height)
-            pred = simulate_predictions(lab, num_classes, np.random.default_rng([seed, i]), class_names=tax.names)
+            pred = simulate_predictions(lab, base_classes, np.random.default_rng([seed, i]),
+                                        class_names=taxonomy21().names if many else tax.names)
             frames.append(Frame(name=f"view_{i:04d}", K=K.copy(), T_cw=T, depth=depth, labels=pred, gt_labels=lab))
             bar.update()
     mass = None
     if with_mass:
-        ev = Evidence.empty(len(pts), num_classes)
+        ev = Evidence.empty(len(pts), base_classes)
         with progress.stage("workload evidence", total=len(frames), unit="frame") as bar:
             for f in frames:
                 add_frame(ev, pts, f)
                 bar.update()
         mass = ev.mass
+        if many:  # base class b's votes to b's sub-class at the point (split_classes)
+            sub = split_classes(pts, np.broadcast_to(np.arange(21), mass.shape).T, num_classes).T  # (N, 21)
+            many_mass = np.zeros((len(pts), num_classes), np.float32)
+            np.put_along_axis(many_mass, sub, mass, axis=1)
+            mass = many_mass
         seen = np.flatnonzero(mass.any(1))
         noisy = rng.choice(seen, size=int(noise_votes * len(seen)), replace=False)
         mass[noisy, rng.integers(0, num_classes, len(noisy))] += 1.0
+    if many:
+        gt = split_classes(pts, gt, num_classes).astype(np.int16)
     if tiles > 1:
         extent = pts.max(0) - pts.min(0)
         offsets = np.zeros((tiles, 3))

@@ -205,3 +205,23 @@ def test_first_run_cold_cache(benchmark, enabled, tmp_path):
 
     wall = benchmark.pedantic(once, setup=setup, rounds=3, iterations=1)
     _report(benchmark, "first run, empty kernel cache", wall_s=wall, target_s=8.0)
+
+
+@pytest.mark.parametrize("n", [30_000, 300_000], ids=["30k", "300k"])
+@pytest.mark.parametrize("classes", [21, 64, 150, 200])
+@pytest.mark.parametrize("layout", ["dense", "sparse"])
+def test_many_classes(benchmark, enabled, n, classes, layout):
+    """Many-classes rows (docs/many-classes.md): graph excluded, 100 Jacobi iterations on the
+    C-class workload (runs/workloads.py: the 21 classes split by space), dense numba kernels vs the
+    sparse per-point class set (M = 16); labels against the dense scipy path (>= 99.9 %)."""
+    w = workload(n, enabled, num_classes=classes)
+    system = normalise(build_graph(w.points, 24, w.normals), w.mass, 1e-4)
+    mode = "off" if layout == "dense" else "on"
+    diffuse(system, max_iter=2, tol=0.0, sparse_classes=mode)  # compile / warm caches
+    res = benchmark(diffuse, system, max_iter=100, tol=0.0, sparse_classes=mode)
+    lab = labels_from_scores(res.Z)
+    dense = labels_from_scores(diffuse(system, max_iter=100, tol=0.0, backend="scipy", sparse_classes="off").Z)
+    agree = float(np.mean(lab == dense))
+    _report(benchmark, f"many-classes {layout} {classes} {n}", n_points=w.n, classes=classes, agreement=agree,
+            **{k: res.info[k] for k in ("backend", "certified", "dropped_fraction") if k in res.info})
+    assert agree >= (0.999 if enabled else 0.99)

@@ -179,13 +179,19 @@ class StepRunner:
         (entries below ``floor`` flushed to 0), stopping after the first step whose relative
         change max|Zn - Z| / max Zn is <= ``tol``. Returns (steps done, 2) float32: per step
         (max |Zn - Z|, max Zn); the last state is in ``Zb`` after an odd number, else ``Za``."""
-        f = _step_kernels()[W]
+        args = (nbr, wts, Za.reshape(-1), Zb.reshape(-1), B.reshape(-1), np.float32(floor), float(tol))
+        return self.launch(_step_kernels()[W], args, n_steps, 2).max(axis=1)
+
+    def launch(self, f, args: tuple, n_steps: int, width: int, tickets: int = 1) -> np.ndarray:
+        """Every thread calls ``f(*args, n_steps, chunk, tid, nthreads, ctrl, res)`` (a compiled run
+        of steps meeting at the barrier ``ctrl[0]``, as ``steps_W``; ``tickets`` row counters per
+        step follow it); returns res[:steps done]: (done, threads, width) float32, what each thread
+        wrote per step."""
         n_steps = int(n_steps)
         nt = self.threads
-        ctrl = np.zeros(1 + n_steps, np.int64)
-        res = np.zeros((n_steps, nt, 2), np.float32)
-        args = (nbr, wts, Za.reshape(-1), Zb.reshape(-1), B.reshape(-1), np.float32(floor), float(tol),
-                n_steps, self.chunk)
+        ctrl = np.zeros(1 + tickets * n_steps, np.int64)
+        res = np.zeros((n_steps, nt, width), np.float32)
+        args = (*args, n_steps, self.chunk)
         with slp():
             for tid in range(1, nt):
                 self._jobs.put(functools.partial(f, *args, tid, nt, ctrl, res))
@@ -196,7 +202,7 @@ class StepRunner:
                     raise r
                 done.append(r)
         assert len(set(done)) == 1, done  # every thread stops after the same step
-        return res[:done[0]].max(axis=1)
+        return res[:done[0]]
 
     def step(self, W: int, nbr, wts, Z, Zn, B, floor) -> tuple[float, float]:
         """One step: Zn <- floor(P Z + B); returns (max|Zn - Z|, max Zn)."""
