@@ -183,6 +183,27 @@ class SceneConfig:
             raise ConfigError(f"scene.{self.source.value}.{key} is required for scene={self.source.value}")
 
 
+SPECIAL_TAXONOMIES = ("file", "ids")
+
+
+@dataclass
+class TaxonomyConfig:
+    """The run's class set (diffuser_lab.data.taxonomy): evaluation, records, plots follow it."""
+
+    name: str = "scannet20"  # a shipped taxonomy | file (taxonomy.path) | ids (the label ids found in the data)
+    path: Optional[str] = None  # name=file: a CSV (id,name[,r,g,b]) or YAML taxonomy file
+    scan_frames: int = 10  # name=ids: label images of the first n frames are scanned for ids
+
+    def __post_init__(self) -> None:
+        from diffuser_lab.data.taxonomy import shipped_taxonomies
+
+        valid = shipped_taxonomies() + list(SPECIAL_TAXONOMIES)
+        _check(self.name in valid, "taxonomy.name", self.name, f"one of {', '.join(valid)}")
+        _check(self.name != "file" or bool(self.path), "taxonomy.path", self.path,
+               "a CSV or YAML file for taxonomy=file")
+        _check(self.scan_frames >= 1, "taxonomy.scan_frames", self.scan_frames, ">= 1")
+
+
 @dataclass
 class PredictionsConfig:
     """What the frames' 2D labels are. The simulated mistakes are documented knob by knob in
@@ -342,6 +363,7 @@ class Config:
     n_views: int = 30  # views rendered by the demo and mesh_views sources
     memory_budget_gb: float = 16.0  # refuse runs whose estimated peak memory exceeds this
     scene: SceneConfig = field(default_factory=SceneConfig)
+    taxonomy: TaxonomyConfig = field(default_factory=TaxonomyConfig)
     predictions: PredictionsConfig = field(default_factory=PredictionsConfig)
     evidence: EvidenceConfig = field(default_factory=EvidenceConfig)
     graph: GraphConfig = field(default_factory=GraphConfig)
