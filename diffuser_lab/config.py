@@ -96,7 +96,7 @@ class MeshViewsConfig:
     """Views rendered from a labelled mesh (diffuser_lab.data.sources.mesh_views)."""
 
     path: str = MISSING  # PLY mesh with a per-vertex `label` (e.g. ScanNet's *_vh_clean_2.labels.ply)
-    mapping: str = "nyu40_to_scannet20"  # mesh label ids -> taxonomy (name of a shipped table or a CSV path)
+    mapping: Optional[str] = "nyu40_to_scannet20"  # mesh label ids -> taxonomy (shipped table or CSV); null = taxonomy ids
     n_views: int = 40
     seed: int = 0
     image_width: int = 320
@@ -123,7 +123,7 @@ class ScannetConfig:
     root: str = MISSING  # folder holding color/ depth/ pose/ intrinsic/ label-filt/ and the PLYs
     frame_step: int = 10  # paper: every 10th frame
     max_frames: Optional[int] = None
-    mapping: str = "nyu40_to_scannet20"
+    mapping: Optional[str] = "nyu40_to_scannet20"  # label ids -> taxonomy; null = the taxonomy's own ids
 
     def __post_init__(self) -> None:
         _check(self.frame_step >= 1, "scene.scannet.frame_step", self.frame_step, ">= 1")
