@@ -227,7 +227,7 @@ def test_cli_run_in_nyu40(tmp_path):
     import open3d as o3d
 
     run = tmp_path / "run"
-    p = run_cli(*SMALL_DEMO, "taxonomy=nyu40", "record=off", "output.quiet=true", f"hydra.run.dir={run}")
+    p = run_cli(*SMALL_DEMO, "taxonomy=nyu40", "record=mcap", "output.quiet=true", f"hydra.run.dir={run}")
     assert p.returncode == 0, p.stderr[-2000:]
     s = json.loads((run / "summary.json").read_text())
     assert s["taxonomy"] == "nyu40" and s["n_classes"] == 40
@@ -240,5 +240,60 @@ def test_cli_run_in_nyu40(tmp_path):
     ok = labels >= 0
     assert ok.mean() > 0.5 and labels.max() < 40
     np.testing.assert_array_equal(cols[ok], tax.colors[labels[ok]])
+    from mcap.reader import make_reader
+
+    with open(run / "run.mcap", "rb") as f:
+        meta = {m.name: m.metadata for m in make_reader(f).iter_metadata()}
+    info = next(m for m in meta.values() if "class_names" in m)
+    assert info["taxonomy"] == "nyu40" and json.loads(info["class_names"]) == list(tax.names)
+    assert json.loads(info["class_colors"]) == tax.colors.tolist()
     bad = run_cli("taxonomy=file", cwd=tmp_path)
     assert bad.returncode == 2 and "taxonomy.path" in bad.stderr
+
+
+def test_plot_class_order_follows_the_runs_taxonomy(tmp_path):
+    from analysis.plots import _class_order
+    from diffuser_lab.runs.results import Run
+
+    ious = {"pillow": 1.0, "floor": 2.0, "wall": 3.0, "zebra_thing": 4.0}
+    runs = [Run(tmp_path, {"taxonomy": "nyu40", "metrics": {"per_class_iou": ious}})]
+    assert _class_order(runs) == ["wall", "floor", "pillow", "zebra_thing"]  # NYU40 order, unknown last
+    runs = [Run(tmp_path, {"taxonomy": "ids", "metrics": {"per_class_iou": ious}})]
+    assert _class_order(runs) == list(ious)  # no shipped order: first seen
+
+
+def test_cli_ids_taxonomy_on_an_rgbd_folder(tmp_path):
+    from datasets import write_label_predictions, write_rgbd
+
+    world = make_world()
+    root = write_rgbd(tmp_path, world)  # NYU40 ids in the label images, as a network's would be
+    preds = write_label_predictions(tmp_path / "preds", world, [f"frame-{i:06d}" for i in range(len(world["poses"]))])
+    run = tmp_path / "run"
+    p = run_cli("scene=rgbd_folder", f"scene.rgbd_folder.root={root}", "scene.rgbd_folder.label_suffix=label.png",
+                "predictions=files", f"predictions.folder={preds}", "predictions.mapping=null", "taxonomy=ids",
+                "record=off",
+                "output.quiet=true", "solver.max_iter=20", f"hydra.run.dir={run}", cwd=tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert "diffuser-lab: warning: taxonomy=ids:" in p.stderr and "label images" in p.stderr
+    s = json.loads((run / "summary.json").read_text())
+    files = sorted(root.glob("frame-*.label.png")) + sorted(preds.glob("*.png"))
+    raw = np.unique(np.concatenate([np.unique(np.asarray(Image.open(f))) for f in files]))
+    assert s["taxonomy"] == "ids" and s["n_classes"] == raw.size
+    # no labelled cloud, so no 3D metrics; the 2D score holds the ids taxonomy: the "network" outputs the
+    # truth (rendered at another resolution), so the same ids must land in the same classes on both sides
+    p2d = s["predictions_2d"]
+    assert set(p2d["per_class_iou"]) <= {f"class_{i}" for i in raw} and p2d["miou"] > 90
+    assert (np.load(run / "labels.npy") >= 0).mean() > 0.5
+
+
+def test_compare_colours_of_a_run_in_an_unshipped_taxonomy():
+    import open3d as o3d
+
+    from analysis.compare import _classes
+
+    pcd = o3d.t.geometry.PointCloud(o3d.core.Tensor(np.zeros((3, 3), np.float32)))
+    pcd.point.colors = o3d.core.Tensor(np.array([[1, 2, 3], [4, 5, 6], [1, 2, 3]], np.uint8))
+    names, colors = _classes({"taxonomy": "warehouse", "n_classes": 3}, pcd, np.array([2, 0, 2]))
+    assert names == ("class_0", "class_1", "class_2") and colors[[2, 0]].tolist() == [[1, 2, 3], [4, 5, 6]]
+    names, colors = _classes({"taxonomy": "nyu40"}, pcd, np.array([2, 0, 2]))
+    assert names == load_taxonomy("nyu40").names
