@@ -59,19 +59,37 @@ def _write_rrd(run_a: Path, run_b: Path, la: np.ndarray, lb: np.ndarray, rrd: Pa
     if "positions" not in pcd.point or pcd.point.positions.shape[0] != la.size:
         raise ValueError(f"{run_a / 'labels.ply'}: missing, or not the {la.size} points of labels.npy")
     pts = pcd.point.positions.numpy()
-    from diffuser_lab.data.scene import SCANNET20
     from diffuser_lab.recording.rerun_log import annotation_context, class_ids
 
-    tax = SCANNET20  # the taxonomy of every shipped source; colours follow the class ids
+    names, colors = _classes(summary, pcd, la)
     rec = rr.RecordingStream("diffuser-lab-compare")
     rec.save(str(rrd))
-    rec.log("world", annotation_context(tax.names, tax.colors), static=True)
+    rec.log("world", annotation_context(names, colors), static=True)
     rec.log("world/a", rr.Points3D(pts, class_ids=class_ids(la)), static=True)
     rec.log("world/b", rr.Points3D(pts, class_ids=class_ids(lb)), static=True)
     d = la != lb
     rec.log("world/differ", rr.Points3D(pts[d], colors=np.tile([255, 0, 0], (int(d.sum()), 1)).astype(np.uint8),
                                         radii=0.01), static=True)
     rec.flush()
+
+
+def _classes(summary: dict, pcd, labels: np.ndarray) -> tuple[tuple, np.ndarray]:
+    """Class names and colours of run A's taxonomy: a shipped one by its summary.json name; for
+    taxonomy=file / ids runs, names class_<c> and the colours labels.ply gave each class."""
+    from diffuser_lab.data.taxonomy import load_taxonomy
+
+    try:
+        tax = load_taxonomy(summary.get("taxonomy") or "scannet20")
+        return tax.names, tax.colors
+    except FileNotFoundError:
+        n = int(summary.get("n_classes") or labels.max() + 1)
+        colors = np.zeros((n, 3), np.uint8)
+        if "colors" in pcd.point:
+            c = pcd.point.colors.numpy()
+            c = (c * 255).round() if c.dtype.kind == "f" else c
+            ok = (labels >= 0) & (labels < n)
+            colors[labels[ok]] = c[ok].astype(np.uint8)
+        return tuple(f"class_{i}" for i in range(n)), colors
 
 
 def main(argv=None) -> int:

@@ -294,11 +294,12 @@ def _class_order(runs: list[Run]) -> list[str]:
             for c in r.metric(path) or {}:
                 seen.setdefault(c, None)
     taxonomies = {r.summary.get("taxonomy") for r in runs}
-    if taxonomies == {"scannet20"}:  # the taxonomy's order (wall, floor, ...), not the alphabet's
+    if len(taxonomies) == 1:  # the taxonomy's order (wall, floor, ...), not the alphabet's
         try:
-            from diffuser_lab.data.scene import SCANNET20
+            from diffuser_lab.data.taxonomy import load_taxonomy
 
-            order = {c: i for i, c in enumerate(SCANNET20.names)}
+            names = load_taxonomy(taxonomies.pop()).names  # shipped ones; file/ids runs keep first-seen order
+            order = {c: i for i, c in enumerate(names)}
             return sorted(seen, key=lambda c: order.get(c, len(order)))
         except Exception:  # noqa: BLE001 - first-seen order (the summaries keep the taxonomy's)
             pass

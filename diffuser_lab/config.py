@@ -121,7 +121,7 @@ class MeshViewsConfig:
     """Views rendered from a labelled mesh (diffuser_lab.data.sources.mesh_views)."""
 
     path: str = MISSING  # PLY mesh with a per-vertex `label` (e.g. ScanNet's *_vh_clean_2.labels.ply)
-    mapping: str = "nyu40_to_scannet20"  # mesh label ids -> taxonomy (name of a shipped table or a CSV path)
+    mapping: Optional[str] = "nyu40_to_scannet20"  # mesh label ids -> taxonomy (shipped table or CSV); null = taxonomy ids
     n_views: int = 40
     seed: int = 0
     image_width: int = 320
@@ -155,7 +155,7 @@ class ScannetConfig:
     root: str = MISSING  # folder holding color/ depth/ pose/ intrinsic/ label-filt/ and the PLYs
     frame_step: int = 10  # paper: every 10th frame
     max_frames: Optional[int] = None
-    mapping: str = "nyu40_to_scannet20"
+    mapping: Optional[str] = "nyu40_to_scannet20"  # label ids -> taxonomy; null = the taxonomy's own ids
     mesh: str = "{scene}_vh_clean_2.ply"  # the points to label (mesh vertices)
     labels_mesh: str = "{scene}_vh_clean_2.labels.ply"  # per-vertex ground truth; optional file
     depth: str = "depth/{frame}.png"  # 16-bit, depth_scale units per metre; frames are found by this
@@ -302,6 +302,27 @@ class SceneConfig:
         if own is None:
             key = REQUIRED[self.source.value]
             raise ConfigError(f"scene.{self.source.value}.{key} is required for scene={self.source.value}")
+
+
+SPECIAL_TAXONOMIES = ("file", "ids")
+
+
+@dataclass
+class TaxonomyConfig:
+    """The run's class set (diffuser_lab.data.taxonomy): evaluation, records, plots follow it."""
+
+    name: str = "scannet20"  # a shipped taxonomy | file (taxonomy.path) | ids (the label ids found in the data)
+    path: Optional[str] = None  # name=file: a CSV (id,name[,r,g,b]) or YAML taxonomy file
+    scan_frames: int = 10  # name=ids: label images of the first n frames are scanned for ids
+
+    def __post_init__(self) -> None:
+        from diffuser_lab.data.taxonomy import shipped_taxonomies
+
+        valid = shipped_taxonomies() + list(SPECIAL_TAXONOMIES)
+        _check(self.name in valid, "taxonomy.name", self.name, f"one of {', '.join(valid)}")
+        _check(self.name != "file" or bool(self.path), "taxonomy.path", self.path,
+               "a CSV or YAML file for taxonomy=file")
+        _check(self.scan_frames >= 1, "taxonomy.scan_frames", self.scan_frames, ">= 1")
 
 
 @dataclass
@@ -509,6 +530,7 @@ class Config:
     n_views: int = 30  # views rendered by the demo and mesh_views sources
     memory_budget_gb: float = 16.0  # refuse runs whose estimated peak memory exceeds this
     scene: SceneConfig = field(default_factory=SceneConfig)
+    taxonomy: TaxonomyConfig = field(default_factory=TaxonomyConfig)
     predictions: PredictionsConfig = field(default_factory=PredictionsConfig)
     evidence: EvidenceConfig = field(default_factory=EvidenceConfig)
     graph: GraphConfig = field(default_factory=GraphConfig)

@@ -3,9 +3,11 @@
 A mapping is a CSV file (``#`` starts a comment line) with the header
 ``source_id,source_name,target``: one row per source id, ``target`` is the NAME of a
 class of the target :class:`~diffuser_lab.data.scene.Taxonomy` (case-insensitive), or empty /
-``ignore`` for source classes that the evaluation does not use. Adding a new label
-space (MSeg universal, Cityscapes, ADE20K...) means writing one such CSV; the shipped
-ones live in ``diffuser_lab/data/mappings/`` and are loaded by bare name, e.g.
+``ignore`` for source classes that the evaluation does not use. Comment lines
+``# source: <taxonomy>`` and ``# target: <taxonomy>`` state the two label spaces (optional;
+when ``target`` is given, :func:`load_mapping` refuses a run taxonomy of another name). Any
+taxonomy can be the target (:mod:`diffuser_lab.data.taxonomy`); the shipped mappings live in
+``diffuser_lab/data/mappings/`` and are loaded by bare name, e.g.
 ``load_mapping("nyu40_to_scannet20", SCANNET20)``.
 """
 from __future__ import annotations
@@ -18,7 +20,8 @@ import numpy as np
 
 from .scene import IGNORE, Taxonomy
 
-__all__ = ["ClassMapping", "load_mapping", "identity_mapping", "shipped_mappings", "MAPPINGS_DIR"]
+__all__ = ["ClassMapping", "load_mapping", "identity_mapping", "native_mapping", "mapping_header",
+           "shipped_mappings", "MAPPINGS_DIR"]
 
 MAPPINGS_DIR = Path(__file__).resolve().parent / "mappings"
 _HEADER = ["source_id", "source_name", "target"]
@@ -36,12 +39,14 @@ class ClassMapping:
             (ids not listed are "outside the table": :meth:`apply` refuses them).
         target: the evaluation taxonomy the ids in ``lut`` refer to.
         source: where the table came from (file path or a description), for messages.
+        source_taxonomy: name of the source label space, when the file states it.
     """
 
     lut: np.ndarray
     source_names: tuple
     target: Taxonomy
     source: str = "<in-memory mapping>"
+    source_taxonomy: str | None = None  # the file's "# source:" key, if any
     known: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self):
@@ -124,6 +129,11 @@ def load_mapping(name_or_path: str | Path, target: Taxonomy) -> ClassMapping:
             unknown target class name.
     """
     path = _resolve(name_or_path)
+    keys = mapping_header(path)
+    declared = keys.get("target")
+    if declared and declared.lower() != target.name.lower():
+        raise ValueError(f"class mapping {path} targets taxonomy {declared} (its '# target:' line), but the run's "
+                         f"taxonomy is {target.name}: give a mapping to {target.name}, or taxonomy={declared}")
     by_name = {n.lower(): i for i, n in enumerate(target.names)}
     rows: dict[int, tuple[str, int]] = {}
     header_seen = False
@@ -168,7 +178,22 @@ def load_mapping(name_or_path: str | Path, target: Taxonomy) -> ClassMapping:
     lut[ids] = np.fromiter((t for _, t in rows.values()), np.int16, len(rows))
     for sid, (sname, _) in rows.items():
         names[sid] = sname
-    return ClassMapping(lut=lut, source_names=tuple(names), target=target, source=str(path))
+    return ClassMapping(lut=lut, source_names=tuple(names), target=target, source=str(path),
+                        source_taxonomy=keys.get("source"))
+
+
+def mapping_header(name_or_path: str | Path) -> dict[str, str]:
+    """The ``# source: X`` / ``# target: Y`` comment keys of a mapping file (lower-case keys)."""
+    keys: dict[str, str] = {}
+    with open(_resolve(name_or_path), encoding="utf-8") as f:
+        for line in f:  # the comment lines before the header row
+            s = line.strip()
+            if s and not s.startswith("#"):
+                break
+            key, sep, val = s[1:].partition(":")
+            if sep and key.strip().lower() in ("source", "target") and val.strip():
+                keys[key.strip().lower()] = val.strip()
+    return keys
 
 
 def identity_mapping(taxonomy: Taxonomy) -> ClassMapping:
@@ -176,3 +201,42 @@ def identity_mapping(taxonomy: Taxonomy) -> ClassMapping:
     n = taxonomy.num_classes
     return ClassMapping(lut=np.arange(n, dtype=np.int16), source_names=tuple(taxonomy.names),
                         target=taxonomy, source=f"identity({taxonomy.name})")
+
+
+def native_mapping(taxonomy: Taxonomy) -> ClassMapping | None:
+    """The data's own label ids of ``taxonomy`` (``taxonomy.ids``, ``taxonomy.ignore_ids`` -> IGNORE)
+    -> class ids 0..C-1; None when the ids already are 0..C-1 with no ignore ids (used as they are)."""
+    if taxonomy.ids is None and not taxonomy.ignore_ids:
+        return None
+    ids = np.arange(taxonomy.num_classes) if taxonomy.ids is None else np.asarray(taxonomy.ids, np.int64)
+    size = int(max(ids.max(), max(taxonomy.ignore_ids, default=0))) + 1
+    lut = np.full(size, IGNORE, np.int16)
+    lut[ids] = np.arange(taxonomy.num_classes, dtype=np.int16)
+    names: list[str | None] = [None] * size
+    for i, n in zip(ids.tolist(), taxonomy.names):
+        names[i] = n
+    for i in taxonomy.ignore_ids:
+        names[i] = "ignore"
+    return ClassMapping(lut=lut, source_names=tuple(names), target=taxonomy,
+                        source=f"{taxonomy.name} label ids", source_taxonomy=taxonomy.name)
+
+
+def relabel_scene(scene, taxonomy: Taxonomy):
+    """``scene`` (a :class:`~diffuser_lab.data.scene.Scene` with in-memory frames, e.g. the demo room)
+    with its ground truth moved to ``taxonomy`` by the shipped mapping ``<scene taxonomy>_to_<taxonomy>``.
+    Raises ValueError when no such mapping is shipped."""
+    import dataclasses
+
+    name = f"{scene.taxonomy.name}_to_{taxonomy.name}"
+    if name not in shipped_mappings():
+        raise ValueError(f"scene {scene.name} is labelled in {scene.taxonomy.name} and no shipped mapping {name} "
+                         f"moves it to taxonomy={taxonomy.name} (shipped: {', '.join(shipped_mappings())})")
+    table = load_mapping(name, taxonomy)
+
+    def move(ids):
+        if ids is None:
+            return None
+        return np.where(ids == IGNORE, IGNORE, table.lut[np.maximum(ids, 0)]).astype(np.int16)
+
+    frames = [dataclasses.replace(f, gt_labels=move(f.gt_labels)) for f in scene.frames]
+    return dataclasses.replace(scene, taxonomy=taxonomy, frames=frames, gt_labels=move(scene.gt_labels))

@@ -86,7 +86,7 @@ def _file_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy:
     taxonomy; unmapped ids become IGNORE and are counted) or class probabilities (soft evidence)."""
     from pathlib import Path
 
-    from .mapping import load_mapping
+    from .mapping import load_mapping, native_mapping
     from .prediction_files import find_prediction, load_label_prediction, load_probability_prediction
 
     if not cfg.folder:
@@ -94,7 +94,7 @@ def _file_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy:
     folder = Path(cfg.folder)
     if not folder.is_dir():
         raise FileNotFoundError(f"predictions.folder={folder}: no such folder")
-    mapping = load_mapping(cfg.mapping, taxonomy) if cfg.mapping else None
+    mapping = load_mapping(cfg.mapping, taxonomy) if cfg.mapping else native_mapping(taxonomy)
     stats = {"unmapped_pixels": 0, "label_files": 0, "probability_files": 0}
     seen: set[int] = set()
 

@@ -19,11 +19,17 @@ IGNORE = -1
 
 @dataclass(frozen=True)
 class Taxonomy:
-    """Evaluation classes: ``names[c]`` and ``colors[c]`` (uint8 RGB) for class id c."""
+    """Evaluation classes: ``names[c]`` and ``colors[c]`` (uint8 RGB) for class id c.
+
+    ``ids[c]`` is the label id that class c has in the data (label images, PLY ``label``);
+    None = the data's ids already are 0..C-1. ``ignore_ids`` are label ids meaning "no label".
+    Shipped ones and files: :mod:`diffuser_lab.data.taxonomy`."""
 
     name: str
     names: tuple[str, ...]
     colors: np.ndarray  # (C, 3) uint8
+    ids: tuple[int, ...] | None = None
+    ignore_ids: tuple[int, ...] = ()
 
     @property
     def num_classes(self) -> int:

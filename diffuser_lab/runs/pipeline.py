@@ -17,7 +17,7 @@ from diffuser_lab.data import validate
 from diffuser_lab.data.geometry import VoxelGrid, nearest_transfer, voxel_downsample
 from diffuser_lab.data.predictions import describe as describe_predictions
 from diffuser_lab.data.predictions import with_predictions
-from diffuser_lab.data.scene import IGNORE, Frame, Scene
+from diffuser_lab.data.scene import IGNORE, SCANNET20, Frame, Scene, Taxonomy
 from diffuser_lab.hooks import RunHooks
 from diffuser_lab.method import evidence as evidence_mod
 from diffuser_lab.method import fusion
@@ -26,9 +26,9 @@ from diffuser_lab.method.graph import KnnGraph, graph_stage, make_graph
 from diffuser_lab.method.metrics import confusion_matrix, score, scores_from_confusion
 
 
-def load_scene(cfg: SceneConfig) -> Scene:
-    """The configured source -> :class:`Scene` whose frames carry ground-truth labels when known.
-    Relative paths are taken from the current directory."""
+def load_scene(cfg: SceneConfig, taxonomy: Taxonomy = SCANNET20) -> Scene:
+    """The configured source -> :class:`Scene` in ``taxonomy`` (the run's: ``resolve_taxonomy(cfg)``)
+    whose frames carry ground-truth labels when known. Relative paths are taken from the current directory."""
     src = cfg.source
     with progress.stage(f"loading scene ({src.value})"):  # its own steps show inside
         if src == SceneSource.demo:
@@ -38,11 +38,15 @@ def load_scene(cfg: SceneConfig) -> Scene:
             scene, _ = make_demo_scene(seed=d.seed, room_size=tuple(d.room_size), n_views=d.n_views,
                                        image_width=d.image_width, image_height=d.image_height,
                                        fov_deg=d.fov_deg, point_spacing=d.point_spacing, point_noise=d.point_noise)
+            if taxonomy.name != scene.taxonomy.name:
+                from diffuser_lab.data.mapping import relabel_scene
+
+                scene = relabel_scene(scene, taxonomy)
         elif src == SceneSource.mesh_views:
             from diffuser_lab.data.sources.mesh_views import load_mesh_views
 
             m = cfg.mesh_views
-            scene = load_mesh_views(m.path, mapping=m.mapping,
+            scene = load_mesh_views(m.path, taxonomy=taxonomy, mapping=m.mapping,
                                     n_views=m.n_views, seed=m.seed, image_width=m.image_width,
                                     image_height=m.image_height, fov_deg=m.fov_deg, min_coverage=m.min_coverage,
                                     eye_height_range=(m.eye_height_min, m.eye_height_max))
@@ -54,12 +58,13 @@ def load_scene(cfg: SceneConfig) -> Scene:
                                    pose=c.pose, labels=c.labels, intrinsic_depth=c.intrinsic_depth,
                                    intrinsic_color=c.intrinsic_color, depth_scale=c.depth_scale)
             scene = load_scannet(c.root, frame_step=c.frame_step,
-                                 max_frames=c.max_frames, mapping=c.mapping, layout=layout)
+                                 max_frames=c.max_frames, mapping=c.mapping, layout=layout,
+                                 taxonomy=taxonomy)
         elif src == SceneSource.rgbd_folder:
             from diffuser_lab.data.sources.rgbd_folder import load_rgbd_folder
 
             r = cfg.rgbd_folder
-            scene = load_rgbd_folder(r.root, depth_scale=r.depth_scale, depth_bit_shift=r.depth_bit_shift,
+            scene = load_rgbd_folder(r.root, taxonomy=taxonomy, depth_scale=r.depth_scale, depth_bit_shift=r.depth_bit_shift,
                                      depth_shift_kind=r.depth_shift_kind.value, invalid_depth=tuple(r.invalid_depth),
                                      intrinsics_file=r.intrinsics_file, frame_prefix=r.frame_prefix,
                                      depth_suffix=r.depth_suffix, pose_suffix=r.pose_suffix,
@@ -71,7 +76,7 @@ def load_scene(cfg: SceneConfig) -> Scene:
             from diffuser_lab.data.sources.tum import load_tum
 
             c = cfg.tum
-            scene = load_tum(c.root, rgb_list=c.rgb_list, depth_list=c.depth_list, groundtruth=c.groundtruth,
+            scene = load_tum(c.root, taxonomy=taxonomy, rgb_list=c.rgb_list, depth_list=c.depth_list, groundtruth=c.groundtruth,
                              max_time_diff=c.max_time_diff, depth_scale=c.depth_scale, camera=c.camera.value,
                              intrinsics=None if c.fx is None else (c.fx, c.fy, c.cx, c.cy),
                              voxel_size=c.cloud_voxel, cloud_stride=c.cloud_stride, max_depth=c.max_depth,
@@ -164,7 +169,9 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
     t = {}
     t0 = time.perf_counter()
     if scene is None:
-        scene = load_scene(cfg.scene)
+        from diffuser_lab.data.taxonomy import resolve_taxonomy
+
+        scene = load_scene(cfg.scene, resolve_taxonomy(cfg))
     tax = scene.taxonomy
     validate.check_points(scene)
     t["load"] = time.perf_counter() - t0

@@ -74,7 +74,9 @@ def _window(i: int, n: int, w: int) -> list[int]:
 def single_frame(cfg: Config, scene: Optional[Scene] = None) -> SingleFrameResult:
     t0 = time.perf_counter()
     if scene is None:
-        scene = load_scene(cfg.scene)
+        from diffuser_lab.data.taxonomy import resolve_taxonomy
+
+        scene = load_scene(cfg.scene, resolve_taxonomy(cfg))
     tax, names = scene.taxonomy, scene.taxonomy.names
     frames = with_predictions(scene.frames, cfg.predictions, tax, scene_name=scene.name)
     n = len(frames)

@@ -105,6 +105,7 @@ def single_frame_summary(sf) -> dict:
         "n_targets": len(sf.targets),
         "window": sf.window,
         "n_classes": sf.scene.taxonomy.num_classes,
+        "taxonomy": sf.scene.taxonomy.name,
         "metrics": {"miou": main["miou"], "accuracy": main["accuracy"], "per_class_iou": main["per_class_iou"]},
         "baseline": {"bayesian": {"miou": bayes["miou"], "accuracy": bayes["accuracy"]}},
         "rows": rows,

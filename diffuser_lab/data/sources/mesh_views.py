@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from diffuser_lab import progress
-from diffuser_lab.data.mapping import load_mapping
+from diffuser_lab.data.mapping import load_mapping, native_mapping
 from diffuser_lab.data.render import MeshRenderer, camera_trajectory, intrinsics, render_views
 from diffuser_lab.data.scene import IGNORE, SCANNET20, Frame, Scene, Taxonomy
 
@@ -56,8 +56,12 @@ def load_mesh_views(path: str | Path, *, taxonomy: Taxonomy = SCANNET20, mapping
         vertices, triangles, raw_labels, colors = read_labelled_mesh(path)
     if raw_labels is None:
         raise ValueError(f"{path}: the mesh has no per-vertex 'label' property; mesh_views needs a labelled mesh")
-    if mapping is not None:
-        gt, _ = load_mapping(mapping, taxonomy).apply(raw_labels)
+    table = load_mapping(mapping, taxonomy) if mapping is not None else native_mapping(taxonomy)
+    if table is not None:
+        try:
+            gt, _ = table.apply(raw_labels)
+        except ValueError as e:
+            raise ValueError(f"{path}: {e}") from None
     else:
         gt = raw_labels.astype(np.int16)
         if gt.max() >= taxonomy.num_classes or gt.min() < IGNORE:

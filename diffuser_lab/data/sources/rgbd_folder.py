@@ -31,7 +31,7 @@ import numpy as np
 
 from diffuser_lab import progress
 from diffuser_lab.data.geometry import backproject, voxel_downsample
-from diffuser_lab.data.mapping import ClassMapping, load_mapping
+from diffuser_lab.data.mapping import ClassMapping, load_mapping, native_mapping
 from diffuser_lab.data.prediction_files import open_image, read_label_png, resize_nearest
 from diffuser_lab.data.scene import IGNORE, SCANNET20, Frame, Scene, Taxonomy
 from diffuser_lab.data.validate import check_depth_unit
@@ -225,7 +225,9 @@ def read_point_cloud_ply(path: str | Path) -> dict:
 
 
 def _as_mapping(mapping, taxonomy: Taxonomy) -> ClassMapping | None:
-    if mapping is None or isinstance(mapping, ClassMapping):
+    if mapping is None:  # the taxonomy's own label ids (None: they are 0..C-1, checked as-is)
+        return native_mapping(taxonomy)
+    if isinstance(mapping, ClassMapping):
         return mapping
     return load_mapping(mapping, taxonomy)
 

@@ -38,9 +38,9 @@ from pathlib import Path
 import numpy as np
 
 from diffuser_lab import progress
-from diffuser_lab.data.mapping import ClassMapping, load_mapping
+from diffuser_lab.data.mapping import ClassMapping, identity_mapping, load_mapping, native_mapping
 from diffuser_lab.data.prediction_files import read_label_png, resize_nearest
-from diffuser_lab.data.scene import SCANNET20, Frame, Scene
+from diffuser_lab.data.scene import SCANNET20, Frame, Scene, Taxonomy
 
 from .rgbd_folder import LazyFrames, read_depth_png, read_intrinsics, read_pose_c2w, read_rgb, rigid_inverse
 
@@ -153,16 +153,16 @@ def _frame_ids(root: Path, pattern: str) -> list[str]:
 
 
 def load_scannet(root, *, frame_step: int = 10, max_frames: int | None = None,
-                 mapping: str | ClassMapping = "nyu40_to_scannet20", with_frames: bool = True,
-                 layout: ScannetLayout = ScannetLayout()) -> Scene:
+                 mapping: str | ClassMapping | None = "nyu40_to_scannet20", with_frames: bool = True,
+                 layout: ScannetLayout = ScannetLayout(), taxonomy: Taxonomy = SCANNET20) -> Scene:
     """Load one ScanNet scene (layout in the module docstring).
 
     Args:
         root: the scene folder (its name, e.g. ``scene0470_00``, prefixes the PLY files).
         frame_step: use every frame_step-th frame (by sorted frame number).
         max_frames: at most this many frames (after dropping invalid poses).
-        mapping: NYU40 -> evaluation classes (shipped CSV name, path or ClassMapping);
-            its target taxonomy becomes the scene's.
+        mapping: NYU40 -> ``taxonomy`` (shipped CSV name, path or ClassMapping, whose target
+            becomes the scene's taxonomy); None = the label ids are ``taxonomy``'s own label ids.
         with_frames: False = mesh only (color/depth/pose folders may be absent).
         layout: the file names (defaults: ScanNet's export); colour and label-filt are optional.
     Returns:
@@ -178,7 +178,10 @@ def load_scannet(root, *, frame_step: int = 10, max_frames: int | None = None,
         raise FileNotFoundError(f"ScanNet scene folder {root} does not exist")
     if frame_step < 1:
         raise ValueError(f"frame_step={frame_step}, expected >= 1")
-    mapping = mapping if isinstance(mapping, ClassMapping) else load_mapping(mapping, SCANNET20)
+    if mapping is None:
+        mapping = native_mapping(taxonomy) or identity_mapping(taxonomy)
+    elif not isinstance(mapping, ClassMapping):
+        mapping = load_mapping(mapping, taxonomy)
     taxonomy = mapping.target
 
     mesh_path = _find_mesh(root, layout.mesh)
