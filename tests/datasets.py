@@ -116,6 +116,23 @@ def write_label_predictions(folder: Path, world: dict, names: list[str]) -> Path
     return folder
 
 
+def write_mseg_predictions(folder: Path, world: dict, names: list[str]) -> Path:
+    """An MSeg network's label PNGs (universal taxonomy ids, 255 = unlabeled) at depth resolution:
+    each ScanNet-20 class of the rendered truth written as the first MSeg class that maps to it
+    (diffuser_lab/data/mappings/mseg_universal_to_scannet20.csv)."""
+    from diffuser_lab.data.mapping import load_mapping
+
+    m = load_mapping("mseg_universal_to_scannet20", SCANNET20)
+    lut = np.full(SCANNET20.num_classes, 255, np.uint8)
+    for src in np.flatnonzero(m.lut >= 0)[::-1]:  # the first source id of each target wins
+        lut[m.lut[src]] = src
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, (_, lab, _) in zip(names, world["views"]):
+        Image.fromarray(np.where(lab >= 0, lut[np.clip(lab, 0, None)], 255).astype(np.uint8)).save(folder / f"{name}.png")
+    return folder
+
+
 def encode_depth(depth_m, scale: float, shift: int = 0, kind: str = "plain", flags: int = 0) -> np.ndarray:
     """Metres -> raw 16-bit values as a depth camera writes them: round(d * scale), then shifted left
     by ``shift`` with ``flags`` in the freed low bits (``plain``) or rotated left (``circular``, SUN3D)."""

@@ -160,6 +160,8 @@ def own_data(folder: Path) -> dict[str, str]:
     sys.path.insert(0, str(ROOT / "tests"))
     from datasets import make_world, write_label_predictions, write_mesh_ply, write_rgbd, write_scannet
 
+    from datasets import write_lab_layout, write_mseg_predictions
+
     world = make_world()
     folder.mkdir(parents=True, exist_ok=True)
     return {
@@ -167,7 +169,23 @@ def own_data(folder: Path) -> dict[str, str]:
         "SCANNET_SCENE": str(write_scannet(folder, world)),
         "RGBD_FOLDER": str(_labelled_rgbd(write_rgbd(folder, world), world)),
         "PRED_DIR": str(write_label_predictions(folder / "predictions", world, ["0", "1", "2", "3"])),
+        "MSEG_PRED_DIR": str(write_mseg_predictions(folder / "mseg", world, ["0", "1", "2", "3"])),
+        # the layout of conf/scene/my_rgbd_lab.yaml: (raw >> 3) / 1e4 m reaches 0.82 m, so a room at 1:8
+        "LAB_FOLDER": str(write_lab_layout(folder, scaled_world(world, 0.125), depth_scale=1e4)),
     }
+
+
+def scaled_world(world: dict, s: float) -> dict:
+    """The fixture world at scale ``s`` (its mesh, camera positions and depth; the same images)."""
+    import numpy as np
+
+    poses = []
+    for T in world["poses"]:
+        T = np.array(T, np.float64)
+        T[:3, 3] *= s
+        poses.append(T)
+    views = [(d * np.float32(s), lab, lab_c) for d, lab, lab_c in world["views"]]
+    return {**world, "verts": world["verts"] * s, "poses": poses, "views": views}
 
 
 def main(argv=None) -> int:

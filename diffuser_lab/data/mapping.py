@@ -133,7 +133,7 @@ def load_mapping(name_or_path: str | Path, target: Taxonomy) -> ClassMapping:
     declared = keys.get("target")
     if declared and declared.lower() != target.name.lower():
         raise ValueError(f"class mapping {path} targets taxonomy {declared} (its '# target:' line), but the run's "
-                         f"taxonomy is {target.name}: give a mapping to {target.name}, or taxonomy={declared}")
+                         f"taxonomy is {target.name}: give a mapping to {target.name}, none (mapping=null: the ids are its own), or taxonomy={declared}")
     by_name = {n.lower(): i for i, n in enumerate(target.names)}
     rows: dict[int, tuple[str, int]] = {}
     header_seen = False

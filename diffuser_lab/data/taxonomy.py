@@ -215,17 +215,21 @@ def _scan_ids(cfg) -> tuple[np.ndarray, str]:
 
     if cfg.predictions.source == PredictionSource.files and cfg.predictions.folder:
         folder = Path(cfg.predictions.folder)
-        images([p for p in folder.glob("*.png") if p.is_file()], f"prediction ({folder})")
+        pngs = [p for p in cfg.predictions.pattern if p.lower().endswith(".png")]  # predictions.pattern's images
+        files = {f for p in pngs for f in folder.glob(p.replace("{name}", "*")) if f.is_file()}
+        images(list(files), f"prediction ({folder})")
     src, sc = cfg.scene.source, cfg.scene
     if src == SceneSource.rgbd_folder and sc.rgbd_folder.label_suffix:
         root = Path(sc.rgbd_folder.root)
-        images(list(root.glob(f"frame-*.{sc.rgbd_folder.label_suffix}")), f"ground-truth ({root})")
+        images(list(root.glob(f"{sc.rgbd_folder.frame_prefix}*.{sc.rgbd_folder.label_suffix}")),
+               f"ground-truth ({root})")
     elif src == SceneSource.scannet:
         root = Path(sc.scannet.root)
-        images(list((root / "label-filt").glob("*.png")), f"ground-truth ({root / 'label-filt'})")
-        plys = sorted(root.glob("*_vh_clean_2.labels.ply"))
-        if plys:
-            mesh(plys[0])
+        labels = root / sc.scannet.labels.replace("{frame}", "*")
+        images(list(labels.parent.glob(labels.name)), f"ground-truth ({labels.parent})")
+        ply = root / sc.scannet.labels_mesh.format(scene=root.name)
+        if ply.is_file():
+            mesh(ply)
     elif src == SceneSource.mesh_views:
         mesh(Path(sc.mesh_views.path))
     if not found:
