@@ -67,7 +67,7 @@ def with_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy: 
             _need_gt(f)
             rng = np.random.default_rng([cfg.seed, i])
             regions = (surface_regions(f.gt_labels, f.depth, f.K, f.T_cw, region_size=cfg.region_size,
-                                       view_range_m=cfg.view_range_m) if correlated else None)
+                                       view_range_m=cfg.view_range_m, seed=cfg.seed) if correlated else None)
             pred = simulate_predictions(
                 f.gt_labels, taxonomy.num_classes, rng, strength=cfg.strength, jitter_px=cfg.jitter_px,
                 jitter_scale_px=cfg.jitter_scale_px, confuse_prob=cfg.confuse_prob,

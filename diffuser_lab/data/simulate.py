@@ -142,7 +142,7 @@ class SurfaceRegions:
 
 
 def surface_regions(gt: np.ndarray, depth: np.ndarray, K: np.ndarray, T_cw: np.ndarray, *,
-                    region_size: float = 0.5, view_range_m: float = 4.0) -> SurfaceRegions:
+                    region_size: float = 0.5, view_range_m: float = 4.0, seed: int = 0) -> SurfaceRegions:
     """The 3D surface region each pixel sees: its ground-truth class and the world voxel (edge
     ``region_size`` metres) of its back-projected point, so the same wall patch or chair has the
     same key in every view. Pixels with a label but no depth take their nearest depth pixel's point.
@@ -153,6 +153,7 @@ def surface_regions(gt: np.ndarray, depth: np.ndarray, K: np.ndarray, T_cw: np.n
         K: (3, 3) intrinsics; T_cw: (4, 4) world-to-camera, metres.
         region_size: voxel edge of a region, metres (> 0).
         view_range_m: range at which the range term of ``viewing`` saturates, metres.
+        seed: offsets the voxel grid (so walls on round coordinates do not lie on voxel faces).
     """
     from scipy import ndimage as ndi
 
@@ -172,8 +173,10 @@ def surface_regions(gt: np.ndarray, depth: np.ndarray, K: np.ndarray, T_cw: np.n
     pc = rays * d[..., None]
     T_wc = np.linalg.inv(T_cw)
     pw = pc @ T_wc[:3, :3].T + T_wc[:3, 3]
-    vox = np.floor(pw / region_size).astype(np.int64)
-    cell = np.floor(pw / (region_size / 3.0)).astype(np.int64)
+    # a seeded grid offset: a surface exactly on a voxel face would flicker between two regions
+    shift = _unit(seed, np.arange(3, dtype=np.uint64), 7) * region_size
+    vox = np.floor((pw + shift) / region_size).astype(np.int64)
+    cell = np.floor((pw + shift) / (region_size / 3.0)).astype(np.int64)
     cls = gt.astype(np.int64) + 1
     region = _hash(cls, vox[..., 0], vox[..., 1], vox[..., 2]) | np.uint64(1)
     sub = _hash(cls, cell[..., 0], cell[..., 1], cell[..., 2]) | np.uint64(1)
