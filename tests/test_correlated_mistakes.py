@@ -156,3 +156,18 @@ def test_seeded_and_independent_of_frame_order(scene):
 def test_bad_values_name_the_key(key, value):
     with pytest.raises((ConfigError, ValueError), match=key if key != "correlation" else "correlation"):
         default_config(**{f"predictions.{key}": value})
+
+
+def test_realistic_preset_composes():
+    from hydra import compose, initialize_config_dir
+
+    from diffuser_lab.cli.main import config_dir
+    from diffuser_lab.config import register, to_object
+
+    register()
+    with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
+        cfg = to_object(compose("config", overrides=["predictions=realistic", "seed=3"]))
+        exp = to_object(compose("config", overrides=["+experiment=error_correlation"]))
+    p = cfg.predictions
+    assert p.correlation.value == "regions" and p.seed == 3 and p.output_stride == 4 and 0 < p.persistence < 1
+    assert exp.predictions.correlation.value == "regions"
