@@ -46,6 +46,11 @@ class PredictionSource(Enum):
     onnx = "onnx"  # an exported ONNX segmentation network run with onnxruntime on the CPU
 
 
+class MistakeCorrelation(Enum):
+    independent = "independent"  # every view draws its mistakes on its own (the default)
+    regions = "regions"  # a mistake belongs to a 3D surface region, shared by the views that see it
+
+
 class ChannelOrder(Enum):
     rgb = "rgb"
     bgr = "bgr"  # OpenCV / Caffe-trained networks
@@ -367,6 +372,14 @@ class PredictionsConfig:
     blob_count: float = 2.0  # mean number of wrong-class blobs per image (Poisson)
     blob_radius: float = 0.1  # mean blob radius, fraction of the image width
     blob_roughness: float = 0.35  # irregularity of blob outlines, 0 = discs
+    # view-correlated mistakes and low-resolution output (docs/simulated-network.md)
+    correlation: MistakeCorrelation = MistakeCorrelation.independent
+    region_size: float = 0.5  # regions: world voxel edge cutting gt segments into 3D regions, metres
+    persistence: float = 1.0  # regions: probability that a view shows a region's persistent decision
+    confuse_region_frac: float = 1.0  # share of a confused region that is wrong (1 = all of it)
+    view_gain: float = 0.0  # regions: confusion probability x (1 + view_gain * far/grazing in [0, 1])
+    view_range_m: float = 4.0  # regions: range at which the "far" term saturates, metres
+    output_stride: int = 1  # labels decided on stride x stride pixel cells, upsampled; 1 = off
     # model / onnx: a network run on each frame's RGB, its outputs (ids or probabilities in its own
     # label space) translated by ``mapping`` and cached on disk (docs/networks.md)
     model: Optional[Dict[str, Any]] = None  # model: {_target_: pkg.mod.callable, **kwargs}
@@ -396,6 +409,13 @@ class PredictionsConfig:
         _check(self.blob_count >= 0.0, "predictions.blob_count", self.blob_count, ">= 0")
         _check(self.blob_radius > 0.0, "predictions.blob_radius", self.blob_radius, "> 0")
         _check(self.blob_roughness >= 0.0, "predictions.blob_roughness", self.blob_roughness, ">= 0")
+        _check(self.region_size > 0.0, "predictions.region_size", self.region_size, "> 0 metres")
+        _check(0.0 <= self.persistence <= 1.0, "predictions.persistence", self.persistence, "in [0, 1]")
+        _check(0.0 < self.confuse_region_frac <= 1.0, "predictions.confuse_region_frac",
+               self.confuse_region_frac, "in (0, 1]")
+        _check(self.view_gain >= 0.0, "predictions.view_gain", self.view_gain, ">= 0")
+        _check(self.view_range_m > 0.0, "predictions.view_range_m", self.view_range_m, "> 0 metres")
+        _check(1 <= self.output_stride <= 64, "predictions.output_stride", self.output_stride, "in 1..64")
 
 
 @dataclass

@@ -12,7 +12,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from diffuser_lab.config import PredictionsConfig, PredictionSource
+from diffuser_lab.config import MistakeCorrelation, PredictionsConfig, PredictionSource
 
 from .scene import Frame, Taxonomy
 
@@ -59,16 +59,22 @@ def with_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy: 
             _need_gt(f)
             return dataclasses.replace(f, labels=f.gt_labels, probs=None)
     elif cfg.source == PredictionSource.simulated:
-        from .simulate import simulate_predictions
+        from .simulate import simulate_predictions, surface_regions
+
+        correlated = cfg.correlation == MistakeCorrelation.regions
 
         def fn(i: int, f: Frame) -> Frame:
             _need_gt(f)
             rng = np.random.default_rng([cfg.seed, i])
+            regions = (surface_regions(f.gt_labels, f.depth, f.K, f.T_cw, region_size=cfg.region_size,
+                                       view_range_m=cfg.view_range_m, seed=cfg.seed) if correlated else None)
             pred = simulate_predictions(
                 f.gt_labels, taxonomy.num_classes, rng, strength=cfg.strength, jitter_px=cfg.jitter_px,
                 jitter_scale_px=cfg.jitter_scale_px, confuse_prob=cfg.confuse_prob,
                 confuse_max_frac=cfg.confuse_max_frac, blob_count=cfg.blob_count, blob_radius=cfg.blob_radius,
-                blob_roughness=cfg.blob_roughness, class_names=taxonomy.names)
+                blob_roughness=cfg.blob_roughness, class_names=taxonomy.names, regions=regions,
+                region_seed=cfg.seed, persistence=cfg.persistence, confuse_region_frac=cfg.confuse_region_frac,
+                view_gain=cfg.view_gain, output_stride=cfg.output_stride)
             return dataclasses.replace(f, labels=pred, probs=None)
     elif cfg.source == PredictionSource.files:
         return _file_predictions(frames, cfg, taxonomy)

@@ -2,11 +2,20 @@
 
 A real network's errors are spatially coherent, not salt noise: blurry/shifted
 object boundaries, whole objects given a plausible wrong class, and blotches of a
-wrong class inside large surfaces. :func:`simulate_predictions` draws all three,
-independently per call (i.e. per view), from a seeded generator.
+wrong class inside large surfaces. :func:`simulate_predictions` draws all three
+from a seeded generator, by default independently per call (i.e. per view).
+
+A real network's mistakes are also correlated across views: a chair it calls a sofa in
+one frame it calls a sofa in the next ones. With ``regions`` (:func:`surface_regions`:
+each pixel's 3D surface region, from its depth and pose), a region's confusion is decided
+by a hash of (``region_seed``, region), the same in every frame that sees it, and shown in
+a frame with probability ``persistence``. ``output_stride`` decides labels on a coarse
+grid (low-resolution output, blocky boundaries). Knobs and their calibration:
+docs/simulated-network.md.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -14,7 +23,7 @@ from scipy import ndimage
 
 from .scene import IGNORE, SCANNET20
 
-__all__ = ["simulate_predictions", "DEFAULT_CONFUSIONS"]
+__all__ = ["simulate_predictions", "surface_regions", "SurfaceRegions", "coarse_output", "DEFAULT_CONFUSIONS"]
 
 DEFAULT_CONFUSIONS: dict[str, tuple[str, ...]] = {
     "wall": ("door", "picture", "curtain", "window"),
@@ -88,6 +97,165 @@ def _smooth_field(shape: tuple[int, int], scale_px: float, rng: np.random.Genera
     return f / max(float(f.std()), 1e-6)
 
 
+_M1, _M2, _GOLD = np.uint64(0xBF58476D1CE4E5B9), np.uint64(0x94D049BB133111EB), np.uint64(0x9E3779B97F4A7C15)
+
+
+def _mix64(x: np.ndarray) -> np.ndarray:
+    """splitmix64's finaliser on uint64 arrays: a fixed, well-mixed hash (wraps mod 2**64)."""
+    x = np.asarray(x, np.uint64)
+    with np.errstate(over="ignore"):
+        x = (x ^ (x >> np.uint64(30))) * _M1
+        x = (x ^ (x >> np.uint64(27))) * _M2
+    return x ^ (x >> np.uint64(31))
+
+
+def _hash(*parts) -> np.ndarray:
+    """uint64 hash of a tuple of integer arrays (broadcast), order-sensitive."""
+    h = np.uint64(0)
+    with np.errstate(over="ignore"):
+        for p in parts:
+            h = _mix64(np.asarray(h, np.uint64) * _GOLD + np.asarray(p).astype(np.int64).astype(np.uint64))
+    return h
+
+
+def _unit(seed: int, keys: np.ndarray, stream: int) -> np.ndarray:
+    """Uniform [0, 1) float64 per key: a counter-based generator seeded by (seed, key, stream),
+    so a key gets the same draw in every frame, whatever the order frames are simulated in."""
+    return (_hash(seed, stream, keys.astype(np.uint64)) >> np.uint64(11)).astype(np.float64) * 2.0**-53
+
+
+@dataclass(frozen=True)
+class SurfaceRegions:
+    """Per pixel of one view, the 3D surface region it sees (:func:`surface_regions`).
+
+    Attributes:
+        region: (H, W) uint64 region key = hash(gt class, world voxel of ``region_size``); 0 = IGNORE pixel.
+        cell: (H, W) uint64 key of the finer world cell (``region_size / 3``) inside the region:
+            the unit of a region's partial confusion (``confuse_region_frac``).
+        viewing: (H, W) float32 viewing difficulty in [0, 1]: half the range term
+            min(z / view_range_m, 1), half the grazing term 1 - |cos(incidence)|.
+    """
+
+    region: np.ndarray
+    cell: np.ndarray
+    viewing: np.ndarray
+
+
+def surface_regions(gt: np.ndarray, depth: np.ndarray, K: np.ndarray, T_cw: np.ndarray, *,
+                    region_size: float = 0.5, view_range_m: float = 4.0, seed: int = 0) -> SurfaceRegions:
+    """The 3D surface region each pixel sees: its ground-truth class and the world voxel (edge
+    ``region_size`` metres) of its back-projected point, so the same wall patch or chair has the
+    same key in every view. Pixels with a label but no depth take their nearest depth pixel's point.
+
+    Args:
+        gt: (H, W) int ground-truth class ids, IGNORE = no label.
+        depth: (H, W) z-depth, metres, 0 = none.
+        K: (3, 3) intrinsics; T_cw: (4, 4) world-to-camera, metres.
+        region_size: voxel edge of a region, metres (> 0).
+        view_range_m: range at which the range term of ``viewing`` saturates, metres.
+        seed: offsets the voxel grid (so walls on round coordinates do not lie on voxel faces).
+    """
+    from scipy import ndimage as ndi
+
+    H, W = gt.shape
+    d = np.where(np.isfinite(depth), depth, 0.0).astype(np.float64)
+    valid = gt != IGNORE
+    has = d > 0
+    if not has.any():  # no geometry at all: one region per class, seen head-on
+        key = np.where(valid, _hash(gt.astype(np.int64) + 1) | np.uint64(1), np.uint64(0))
+        return SurfaceRegions(key, key, np.zeros((H, W), np.float32))
+    if not has[valid].all():  # labelled pixels without depth: the nearest pixel with depth
+        idx = ndi.distance_transform_edt(~has, return_distances=False, return_indices=True)
+        d = d[idx[0], idx[1]]
+    rows, cols = np.mgrid[0:H, 0:W].astype(np.float64)
+    Kinv = np.linalg.inv(K)
+    rays = np.stack([cols, rows, np.ones_like(cols)], -1) @ Kinv.T  # (H, W, 3) camera rays, z = 1
+    pc = rays * d[..., None]
+    T_wc = np.linalg.inv(T_cw)
+    pw = pc @ T_wc[:3, :3].T + T_wc[:3, 3]
+    # a seeded grid offset: a surface exactly on a voxel face would flicker between two regions
+    shift = _unit(seed, np.arange(3, dtype=np.uint64), 7) * region_size
+    vox = np.floor((pw + shift) / region_size).astype(np.int64)
+    cell = np.floor((pw + shift) / (region_size / 3.0)).astype(np.int64)
+    cls = gt.astype(np.int64) + 1
+    region = _hash(cls, vox[..., 0], vox[..., 1], vox[..., 2]) | np.uint64(1)
+    sub = _hash(cls, cell[..., 0], cell[..., 1], cell[..., 2]) | np.uint64(1)
+    zero = np.uint64(0)
+    region, sub = np.where(valid, region, zero), np.where(valid, sub, zero)
+    # incidence from the organised depth image's tangent vectors (a garbage normal at depth
+    # edges reads as grazing, where a network also errs more)
+    n = np.cross(np.gradient(pc, axis=1), np.gradient(pc, axis=0))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cos = np.abs((n * rays).sum(-1)) / (np.linalg.norm(n, axis=-1) * np.linalg.norm(rays, axis=-1))
+    cos = np.nan_to_num(cos, nan=0.0)
+    viewing = 0.5 * np.clip(d / view_range_m, 0.0, 1.0) + 0.5 * (1.0 - np.clip(cos, 0.0, 1.0))
+    return SurfaceRegions(region, sub, viewing.astype(np.float32))
+
+
+def _wrong_classes(cls: np.ndarray, u: np.ndarray, lut: list[np.ndarray], num_classes: int) -> np.ndarray:
+    """Vectorised :func:`_wrong_class` without the image-dependent fallback: for each class id in
+    ``cls`` (K,) the candidate ``floor(u * n)`` of its confusion table, else another class."""
+    n_c = np.array([len(x) for x in lut], np.int64)
+    table = np.zeros((num_classes, max(1, int(n_c.max(initial=0)))), np.int64)
+    for c, cand in enumerate(lut):  # loop over classes
+        table[c, : len(cand)] = cand
+    n = n_c[cls]
+    pick = table[cls, np.minimum((u * np.maximum(n, 1)).astype(np.int64), np.maximum(n - 1, 0))]
+    other = (cls + 1 + np.minimum((u * (num_classes - 1)).astype(np.int64), num_classes - 2)) % num_classes
+    return np.where(n > 0, pick, other if num_classes > 1 else cls)
+
+
+def _region_confusion(gt: np.ndarray, valid: np.ndarray, regions: SurfaceRegions, num_classes: int,
+                      rng: np.random.Generator, lut: list[np.ndarray], *, p: float, max_frac: float,
+                      region_seed: int, persistence: float, region_frac: float, view_gain: float) -> np.ndarray:
+    """Step 1 with view-correlated mistakes: (H, W) int16 labels (see :func:`simulate_predictions`)."""
+    out = gt.astype(np.int16, copy=True)
+    keys = regions.region[valid]
+    uniq, first, inv = np.unique(keys, return_index=True, return_inverse=True)
+    inv = inv.ravel()
+    n_r = len(uniq)
+    cls = gt[valid][first].astype(np.int64)
+    size = np.bincount(inv, minlength=n_r)
+    view = np.bincount(inv, weights=regions.viewing[valid], minlength=n_r) / np.maximum(size, 1)
+    p_r = np.minimum(1.0, p * (1.0 + view_gain * view))
+    # the region's persistent decision (same in every frame) and this frame's own draw
+    shown = rng.random(n_r) < persistence
+    u = np.where(shown, _unit(region_seed, uniq, 1), rng.random(n_r))
+    u_cls = np.where(shown, _unit(region_seed, uniq, 2), rng.random(n_r))
+    confused = (u < p_r) & (size <= max_frac * valid.sum())
+    wrong = _wrong_classes(cls, u_cls, lut, num_classes)
+    bad = confused[inv]
+    if region_frac < 1.0:  # only part of a confused region: its finer world cells, also persistent
+        cells = regions.cell[valid]
+        salt = int(rng.integers(2**62))
+        u_cell = np.where(shown[inv], _unit(region_seed, cells, 3), _unit(salt, cells, 3))
+        bad &= u_cell < region_frac
+    vals = out[valid]
+    vals[bad] = wrong[inv[bad]]
+    out[valid] = vals
+    return out
+
+
+def coarse_output(labels: np.ndarray, valid: np.ndarray, stride: int, num_classes: int) -> np.ndarray:
+    """Low-resolution network output: each ``stride`` x ``stride`` cell gets the most frequent
+    label of its valid pixels (ties: the lower class id), upsampled nearest, so boundaries are
+    blocky. (H, W) int16; pixels not ``valid`` are IGNORE."""
+    H, W = labels.shape
+    W2 = -(-W // stride)
+    rows, cols = np.nonzero(valid)
+    cell = (rows // stride) * W2 + cols // stride
+    key = cell.astype(np.int64) * num_classes + labels[rows, cols].astype(np.int64)
+    u, cnt = np.unique(key, return_counts=True)
+    ucell = u // num_classes
+    order = np.lexsort((-cnt, ucell))  # per cell, the largest count first (stable: lower id on ties)
+    head = order[np.r_[True, ucell[order][1:] != ucell[order][:-1]]]
+    mode = np.full(-(-H // stride) * W2, IGNORE, np.int16)
+    mode[ucell[head]] = (u[head] % num_classes).astype(np.int16)
+    out = np.full((H, W), IGNORE, np.int16)
+    out[rows, cols] = mode[cell]
+    return out
+
+
 def simulate_predictions(
     gt: np.ndarray,
     num_classes: int,
@@ -103,6 +271,12 @@ def simulate_predictions(
     blob_roughness: float = 0.35,
     class_names: Sequence[str] | None = None,
     confusions: Mapping[str, Sequence[str]] | None = None,
+    regions: SurfaceRegions | None = None,
+    region_seed: int = 0,
+    persistence: float = 1.0,
+    confuse_region_frac: float = 1.0,
+    view_gain: float = 0.0,
+    output_stride: int = 1,
 ) -> np.ndarray:
     """Corrupt a ground-truth label image like a 2D segmentation network would.
 
@@ -114,14 +288,19 @@ def simulate_predictions(
        table->desk; otherwise a class present elsewhere in the image; otherwise any
        class). Regions covering more than ``confuse_max_frac`` of the valid pixels
        are kept (a network rarely mislabels most of what it sees).
+       With ``regions`` (view-correlated mistakes) the unit is a 3D surface region
+       instead, and the draw is the region's own (see the ``regions`` argument).
     2. Blobs: Poisson(``blob_count * strength``) irregular smooth blobs, each painted
        with a plausible wrong class of the class under its centre.
     3. Boundary jitter: the label image is resampled (nearest neighbour) through a
        smooth random displacement field, so labels bleed a few pixels across
        object boundaries and thin structures break up.
 
+    4. Low-resolution output (``output_stride`` > 1): :func:`coarse_output`.
+
     Pixels that are IGNORE in ``gt`` (no depth / no hit) stay IGNORE; valid pixels
-    always receive a class in ``[0, num_classes)``.
+    always receive a class in ``[0, num_classes)``. With the defaults of the last six
+    arguments the result is bit-identical to the independent model's.
 
     Args:
         gt: (H, W) int ground-truth class ids, IGNORE = no label.
@@ -143,6 +322,22 @@ def simulate_predictions(
             default: SCANNET20's names when C == 20, else no table.
         confusions: {class name: plausible wrong class names}; default
             :data:`DEFAULT_CONFUSIONS`.
+        regions: this view's 3D surface regions (:func:`surface_regions`); None = the
+            independent model (step 1 on the image's 2D connected regions). Given, a region is
+            confused with probability ``confuse_prob * strength * (1 + view_gain * viewing)``
+            (``viewing`` = the region's mean viewing difficulty in this view, [0, 1]) into a
+            wrong class from the confusion table (else any other class), both decided by a
+            generator seeded by (``region_seed``, region): the same in every view.
+        region_seed: seed of the regions' persistent decisions (the run's ``predictions.seed``).
+        persistence: probability, per region and view, that the view shows the region's
+            persistent decision; otherwise the view draws its own (from ``rng``), [0, 1].
+        confuse_region_frac: share of a confused region that is wrong, (0, 1]: the region's
+            finer world cells (edge ``region_size / 3``) each wrong with this probability
+            (persistent as the region's decision is).
+        view_gain: how much more likely a region is confused when seen from far or at a grazing
+            angle, >= 0 (0 = viewing does not matter).
+        output_stride: labels decided on ``output_stride``-pixel cells (the mode of each cell)
+            and upsampled nearest; 1 = full resolution.
 
     Returns:
         (H, W) int16 predicted class ids.
@@ -164,7 +359,11 @@ def simulate_predictions(
 
     # 1. whole-region confusion (loop over classes and regions, not pixels)
     p = min(1.0, confuse_prob * strength)
-    if p > 0:
+    if p > 0 and regions is not None:
+        out = _region_confusion(gt, valid, regions, num_classes, rng, lut, p=p, max_frac=confuse_max_frac,
+                                region_seed=region_seed, persistence=persistence,
+                                region_frac=confuse_region_frac, view_gain=view_gain)
+    elif p > 0:
         comp = np.zeros((H, W), np.int32)
         comp_class: list[int] = []
         for c in present:
@@ -206,4 +405,6 @@ def simulate_predictions(
         out = np.where(warped == IGNORE, out, warped)
 
     out[~valid] = IGNORE
+    if output_stride > 1:
+        out = coarse_output(out, valid, int(output_stride), num_classes)
     return out.astype(np.int16)
