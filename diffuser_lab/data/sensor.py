@@ -5,8 +5,9 @@ perfect z-depth image into one with the sensor's main defects, in this order:
 
 1. **Lateral noise** at depth edges: within ``ceil(3 sigma_L)`` pixels of a depth discontinuity
    each pixel takes the depth (and normal) of the pixel at a gaussian offset with
-   ``sigma_L(theta) = lateral_scale * (0.8 + 0.035 theta / (pi/2 - theta))`` pixels, so that
-   object outlines become ragged. On continuous surfaces the same offset would only move the
+   ``sigma_L(theta) = lateral_scale * (0.8 + 0.035 theta / (pi/2 - theta))`` Kinect pixels (640 px
+   wide; scaled by ``W / 640`` to the image, i.e. the same angular noise), so that object outlines
+   become ragged. On continuous surfaces the same offset would only move the
    depth along the local slope, which the axial angle term already covers, so it is not applied.
 2. **Projector shadows**: the IR projector sits ``projector_baseline`` metres to the camera's right
    (+x); a background pixel whose surface the projector cannot see past a nearer object gets no
@@ -364,7 +365,7 @@ def format_depth_report(rep: dict) -> str:
     def pc(x):
         return "-" if x is None else f"{100 * x:.1f}"
 
-    lines = ["| range [m] | pixels | holes % | RMSE mm | inlier RMSE mm | sigma_z model mm | bias mm | outliers % |",
+    lines = ["| range [m] | pixels | holes % | RMSE mm | inlier RMSE mm | sigma_z(bin centre, 0 deg) mm | bias mm | outliers % |",
              "|---|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rep["bins"] + [rep["all"]]:
         lo, hi = r["range"]
