@@ -283,6 +283,64 @@ class TumConfig:
                ">= 1 or null")
 
 
+class DepthModel(Enum):
+    perfect = "perfect"  # rendered depth as it is: exact z-depth
+    sensor = "sensor"  # a Kinect-v1-like structured-light sensor (diffuser_lab.data.sensor)
+
+
+class DepthQuantization(Enum):
+    mm = "mm"  # millimetre steps (16-bit PNG depth)
+    disparity = "disparity"  # the Kinect's 1/8-pixel disparity steps: z^2 / (f b) / 8
+    none = "none"
+
+
+@dataclass
+class DepthNoiseConfig:
+    """What the frames' depth is (diffuser_lab/data/sensor.py; docs/sensor.md): applied to rendered
+    depth (scene=demo, mesh_views) and, with ``apply_to_real``, to the depth images of real sources."""
+
+    model: DepthModel = DepthModel.perfect
+    seed: int = 0  # with the frame's index, seeds its noise (conf/depth/sensor.yaml: ${seed})
+    apply_to_real: bool = False  # also corrupt the depth of scannet / rgbd_folder / tum frames
+    axial_scale: float = 1.0  # x Nguyen et al. 2012 sigma_z = 0.0012 + 0.0019 (z - 0.4)^2 m (+ angle term > 60 deg)
+    lateral_scale: float = 1.0  # x Nguyen's sigma_L = 0.8 + 0.035 theta / (pi/2 - theta) px (640-px image) at edges
+    projector_baseline: float = 0.075  # metres, IR camera -> projector (+x): shadows left of objects; 0 = none
+    edge_jump: float = 0.05  # a 4-neighbour jump larger than this share of the nearer depth is a discontinuity
+    edge_hole_px: int = 1  # hole band along discontinuities: the two pixels of the jump dilated by this - 1; 0 = none
+    max_incidence_deg: float = 75.0  # no depth beyond this angle between ray and surface normal; 90 = never
+    min_range: float = 0.5  # metres; sensor depth outside [min_range, max_range] is no return (Kinect: 0.5-4.5)
+    max_range: float = 4.5
+    quantization: DepthQuantization = DepthQuantization.mm
+    disparity_focal_px: float = 580.0  # quantization=disparity: the IR camera's focal length (640 px)
+    disparity_baseline: float = 0.075  # metres
+    disparity_subpixel: float = 0.125  # disparity step, pixels (Kinect v1: 1/8)
+
+    def __post_init__(self) -> None:
+        for key in ("axial_scale", "lateral_scale", "projector_baseline"):
+            _check(getattr(self, key) >= 0.0, f"depth.{key}", getattr(self, key), ">= 0 (0 = off)")
+        _check(self.edge_jump > 0.0, "depth.edge_jump", self.edge_jump, "> 0 (a share of the depth)")
+        _check(0 <= self.edge_hole_px <= 20, "depth.edge_hole_px", self.edge_hole_px, "in 0..20 pixels")
+        _check(0.0 < self.max_incidence_deg <= 90.0, "depth.max_incidence_deg", self.max_incidence_deg,
+               "in (0, 90] degrees")
+        _check(0.0 <= self.min_range < self.max_range, "depth.min_range/max_range",
+               (self.min_range, self.max_range), "0 <= min_range < max_range metres")
+        for key in ("disparity_focal_px", "disparity_baseline", "disparity_subpixel"):
+            _check(getattr(self, key) > 0.0, f"depth.{key}", getattr(self, key), "> 0")
+
+    def sensor_model(self):
+        """The :class:`~diffuser_lab.data.sensor.SensorModel` of these keys, or None for ``perfect``."""
+        if self.model == DepthModel.perfect:
+            return None
+        from diffuser_lab.data.sensor import SensorModel
+
+        return SensorModel(seed=self.seed, axial_scale=self.axial_scale, lateral_scale=self.lateral_scale,
+                           projector_baseline=self.projector_baseline, edge_jump=self.edge_jump,
+                           edge_hole_px=self.edge_hole_px, max_incidence_deg=self.max_incidence_deg,
+                           min_range=self.min_range, max_range=self.max_range,
+                           quantization=self.quantization.value, disparity_focal_px=self.disparity_focal_px,
+                           disparity_baseline=self.disparity_baseline, disparity_subpixel=self.disparity_subpixel)
+
+
 REQUIRED = {"mesh_views": "path", "scannet": "root", "rgbd_folder": "root", "tum": "root"}
 """Each scene source's required key (MISSING in its dataclass)."""
 
@@ -550,6 +608,7 @@ class Config:
     n_views: int = 30  # views rendered by the demo and mesh_views sources
     memory_budget_gb: float = 16.0  # refuse runs whose estimated peak memory exceeds this
     scene: SceneConfig = field(default_factory=SceneConfig)
+    depth: DepthNoiseConfig = field(default_factory=DepthNoiseConfig)
     taxonomy: TaxonomyConfig = field(default_factory=TaxonomyConfig)
     predictions: PredictionsConfig = field(default_factory=PredictionsConfig)
     evidence: EvidenceConfig = field(default_factory=EvidenceConfig)

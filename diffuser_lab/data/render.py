@@ -150,6 +150,19 @@ class MeshRenderer:
             depth: (H, W) float32 z-depth in metres along the optical axis, 0 = no hit.
             labels: (H, W) int16 label of the hit triangle, IGNORE where nothing is hit.
         """
+        depth, labels, _ = self._render(K, T_cw, width, height)
+        return depth, labels
+
+    def render_with_normals(self, K: np.ndarray, T_cw: np.ndarray, width: int,
+                            height: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Like :meth:`render`, plus (H, W, 3) float32 unit normals of the hit triangles in the
+        camera frame (winding-order sign, as the mesh has it; zero where nothing is hit)."""
+        depth, labels, prim = self._render(K, T_cw, width, height)
+        hit = prim < len(self.triangles)
+        n = self.normals[np.where(hit, prim, 0)] @ np.asarray(T_cw, np.float32)[:3, :3].T
+        return depth, labels, np.where(hit[..., None], n, 0.0).astype(np.float32)
+
+    def _render(self, K, T_cw, width, height):
         K_o3d = np.array(K, np.float64)
         K_o3d[:2, 2] += 0.5  # Open3D casts pixel (u, v) through (u + 0.5, v + 0.5)
         rays = o3d.t.geometry.RaycastingScene.create_rays_pinhole(
@@ -158,7 +171,7 @@ class MeshRenderer:
         # Open3D scales each ray direction to unit camera-z, so t_hit is already z-depth.
         t_hit, prim = self._cast(rays.numpy())
         depth = np.where(np.isfinite(t_hit), t_hit, 0.0).astype(np.float32)
-        return depth, self._label_lut[prim]
+        return depth, self._label_lut[prim], prim
 
 
 def sample_surface(
@@ -382,12 +395,20 @@ def _order_chain(poses: list[np.ndarray]) -> list[np.ndarray]:
     return [poses[i] for i in order]
 
 
-def render_views(renderer: MeshRenderer, K: np.ndarray, poses, width: int, height: int):
+def render_views(renderer: MeshRenderer, K: np.ndarray, poses, width: int, height: int, sensor=None):
     """Render every pose of ``poses`` ((4, 4) ``T_cw``): a list of (depth, labels) as
-    :meth:`MeshRenderer.render` returns them, shown as the stage "rendering views"."""
+    :meth:`MeshRenderer.render` returns them, shown as the stage "rendering views".
+
+    ``sensor``: a :class:`~diffuser_lab.data.sensor.SensorModel` applied to the depth of view i
+    (seeded by i, with the rendered normals), or None for perfect depth."""
     out = []
-    with progress.stage("rendering views", total=len(poses), unit="view") as bar:
-        for T in poses:  # loop over views
-            out.append(renderer.render(K, T, width, height))
+    what = "rendering views" if sensor is None else "rendering views (sensor depth)"
+    with progress.stage(what, total=len(poses), unit="view") as bar:
+        for i, T in enumerate(poses):  # loop over views
+            if sensor is None:
+                out.append(renderer.render(K, T, width, height))
+            else:
+                depth, labels, normals = renderer.render_with_normals(K, T, width, height)
+                out.append((sensor.apply(depth, K, i, normals=normals), labels))
             bar.update()
     return out

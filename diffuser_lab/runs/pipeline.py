@@ -12,7 +12,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from diffuser_lab import progress
-from diffuser_lab.config import BayesianMode, Config, SceneConfig, SceneSource
+from diffuser_lab.config import BayesianMode, Config, DepthNoiseConfig, SceneConfig, SceneSource
 from diffuser_lab.data import validate
 from diffuser_lab.data.geometry import VoxelGrid, nearest_transfer, voxel_downsample
 from diffuser_lab.data.predictions import describe as describe_predictions
@@ -26,10 +26,14 @@ from diffuser_lab.method.graph import KnnGraph, graph_stage, make_graph
 from diffuser_lab.method.metrics import confusion_matrix, score, scores_from_confusion
 
 
-def load_scene(cfg: SceneConfig, taxonomy: Taxonomy = SCANNET20) -> Scene:
+def load_scene(cfg: SceneConfig, taxonomy: Taxonomy = SCANNET20, depth: Optional[DepthNoiseConfig] = None) -> Scene:
     """The configured source -> :class:`Scene` in ``taxonomy`` (the run's: ``resolve_taxonomy(cfg)``)
-    whose frames carry ground-truth labels when known. Relative paths are taken from the current directory."""
+    whose frames carry ground-truth labels when known. Relative paths are taken from the current directory.
+
+    ``depth`` (the run's ``cfg.depth``; None = perfect): the sensor model applied to rendered depth
+    (demo, mesh_views) and, with ``depth.apply_to_real``, to the real sources' depth frames."""
     src = cfg.source
+    sensor = depth.sensor_model() if depth is not None else None
     with progress.stage(f"loading scene ({src.value})"):  # its own steps show inside
         if src == SceneSource.demo:
             from diffuser_lab.data.sources.demo import make_demo_scene
@@ -37,7 +41,8 @@ def load_scene(cfg: SceneConfig, taxonomy: Taxonomy = SCANNET20) -> Scene:
             d = cfg.demo
             scene, _ = make_demo_scene(seed=d.seed, room_size=tuple(d.room_size), n_views=d.n_views,
                                        image_width=d.image_width, image_height=d.image_height,
-                                       fov_deg=d.fov_deg, point_spacing=d.point_spacing, point_noise=d.point_noise)
+                                       fov_deg=d.fov_deg, point_spacing=d.point_spacing, point_noise=d.point_noise,
+                                       sensor=sensor)
             if taxonomy.name != scene.taxonomy.name:
                 from diffuser_lab.data.mapping import relabel_scene
 
@@ -49,7 +54,7 @@ def load_scene(cfg: SceneConfig, taxonomy: Taxonomy = SCANNET20) -> Scene:
             scene = load_mesh_views(m.path, taxonomy=taxonomy, mapping=m.mapping,
                                     n_views=m.n_views, seed=m.seed, image_width=m.image_width,
                                     image_height=m.image_height, fov_deg=m.fov_deg, min_coverage=m.min_coverage,
-                                    eye_height_range=(m.eye_height_min, m.eye_height_max))
+                                    eye_height_range=(m.eye_height_min, m.eye_height_max), sensor=sensor)
         elif src == SceneSource.scannet:
             from diffuser_lab.data.sources.scannet import ScannetLayout, load_scannet
 
@@ -83,6 +88,10 @@ def load_scene(cfg: SceneConfig, taxonomy: Taxonomy = SCANNET20) -> Scene:
                              frame_step=c.frame_step, max_frames=c.max_frames)
         else:  # pragma: no cover - the enum forbids it
             raise ValueError(f"scene.source={src}: unknown")
+    if sensor is not None and depth.apply_to_real and src not in (SceneSource.demo, SceneSource.mesh_views):
+        from diffuser_lab.data.sensor import noisy_frames
+
+        scene.frames = noisy_frames(scene.frames, sensor)  # the cloud stays the loader's
     if cfg.name:
         scene.name = cfg.name
     return scene
@@ -171,7 +180,7 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
     if scene is None:
         from diffuser_lab.data.taxonomy import resolve_taxonomy
 
-        scene = load_scene(cfg.scene, resolve_taxonomy(cfg))
+        scene = load_scene(cfg.scene, resolve_taxonomy(cfg), cfg.depth)
     tax = scene.taxonomy
     validate.check_points(scene)
     t["load"] = time.perf_counter() - t0

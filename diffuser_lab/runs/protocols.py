@@ -76,7 +76,7 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None) -> SingleFrameResul
     if scene is None:
         from diffuser_lab.data.taxonomy import resolve_taxonomy
 
-        scene = load_scene(cfg.scene, resolve_taxonomy(cfg))
+        scene = load_scene(cfg.scene, resolve_taxonomy(cfg), cfg.depth)
     tax, names = scene.taxonomy, scene.taxonomy.names
     frames = with_predictions(scene.frames, cfg.predictions, tax, scene_name=scene.name)
     n = len(frames)

@@ -369,6 +369,7 @@ def make_demo_scene(
     fov_deg: float = 70.0,
     point_spacing: float = 0.04,
     point_noise: float = 0.002,
+    sensor=None,
 ) -> tuple[Scene, MeshRenderer]:
     """Procedural labelled room with a point cloud and rendered ground-truth views.
 
@@ -379,6 +380,8 @@ def make_demo_scene(
         image_width, image_height: frame size, pixels. fov_deg: horizontal FOV, degrees.
         point_spacing: metres, one sampled point per ``point_spacing^2`` of visible area.
         point_noise: std of gaussian point position noise, metres.
+        sensor: a :class:`~diffuser_lab.data.sensor.SensorModel` for the frames' depth, or None
+            (perfect z-depth). The points, poses and label images do not depend on it.
 
     Returns:
         scene: points (N, 3) float32, normals (N, 3) float32 (exact mesh normals),
@@ -394,7 +397,7 @@ def make_demo_scene(
     K = intrinsics(image_width, image_height, fov_deg)
     poses = camera_trajectory(verts, n_views, rng, width=image_width, height=image_height,
                               K=K, renderer=renderer)
-    views = render_views(renderer, K, poses, image_width, image_height)
+    views = render_views(renderer, K, poses, image_width, image_height, sensor=sensor)
     frames = [Frame(name=f"view_{i:04d}", K=K.copy(), T_cw=T, depth=depth, labels=None, gt_labels=lab)
               for i, (T, (depth, lab)) in enumerate(zip(poses, views))]
     scene = Scene(name=f"demo_room_seed{seed}", points=points, taxonomy=SCANNET20,

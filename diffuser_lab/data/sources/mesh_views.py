@@ -37,7 +37,8 @@ def triangle_labels(vertex_labels: np.ndarray, triangles: np.ndarray) -> np.ndar
 def load_mesh_views(path: str | Path, *, taxonomy: Taxonomy = SCANNET20, mapping: str | None = "nyu40_to_scannet20",
                     n_views: int = 40, seed: int = 0, image_width: int = 320, image_height: int = 240,
                     fov_deg: float = 58.0, min_coverage: float = 0.3,
-                    eye_height_range: tuple[float, float] = (1.2, 1.8), name: str | None = None) -> Scene:
+                    eye_height_range: tuple[float, float] = (1.2, 1.8), name: str | None = None,
+                    sensor=None) -> Scene:
     """Load a labelled mesh and render ``n_views`` views of it.
 
     Args:
@@ -45,6 +46,8 @@ def load_mesh_views(path: str | Path, *, taxonomy: Taxonomy = SCANNET20, mapping
         mapping: mesh label ids -> ``taxonomy`` (shipped table name or CSV path); None = the ids
             already are taxonomy ids.
         fov_deg: horizontal field of view; intrinsics have square pixels and a centred principal point.
+        sensor: a :class:`~diffuser_lab.data.sensor.SensorModel` for the frames' depth, or None
+            (perfect z-depth). Points, poses and label images do not depend on it.
     Returns:
         Scene with points = vertices (world metres), normals, colours, gt_labels (IGNORE where
         unannotated or unmapped) and frames carrying depth and gt label images.
@@ -71,7 +74,7 @@ def load_mesh_views(path: str | Path, *, taxonomy: Taxonomy = SCANNET20, mapping
     rng = np.random.default_rng(seed)
     poses = camera_trajectory(vertices, n_views, rng, width=image_width, height=image_height, K=K,
                               renderer=renderer, min_coverage=min_coverage, eye_height_range=eye_height_range)
-    views = render_views(renderer, K, poses, image_width, image_height)
+    views = render_views(renderer, K, poses, image_width, image_height, sensor=sensor)
     frames = [Frame(name=f"view_{i:04d}", K=K, T_cw=T, depth=depth, gt_labels=labels)
               for i, (T, (depth, labels)) in enumerate(zip(poses, views))]
     stem = path.name.split(".")[0]
