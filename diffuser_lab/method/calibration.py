@@ -10,7 +10,8 @@ Scored against the ground truth (``IGNORE`` excluded) as
 
 - **ECE** (expected calibration error, top-label, Guo et al. 2017, "On calibration of modern
   neural networks"): confidences max_c p_c split into ``bins`` equal-width bins
-  ((m-1)/B, m/B], ECE = sum_m |B_m|/n |accuracy(B_m) - confidence(B_m)|, in percent;
+  ((m-1)/B, m/B] (a confidence within EDGE_TOL of an edge, e.g. a vote fraction 4/5 in float32,
+  in the lower bin), ECE = sum_m |B_m|/n |accuracy(B_m) - confidence(B_m)|, in percent;
 - **NLL**: mean of -ln max(p_gt, EPS) in nats (EPS = 1e-6: a one-hot input wrong at a point
   costs 13.8 nats there, so the NLL of hard-label methods is mostly their error rate x 13.8);
 - **Brier** (multi-class, Brier 1950): mean of sum_c (p_c - [c = gt])^2, in [0, 2].
@@ -35,6 +36,8 @@ from diffuser_lab.data.scene import IGNORE
 
 BINS = 15
 """Equal-width confidence bins of the ECE and the reliability diagram (Guo et al. 2017)."""
+EDGE_TOL = 1e-5
+"""Confidences within this (in bin widths) of a bin's upper edge count in that bin (float32 rounding)."""
 EPS = 1e-6
 """Floor on p_gt in the NLL (float32 distributions carry ~7 digits: below this p is rounding)."""
 
@@ -120,7 +123,9 @@ class Calibration:
         conf = np.where(has, pmax[rr], u).astype(np.float64)
         acc = np.where(has, (pg == conf) / ties[rr], u)
         brier = np.where(has, sumsq[rr] - 2.0 * pg + 1.0, 1.0 - u)
-        b = np.clip(np.ceil(conf * self.bins).astype(np.int64) - 1, 0, self.bins - 1)
+        # bin m holds ((m-1)/B, m/B]; vote fractions such as 4/5 sit on an edge, where float32
+        # rounding would scatter them over two bins: an edge within EDGE_TOL belongs to the lower one
+        b = np.clip(np.ceil(conf * self.bins - EDGE_TOL).astype(np.int64) - 1, 0, self.bins - 1)
         self.count += np.bincount(b, minlength=self.bins)
         self.sum_conf += np.bincount(b, conf, minlength=self.bins)
         self.sum_acc += np.bincount(b, acc, minlength=self.bins)
