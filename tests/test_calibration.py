@@ -90,6 +90,21 @@ def test_rows_index_a_smaller_cloud_and_parts_add_up():
     parts.add(work, gt[150:], rows[150:])
     assert parts.result()["bins"]["count"] == via["bins"]["count"]
     assert parts.result()["nll"] == pytest.approx(via["nll"], rel=1e-9)
+    # unnormalised scores (Z, mass) are normalised first; chunks of points add up
+    import diffuser_lab.method.calibration as cal_mod
+
+    scores = work * rng.uniform(0.1, 10, (50, 1)).astype(np.float32)
+    old, cal_mod.CHUNK = cal_mod.CHUNK, 64
+    try:
+        chunked = calibration(scores, gt, rows)
+    finally:
+        cal_mod.CHUNK = old
+    assert chunked["bins"]["count"] == via["bins"]["count"]
+    for k in ("ece", "nll", "brier"):
+        assert chunked[k] == pytest.approx(via[k], rel=1e-5)
+    # the temperature inside add() is with_temperature() before it
+    assert calibration(scores, gt, rows, temperature=0.5)["nll"] == \
+        pytest.approx(calibration(with_temperature(work, 0.5), gt, rows)["nll"], rel=1e-5)
 
 
 def test_bad_input_names_what_was_expected():

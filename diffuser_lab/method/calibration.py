@@ -23,8 +23,8 @@ expected accuracy of picking one of them at random (1/#ties if the true class is
 so a uniform row has confidence = accuracy = 1/C.
 
 Everything is accumulated per point with vectorised numpy (:class:`Calibration`), so frames can
-be added one at a time and a (M, C) distribution on a voxel cloud is scored on the N original
-points through a row index without building an (N, C) array.
+be added one at a time, and a (M, C) score array on a voxel cloud is scored on the N original
+points through a row index, CHUNK points at a time (no (N, C) or extra (M, C) array).
 """
 from __future__ import annotations
 
@@ -38,6 +38,8 @@ BINS = 15
 """Equal-width confidence bins of the ECE and the reliability diagram (Guo et al. 2017)."""
 EDGE_TOL = 1e-5
 """Confidences within this (in bin widths) of a bin's upper edge count in that bin (float32 rounding)."""
+CHUNK = 1 << 16
+"""Points scored at a time by :meth:`Calibration.add` (memory CHUNK x C)."""
 EPS = 1e-6
 """Floor on p_gt in the NLL (float32 distributions carry ~7 digits: below this p is rounding)."""
 
@@ -64,8 +66,8 @@ def with_temperature(p: np.ndarray, temperature: float) -> np.ndarray:
     if temperature == 1.0:
         return p
     top = p.max(1, keepdims=True)
-    q = np.divide(p, top, out=np.zeros_like(p, dtype=np.float64), where=top > 0)
-    q **= 1.0 / temperature
+    q = np.divide(p, top, out=np.zeros_like(p, dtype=np.float32), where=top > 0)
+    q **= np.float32(1.0 / temperature)  # entries that underflow were < 1e-38 ** T of the top: nil
     return posterior(q)
 
 
@@ -86,43 +88,57 @@ class Calibration:
         self.nll = self.brier = 0.0
         self.n = self.n_uniform = 0
 
-    def add(self, p: np.ndarray, gt: np.ndarray, rows: Optional[np.ndarray] = None) -> None:
-        """Score ``p`` (M, C) distributions (rows summing to 1, or all zero) against ``gt``.
+    def add(self, scores: np.ndarray, gt: np.ndarray, rows: Optional[np.ndarray] = None,
+            temperature: float = 1.0) -> None:
+        """Score the class distributions of ``scores`` against ``gt``.
 
         Args:
-            p: (M, C) float class distributions (:func:`posterior`).
+            scores: (M, C) non-negative class scores (Z, pixel mass, or distributions already):
+                each row is normalised (:func:`posterior`) and tempered (:func:`with_temperature`).
             gt: (N,) or any-shape integer ground truth (class ids or IGNORE).
-            rows: ``gt``'s shape, int: the row of ``p`` of each ground-truth point, -1 = no
+            rows: ``gt``'s shape, int: the row of ``scores`` of each ground-truth point, -1 = no
                 distribution (uniform); None = row i for point i (needs M = N).
+            temperature: T of :func:`with_temperature` (1 = as given).
+
+        The points are taken CHUNK at a time (their rows gathered, normalised and scored), so
+        memory stays at CHUNK x C whatever M and N.
         """
         c = self.num_classes
-        if p.ndim != 2 or p.shape[1] != c:
-            raise ValueError(f"distributions of shape {p.shape}: expected (points, {c})")
+        if scores.ndim != 2 or scores.shape[1] != c:
+            raise ValueError(f"class scores of shape {scores.shape}: expected (points, {c})")
+        if not temperature > 0:
+            raise ValueError(f"temperature={temperature!r}: expected > 0")
         g = np.asarray(gt).ravel().astype(np.int64)
-        r = np.arange(p.shape[0]) if rows is None else np.asarray(rows).ravel().astype(np.int64)
+        r = np.arange(scores.shape[0]) if rows is None else np.asarray(rows).ravel().astype(np.int64)
         if r.shape != g.shape:
             raise ValueError(f"{r.size} distribution rows for {g.size} ground-truth points")
         keep = g != IGNORE
         g, r = g[keep], r[keep]
-        if g.size and (g.min() < 0 or g.max() >= c):
-            raise ValueError(f"ground-truth class ids must be in [0, {c}) or IGNORE, got {g.min()}..{g.max()}")
         if not g.size:
             return
-        if r.max() >= p.shape[0]:
-            raise ValueError(f"distribution row {r.max()} of {p.shape[0]}")
-        if not p.shape[0]:  # nothing has a distribution: one all-zero row, every point uniform
-            p, r = np.zeros((1, c), np.float32), np.full_like(r, -1)
+        if g.min() < 0 or g.max() >= c:
+            raise ValueError(f"ground-truth class ids must be in [0, {c}) or IGNORE, got {g.min()}..{g.max()}")
+        if r.max() >= scores.shape[0]:
+            raise ValueError(f"distribution row {r.max()} of {scores.shape[0]}")
+        for a in range(0, g.size, CHUNK):
+            self._add(scores, g[a:a + CHUNK], r[a:a + CHUNK], temperature)
+
+    def _add(self, scores: np.ndarray, g: np.ndarray, r: np.ndarray, temperature: float) -> None:
+        c = self.num_classes
+        has = r >= 0
+        p = with_temperature(posterior(scores[r[has]]), temperature)  # (n with a row, C)
         pmax = p.max(1)
-        has = (r >= 0) & (pmax[np.maximum(r, 0)] > 0)
-        rr = np.where(has, r, 0)
-        # per-row figures once on the (smaller) distribution array, then gathered per point
-        ties = (p == pmax[:, None]).sum(1)
-        sumsq = np.einsum("ij,ij->i", p, p, dtype=np.float64)
+        with_p = pmax > 0  # a row of zeros (no evidence reached it) is no distribution either
+        has[has] = with_p
+        p, pmax, gh = p[with_p], pmax[with_p], g[has]
         u = 1.0 / c
-        pg = np.where(has, p[rr, g], u).astype(np.float64)
-        conf = np.where(has, pmax[rr], u).astype(np.float64)
-        acc = np.where(has, (pg == conf) / ties[rr], u)
-        brier = np.where(has, sumsq[rr] - 2.0 * pg + 1.0, 1.0 - u)
+        n = g.size
+        pg, conf, acc = np.full(n, u), np.full(n, u), np.full(n, u)
+        brier = np.full(n, 1.0 - u)
+        pg[has] = p[np.arange(p.shape[0]), gh]
+        conf[has] = pmax
+        acc[has] = (pg[has] == conf[has]) / (p == pmax[:, None]).sum(1)  # ties: expected accuracy
+        brier[has] = np.einsum("ij,ij->i", p, p, dtype=np.float64) - 2.0 * pg[has] + 1.0
         # bin m holds ((m-1)/B, m/B]; vote fractions such as 4/5 sit on an edge, where float32
         # rounding would scatter them over two bins: an edge within EDGE_TOL belongs to the lower one
         b = np.clip(np.ceil(conf * self.bins - EDGE_TOL).astype(np.int64) - 1, 0, self.bins - 1)
@@ -131,7 +147,7 @@ class Calibration:
         self.sum_acc += np.bincount(b, acc, minlength=self.bins)
         self.nll += float(-np.log(np.maximum(pg, EPS)).sum())
         self.brier += float(brier.sum())
-        self.n += int(g.size)
+        self.n += int(n)
         self.n_uniform += int((~has).sum())
 
     def result(self) -> dict:
@@ -154,10 +170,12 @@ class Calibration:
         }
 
 
-def calibration(p: np.ndarray, gt: np.ndarray, rows: Optional[np.ndarray] = None, bins: int = BINS) -> dict:
-    """:meth:`Calibration.result` of the distributions ``p`` (M, C) scored at ``gt`` (see :meth:`Calibration.add`)."""
+def calibration(p: np.ndarray, gt: np.ndarray, rows: Optional[np.ndarray] = None, bins: int = BINS,
+                temperature: float = 1.0) -> dict:
+    """:meth:`Calibration.result` of the (M, C) class scores or distributions ``p`` scored at
+    ``gt`` (see :meth:`Calibration.add`)."""
     cal = Calibration(p.shape[1], bins)
-    cal.add(p, gt, rows)
+    cal.add(p, gt, rows, temperature)
     return cal.result()
 
 
@@ -169,6 +187,6 @@ def of_methods(scores: dict, gt: np.ndarray, rows: Optional[np.ndarray], num_cla
     out = {}
     for name, s in scores.items():
         cal = Calibration(num_classes, bins)
-        cal.add(with_temperature(posterior(s), temperature), gt, rows)
+        cal.add(s, gt, rows, temperature)
         out[name] = {**cal.result(), "temperature": float(temperature)}
     return out

@@ -163,8 +163,7 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None) -> SingleFrameResul
                 img = np.full(f.shape, IGNORE, np.int16)
                 img[pix[:, 0], pix[:, 1]] = lab[to_work]
                 rows[key].add(img, f.gt_labels, names)
-                p = calibration.with_temperature(calibration.posterior(work_scores[key]), temperature)
-                rows[key].cal.add(p, f.gt_labels, at)
+                rows[key].cal.add(work_scores[key], f.gt_labels, at, temperature)
         bar.set(len(targets))
 
     t["total"] = time.perf_counter() - t0
