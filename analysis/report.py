@@ -108,7 +108,8 @@ def report(paths: list[str], out: str | Path, title: str | None = None) -> Path:
         lines += ["## Calibration (mean ± std over seeds)", "",
                   "The class distribution of each point (Diffuser, LDLS: Z row-normalised; Bayesian, direct: the "
                   "normalised pixel mass) against the ground truth: `ece` top-label expected calibration error in "
-                  "percent (`calibration.bins`, default 15), `nll` nats per point (p floored at 1e-6), `brier` multi-class Brier score; "
+                  "percent (`calibration.bins`, default 15), `nll` nats per point (p floored at 1e-6), `brier` "
+                  "multi-class Brier score; "
                   "`bayesian_*` the Bayesian baseline of the same runs (summary `metrics.calibration`).", "",
                   markdown(*aggregate(runs), metrics=CALIBRATION_COLUMNS), ""]
     if plots:

@@ -52,7 +52,8 @@ class Run:
             from diffuser_lab.runs.report import calibration_key
 
             if method in METHODS:  # its widest row, as the summary's metrics / baseline.bayesian
-                return calibration_key(method, max(METHODS[method].single_frame_rows(int(self.summary.get("window", 1)))))
+                window = int(self.summary.get("window", 1))
+                return calibration_key(method, max(METHODS[method].single_frame_rows(window)))
         return method
 
     @cached_property
