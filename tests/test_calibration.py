@@ -240,3 +240,24 @@ def test_report_has_the_calibration_table(runs, tmp_path):
     assert "## Calibration" in md and "| ece | bayesian_ece |" in md and "![reliability](reliability.png)" in md
     ece = _cal(runs["global"])["diffuser"]["ece"]
     assert f"| {ece:.1f} |" in md
+
+
+def test_collect_has_calibration_columns(runs, tmp_path):
+    from analysis.collect import collect
+
+    rrows, arows, _ = collect([str(runs["global"]), str(runs["single"])], tmp_path / "t")
+    cal = {"global": _cal(runs["global"]), "single": _cal(runs["single"])}
+    by_protocol = {("single" if "single" in r["run"] else "global"): r for r in rrows}
+    assert by_protocol["global"]["ece"] == cal["global"]["diffuser"]["ece"]
+    assert by_protocol["global"]["bayesian_brier"] == cal["global"]["bayesian"]["brier"]
+    assert by_protocol["single"]["nll"] == cal["single"]["diffuser_3v"]["nll"]
+
+
+def test_temperature_experiment_sweeps_the_key():
+    from omegaconf import OmegaConf
+
+    from conftest import ROOT
+
+    params = OmegaConf.load(ROOT / "conf" / "experiment" / "temperature.yaml").hydra.sweeper.params
+    temps = [float(t) for t in str(params["calibration.temperature"]).split(",")]
+    assert {0.5, 1.0, 2.0, 4.0} <= set(temps) and len(str(params.seed).split(",")) == 3
