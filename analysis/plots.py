@@ -8,6 +8,9 @@
   methods; with one method, that method against the Bayesian fusion of the same evidence
   (summary ``baseline.bayesian``) for each swept configuration;
 - ``per_class_iou.png``: heat map of per-class IoU for each configuration (and the Bayesian baseline);
+- ``reliability.png``: reliability diagrams of the runs' class distributions (summary
+  ``metrics.calibration``): one panel per method (and per swept configuration), accuracy per
+  confidence bin against the diagonal, ECE in the title;
 - ``convergence.png``: mIoU and residual against iteration, read from the runs' run.mcap files: one
   curve per configuration (seeds aggregated: mean, band min-max over seeds), coloured by the swept
   value (sequential colour map for numbers, qualitative for names), a second swept parameter as
@@ -485,6 +488,108 @@ def plot_convergence(runs: list[Run], out: Path) -> Path | None:
     return None if fig is None else _save(fig, out / "convergence.png")
 
 
+# --- reliability diagrams -----------------------------------------------------------------------
+
+def _calibrated(key: str) -> tuple:
+    """Panel order of a ``metrics.calibration`` key: ``diffuser``, or ``diffuser_5v`` (single frame)."""
+    name, _, views = key.rpartition("_")
+    if views.endswith("v") and views[:-1].isdigit() and name in METHOD_ORDER:
+        return (METHOD_ORDER.index(name), int(views[:-1]), key)
+    return (METHOD_ORDER.index(key) if key in METHOD_ORDER else len(METHOD_ORDER), 0, key)
+
+
+def _panel_title(key: str) -> str:
+    name, _, views = key.rpartition("_")
+    if views.endswith("v") and views[:-1].isdigit() and name in METHOD_ORDER:
+        return f"{name}, {views[:-1]} view{'' if views == '1v' else 's'}"
+    return key
+
+
+def pooled_bins(entries: list[dict]) -> dict:
+    """Reliability bins of several runs' ``metrics.calibration.<method>`` pooled: counts summed,
+    confidence and accuracy (percent) weighted by count; ``ece`` (percent) of the pooled bins."""
+    count = np.array([e["bins"]["count"] for e in entries], float)
+    conf = np.array([[np.nan if v is None else v for v in e["bins"]["confidence"]] for e in entries], float)
+    acc = np.array([[np.nan if v is None else v for v in e["bins"]["accuracy"]] for e in entries], float)
+    n = count.sum(0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        c = np.where(n > 0, np.nansum(count * conf, 0) / n, np.nan)
+        a = np.where(n > 0, np.nansum(count * acc, 0) / n, np.nan)
+    ece = float(np.nansum(n * np.abs(a - c)) / n.sum()) if n.sum() else np.nan
+    return {"edge": np.array(entries[0]["bins"]["edge"], float), "count": n, "confidence": c, "accuracy": a,
+            "ece": ece}
+
+
+def reliability_figure(runs: list[Run]) -> Figure | None:
+    """Reliability diagrams from the runs' ``metrics.calibration``: one panel per method (columns)
+    and per configuration of the swept parameters other than ``method`` (rows); bars = accuracy per
+    confidence bin (seeds pooled), the gap to the bin's mean confidence hatched, the diagonal =
+    perfect calibration, the grey steps the share of points per bin; ECE (mean ± std over the runs)
+    in each panel's title. None without figures."""
+    ok = [r for r in runs if r.status == "ok" and isinstance(r.metric("metrics.calibration"), dict)]
+    if not ok:
+        return None
+    keys = [k for k in swept(runs) if k != "method"]
+    groups = _groups(ok, keys) if keys else {(): ok}
+    cfgs = sorted(groups, key=_cfg_key(keys))
+    methods = sorted({m for r in ok for m, e in r.metric("metrics.calibration").items()
+                      if isinstance(e, dict) and e.get("n_points")}, key=_calibrated)
+    if not methods:
+        return None
+    nrow, ncol = len(cfgs), len(methods)
+    fig, axes = plt.subplots(nrow, ncol, figsize=(0.8 + 3.0 * ncol, 1.4 + 3.0 * nrow), squeeze=False,
+                             sharex=True, sharey=True, layout="constrained")
+    for i, cfg in enumerate(cfgs):
+        for j, m in enumerate(methods):
+            ax = axes[i, j]
+            entries = [e for e in (r.metric(f"metrics.calibration.{m}") for r in groups[cfg])
+                       if isinstance(e, dict) and e.get("n_points")]
+            if not entries:
+                ax.set_axis_off()
+                continue
+            b = pooled_bins(entries)
+            lo = np.concatenate([[0.0], b["edge"][:-1]]) * 100
+            width = (b["edge"] * 100 - lo)
+            filled = b["count"] > 0
+            ax.bar(lo[filled], b["accuracy"][filled], width=width[filled], align="edge", color="#4c72b0",
+                   edgecolor="white", linewidth=0.5, label="accuracy")
+            gap_lo = np.minimum(b["accuracy"], b["confidence"])[filled]
+            ax.bar(lo[filled], np.abs(b["confidence"] - b["accuracy"])[filled], bottom=gap_lo,
+                   width=width[filled], align="edge", facecolor="none", edgecolor="#c44e52", hatch="//",
+                   linewidth=0.8, label="gap to confidence")
+            ax.plot([0, 100], [0, 100], "--", color="k", lw=1, label="perfect calibration")
+            ax.stairs(100 * b["count"] / b["count"].sum(), np.concatenate([lo[:1], b["edge"] * 100]),
+                      color="#555555", lw=1.2, label="share of points [%]")
+            eces = np.array([e["ece"] for e in entries if isinstance(e.get("ece"), (int, float))], float)
+            spread = f" ± {eces.std():.1f}" if eces.size > 1 else ""
+            head = _panel_title(m) + (f"\n{_cfg_label(keys, cfg, short=True)}" if keys else "")
+            ax.set_title(f"{head}\nECE {eces.mean():.1f}{spread}%", fontsize=9)
+            ax.set_xlim(0, 100)
+            ax.set_ylim(0, 100)
+            ax.grid(alpha=0.3)
+            if i == nrow - 1:
+                ax.set_xlabel("confidence [%]")
+            if j == 0:
+                ax.set_ylabel("accuracy [%]")
+    handles, labels = next((a.get_legend_handles_labels() for a in axes.flat if a.axison), ([], []))
+    fig.legend(handles, labels, loc="outside lower center", ncol=4, fontsize=8)
+    temps = sorted({e.get("temperature") for r in ok for e in r.metric("metrics.calibration").values()
+                    if isinstance(e, dict) and e.get("temperature") is not None})
+    t = "" if temps in ([], [1.0]) or "calibration.temperature" in keys else \
+        f", temperature {', '.join(f'{x:g}' for x in temps)}"
+    n_bins = next(len(e["bins"]["count"]) for r in ok for e in r.metric("metrics.calibration").values()
+                  if isinstance(e, dict) and e.get("n_points"))
+    fig.suptitle(f"Reliability of the class distributions\n(top-label confidence, {n_bins} equal-width bins{t}; "
+                 f"{_over((len(v) for v in groups.values()), 'pooled')})", fontsize=9)
+    return fig
+
+
+def plot_reliability(runs: list[Run], out: Path) -> Path | None:
+    """Reliability diagrams of the runs' class distributions (summary ``metrics.calibration``)."""
+    fig = reliability_figure(runs)
+    return None if fig is None else _save(fig, out / "reliability.png")
+
+
 # --- all of them ---------------------------------------------------------------------------------
 
 def make_plots(paths: list[str], out: str | Path) -> list[Path]:
@@ -492,7 +597,7 @@ def make_plots(paths: list[str], out: str | Path) -> list[Path]:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     made = [plot_sweep(runs, k, out) for k in swept(runs) if k != "method"]
-    for fn in (plot_methods, plot_class_heatmap, plot_convergence):
+    for fn in (plot_methods, plot_class_heatmap, plot_convergence, plot_reliability):
         p = fn(runs, out)
         if p is not None:
             made.append(p)

@@ -16,7 +16,10 @@ from analysis.collect import collect
 from analysis.plots import make_plots, sort_key, swept
 from analysis.runs import SEED_KEYS, Run, experiment_name, find_runs, scene_name, scenes
 
+CALIBRATION_COLUMNS = ("ece", "bayesian_ece", "nll", "bayesian_nll", "brier", "bayesian_brier")
 CAPTIONS = {
+    "reliability": "Reliability diagrams: accuracy per confidence bin (seeds pooled) against the diagonal, the "
+                   "gap to the bin's mean confidence hatched, the share of points per bin in grey; ECE in the titles.",
     "per_class_iou": "Per-class IoU for each configuration (mean over seeds).",
     "convergence": "mIoU and relative residual per recorded iteration, one line per configuration: mean "
                    "over seeds (residual: geometric mean), band min–max over seeds.",
@@ -99,6 +102,16 @@ def report(paths: list[str], out: str | Path, title: str | None = None) -> Path:
               "mIoU, accuracy and coverage in percent over the scene's points; `bayesian_miou` is Bayesian "
               "fusion of the same evidence in the same run; `miou_2d` scores the 2D inputs; times in seconds.", "",
               md, ""]
+    if any(r.metric("metrics.calibration") for r in ok):
+        from diffuser_lab.runs.results import aggregate, markdown
+
+        lines += ["## Calibration (mean ± std over seeds)", "",
+                  "The class distribution of each point (Diffuser, LDLS: Z row-normalised; Bayesian, direct: the "
+                  "normalised pixel mass) against the ground truth: `ece` top-label expected calibration error in "
+                  "percent (`calibration.bins`, default 15), `nll` nats per point (p floored at 1e-6), `brier` "
+                  "multi-class Brier score; "
+                  "`bayesian_*` the Bayesian baseline of the same runs (summary `metrics.calibration`).", "",
+                  markdown(*aggregate(runs), metrics=CALIBRATION_COLUMNS), ""]
     if plots:
         lines += ["## Plots", ""]
         for p in plots:

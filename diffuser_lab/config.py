@@ -543,6 +543,19 @@ class MethodConfig:
 
 
 @dataclass
+class CalibrationConfig:
+    """How the methods' class distributions are scored (summary ``metrics.calibration``;
+    :mod:`diffuser_lab.method.calibration`). Changes no label."""
+
+    temperature: float = 1.0  # p <- softmax(log p / T) on every method's normalised Z / mass; 1 = as is
+    bins: int = 15  # equal-width confidence bins of the ECE and the reliability diagram (Guo et al. 2017)
+
+    def __post_init__(self) -> None:
+        _check(self.temperature > 0, "calibration.temperature", self.temperature, "> 0")
+        _check(self.bins >= 1, "calibration.bins", self.bins, ">= 1")
+
+
+@dataclass
 class ProtocolConfig:
     """Evaluation protocol (paper Sec. IV-A)."""
 
@@ -615,6 +628,7 @@ class Config:
     graph: GraphConfig = field(default_factory=GraphConfig)
     solver: SolverConfig = field(default_factory=SolverConfig)
     method: MethodConfig = field(default_factory=MethodConfig)
+    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
     protocol: ProtocolConfig = field(default_factory=ProtocolConfig)
     record: RecordConfig = field(default_factory=RecordConfig)
     output: OutputConfig = field(default_factory=OutputConfig)

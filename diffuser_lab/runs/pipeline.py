@@ -19,6 +19,7 @@ from diffuser_lab.data.predictions import describe as describe_predictions
 from diffuser_lab.data.predictions import with_predictions
 from diffuser_lab.data.scene import IGNORE, SCANNET20, Frame, Scene, Taxonomy
 from diffuser_lab.hooks import RunHooks
+from diffuser_lab.method import calibration
 from diffuser_lab.method import evidence as evidence_mod
 from diffuser_lab.method import fusion
 from diffuser_lab.method.diffusion import DiffusionResult, Observer, labels_from_scores, normalise
@@ -260,8 +261,9 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
 
     tl = time.perf_counter()
     with progress.stage(f"labels to the {scene.n_points:,} original points"):  # instant without voxels
-        labels = _to_original(scene, grid, work_labels).astype(np.int16)
-        bayes = _to_original(scene, grid, bayes_work).astype(np.int16)
+        rows = _to_original(scene, grid, np.arange(pts.shape[0]))  # each point's work point
+        labels = work_labels[rows].astype(np.int16)
+        bayes = bayes_work[rows].astype(np.int16)
     t["labels"] = time.perf_counter() - tl
 
     res = RunResult(scene=scene, frames=frames, method=method.name, labels=labels, bayesian_labels=bayes,
@@ -271,6 +273,12 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
         tm = time.perf_counter()
         res.metrics = score(labels, scene.gt_labels, tax.names)
         res.baseline["bayesian"] = score(bayes, scene.gt_labels, tax.names)
+        # each method's class distribution (Diffuser, LDLS: Z; the others: their pixel mass) per point
+        post = {method.name: diff.Z if diff is not None else mass}
+        if method.name != "bayesian":
+            post["bayesian"] = ev_base.mass
+        res.metrics["calibration"] = calibration.of_methods(post, scene.gt_labels, rows, tax.num_classes,
+                                                            cfg.calibration.temperature, cfg.calibration.bins)
         t["metrics"] = time.perf_counter() - tm
     t["total"] = time.perf_counter() - t0
     res.timings_s = t

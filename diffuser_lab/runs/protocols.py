@@ -24,6 +24,7 @@ from diffuser_lab.config import Config
 from diffuser_lab.data.geometry import backproject, voxel_downsample
 from diffuser_lab.data.predictions import with_predictions
 from diffuser_lab.data.scene import IGNORE, Frame, Scene
+from diffuser_lab.method import calibration
 from diffuser_lab.method import evidence as evidence_mod
 from diffuser_lab.method import fusion
 from diffuser_lab.method.diffusion import normalise
@@ -39,6 +40,7 @@ class Row:
     views: int
     conf: Optional[np.ndarray] = None  # pooled (C, C+1) confusion over target frames
     per_frame_miou: list = field(default_factory=list)
+    cal: Optional[calibration.Calibration] = None  # its class distributions over the target frames' pixels
 
     def add(self, pred_img: np.ndarray, gt: np.ndarray, names) -> None:
         c = confusion_matrix(pred_img, gt, len(names))
@@ -50,7 +52,8 @@ class Row:
         pf = np.array(self.per_frame_miou, float)
         return {"method": self.method, "views": self.views, "miou": s.get("miou"), "accuracy": s.get("accuracy"),
                 "mean_frame_miou": float(np.nanmean(pf)) if pf.size else None,
-                "per_class_iou": s.get("per_class_iou")}
+                "per_class_iou": s.get("per_class_iou"),
+                **({"calibration": self.cal.result()} if self.cal is not None else {})}
 
 
 @dataclass
@@ -90,7 +93,8 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None) -> SingleFrameResul
         mc = replace(cfg, graph=replace(cfg.graph), evidence=replace(cfg.evidence))
         m.apply(mc)
         settings[m.name] = (m, mc, 0 if m.evidence == fusion.BASELINE else mc.evidence.pixel_radius)
-    rows = {key: Row(*key) for key in order}
+    rows = {key: Row(*key, cal=calibration.Calibration(tax.num_classes, cfg.calibration.bins)) for key in order}
+    temperature = cfg.calibration.temperature
     pred2d = Row("2d", 1)
     cache: dict[int, Frame] = {}
     t = {"load": time.perf_counter() - t0, "frames": 0.0, "evidence": 0.0, "graph": 0.0, "diffusion": 0.0}
@@ -130,7 +134,7 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None) -> SingleFrameResul
 
             # each method's settings (what it fixes applied to the run's config), its evidence and
             # graph built once per target frame and shared between the rows that use them
-            evidence, graphs, work_labels = {}, {}, {}
+            evidence, graphs, work_labels, work_scores = {}, {}, {}, {}
             for name, views in order:
                 m, mc, radius = settings[name]
                 ekey = (views, radius)
@@ -148,18 +152,24 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None) -> SingleFrameResul
                         t["graph"] += time.perf_counter() - tg
                     system = normalise(graphs[mc.graph.use_normals], evidence[ekey].mass, lam)
                 td = time.perf_counter()
-                work_labels[(name, views)], _ = m.label(evidence[ekey].mass, system=system, solver=solver)
+                work_labels[(name, views)], diff = m.label(evidence[ekey].mass, system=system, solver=solver)
+                work_scores[(name, views)] = diff.Z if diff is not None else evidence[ekey].mass
                 if m.graph:
                     t["diffusion"] += time.perf_counter() - td
 
+            at = np.full(f.shape, -1, np.int64)  # each pixel's work point (-1: no depth, uniform)
+            at[pix[:, 0], pix[:, 1]] = to_work
             for key, lab in work_labels.items():  # 3D labels back into the target frame
                 img = np.full(f.shape, IGNORE, np.int16)
                 img[pix[:, 0], pix[:, 1]] = lab[to_work]
                 rows[key].add(img, f.gt_labels, names)
+                rows[key].cal.add(work_scores[key], f.gt_labels, at, temperature)
         bar.set(len(targets))
 
     t["total"] = time.perf_counter() - t0
     results = [rows[k].result(names) for k in order]
+    for r in results:
+        r["calibration"]["temperature"] = float(temperature)
     p2 = pred2d.result(names) if pred2d.conf is not None else None
     return SingleFrameResult(scene=scene, window=W, targets=targets, rows=results, predictions_2d=p2,
                              mean_points=float(np.mean(n_points)) if n_points else 0.0, timings_s=t)

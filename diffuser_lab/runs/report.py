@@ -89,9 +89,15 @@ def table(res: RunResult, run_dir: Path | None = None) -> str:
     return "\n".join(lines)
 
 
+def calibration_key(method: str, views: int) -> str:
+    """The single-frame protocol's name of a Table II row in ``metrics.calibration``: ``diffuser_5v``."""
+    return f"{method}_{views}v"
+
+
 def single_frame_summary(sf) -> dict:
     """summary.json content of a single-frame protocol run; ``metrics`` is the Diffuser
-    W-view row, ``baseline.bayesian`` the Bayesian W-view row, ``rows`` all of Table II."""
+    W-view row, ``baseline.bayesian`` the Bayesian W-view row, ``rows`` all of Table II;
+    ``metrics.calibration`` has every row's calibration (:func:`calibration_key`)."""
     rows = sf.rows
     pick = {(r["method"], r["views"]): r for r in rows}
     main = pick.get(("diffuser", sf.window))
@@ -106,7 +112,9 @@ def single_frame_summary(sf) -> dict:
         "window": sf.window,
         "n_classes": sf.scene.taxonomy.num_classes,
         "taxonomy": sf.scene.taxonomy.name,
-        "metrics": {"miou": main["miou"], "accuracy": main["accuracy"], "per_class_iou": main["per_class_iou"]},
+        "metrics": {"miou": main["miou"], "accuracy": main["accuracy"], "per_class_iou": main["per_class_iou"],
+                    "calibration": {calibration_key(r["method"], r["views"]): r["calibration"]
+                                    for r in rows if "calibration" in r}},
         "baseline": {"bayesian": {"miou": bayes["miou"], "accuracy": bayes["accuracy"]}},
         "rows": rows,
         "predictions_2d": sf.predictions_2d,

@@ -31,13 +31,30 @@ class Run:
         return self.summary.get("status", "unknown")
 
     def metric(self, dotted: str):
-        """A value of summary.json by dotted path, e.g. ``baseline.bayesian.miou``; None if absent."""
+        """A value of summary.json by dotted path, e.g. ``baseline.bayesian.miou``; None if absent.
+        ``{method}`` / ``{bayesian}`` in the path stand for the run's method's / the Bayesian
+        baseline's key in ``metrics.calibration`` (:meth:`calibration_key`)."""
+        if "{" in dotted:
+            dotted = dotted.format(method=self.calibration_key(str(self.summary.get("method", ""))),
+                                   bayesian=self.calibration_key("bayesian"))
         node = self.summary
         for part in dotted.split("."):
             if not isinstance(node, dict) or part not in node:
                 return None
             node = node[part]
         return node
+
+    def calibration_key(self, method: str) -> str:
+        """``method``'s key in ``metrics.calibration``: the method itself (global protocol) or its
+        W-view row, e.g. ``diffuser_5v``, in a single-frame run (whose ``metrics`` is that row)."""
+        if self.summary.get("protocol") == "single_frame":
+            from diffuser_lab.method.fusion import METHODS
+            from diffuser_lab.runs.report import calibration_key
+
+            if method in METHODS:  # its widest row, as the summary's metrics / baseline.bayesian
+                window = int(self.summary.get("window", 1))
+                return calibration_key(method, max(METHODS[method].single_frame_rows(window)))
+        return method
 
     @cached_property
     def hydra_choices(self) -> dict:
@@ -167,6 +184,12 @@ METRICS = {
     "coverage": "metrics.coverage",
     "bayesian_miou": "baseline.bayesian.miou",
     "miou_2d": "predictions_2d.miou",
+    "ece": "metrics.calibration.{method}.ece",  # percent (diffuser_lab/method/calibration.py)
+    "nll": "metrics.calibration.{method}.nll",  # nats per point
+    "brier": "metrics.calibration.{method}.brier",
+    "bayesian_ece": "metrics.calibration.{bayesian}.ece",
+    "bayesian_nll": "metrics.calibration.{bayesian}.nll",
+    "bayesian_brier": "metrics.calibration.{bayesian}.brier",
     "iterations": "diffusion.iterations",
     "total_s": "timings_s.total",
     "diffusion_s": "timings_s.diffusion",
@@ -243,7 +266,7 @@ def markdown(cols: list[str], rows: list[dict], metrics=("miou", "bayesian_miou"
         cells = [_fmt(r[k]) for k in keys]
         for m in metrics:
             mean, std = r.get(m), r.get(m + "_std")
-            digits = 2 if m.endswith("_s") else 1
+            digits = 2 if m.endswith("_s") else 3 if m.endswith(("nll", "brier")) else 1
             cells.append("-" if is_nan(mean) else (f"{mean:.{digits}f} ± {std:.{digits}f}" if r["runs"] - r["failed"] > 1
                                                     else f"{mean:.{digits}f}"))
         cells += [str(r["runs"]), str(r["failed"])]
