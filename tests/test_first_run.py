@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from diffuser_lab.backends import numba as nb
-from tests.conftest import SMALL_DEMO, run_cli
+from conftest import SMALL_DEMO, run_cli
 
 pytestmark = pytest.mark.skipif(not nb.available(), reason="numba not importable or DIFFUSER_LAB_NUMBA=0")
 
