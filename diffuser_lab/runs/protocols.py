@@ -18,6 +18,7 @@ from dataclasses import dataclass, field, replace
 from typing import Optional
 
 import numpy as np
+from scipy.ndimage import distance_transform_edt
 
 from diffuser_lab import progress
 from diffuser_lab.config import Config
@@ -65,6 +66,7 @@ class SingleFrameResult:
     predictions_2d: Optional[dict]
     mean_points: float
     timings_s: dict
+    filled: bool = False  # protocol.fill_missing_depth was on (not the paper's protocol)
 
 
 def _window(i: int, n: int, w: int) -> list[int]:
@@ -101,6 +103,7 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None) -> SingleFrameResul
     n_points = []
     ev_kw = dict(depth_tol=cfg.evidence.depth_tol)
     lam, solver = cfg.evidence.pixel_weight, cfg.solver
+    fill = cfg.protocol.fill_missing_depth
 
     def frame(j: int) -> Frame:
         if j not in cache:
@@ -159,9 +162,11 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None) -> SingleFrameResul
 
             at = np.full(f.shape, -1, np.int64)  # each pixel's work point (-1: no depth, uniform)
             at[pix[:, 0], pix[:, 1]] = to_work
+            if fill:  # protocol.fill_missing_depth: a pixel without depth reads its nearest pixel with depth
+                near = distance_transform_edt(at < 0, return_distances=False, return_indices=True)
+                at = at[near[0], near[1]]
             for key, lab in work_labels.items():  # 3D labels back into the target frame
-                img = np.full(f.shape, IGNORE, np.int16)
-                img[pix[:, 0], pix[:, 1]] = lab[to_work]
+                img = np.where(at >= 0, lab[np.maximum(at, 0)], IGNORE).astype(np.int16)
                 rows[key].add(img, f.gt_labels, names)
                 rows[key].cal.add(work_scores[key], f.gt_labels, at, temperature)
         bar.set(len(targets))
@@ -172,12 +177,15 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None) -> SingleFrameResul
         r["calibration"]["temperature"] = float(temperature)
     p2 = pred2d.result(names) if pred2d.conf is not None else None
     return SingleFrameResult(scene=scene, window=W, targets=targets, rows=results, predictions_2d=p2,
-                             mean_points=float(np.mean(n_points)) if n_points else 0.0, timings_s=t)
+                             mean_points=float(np.mean(n_points)) if n_points else 0.0, timings_s=t,
+                             filled=bool(fill))
 
 
 def table(res: SingleFrameResult) -> str:
     lines = [f"diffuser-lab single-frame protocol | scene {res.scene.name} | {len(res.targets)} target frames | "
-             f"window {res.window} | {res.mean_points:,.0f} points per frame"]
+             f"window {res.window} | {res.mean_points:,.0f} points per frame"
+             + (" | pixels without depth filled (protocol.fill_missing_depth, not the paper's protocol)"
+                if res.filled else "")]
     lines.append(f"{'method':12s}{'views':>6s}{'2D mIoU':>9s}{'frame mean':>12s}{'acc':>7s}")
     for r in res.rows:
         lines.append(f"{r['method']:12s}{r['views']:>6d}{r['miou']:>9.1f}{r['mean_frame_miou']:>12.1f}"

@@ -110,6 +110,7 @@ def single_frame_summary(sf) -> dict:
         "n_frames": len(sf.scene.frames),
         "n_targets": len(sf.targets),
         "window": sf.window,
+        "fill_missing_depth": sf.filled,
         "n_classes": sf.scene.taxonomy.num_classes,
         "taxonomy": sf.scene.taxonomy.name,
         "metrics": {"miou": main["miou"], "accuracy": main["accuracy"], "per_class_iou": main["per_class_iou"],
