@@ -38,6 +38,13 @@ class Protocol(Enum):
     single_frame = "single_frame"  # label each frame's back-projected depth, score 2D mIoU (Table II)
 
 
+class FrameNormals(Enum):
+    """single_frame: where a target frame's cloud gets its normals (Eq. 4's normal term)."""
+
+    knn = "knn"  # open3d PCA over graph.normal_knn neighbours of the back-projected cloud (the paper's)
+    depth_image = "depth_image"  # the organised depth image, smoothed over protocol.normal_window_px
+
+
 class PredictionSource(Enum):
     simulated = "simulated"  # simulated 2D-network mistakes on ground-truth label images
     gt = "gt"  # ground-truth label images (perfect 2D labels)
@@ -566,10 +573,13 @@ class ProtocolConfig:
     # single_frame, a change to the paper's protocol (reported separately): a pixel without depth
     # takes the label (and distribution) of the nearest pixel with depth instead of counting as a miss
     fill_missing_depth: bool = False
+    normals: FrameNormals = FrameNormals.knn  # single_frame: see FrameNormals
+    normal_window_px: int = 7  # single_frame, normals=depth_image: box window of the depth smoothing
 
     def __post_init__(self) -> None:
         _check(self.window >= 1, "protocol.window", self.window, ">= 1")
         _check(self.target_step >= 1, "protocol.target_step", self.target_step, ">= 1")
+        _check(self.normal_window_px >= 1, "protocol.normal_window_px", self.normal_window_px, ">= 1 pixels")
 
 
 class RecordMode(Enum):

@@ -21,7 +21,7 @@ import numpy as np
 from scipy.ndimage import distance_transform_edt
 
 from diffuser_lab import progress
-from diffuser_lab.config import Config
+from diffuser_lab.config import Config, FrameNormals
 from diffuser_lab.data.geometry import backproject, voxel_downsample
 from diffuser_lab.data.predictions import with_predictions
 from diffuser_lab.data.scene import IGNORE, Frame, Scene
@@ -67,6 +67,30 @@ class SingleFrameResult:
     mean_points: float
     timings_s: dict
     filled: bool = False  # protocol.fill_missing_depth was on (not the paper's protocol)
+
+
+def image_normals(f: Frame, pix: np.ndarray, to_work: np.ndarray, m: int, window: int) -> np.ndarray:
+    """(m, 3) float32 unit world normals of a target frame's work points from its organised depth
+    image: the depth box-averaged over ``window`` x ``window`` valid pixels (sensor noise is
+    per pixel; PCA over a noisy cloud's kNN sees it in 3D), normals by central differences
+    (:func:`diffuser_lab.data.sensor.normals_from_depth`), turned towards the camera, averaged
+    over each work point's pixels (``pix`` (P, 2) rows/cols -> ``to_work`` (P,) in 0..m-1)."""
+    from scipy.ndimage import uniform_filter
+
+    from diffuser_lab.data.sensor import normals_from_depth
+
+    d = np.asarray(f.depth, np.float64)
+    ok = (d > 0).astype(np.float64)
+    cnt = uniform_filter(ok, window, mode="constant")
+    smooth = np.where(ok > 0, uniform_filter(d * ok, window, mode="constant") / np.maximum(cnt, 1e-12), 0.0)
+    n_cam = normals_from_depth(smooth, f.K)[pix[:, 0], pix[:, 1]]  # (P, 3) camera frame
+    n_cam *= np.where(n_cam[:, 2:3] > 0, -1.0, 1.0)  # towards the camera (it looks along +z)
+    R_wc = np.linalg.inv(f.T_cw)[:3, :3]
+    acc = np.zeros((m, 3))
+    np.add.at(acc, to_work, n_cam @ R_wc.T)
+    norm = np.linalg.norm(acc, axis=1, keepdims=True)
+    out = np.where(norm > 0, acc / np.maximum(norm, 1e-30), np.array([0.0, 0.0, 1.0]))
+    return out.astype(np.float32)
 
 
 def _window(i: int, n: int, w: int) -> list[int]:
@@ -150,8 +174,11 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None) -> SingleFrameResul
                 if m.graph:
                     if mc.graph.use_normals not in graphs:
                         tg = time.perf_counter()
+                        nrm = None
+                        if mc.graph.use_normals and cfg.protocol.normals == FrameNormals.depth_image:
+                            nrm = image_normals(f, pix, to_work, work.shape[0], cfg.protocol.normal_window_px)
                         with graph_stage(work.shape[0], mc.graph, mc.graph.use_normals):
-                            graphs[mc.graph.use_normals] = make_graph(work, None, mc.graph)[1]
+                            graphs[mc.graph.use_normals] = make_graph(work, nrm, mc.graph)[1]
                         t["graph"] += time.perf_counter() - tg
                     system = normalise(graphs[mc.graph.use_normals], evidence[ekey].mass, lam)
                 td = time.perf_counter()
