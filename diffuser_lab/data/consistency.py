@@ -99,7 +99,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     register()
     with initialize_config_dir(config_dir=config_dir(), version_base="1.3", job_name="consistency"):
         cfg = to_object(compose("config", overrides=args))
-    scene = load_scene(cfg.scene)
+    from diffuser_lab.data.taxonomy import resolve_taxonomy
+
+    scene = load_scene(cfg.scene, resolve_taxonomy(cfg), cfg.depth)  # depth=sensor applies too
     tax = scene.taxonomy
     frames = [f for f in with_predictions(scene.frames, cfg.predictions, tax, scene.name)]
     conf = sum(confusion_matrix(f.labels, f.gt_labels, tax.num_classes) for f in frames)

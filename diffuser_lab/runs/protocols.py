@@ -100,7 +100,10 @@ def _window(i: int, n: int, w: int) -> list[int]:
     return list(range(start, start + w))
 
 
-def single_frame(cfg: Config, scene: Optional[Scene] = None) -> SingleFrameResult:
+def single_frame(cfg: Config, scene: Optional[Scene] = None, on_frame=None) -> SingleFrameResult:
+    """The single RGB-D frame protocol (paper Table II). ``on_frame(frame, images)``, if given, sees
+    each target frame and its rows' label images ({(method, views): (H, W) int16}) as scored; it
+    does not change the result."""
     t0 = time.perf_counter()
     if scene is None:
         from diffuser_lab.data.taxonomy import resolve_taxonomy
@@ -192,10 +195,14 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None) -> SingleFrameResul
             if fill:  # protocol.fill_missing_depth: a pixel without depth reads its nearest pixel with depth
                 near = distance_transform_edt(at < 0, return_distances=False, return_indices=True)
                 at = at[near[0], near[1]]
+            images = {}
             for key, lab in work_labels.items():  # 3D labels back into the target frame
                 img = np.where(at >= 0, lab[np.maximum(at, 0)], IGNORE).astype(np.int16)
                 rows[key].add(img, f.gt_labels, names)
                 rows[key].cal.add(work_scores[key], f.gt_labels, at, temperature)
+                images[key] = img
+            if on_frame is not None:
+                on_frame(f, images)
         bar.set(len(targets))
 
     t["total"] = time.perf_counter() - t0
