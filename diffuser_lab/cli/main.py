@@ -15,7 +15,7 @@ from typing import Any, Optional
 
 from diffuser_lab.config import register
 from diffuser_lab.runs import launchers
-from diffuser_lab.runs.sweep import job_line, job_tag
+from diffuser_lab.runs.sweep import job_line, job_tag, say
 
 log = logging.getLogger("diffuser_lab")
 PROG = "diffuser-lab"
@@ -109,7 +109,7 @@ def _task(cfg: Any) -> Optional[float]:
     multirun = hc.mode == RunMode.MULTIRUN
     if multirun and "BasicLauncher" not in str(hc.launcher.get("_target_", "")):
         # jobs run side by side: say which one starts (the basic launcher's "#i :" line does)
-        print(f"{job_tag(hc.job.num)} started {' '.join(hc.overrides.task)}", flush=True)
+        say(f"{job_tag(hc.job.num)} started {' '.join(hc.overrides.task)}")
         if hc.launcher.get("cpus_per_task"):  # submitit: the job's share of the CPUs
             from diffuser_lab.backends import numba as nb
 
@@ -138,7 +138,7 @@ def _task(cfg: Any) -> Optional[float]:
             sf = single_frame(conf)
             done = summary.single_frame(sf)
             if multirun:
-                print(job_line(hc.job.num, run_dir, done, time.perf_counter() - t_start), flush=True)
+                say(job_line(hc.job.num, run_dir, done, time.perf_counter() - t_start))
             elif not conf.output.quiet:
                 print(table(sf) + f"\nrun folder: {run_dir}")
             return done["metrics"]["miou"]
@@ -164,7 +164,7 @@ def _task(cfg: Any) -> Optional[float]:
         result.timings_s["write"] = time.perf_counter() - t_out
         done = summary.result(result, conf, records=hooks.files() if hooks is not None else {}, files=files)
         if multirun:  # one line per job; the sweep's table comes at the end (sweep.print_table)
-            print(job_line(hc.job.num, run_dir, done, time.perf_counter() - t_start), flush=True)
+            say(job_line(hc.job.num, run_dir, done, time.perf_counter() - t_start))
         elif not conf.output.quiet:
             print(report.table(result, run_dir))
         return (done.get("metrics") or {}).get("miou")
@@ -172,7 +172,7 @@ def _task(cfg: Any) -> Optional[float]:
         error = f"{type(exc).__name__}: {one_line(exc)}"
         failed = summary.failed(error) if summary is not None else {"status": "failed", "error": error}
         if multirun:
-            print(job_line(hc.job.num, run_dir, failed), flush=True)
+            say(job_line(hc.job.num, run_dir, failed))
         if multirun or _verbose():
             raise  # Hydra marks this job failed and goes on with the others
         print(f"{PROG}: error: {one_line(exc)}", file=sys.stderr)

@@ -27,6 +27,14 @@ WATCHED_LAUNCHERS = ("ray_launcher", "submitit")  # whose jobs' stdout does not 
 _started: dict[str, Any] = {}  # the sweep this process launched: {"dir": Path, "watcher": Watcher}
 
 
+
+def say(line: str, file=None) -> None:
+    """One line in one write: jobs that run side by side share the launcher's stdout, and print()
+    writes the text and its newline separately (two jobs' lines then interleave mid-line)."""
+    f = file or sys.stdout
+    f.write(line + "\n")
+    f.flush()
+
 def count_jobs(config: Any) -> Optional[int]:
     """Number of jobs Hydra's basic sweeper makes of ``hydra.sweeper.params`` and the command
     line (the same parsing and precedence as ``BasicSweeper.sweep``); None for other sweepers."""
@@ -118,7 +126,7 @@ class Watcher(threading.Thread):
             else:
                 continue
             self.seen[path.parent] = status
-            print(line, file=self.file or sys.stdout, flush=True)
+            say(line, self.file)
 
     def run(self) -> None:
         while not self._stop_event.wait(self.period):
