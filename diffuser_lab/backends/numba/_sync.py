@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import platform
 
+import numpy as np
+
 from llvmlite import ir
 from numba import njit, types
 from numba.core import cgutils
@@ -94,3 +96,16 @@ def wait_until(ctrl, idx, target):
             os_yield()
         else:
             os_usleep(20)
+
+
+@njit(cache=True, nogil=True, boundscheck=False)
+def all_converged(res, s, nthreads, tol):
+    """After step ``s``'s barrier: the stopping rule of every compiled run of steps, seen alike by
+    every thread. ``res[s, t, 0:2]`` is thread t's (max |Zn - Z|, max Zn); True when the global
+    relative change max|Zn - Z| / max Zn is <= ``tol``."""
+    gch = np.float32(0.0)
+    gtp = np.float32(0.0)
+    for t in range(nthreads):
+        gch = max(gch, res[s, t, 0])
+        gtp = max(gtp, res[s, t, 1])
+    return (np.float64(gch) / np.float64(gtp) if gtp > 0 else 0.0) <= tol

@@ -2,7 +2,7 @@
 import numpy as np
 from numba import njit
 
-from ._sync import atomic_add, wait_until
+from ._sync import all_converged, atomic_add, wait_until
 
 @njit(cache=True, boundscheck=False, nogil=True, fastmath={'contract'})
 def rows_8(nbr, wts, Zf, Znf, Bf, floor, lo, hi):
@@ -119,12 +119,7 @@ def steps_8(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, ctr
         res[s, tid, 1] = tp
         atomic_add(ctrl, 0, 1)
         wait_until(ctrl, 0, (s + 1) * nthreads)
-        gch = np.float32(0.0)
-        gtp = np.float32(0.0)
-        for t in range(nthreads):
-            gch = max(gch, res[s, t, 0])
-            gtp = max(gtp, res[s, t, 1])
-        if (np.float64(gch) / np.float64(gtp) if gtp > 0 else 0.0) <= tol:
+        if all_converged(res, s, nthreads, tol):
             return s + 1
     return n_steps
 
@@ -324,12 +319,7 @@ def steps_16(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, ct
         res[s, tid, 1] = tp
         atomic_add(ctrl, 0, 1)
         wait_until(ctrl, 0, (s + 1) * nthreads)
-        gch = np.float32(0.0)
-        gtp = np.float32(0.0)
-        for t in range(nthreads):
-            gch = max(gch, res[s, t, 0])
-            gtp = max(gtp, res[s, t, 1])
-        if (np.float64(gch) / np.float64(gtp) if gtp > 0 else 0.0) <= tol:
+        if all_converged(res, s, nthreads, tol):
             return s + 1
     return n_steps
 
@@ -609,12 +599,7 @@ def steps_24(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, ct
         res[s, tid, 1] = tp
         atomic_add(ctrl, 0, 1)
         wait_until(ctrl, 0, (s + 1) * nthreads)
-        gch = np.float32(0.0)
-        gtp = np.float32(0.0)
-        for t in range(nthreads):
-            gch = max(gch, res[s, t, 0])
-            gtp = max(gtp, res[s, t, 1])
-        if (np.float64(gch) / np.float64(gtp) if gtp > 0 else 0.0) <= tol:
+        if all_converged(res, s, nthreads, tol):
             return s + 1
     return n_steps
 
@@ -974,11 +959,6 @@ def steps_32(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, ct
         res[s, tid, 1] = tp
         atomic_add(ctrl, 0, 1)
         wait_until(ctrl, 0, (s + 1) * nthreads)
-        gch = np.float32(0.0)
-        gtp = np.float32(0.0)
-        for t in range(nthreads):
-            gch = max(gch, res[s, t, 0])
-            gtp = max(gtp, res[s, t, 1])
-        if (np.float64(gch) / np.float64(gtp) if gtp > 0 else 0.0) <= tol:
+        if all_converged(res, s, nthreads, tol):
             return s + 1
     return n_steps

@@ -49,7 +49,7 @@ def generate_source() -> str:
            "import numpy as np",
            "from numba import njit",
            "",
-           "from ._sync import atomic_add, wait_until",
+           "from ._sync import all_converged, atomic_add, wait_until",
            ""]
     for W in WIDTHS:
         L = ["@njit(cache=True, boundscheck=False, nogil=True, fastmath={'contract'})",
@@ -101,12 +101,7 @@ def steps_{W}(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, c
         res[s, tid, 1] = tp
         atomic_add(ctrl, 0, 1)
         wait_until(ctrl, 0, (s + 1) * nthreads)
-        gch = np.float32(0.0)
-        gtp = np.float32(0.0)
-        for t in range(nthreads):
-            gch = max(gch, res[s, t, 0])
-            gtp = max(gtp, res[s, t, 1])
-        if (np.float64(gch) / np.float64(gtp) if gtp > 0 else 0.0) <= tol:
+        if all_converged(res, s, nthreads, tol):
             return s + 1
     return n_steps
 

@@ -14,7 +14,7 @@ import numpy as np
 from numba import njit
 
 from ..sparse import SparseClassesBase, SparseState
-from ._sync import atomic_add, wait_until
+from ._sync import all_converged, atomic_add, wait_until
 from .jacobi import StepRunner, fixed_rows
 
 RES = 4
@@ -265,12 +265,7 @@ def sparse_steps(nbr, wts, cA, vA, nA, eA, rA, cB, vB, nB, eB, rB, bptr, bcls, b
             barriers += 1
             atomic_add(ctrl, 0, 1)
             wait_until(ctrl, 0, barriers * nthreads)
-        gch = np.float32(0.0)
-        gtp = np.float32(0.0)
-        for t in range(nthreads):
-            gch = max(gch, res[s, t, 0])
-            gtp = max(gtp, res[s, t, 1])
-        if (np.float64(gch) / np.float64(gtp) if gtp > 0 else 0.0) <= tol:
+        if all_converged(res, s, nthreads, tol):
             return s + 1
     return n_steps
 
