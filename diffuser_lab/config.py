@@ -598,8 +598,19 @@ class McapCompression(Enum):
 
 
 class ZPrecision(Enum):
-    float32 = "float32"
-    float16 = "float16"
+    """How run.mcap keeps the intermediate Z states (the last recorded one is always float32, exact)."""
+
+    q8 = "q8"  # each row: its sum (float32) and its shares Z_ic / sum_c Z_ic in 1/255 steps (error <= 0.2% of the sum)
+    q16 = "q16"  # the same in 1/65535 steps (error <= 7.7e-6 of the sum)
+    float16 = "float16"  # Z / max(Z) as float16 (relative error 2^-11; values below 6e-8 max(Z) lose digits)
+    float32 = "float32"  # exact
+
+
+class CloudSchedule(Enum):
+    """Recorded iterations that also get a labelled foxglove.PointCloud in run.mcap."""
+
+    decades = "decades"  # 100, 1000, ... and the last
+    all = "all"  # every recorded iteration
 
 
 @dataclass
@@ -607,15 +618,21 @@ class RecordConfig:
     """What the run records of the diffusion (diffuser_lab.recording); records never change results."""
 
     mode: RecordMode = RecordMode.both
-    interval: int = 10  # record every n-th iteration; the first and the last always
-    z_precision: ZPrecision = ZPrecision.float32  # precision of Z in run.mcap
-    max_image_side: int = 320  # frames' images in run.rrd are downsampled to at most this many pixels
-    compression: McapCompression = McapCompression.lz4  # run.mcap's chunks
+    # recorded iterations: null = log-spaced 1, 2, 5, 10, 20, 50, 100, ... (1-2-5 steps); n = every
+    # n-th; the first and the last always
+    interval: Optional[int] = None
+    z_precision: ZPrecision = ZPrecision.q8  # intermediate Z states in run.mcap (the last: float32, exact)
+    clouds: CloudSchedule = CloudSchedule.decades  # labelled point clouds in run.mcap (Foxglove)
+    max_image_side: int = 320  # frames' label (and colour) images in the records are strided to at most this many pixels
+    max_depth_side: int = 160  # frames' depth images in run.rrd likewise (0: none); depth compresses ~5x worse than labels
+    compression: McapCompression = McapCompression.zstd  # run.mcap's chunks
     retain_heap_mb: int = 256  # diffuser-lab (the CLI) has glibc keep this much freed memory for reuse (0: its defaults)
 
     def __post_init__(self) -> None:
-        _check(self.interval >= 1, "record.interval", self.interval, ">= 1")
+        _check(self.interval is None or self.interval >= 1, "record.interval", self.interval, ">= 1 or null")
         _check(self.max_image_side >= 16, "record.max_image_side", self.max_image_side, ">= 16")
+        _check(self.max_depth_side == 0 or self.max_depth_side >= 16, "record.max_depth_side", self.max_depth_side,
+               "0 (no depth images) or >= 16")
         _check(0 <= self.retain_heap_mb <= 1024, "record.retain_heap_mb", self.retain_heap_mb, "in 0..1024")
 
 

@@ -66,8 +66,9 @@ def test_round_trip_last_z_is_the_solvers_and_gives_the_labels(cli_runs):
     assert s["records"] == {"rrd": "run.rrd", "mcap": "run.mcap"}
     log = read_run(d / "run.mcap", z="all")
     assert log.complete and not log.truncated
-    assert log.z_iterations == [1, 10, 20, 30, 40, 50, 60]  # interval 10, first and last
+    assert log.z_iterations == [1, 2, 5, 10, 20, 50, 60]  # the 1-2-5 log steps, first and last
     assert [m["iteration"] for m in log.metrics] == log.z_iterations
+    assert log.z_dtype == {**{it: "q8" for it in log.z_iterations[:-1]}, 60: "float32"}
     Z = log.z[60]
     assert Z.dtype == np.float32 and Z.shape == (s["n_points"], s["n_classes"])
     labels = np.load(d / "labels.npy")
@@ -110,9 +111,11 @@ def test_every_recorded_z_and_label_cloud_is_that_iterations(small_demo_scene, t
     monkeypatch.setattr(recording, "ASYNC", mode != "in-line")
     if mode == "background-slow":
         slow = McapRecorder.log_step
-        monkeypatch.setattr(McapRecorder, "log_step", lambda self, step: (time.sleep(0.03), slow(self, step)))
+        monkeypatch.setattr(McapRecorder, "log_step", lambda self, step, **kw: (time.sleep(0.03), slow(self, step, **kw)))
 
-    cfg = default_config(**{"solver.max_iter": 40, "record.interval": 5})
+    # record=full's precision: every Z state float32, a cloud per recorded iteration
+    cfg = default_config(**{"solver.max_iter": 40, "record.interval": 5, "record.z_precision": "float32",
+                            "record.clouds": "all"})
 
     class Copies(RunHooks):
         def __init__(self):
@@ -239,7 +242,7 @@ def test_float16_and_voxel_grid(small_demo_scene, tmp_path):
 def test_rrd_reads_back_with_rerun_and_holds_class_ids_per_iteration(cli_runs):
     d = cli_runs["both"]
     ids = rrd_class_ids(d / "run.rrd")
-    assert sorted(ids) == [1, 10, 20, 30, 40, 50, 60]
+    assert sorted(ids) == [1, 2, 5, 10, 20, 50, 60]
     np.testing.assert_array_equal(ids[60], as_class_ids(np.load(d / "labels.npy")))
     assert not np.array_equal(ids[1], ids[60])  # the labels spread
     from rerun.chunk import RrdReader
@@ -248,12 +251,12 @@ def test_rrd_reads_back_with_rerun_and_holds_class_ids_per_iteration(cli_runs):
     assert reader.recordings() and reader.blueprints()  # a default blueprint ships with the data
     paths = {ch.entity_path for ch in reader.stream()}
     assert {"/world", "/world/scene/points", "/world/scene/ground_truth", "/world/cameras/0000",
-            "/world/cameras/0000/depth", "/world/cameras/0000/labels", "/world/evidence/bayesian",
+            "/world/depth/0000/depth", "/world/cameras/0000/labels", "/world/evidence/bayesian",
             "/world/diffusion/confidence", "/world/diffusion/wrong", "/metrics/miou",
             "/metrics/residual", "/metrics/changed"} <= paths
     p = subprocess.run([RERUN, "rrd", "verify", str(d / "run.rrd")], capture_output=True, text=True, timeout=120)
     assert p.returncode == 0, p.stderr
-    depth = next(ch for ch in reader.stream() if ch.entity_path == "/world/cameras/0000/depth").to_record_batch()
+    depth = next(ch for ch in reader.stream() if ch.entity_path == "/world/depth/0000/depth").to_record_batch()
     assert depth.column("DepthImage:meter").to_pylist() == [[1000.0]]  # uint16 millimetres
     cam = next(ch for ch in reader.stream() if ch.entity_path == "/world/cameras/0000").to_record_batch()
     assert {"Pinhole:image_from_camera", "Pinhole:resolution", "Transform3D:mat3x3",
@@ -273,7 +276,7 @@ def test_rerun_reads_the_mcap(cli_runs):
     path = cli_runs["both"] / "run.mcap"
     p = subprocess.run([RERUN, "mcap", "info", str(path)], capture_output=True, text=True, timeout=120)
     assert p.returncode == 0, p.stderr
-    assert "/diffuser_lab/z" in p.stdout and "diffuser_lab.ZState" in p.stdout and "lz4" in p.stdout
+    assert "/diffuser_lab/z" in p.stdout and "diffuser_lab.ZState" in p.stdout and "zstd" in p.stdout
     from rerun.chunk import McapReader
 
     cols: dict = {}
@@ -297,9 +300,12 @@ def test_schema_in_the_file_decodes_without_this_package(cli_runs):
             for f in descriptor_pb2.FileDescriptorSet.FromString(schema.data).file:
                 pool.Add(f)
             msg = GetMessageClass(pool.FindMessageTypeByName(schema.name)).FromString(message.data)
-            assert msg.dtype == "float32" and msg.scale == 1.0 and msg.class_major
-            Z = np.frombuffer(msg.data, "<f4").reshape(msg.n_classes, msg.n_points).T
+            assert msg.dtype == "q8" and msg.class_major  # an intermediate state: row sums x 8-bit shares
+            shares = np.frombuffer(msg.data, "u1").reshape(msg.n_classes, msg.n_points).T
+            Z = shares * (np.frombuffer(msg.row_sums, "<f4") / 255.0)[:, None]
             assert Z.shape[1] == 20 and (Z.sum(1) > 0).any()
+            labels = np.frombuffer(msg.labels, "<i2")
+            assert labels.shape == (msg.n_points,) and (labels[Z.sum(1) > 0] >= 0).all()
             break
         else:
             pytest.fail("no Z message")
@@ -375,7 +381,7 @@ def test_methods_without_diffusion_record_the_static_part(method, small_demo_sce
 def test_a_failing_recorder_is_switched_off_and_the_run_goes_on(small_demo_scene, tmp_path, monkeypatch, caplog):
     from diffuser_lab.recording import mcap_write
 
-    def boom(self, step):
+    def boom(self, step, final=False):
         raise OSError("disk full")
 
     monkeypatch.setattr(mcap_write.McapRecorder, "log_step", boom)
@@ -383,7 +389,7 @@ def test_a_failing_recorder_is_switched_off_and_the_run_goes_on(small_demo_scene
     res, hooks = recorded(cfg, small_demo_scene, tmp_path)
     files = hooks.files()
     assert files["rrd"] == "run.rrd" and "mcap" not in files and "disk full" in files["errors"]["mcap"]
-    assert sorted(rrd_class_ids(tmp_path / "run.rrd")) == [1, 10, 20]
+    assert sorted(rrd_class_ids(tmp_path / "run.rrd")) == [1, 2, 5, 10, 20]
     plain = run(cfg, scene=small_demo_scene)
     np.testing.assert_array_equal(res.labels, plain.labels)
 

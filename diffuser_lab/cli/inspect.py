@@ -61,13 +61,6 @@ def _iters(its: Sequence[int]) -> str:
     return ", ".join(map(str, its[:4])) + ", ..., " + ", ".join(map(str, its[-2:]))
 
 
-def _every(n: int) -> str:
-    if n <= 1:
-        return "every iteration"
-    suffix = "th" if 10 <= n % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
-    return f"every {n}{suffix}"
-
-
 def summary_text(log: Any) -> str:
     """The run at a glance (see the README for an example)."""
     info, run, s = log.info, log.run, log.summary
@@ -87,8 +80,11 @@ def summary_text(log: Any) -> str:
     if not its:
         lines.append("recorded  0 iterations (no diffusion recorded: static records only)")
     elif info is not None:
-        zinfo = f"Z {info.z_dtype or 'float32'}, {int(info.n_work_points):,} x {len(names)}"
-        lines.append(f"recorded  {len(its)} iterations: {_iters(its)} ({_every(int(info.interval))}, "
+        from diffuser_lab.recording.schedule import describe
+
+        dts = sorted(set(log.z_dtype.values()), key=lambda d: d == "float32")
+        zinfo = f"Z {' / last '.join(dts) if len(dts) > 1 else (dts or ['float32'])[0]}, {int(info.n_work_points):,} x {len(names)}"
+        lines.append(f"recorded  {len(its)} iterations: {_iters(its)} ({describe(int(info.interval))}, "
                      f"first and last; {zinfo})")
     else:
         lines.append(f"recorded  {len(its)} iterations: {_iters(its)}")
@@ -133,7 +129,7 @@ def mcap_to_rrd(mcap_path: Path | str, rrd_path: Path | str, *, max_image_side: 
         decode_point_cloud,
         decode_z,
     )
-    from diffuser_lab.recording.mcap_read import RunLog, iter_run, metrics_dict
+    from diffuser_lab.recording.mcap_read import RunLog, iter_run, metrics_dict, work_points
     from diffuser_lab.recording.rerun_log import RerunRecorder
     from diffuser_lab.recording.steps import StepTracker
 
@@ -165,7 +161,7 @@ def mcap_to_rrd(mcap_path: Path | str, rrd_path: Path | str, *, max_image_side: 
                     rec.log_camera(i, cam.name, np.reshape(cam.K, (3, 3)), np.reshape(cam.T_cw, (4, 4)),
                                    cam.width, cam.height)
                 m = int(info.n_work_points)
-                work = np.frombuffer(info.work_points, "<f4").reshape(m, 3)
+                work = work_points(info, points)
                 seen = np.frombuffer(info.seen, np.uint8).astype(bool)
                 bayes = np.frombuffer(info.bayesian_labels, "<i2")
                 to_work = np.frombuffer(info.original_to_work, "<i4") if info.original_to_work else None
@@ -178,8 +174,11 @@ def mcap_to_rrd(mcap_path: Path | str, rrd_path: Path | str, *, max_image_side: 
             elif topic == TOPIC_Z and tracker is not None:
                 msg = schema.ZState.FromString(data)
                 it = int(msg.iteration)
+                if log.z_iterations and log.z_iterations[-1] == it:
+                    continue  # the last state again, exact (the run converged on a recorded iteration)
                 log.z_iterations.append(it)
-                rec.log_step(tracker.step(it, decode_z(msg), residual.get(it, float("nan"))), points)
+                labels = np.frombuffer(msg.labels, "<i2") if msg.labels else None  # the run's own argmax
+                rec.log_step(tracker.step(it, decode_z(msg), residual.get(it, float("nan")), labels=labels), points)
     finally:
         rec.close()
     return log
@@ -249,17 +248,20 @@ def _main(args: argparse.Namespace) -> int:
         it = log.z_iterations[-1] if args.at == "last" else _int(args.at)
         if it not in log.z:
             raise UsageError(f"iteration {it} was not recorded; recorded: {_iters(log.z_iterations)}")
+        from diffuser_lab.recording.mcap_encode import z_precision_text
+
         Z = log.z[it]
+        precision = z_precision_text(log.z_dtype.get(it, "float32"))
         if args.out:
             np.save(args.out, Z)
-            print(f"wrote {args.out}: Z at iteration {it}, {Z.shape[0]:,} x {Z.shape[1]} float32 "
-                  f"(dtype in run.mcap: {log.info.z_dtype if log.info is not None else '?'})")
+            print(f"wrote {args.out}: Z at iteration {it}, {Z.shape[0]:,} x {Z.shape[1]} float32; "
+                  f"stored as {precision}")
         else:
             from diffuser_lab.method.diffusion import labels_from_scores
 
             lab = labels_from_scores(Z)
             print(f"Z at iteration {it}: {Z.shape[0]:,} x {Z.shape[1]} float32, max {Z.max():.3e}, "
-                  f"{int((lab >= 0).sum()):,} labelled points (use --out z.npy to save it)")
+                  f"{int((lab >= 0).sum()):,} labelled points; stored as {precision} (use --out z.npy to save it)")
         return 0
     print(summary_text(log))
     if args.config:

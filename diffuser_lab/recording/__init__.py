@@ -1,8 +1,8 @@
 """Records of a run: run.rrd (Rerun) and run.mcap (MCAP), written as the diffusion goes.
 
 Both recorders are observers (:class:`~diffuser_lab.hooks.RunHooks`): they read the arrays the
-pipeline hands them and never change the result. Per recorded iteration (every
-``record.interval``-th, plus the first and the last) the derived quantities (labels,
+pipeline hands them and never change the result. Per recorded iteration (:mod:`.schedule`:
+1, 2, 5, 10, 20, 50, ... or every ``record.interval``-th, plus the first and the last) the derived quantities (labels,
 confidence, changes, mIoU so far) are computed once (:mod:`.steps`) and given to both.
 
 All recording work runs on one background thread, in the order the hooks were called: the
@@ -26,6 +26,7 @@ Usage (the CLI does this when ``record != off``)::
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import queue
 from pathlib import Path
@@ -35,6 +36,7 @@ import numpy as np
 
 from diffuser_lab.hooks import RunHooks
 
+from .schedule import recorded
 from .serial import SerialThread
 from .steps import Step, StepTracker, original_to_work
 
@@ -62,12 +64,13 @@ class RecordingHooks(RunHooks):
     def __init__(self, conf: Any, run_dir: Path, *, rerun: bool, mcap: bool, overrides: Sequence[str] = ()):
         self.conf = conf
         self.run_dir = Path(run_dir)
-        self.interval = int(conf.record.interval)
+        self.interval = None if conf.record.interval is None else int(conf.record.interval)
         self.max_iter = int(conf.solver.max_iter)
         self.method = str(_value(conf.method.name))
         self.errors: dict[str, str] = {}
         self._files: dict[str, str] = {}
         self.recorded: list[int] = []  # iterations recorded, in order
+        self._last_step = None
         self.rerun = self.mcap = None  # set on the recording thread, which opens them
         self._wanted = [w for w, on in (("rerun", rerun), ("mcap", mcap)) if on]
         self.scene = None
@@ -84,7 +87,8 @@ class RecordingHooks(RunHooks):
     def _open_rerun(self) -> None:
         from .rerun_log import RerunRecorder
 
-        self.rerun = RerunRecorder(self.run_dir / RRD_NAME, max_image_side=self.conf.record.max_image_side)
+        self.rerun = RerunRecorder(self.run_dir / RRD_NAME, max_image_side=self.conf.record.max_image_side,
+                                   max_depth_side=int(getattr(self.conf.record, "max_depth_side", 160)))
         self._files["rrd"] = RRD_NAME
 
     def _open_mcap(self, overrides: Sequence[str]) -> None:
@@ -99,7 +103,8 @@ class RecordingHooks(RunHooks):
         # on the recording thread already: the MCAP recorder compresses and writes in it too
         self.mcap = McapRecorder(self.run_dir / MCAP_NAME, z_dtype=str(_value(self.conf.record.z_precision)),
                                  config_yaml=yaml, overrides=overrides, interval=self.interval,
-                                 max_iter=self.max_iter, compression=str(_value(getattr(self.conf.record, "compression", "lz4"))),
+                                 max_iter=self.max_iter, compression=str(_value(getattr(self.conf.record, "compression", "zstd"))),
+                                 clouds=str(_value(getattr(self.conf.record, "clouds", "decades"))),
                                  writer_thread=self._worker is None)
         self._files["mcap"] = MCAP_NAME
 
@@ -174,19 +179,20 @@ class RecordingHooks(RunHooks):
     def wants(self, iteration: int) -> bool:
         # what was asked for and has not failed: the recorders may still be opening on the
         # recording thread, and what is queued now is written once they are
-        return any(w not in self.errors for w in self._wanted) and (
-            iteration == 1 or iteration % self.interval == 0 or iteration == self.max_iter)
+        return any(w not in self.errors for w in self._wanted) and recorded(iteration, self.interval, self.max_iter)
 
-    def _record(self, iteration: int, Z: np.ndarray, residual: float) -> None:
-        """On the recording thread: one recorded iteration to both recorders."""
+    def _record(self, iteration: int, Z: np.ndarray, residual: float, final: bool = False) -> None:
+        """On the recording thread: one recorded iteration to both recorders (``final``: the
+        run's last, whose Z run.mcap keeps exact)."""
         if self.tracker is None or (self.rerun is None and self.mcap is None):
             return
         step = self.tracker.step(iteration, Z, residual)
+        self._last_step = step
         pts = self.scene.points
         if self.rerun is not None:
             self._guard("rerun", lambda: self.rerun.log_step(step, pts))
         if self.mcap is not None:
-            self._guard("mcap", lambda: self.mcap.log_step(step))
+            self._guard("mcap", lambda: self.mcap.log_step(step, final=final))
         self.recorded.append(step.iteration)
 
     def _z_buffer(self, Z: np.ndarray) -> np.ndarray:
@@ -206,14 +212,15 @@ class RecordingHooks(RunHooks):
 
     def observe(self, iteration: int, Z: np.ndarray, stats: dict) -> None:
         residual = float(stats.get("residual", float("nan")))
+        final = iteration == self.max_iter
         if self._worker is None:
-            self._record(iteration, Z, residual)
+            self._record(iteration, Z, residual, final)
             return
         buf = self._z_buffer(Z)  # Z is the solver's, valid during this call only
 
         def record():
             try:
-                self._record(iteration, buf, residual)
+                self._record(iteration, buf, residual, final)
             finally:
                 self._z_free.put(buf)
 
@@ -225,7 +232,12 @@ class RecordingHooks(RunHooks):
             if d is not None and (not self.recorded or self.recorded[-1] != d.iterations):
                 # the last iteration was not observed (early convergence, or a solver without
                 # per-iteration observers): record it from the returned Z, exactly
-                self._record(d.iterations, d.Z, float(d.residual))
+                self._record(d.iterations, d.Z, float(d.residual), final=True)
+            elif d is not None and d.iterations != self.max_iter and self.mcap is not None:
+                # converged on a recorded iteration, stored in z_precision: keep its Z exact too
+                step = self._last_step
+                exact = dataclasses.replace(step, Z=np.asarray(d.Z, np.float32))
+                self._guard("mcap", lambda: self.mcap.log_final(exact))
             if self.mcap is not None:
                 def summary():
                     self.mcap.log_summary(_summary(result, self.files(), self.recorded))

@@ -113,18 +113,35 @@ def _with_bytes_field(head: bytes, number: int, nbytes: int, tail: bytes,
     return mv, len(head)
 
 
+Z_BITS = {"q8": 8, "q16": 16}
+"""Bits per share of the quantised Z precisions."""
+
+
 def z_state_bytes(iteration: int, Z: np.ndarray, dtype: str, out: Optional[bytearray] = None,
-                  class_major: bool = True) -> memoryview:
+                  class_major: bool = True, labels: Optional[np.ndarray] = None) -> memoryview:
     """``ZState(...).SerializeToString()`` with Z copied once (transposed when ``class_major``)
-    into ``out`` (see :func:`_with_bytes_field`); ``data`` is field 5."""
+    into ``out`` (see :func:`_with_bytes_field`); ``data`` is field 5. ``dtype``: float32 (exact),
+    float16 (Z / max Z), q8 / q16 (row sums + shares, always class-major). ``labels`` (M,) int:
+    the exact Z's labels, stored with an inexact state (field 9) so readers keep the run's own."""
+    lab = b"" if labels is None or dtype == "float32" else np.asarray(labels, "<i2").tobytes()
+    from diffuser_lab.backends.numba.float16 import shares, transpose_into  # numba: only where Z is written
+
+    if dtype in Z_BITS:
+        sums, q = shares(np.ascontiguousarray(Z, np.float32), Z_BITS[dtype])
+        head = schema.ZState(iteration=int(iteration), n_points=Z.shape[0], n_classes=Z.shape[1],
+                             dtype=dtype).SerializeToString()
+        tail = schema.ZState(scale=1.0, class_major=True, row_sums=sums.astype("<f4").tobytes(),
+                             labels=lab).SerializeToString()
+        mv, at = _with_bytes_field(head, 5, q.nbytes, tail, out)
+        np.frombuffer(mv, np.uint8, q.nbytes, at)[:] = q.reshape(-1).view(np.uint8)
+        return mv
     scale = _z_scale(Z, dtype)
     stored = np.dtype("<f2" if dtype == "float16" else "<f4")
     head = schema.ZState(iteration=int(iteration), n_points=Z.shape[0], n_classes=Z.shape[1],
                          dtype=dtype).SerializeToString()
-    tail = schema.ZState(scale=scale, class_major=bool(class_major)).SerializeToString()
+    tail = schema.ZState(scale=scale, class_major=bool(class_major), labels=lab).SerializeToString()
     mv, at = _with_bytes_field(head, 5, Z.size * stored.itemsize, tail, out)
     body = np.frombuffer(mv, stored, Z.size, at).reshape(Z.shape[::-1] if class_major else Z.shape)
-    from diffuser_lab.backends.numba.float16 import transpose_into  # numba: only where Z is written
 
     if stored == np.float32:
         if class_major:
@@ -141,6 +158,17 @@ def z_state_bytes(iteration: int, Z: np.ndarray, dtype: str, out: Optional[bytea
     np.divide(tmp, np.float32(scale), out=tmp)
     body[...] = to_float16(tmp)
     return mv
+
+
+def z_precision_text(dtype: str) -> str:
+    """What a stored Z state's precision means, in one phrase (``diffuser-lab-inspect --at``)."""
+    if dtype in Z_BITS:
+        levels = (1 << Z_BITS[dtype]) - 1
+        return (f"{dtype}: row sums exact, shares Z_ic / sum_c Z_ic in 1/{levels} steps "
+                f"(|error| <= {0.5 / levels:.2g} of the row's sum)")
+    if dtype == "float16":
+        return "float16: Z / max Z as float16 (relative error <= 2^-11 above 6e-5 max Z)"
+    return "float32: exact"
 
 
 _F16_MIN_NORMAL = np.float32(2.0**-14)
@@ -178,7 +206,14 @@ class _RawMessage:
 
 
 def decode_z(msg: Any) -> np.ndarray:
-    """diffuser_lab.ZState -> (M, C) float32 Z in the paper's units."""
+    """diffuser_lab.ZState -> (M, C) float32 Z in the paper's units (q8 / q16: row sum x share,
+    see :func:`z_precision_text` for the error)."""
+    if msg.dtype in Z_BITS:
+        q = np.frombuffer(msg.data, "<u1" if Z_BITS[msg.dtype] == 8 else "<u2").reshape(msg.n_classes, msg.n_points)
+        sums = np.frombuffer(msg.row_sums, "<f4")
+        Z = q.T.astype(np.float32, order="C")
+        Z *= (sums / np.float32((1 << Z_BITS[msg.dtype]) - 1))[:, None]
+        return Z
     dt = "<f2" if msg.dtype == "float16" else "<f4"
     if msg.class_major:
         Z = np.frombuffer(msg.data, dt).reshape(msg.n_classes, msg.n_points).T.astype(np.float32, order="C")

@@ -21,6 +21,9 @@ class RunLog:
         metrics: per recorded iteration, dicts with the IterationMetrics fields (None for NaN).
         z_iterations: iterations whose Z state was read completely, in order.
         z: {iteration: (M, C) float32 Z} for the iterations asked for.
+        z_dtype: {iteration: how its Z is stored} ("q8", "q16", "float16", "float32"; see
+            :func:`~.mcap_encode.z_precision_text`). A state written twice (the last one, kept
+            exact after the run converged on a recorded iteration) is read as its later copy.
         scene: {field: array} of the /scene/points cloud (x y z red green blue alpha label), or None.
         truncated: the file ended before its footer (killed run or cut copy).
         error: what stopped the reading early, or None.
@@ -32,6 +35,7 @@ class RunLog:
     metrics: list = field(default_factory=list)
     z_iterations: list = field(default_factory=list)
     z: dict = field(default_factory=dict)
+    z_dtype: dict = field(default_factory=dict)
     scene: Optional[dict] = None
     truncated: bool = False
     error: Optional[str] = None
@@ -125,7 +129,9 @@ def read_run(path: Path | str, *, z: Optional[Iterable[int]] | str = None, scene
             out.metrics.append(metrics_dict(data))
         elif topic == TOPIC_Z:
             msg = schema.ZState.FromString(data)
-            out.z_iterations.append(int(msg.iteration))
+            if not out.z_iterations or out.z_iterations[-1] != int(msg.iteration):
+                out.z_iterations.append(int(msg.iteration))
+            out.z_dtype[int(msg.iteration)] = msg.dtype or "float32"
             if want_last:
                 out.z = {int(msg.iteration): decode_z(msg)}
             elif want_all or msg.iteration in want:
@@ -139,4 +145,17 @@ def read_run(path: Path | str, *, z: Optional[Iterable[int]] | str = None, scene
     return out
 
 
-__all__ = ["RunLog", "read_run", "iter_run", "metrics_dict"]
+def work_points(info: Any, scene_points: Optional[Any] = None):
+    """(M, 3) float32 points the diffusion ran on: RunInfo.work_points, or the /scene/points
+    positions when the run diffused the original cloud itself (left out of RunInfo then)."""
+    import numpy as np
+
+    m = int(info.n_work_points)
+    if info.work_points:
+        return np.frombuffer(info.work_points, "<f4").reshape(m, 3)
+    if scene_points is None or len(scene_points) != m:
+        raise ValueError("run.mcap: the diffused points are the scene's, but /scene/points was not read")
+    return np.asarray(scene_points, np.float32)
+
+
+__all__ = ["RunLog", "read_run", "iter_run", "metrics_dict", "work_points"]

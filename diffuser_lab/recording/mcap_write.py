@@ -68,16 +68,17 @@ class McapRecorder:
 
     file_key = "mcap"
 
-    def __init__(self, path: Path, *, z_dtype: str = "float32", config_yaml: str = "",
-                 overrides: Sequence[str] = (), interval: int = 1, max_iter: int = 0,
-                 compression: str = COMPRESSION, writer_thread: bool | None = None):
+    def __init__(self, path: Path, *, z_dtype: str = "q8", config_yaml: str = "",
+                 overrides: Sequence[str] = (), interval: Optional[int] = None, max_iter: int = 0,
+                 compression: str = COMPRESSION, writer_thread: bool | None = None, clouds: str = "decades"):
         from mcap.writer import CompressionType, Writer
 
         from diffuser_lab import __version__
 
         self.path = Path(path)
         self.z_dtype = z_dtype
-        self.interval, self.max_iter = int(interval), int(max_iter)
+        self.interval, self.max_iter = interval, int(max_iter)  # interval None: the 1-2-5 log schedule
+        self.clouds = clouds
         self._fh = open_direct(self.path)  # O_DIRECT where possible: no page-cache copies
         # no CRCs: on 4 MB Z chunks crc32 costs half as much as compressing them; records keep
         # their lengths, so a cut file is still read up to its last complete chunk
@@ -103,6 +104,7 @@ class McapRecorder:
         # buffer per recorded iteration costs more in page faults than the copy itself)
         self._free: dict[str, queue.SimpleQueue] = {TOPIC_LABELS: queue.SimpleQueue(), TOPIC_Z: queue.SimpleQueue()}
         self._closed = False
+        self._clouded = False  # the last recorded iteration got its labelled cloud
         # the writer thread, when there is one, is the only user of self.w from here on
         self._writer: Optional[SerialThread] = None
         if WRITER_THREAD if writer_thread is None else writer_thread:
@@ -180,10 +182,13 @@ class McapRecorder:
         m = len(work_points)
         info = schema.RunInfo(scene=scene.name, method=method, taxonomy=tax.name, class_names=list(tax.names),
                               class_colors=np.asarray(tax.colors, np.uint8).tobytes(), n_points=scene.n_points,
-                              n_work_points=m, work_points=np.ascontiguousarray(work_points, "<f4").tobytes(),
+                              n_work_points=m,
+                              # the scene's own points (no voxel grid): /scene/points holds them already
+                              work_points=b"" if to_work is None and m == scene.n_points
+                              else np.ascontiguousarray(work_points, "<f4").tobytes(),
                               original_to_work=b"" if to_work is None else to_work.astype("<i4").tobytes(),
                               bayesian_labels=np.asarray(bayesian, "<i2").tobytes(),
-                              seen=np.asarray(seen, np.uint8).tobytes(), interval=self.interval,
+                              seen=np.asarray(seen, np.uint8).tobytes(), interval=self.interval or 0,
                               max_iter=self.max_iter, z_dtype=self.z_dtype)
         info.cameras.extend(self._cameras)
         self._write(TOPIC_RUN, info)
@@ -194,21 +199,42 @@ class McapRecorder:
         self._flush()
 
     # -- per iteration ------------------------------------------------------------------------
-    def log_step(self, step: Step) -> None:
+    def log_step(self, step: Step, final: bool = False) -> None:
+        """One recorded iteration: metrics, Z (``final``: float32, exact; else ``z_dtype`` with
+        the exact labels beside it) and, on :func:`.schedule.with_cloud` iterations, the
+        labelled cloud."""
+        from .schedule import with_cloud
+
         nan = float("nan")
         self._write(TOPIC_METRICS, schema.IterationMetrics(
             iteration=step.iteration, residual=step.residual, n_changed=step.n_changed,
             previous_iteration=step.previous, miou=nan if step.miou is None else step.miou,
             accuracy=nan if step.accuracy is None else step.accuracy, coverage=step.coverage,
             mean_confidence=step.mean_confidence), step.iteration)
-        if self._labels_buf is not None:
-            buf = self._labels_buf
-            self._paint(buf, step.labels)
-            self._write_pooled(TOPIC_LABELS, point_cloud_bytes(buf, time.time_ns(), self._pooled(TOPIC_LABELS)),
-                               step.iteration)
-        self._write_pooled(TOPIC_Z, z_state_bytes(step.iteration, step.Z, self.z_dtype, self._pooled(TOPIC_Z)),
-                           step.iteration)
+        self._clouded = self._labels_buf is not None and with_cloud(step.iteration, self.clouds, final)
+        if self._clouded:
+            self._write_cloud(step)
+        self._write_z(step, final)
         self._flush()  # ends the chunk: a killed run keeps this iteration
+
+    def log_final(self, step: Step) -> None:
+        """The run ended on an iteration already recorded (converged there): write its Z again,
+        exact, and its cloud if it had none. Readers take the later copy."""
+        if not self._clouded and self._labels_buf is not None:
+            self._write_cloud(step)
+        self._write_z(step, True)
+        self._flush()
+
+    def _write_cloud(self, step: Step) -> None:
+        buf = self._labels_buf
+        self._paint(buf, step.labels)
+        self._write_pooled(TOPIC_LABELS, point_cloud_bytes(buf, time.time_ns(), self._pooled(TOPIC_LABELS)),
+                           step.iteration)
+
+    def _write_z(self, step: Step, final: bool) -> None:
+        dtype = "float32" if final else self.z_dtype
+        self._write_pooled(TOPIC_Z, z_state_bytes(step.iteration, step.Z, dtype, self._pooled(TOPIC_Z),
+                                                  labels=step.labels), step.iteration)
 
     def _pooled(self, topic: str) -> Optional[bytearray]:
         try:

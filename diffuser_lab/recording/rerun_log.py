@@ -5,12 +5,15 @@ Entity tree (``world`` is z-up, metres; class colours come from the AnnotationCo
     world                          AnnotationContext (taxonomy names + colours; id 65535 = unlabeled)
     world/scene/points             Points3D, static: the input cloud (input colours, else grey)
     world/scene/ground_truth       Points3D, static: ground-truth class ids (when known)
-    world/cameras/<i>              Transform3D + Pinhole, static; children depth (DepthImage, mm),
-                                   labels (SegmentationImage, the 2D predictions), rgb (Image, if any)
+    world/cameras/<i>              Transform3D + Pinhole, static; children labels (SegmentationImage,
+                                   the 2D predictions), rgb (Image, if any)
+    world/depth/<i>                the same camera, Pinhole of the coarser depth image; child depth
+                                   (DepthImage, mm, at most record.max_depth_side pixels)
     world/evidence/bayesian        Points3D, static: work points that received pixel mass, Bayesian labels
     world/evidence/unseen          Points3D, static: work points no pixel reached
     world/diffusion/labels         Points3D: positions static, class ids per recorded iteration
-    world/diffusion/confidence     Points3D: positions static, colour = max_c Z / sum_c Z per iteration
+    world/diffusion/confidence     Points3D: positions static, class id = max_c Z / sum_c Z in 1/64 steps
+                                   per iteration (its own AnnotationContext: viridis colours, labels)
     world/diffusion/wrong          Points3D per iteration: annotated points whose label is wrong
     metrics/residual|changed|miou|accuracy|confidence   Scalars per iteration
 
@@ -41,9 +44,20 @@ _VIRIDIS = np.array([(68, 1, 84), (71, 44, 122), (59, 81, 139), (44, 113, 142), 
                      (39, 173, 129), (92, 200, 99), (170, 220, 50), (253, 231, 37)], np.float32)
 _LUT = np.stack([np.interp(np.linspace(0, 8, 256), np.arange(9), _VIRIDIS[:, c]) for c in range(3)], 1)
 CONFIDENCE_LUT = np.round(_LUT).astype(np.uint8)
-_CONFIDENCE_RGBA = ((CONFIDENCE_LUT[:, 0].astype(np.uint32) << 24) | (CONFIDENCE_LUT[:, 1].astype(np.uint32) << 16)
-                    | (CONFIDENCE_LUT[:, 2].astype(np.uint32) << 8) | np.uint32(255))
-"""CONFIDENCE_LUT packed as 0xRRGGBBAA: Rerun takes these as they are (no per-point conversion)."""
+CONFIDENCE_BINS = 64
+"""Confidence is logged as a class id 0..63 (bin of max_c Z / sum_c Z) whose colour and label an
+AnnotationContext on the entity gives: 2 bytes a point per iteration instead of 4 for a colour,
+and far fewer after compression (a colour map of 64 steps shows no banding on a point cloud)."""
+
+
+def confidence_context():
+    """AnnotationContext of world/diffusion/confidence: bin i -> viridis colour, 'confidence a-b'."""
+    import rerun as rr
+
+    lut = CONFIDENCE_LUT[np.round(np.linspace(0, 255, CONFIDENCE_BINS)).astype(int)]
+    return rr.AnnotationContext([
+        rr.AnnotationInfo(id=i, label=f"confidence {i / CONFIDENCE_BINS:.3f}-{(i + 1) / CONFIDENCE_BINS:.3f}",
+                          color=tuple(int(x) for x in lut[i])) for i in range(CONFIDENCE_BINS)])
 
 
 def class_ids(labels: np.ndarray) -> np.ndarray:
@@ -120,12 +134,13 @@ class RerunRecorder:
     file_key = "rrd"
 
     def __init__(self, path: Path, *, application_id: str = "diffuser_lab", recording_id: Optional[str] = None,
-                 max_image_side: int = 320):
+                 max_image_side: int = 320, max_depth_side: int = 160):
         import rerun as rr
 
         self.rr = rr
         self.path = Path(path)
         self.max_image_side = int(max_image_side)
+        self.max_depth_side = int(max_depth_side)  # 0: no depth images
         batcher = rr.ChunkBatcherConfig(flush_tick=BATCH_SECONDS, flush_num_bytes=BATCH_BYTES)
         self.rec = rr.RecordingStream(application_id, recording_id=recording_id or str(uuid.uuid4()),
                                       batcher_config=batcher)
@@ -155,9 +170,9 @@ class RerunRecorder:
             self.rec.log("world/scene/ground_truth",
                          rr.Points3D(points, class_ids=class_ids(gt), radii=self.radius), static=True)
 
-    def _shrink(self, img: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _shrink(self, img: np.ndarray, K: np.ndarray, side: int = 0) -> tuple[np.ndarray, np.ndarray]:
         h, w = img.shape[:2]
-        s = int(np.ceil(max(h, w) / self.max_image_side))
+        s = int(np.ceil(max(h, w) / (side or self.max_image_side)))
         if s <= 1:
             return img, K
         K = K.astype(np.float64).copy()
@@ -175,18 +190,24 @@ class RerunRecorder:
         T_wc = np.linalg.inv(np.asarray(T_cw, np.float64))
         K_img = np.asarray(K, np.float64)
         res = (int(width), int(height))
-        if depth is not None:
-            d, K_img = self._shrink(np.asarray(depth, np.float32), np.asarray(K, np.float64))
-            res = (d.shape[1], d.shape[0])
-            self.rec.log(f"{path}/depth", rr.DepthImage(depth_mm(d), meter=1000.0), static=True)
         if labels is not None:
-            lab, _ = self._shrink(labels, np.asarray(K, np.float64))
+            lab, K_img = self._shrink(labels, np.asarray(K, np.float64))
+            res = (lab.shape[1], lab.shape[0])
             self.rec.log(f"{path}/labels", rr.SegmentationImage(class_ids(lab)), static=True)
         if rgb is not None:
             im, _ = self._shrink(rgb, np.asarray(K, np.float64))
             self.rec.log(f"{path}/rgb", rr.Image(np.ascontiguousarray(im)), static=True)
-        self.rec.log(path, rr.Transform3D(translation=T_wc[:3, 3], mat3x3=T_wc[:3, :3]),
-                     rr.Pinhole(image_from_camera=K_img, resolution=res, image_plane_distance=0.25), static=True)
+        pose = rr.Transform3D(translation=T_wc[:3, 3], mat3x3=T_wc[:3, :3])
+        self.rec.log(path, pose, rr.Pinhole(image_from_camera=K_img, resolution=res, image_plane_distance=0.25),
+                     static=True)
+        if depth is not None and self.max_depth_side:
+            # coarser than the labels (depth compresses ~5x worse), so under a camera of its own:
+            # world/depth/<i> has the pinhole of the strided image, which back-projects it
+            d, K_d = self._shrink(np.asarray(depth, np.float32), np.asarray(K, np.float64), self.max_depth_side)
+            dpath = f"world/depth/{index:04d}"
+            self.rec.log(dpath, pose, rr.Pinhole(image_from_camera=K_d, resolution=(d.shape[1], d.shape[0]),
+                                                 image_plane_distance=0.25), static=True)
+            self.rec.log(f"{dpath}/depth", rr.DepthImage(depth_mm(d), meter=1000.0), static=True)
 
     def log_evidence(self, work_points: np.ndarray, seen: np.ndarray, bayesian: np.ndarray) -> None:
         """Work cloud (M, 3); seen (M,) bool; bayesian (M,) labels. Also logs the static
@@ -201,7 +222,7 @@ class RerunRecorder:
         self.rec.log("world/evidence/unseen",
                      rr.Points3D(work_points[~seen], colors=(90, 90, 90), radii=r), static=True)
         self.rec.log("world/diffusion/labels", rr.Points3D(work_points, radii=r), static=True)
-        self.rec.log("world/diffusion/confidence", rr.Points3D(work_points, radii=r), static=True)
+        self.rec.log("world/diffusion/confidence", confidence_context(), rr.Points3D(work_points, radii=r), static=True)
 
     # -- per iteration -------------------------------------------------------------------------
     def log_step(self, step: Step, points: Optional[np.ndarray] = None) -> None:
@@ -210,8 +231,8 @@ class RerunRecorder:
         rec = self.rec
         rec.set_time(TIMELINE, sequence=step.iteration)
         rec.log("world/diffusion/labels", rr.Points3D.from_fields(class_ids=class_ids(step.labels)))
-        q = np.multiply(step.confidence, 255.0, dtype=np.float32).astype(np.uint8)  # confidence in [0, 1]
-        rec.log("world/diffusion/confidence", rr.Points3D.from_fields(colors=_CONFIDENCE_RGBA[q]))
+        q = np.minimum(np.multiply(step.confidence, CONFIDENCE_BINS, dtype=np.float32), CONFIDENCE_BINS - 1)
+        rec.log("world/diffusion/confidence", rr.Points3D.from_fields(class_ids=q.astype(np.uint16)))
         if step.wrong is not None and points is not None:
             rec.log("world/diffusion/wrong", rr.Points3D(points[step.wrong], colors=(230, 30, 30),
                                                          radii=1.2 * self.radius))

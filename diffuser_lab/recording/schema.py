@@ -31,11 +31,14 @@ The schemas travel inside every run.mcap (a ``FileDescriptorSet`` per schema rec
       uint32 iteration = 1;
       uint32 n_points = 2;           // M rows
       uint32 n_classes = 3;          // C columns
-      string dtype = 4;              // "float32" | "float16"
-      bytes data = 5;                // little-endian, (C, M) row-major when class_major, else (M, C)
-      double scale = 6;              // Z (the paper's units, Eq. 10) = data * scale; 1 for float32
+      string dtype = 4;              // "float32" | "float16" | "q8" | "q16"
+      bytes data = 5;                // little-endian, (C, M) row-major when class_major, else (M, C);
+                                     // float32 / float16 values, or uint8 / uint16 shares for q8 / q16
+      double scale = 6;              // float16: Z (the paper's units, Eq. 10) = data * scale; else 1
       bool class_major = 7;          // true: data holds Z transposed, one class's M scores after
                                      // another (its zeros then lie together and compress ~25% better)
+      bytes row_sums = 8;            // q8 / q16: (M,) float32 sum_c Z_ic; Z_ic = row_sums[i] * data[c, i] / (2^bits - 1)
+      bytes labels = 9;              // q8 / q16 / float16: (M,) int16 labels of the exact Z (Eq. 16), -1 = unlabeled
     }
     message IterationMetrics {       // every recorded iteration
       uint32 iteration = 1;
@@ -75,7 +78,8 @@ _MESSAGES = [
                  ("z_dtype", 14, "string", False), ("cameras", 15, ".diffuser_lab.Camera", True)]),
     ("ZState", [("iteration", 1, "uint32", False), ("n_points", 2, "uint32", False),
                 ("n_classes", 3, "uint32", False), ("dtype", 4, "string", False), ("data", 5, "bytes", False),
-                ("scale", 6, "double", False), ("class_major", 7, "bool", False)]),
+                ("scale", 6, "double", False), ("class_major", 7, "bool", False),
+                ("row_sums", 8, "bytes", False), ("labels", 9, "bytes", False)]),
     ("IterationMetrics", [("iteration", 1, "uint32", False), ("residual", 2, "double", False),
                           ("n_changed", 3, "uint32", False), ("previous_iteration", 4, "uint32", False),
                           ("miou", 5, "double", False), ("accuracy", 6, "double", False),

@@ -137,7 +137,11 @@ class StepTracker:
         self.prev_labels = np.full(n_work, IGNORE, np.int16)
         self.prev_iteration = 0
 
-    def step(self, iteration: int, Z: np.ndarray, residual: float) -> Step:
+    def step(self, iteration: int, Z: np.ndarray, residual: float, labels: Optional[np.ndarray] = None) -> Step:
+        """``labels``: the (M,) labels of the exact Z when ``Z`` is a stored approximation (they
+        replace Z's argmax; confidence still comes from Z)."""
+        if labels is not None:
+            return self._with_labels(iteration, Z, residual, np.asarray(labels, np.int16))
         f = _fused() if Z.dtype == np.float32 and Z.ndim == 2 and Z.shape[1] > 0 else None
         miou = acc = wrong = None
         if f is not None:
@@ -169,6 +173,26 @@ class StepTracker:
         st = Step(iteration=int(iteration), Z=Z, labels=labels, confidence=conf, residual=float(residual),
                   n_changed=int(n_changed), previous=self.prev_iteration, miou=miou, accuracy=acc,
                   coverage=100.0 * n_lab / max(len(labels), 1), mean_confidence=mean_conf, wrong=wrong)
+        self.prev_labels = labels
+        self.prev_iteration = int(iteration)
+        return st
+
+
+    def _with_labels(self, iteration: int, Z: np.ndarray, residual: float, labels: np.ndarray) -> Step:
+        conf = confidence(Z)
+        labelled = labels != IGNORE
+        conf[~labelled] = 0.0
+        miou = acc = wrong = None
+        if self.gt is not None:
+            lab = labels if self.to_work is None else labels[self.to_work]
+            s = score(lab, self.gt, self.names)
+            miou, acc = s["miou"], s["accuracy"]
+            wrong = (lab != self.gt) & (self.gt != IGNORE)
+        n_lab = int(labelled.sum())
+        st = Step(iteration=int(iteration), Z=Z, labels=labels, confidence=conf, residual=float(residual),
+                  n_changed=int(np.count_nonzero(labels != self.prev_labels)), previous=self.prev_iteration,
+                  miou=miou, accuracy=acc, coverage=100.0 * n_lab / max(len(labels), 1),
+                  mean_confidence=float(conf[labelled].mean()) if n_lab else 0.0, wrong=wrong)
         self.prev_labels = labels
         self.prev_iteration = int(iteration)
         return st

@@ -68,3 +68,49 @@ def to_float16(a: np.ndarray) -> np.ndarray | None:
     out = np.empty(a.shape, "<f2")
     _f32_to_f16_bits(a.reshape(-1).view(np.uint32), out.reshape(-1).view(np.uint16))
     return out
+
+
+if NB is not None:
+    @njit(cache=True, nogil=True, boundscheck=False)
+    def _shares_into(a, levels, out, sums, tmp):
+        """sums[i] = float32(sum_c a[i, c]); out[c, i] = round(a[i, c] / sums[i] * levels).
+        Rows go through ``tmp`` (B, C) in blocks, then out block-transposed: writing the
+        class-major output directly, a byte at a time into C streams, is 5x slower. Float32
+        arithmetic: its rounding (~1e-7 of the row sum) is far below a step."""
+        m, c = a.shape
+        nb = tmp.shape[0]
+        lv = np.float32(levels)
+        for i0 in range(0, m, nb):
+            i1 = min(i0 + nb, m)
+            for i in range(i0, i1):
+                acc = 0.0
+                for j in range(c):
+                    acc += a[i, j]
+                s = np.float32(acc)
+                sums[i] = s
+                inv = lv / s if s > 0 else np.float32(0.0)
+                for j in range(c):
+                    # a <= s, so v <= levels + 0.5 (float32 rounding stays below levels + 1); v >= 0
+                    # (or 0.5): the cast's truncation rounds
+                    tmp[i - i0, j] = a[i, j] * inv + np.float32(0.5)
+            for j in range(c):
+                for i in range(i0, i1):
+                    out[j, i] = tmp[i - i0, j]
+
+
+def shares(a: np.ndarray, bits: int) -> tuple[np.ndarray, np.ndarray]:
+    """(M, C) float32 Z >= 0 -> (row sums (M,) float32, shares (C, M) uint8 or uint16): share
+    q[c, i] = round(Z[i, c] / sum_c Z[i, c] * (2^bits - 1)), class-major. Compiled where numba is
+    (one pass, ~1 ms on the 51k x 20 demo, ~11 ms at 566k), numpy otherwise; the two agree up to float rounding."""
+    levels = (1 << bits) - 1
+    dt = np.uint8 if bits <= 8 else np.uint16
+    m, c = a.shape
+    out = np.empty((c, m), dt)
+    sums = np.empty(m, np.float32)
+    if available() and a.dtype == np.float32 and a.flags.c_contiguous:
+        _shares_into(a, levels, out, sums, np.empty((256, c), dt))
+        return sums, out
+    sums[:] = a.sum(1, dtype=np.float64)
+    inv = np.divide(float(levels), sums.astype(np.float64), out=np.zeros(m), where=sums > 0)
+    np.clip(np.floor(a.T * inv + 0.5), 0, levels, out=out, casting="unsafe")
+    return sums, out

@@ -1,6 +1,6 @@
 """Fill numba's kernel cache: one small demo run with recording into a temporary folder, so the
 kernels a default run uses (kNN graph, evidence, Jacobi steps for the demo's classes, the
-recorders' per-iteration pass and float16 encoding) are compiled and cached on disk.
+recorders' per-iteration pass and the Z encodings of the default record) are compiled and cached on disk.
 
 ``python -m diffuser_lab.backends.numba.warm [LOCK]`` (what :func:`compile_in_background` starts;
 ``LOCK`` is removed at the end). Takes ~25 s on an empty cache, ~2 s on a warm one.
@@ -23,8 +23,8 @@ def warm() -> None:
     from diffuser_lab.recording import make_hooks
     from diffuser_lab.runs.pipeline import run
 
-    cfg = default_config(**{"n_views": 4, "solver.max_iter": 12, "record.z_precision": "float16",
-                            "record.interval": 5})
+    # 12 iterations: 1, 2, 5, 10 in the default q8 shares, the last (12) float32, class-major
+    cfg = default_config(**{"n_views": 4, "solver.max_iter": 12})
     with tempfile.TemporaryDirectory(prefix="diffuser-lab-warm-") as d:
         hooks = make_hooks(cfg, Path(d))
         try:
