@@ -100,7 +100,7 @@ class RecordingHooks(RunHooks):
         self.mcap = McapRecorder(self.run_dir / MCAP_NAME, z_dtype=str(_value(self.conf.record.z_precision)),
                                  config_yaml=yaml, overrides=overrides, interval=self.interval,
                                  max_iter=self.max_iter, compression=str(_value(getattr(self.conf.record, "compression", "lz4"))),
-                                 writer_thread=self._worker is None)
+                                 writer_thread=self._worker is None, max_image_side=self.conf.record.max_image_side)
         self._files["mcap"] = MCAP_NAME
 
     def _guard(self, which: str, fn, *args) -> None:
