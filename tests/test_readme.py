@@ -210,7 +210,7 @@ def check_analysis(c: Command, p, work):
 
 def check_inspect(c: Command, p, work):
     if "--at" in c.text:
-        assert re.search(r"^wrote z\.npy: Z at iteration 120", p.stdout, re.M), p.stdout
+        assert re.search(r"^wrote z\.npy: Z at iteration 100", p.stdout, re.M), p.stdout
     elif "--to-rrd" in c.text:
         assert "wrote replay.rrd" in p.stdout and (work["repo"] / "replay.rrd").stat().st_size > 1000
     elif "cut.mcap" in c.text:

@@ -6,6 +6,7 @@
     diffuser-lab-inspect RUN --to-rrd OUT.rrd     re-log the run from its MCAP alone into a fresh .rrd
     diffuser-lab-inspect RUN --view               open the run in the Rerun viewer (run.rrd, else
                                                   the MCAP re-logged to a temporary .rrd)
+    diffuser-lab-inspect RUN --foxglove-layout L.json  write the Foxglove layout for run.mcap
 
 Everything is read from run.mcap (no summary section needed): a truncated file (killed run,
 cut copy) gives its complete leading iterations and a warning on stderr, exit code 0.
@@ -116,16 +117,23 @@ def table_text(metrics: Sequence[dict]) -> str:
 
 def mcap_to_rrd(mcap_path: Path | str, rrd_path: Path | str, *, max_image_side: int = 320) -> Any:
     """Re-log a run into a fresh .rrd from its run.mcap alone (same entities, blueprint and
-    per-iteration class ids as the live run.rrd; cameras without their images, which run.mcap
-    does not hold). Returns the :class:`~diffuser_lab.recording.mcap_read.RunLog` (truncation)."""
+    per-iteration class ids as the live run.rrd, the cameras with their label images; not their
+    depth or colour images, which run.mcap does not hold). Returns the
+    :class:`~diffuser_lab.recording.mcap_read.RunLog` (truncation)."""
+    from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
+    from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
     from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 
     from diffuser_lab.recording import schema
     from diffuser_lab.recording.mcap_encode import (
+        TOPIC_CALIBRATION,
+        TOPIC_CAMERA_LABELS,
         TOPIC_METRICS,
         TOPIC_RUN,
         TOPIC_SCENE,
         TOPIC_Z,
+        camera_index,
+        decode_label_png,
         decode_point_cloud,
         decode_z,
     )
@@ -138,6 +146,9 @@ def mcap_to_rrd(mcap_path: Path | str, rrd_path: Path | str, *, max_image_side: 
     tracker = None
     points = gt = None
     residual: dict[int, float] = {}
+    calib: dict[int, Any] = {}  # camera index -> CameraCalibration (of the stored image)
+    label_images: dict[int, np.ndarray] = {}  # camera index -> (h, w) class ids
+    colors = np.zeros((0, 3), np.uint8)
     try:
         for topic, data in iter_run(mcap_path, log):
             if topic == TOPIC_SCENE:
@@ -153,13 +164,17 @@ def mcap_to_rrd(mcap_path: Path | str, rrd_path: Path | str, *, max_image_side: 
                 names = json.loads(run.get("class_names", "[]"))
                 colors = np.asarray(json.loads(run.get("class_colors", "[]")), np.uint8).reshape(-1, 3)
                 rec.log_taxonomy(names, colors)
+                rec.rec.send_recording_name(f"{run.get('scene', '?')} (re-logged from {Path(mcap_path).name})")
                 rec.log_scene(points, cols, gt)
             elif topic == TOPIC_RUN:
                 info = schema.RunInfo.FromString(data)
                 log.info = info
                 for i, cam in enumerate(info.cameras):
-                    rec.log_camera(i, cam.name, np.reshape(cam.K, (3, 3)), np.reshape(cam.T_cw, (4, 4)),
-                                   cam.width, cam.height)
+                    K, w, h = np.reshape(cam.K, (3, 3)), cam.width, cam.height
+                    if i in calib:  # the pinhole of the stored label image, as the live run.rrd's
+                        K, w, h = np.reshape(calib[i].K, (3, 3)), calib[i].width, calib[i].height
+                    rec.log_camera(i, cam.name, K, np.reshape(cam.T_cw, (4, 4)), w, h,
+                                   labels=label_images.get(i))
                 m = int(info.n_work_points)
                 work = work_points(info, points)
                 seen = np.frombuffer(info.seen, np.uint8).astype(bool)
@@ -167,6 +182,12 @@ def mcap_to_rrd(mcap_path: Path | str, rrd_path: Path | str, *, max_image_side: 
                 to_work = np.frombuffer(info.original_to_work, "<i4") if info.original_to_work else None
                 rec.log_evidence(work, seen, bayes)
                 tracker = StepTracker(m, list(info.class_names), gt, to_work)
+            elif topic == TOPIC_CALIBRATION:
+                cal = CameraCalibration.FromString(data)
+                calib[camera_index(cal.frame_id)] = cal
+            elif topic == TOPIC_CAMERA_LABELS:
+                img = CompressedImage.FromString(data)
+                label_images[camera_index(img.frame_id)] = decode_label_png(img.data, colors)
             elif topic == TOPIC_METRICS:
                 d = metrics_dict(data)
                 log.metrics.append(d)
@@ -197,6 +218,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--out", metavar="Z.npy", help="with --at: write Z there, (M, C) float32")
     ap.add_argument("--to-rrd", metavar="OUT.rrd", help="re-log the run from its MCAP alone into OUT.rrd")
     ap.add_argument("--view", action="store_true", help="open the run in the Rerun viewer")
+    ap.add_argument("--foxglove-layout", metavar="OUT.json",
+                    help="write a Foxglove layout for run.mcap (labelled cloud, cameras, label images, metrics)")
     ap.add_argument("--config", action="store_true", help="print the resolved config too")
     ap.add_argument("--no-table", action="store_true", help="leave out the per-iteration table")
     args = ap.parse_args(argv)
@@ -227,6 +250,12 @@ def _main(args: argparse.Namespace) -> int:
         print(f"opening {rrd} in the Rerun viewer")
         return subprocess.call(_viewer() + [str(rrd)])
     mcap = _mcap_path(run)
+    if args.foxglove_layout:
+        from diffuser_lab.recording.mcap_write import FOXGLOVE_LAYOUT
+
+        shutil.copyfile(FOXGLOVE_LAYOUT, args.foxglove_layout)
+        print(f"wrote {args.foxglove_layout}: open {mcap} in Foxglove, then Layouts > Import from file")
+        return 0
     if args.to_rrd or args.view:
         out = Path(args.to_rrd) if args.to_rrd else Path(tempfile.mkdtemp(prefix="diffuser-lab-")) / "replay.rrd"
         log = mcap_to_rrd(mcap, out)

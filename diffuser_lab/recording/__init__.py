@@ -105,7 +105,7 @@ class RecordingHooks(RunHooks):
                                  config_yaml=yaml, overrides=overrides, interval=self.interval,
                                  max_iter=self.max_iter, compression=str(_value(getattr(self.conf.record, "compression", "zstd"))),
                                  clouds=str(_value(getattr(self.conf.record, "clouds", "decades"))),
-                                 writer_thread=self._worker is None)
+                                 writer_thread=self._worker is None, max_image_side=self.conf.record.max_image_side)
         self._files["mcap"] = MCAP_NAME
 
     def _guard(self, which: str, fn, *args) -> None:

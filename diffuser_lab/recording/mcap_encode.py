@@ -1,7 +1,8 @@
 """run.mcap's message formats (see :mod:`.mcap_write` for the channels): the point clouds
 (foxglove.PointCloud, packed RGBA colours, int16 labels), the Z states (diffuser_lab.ZState:
-float32 or float16, stored class-major) serialised straight into reused buffers, and their
-decoders. Nothing here opens a file."""
+float32 or float16, stored class-major) serialised straight into reused buffers, the cameras
+(foxglove.FrameTransform, CameraCalibration, CompressedImage of the label image as a palette
+PNG), and their decoders. Nothing here opens a file."""
 from __future__ import annotations
 
 from typing import Any, Optional
@@ -16,7 +17,12 @@ TOPIC_RUN = "/diffuser_lab/run"
 TOPIC_LABELS = "/diffusion/labels"
 TOPIC_METRICS = "/diffuser_lab/metrics"
 TOPIC_Z = "/diffuser_lab/z"
+TOPIC_TF = "/tf"
+TOPIC_CALIBRATION = "/cameras/calibration"
+TOPIC_CAMERA_LABELS = "/cameras/labels"
 FRAME_ID = "world"
+UNLABELED_INDEX = 255
+"""Palette index of unlabeled pixels (IGNORE) in the label PNGs; class c is index c."""
 MAGIC = b"\x89MCAP0\r\n"
 
 
@@ -44,6 +50,7 @@ def _point_cloud(buf: np.ndarray, stamp_ns: int, with_data: bool = True) -> Any:
     kinds = {"<f4": PackedElementField.FLOAT32, "|u1": PackedElementField.UINT8, "<i2": PackedElementField.INT16}
     msg = PointCloud(frame_id=FRAME_ID, point_stride=buf.dtype.itemsize)
     msg.timestamp.FromNanoseconds(stamp_ns)
+    msg.pose.position.SetInParent()  # an unset position reads as a null translation in Rerun's loader
     msg.pose.orientation.w = 1.0
     for name in buf.dtype.names:
         dt, off = buf.dtype.fields[name][:2]
@@ -222,3 +229,152 @@ def decode_z(msg: Any) -> np.ndarray:
     if msg.scale not in (0.0, 1.0):
         Z *= np.float32(msg.scale)
     return Z
+
+
+# -- cameras -------------------------------------------------------------------------------------
+def camera_frame_id(index: int) -> str:
+    """The TF frame of camera ``index`` (child of ``world``): ``camera_0007``."""
+    return f"camera_{int(index):04d}"
+
+
+def camera_index(frame_id: str) -> int:
+    """:func:`camera_frame_id` backwards."""
+    return int(frame_id.rsplit("_", 1)[1])
+
+
+def strided(img: np.ndarray, K: np.ndarray, max_side: int) -> tuple[np.ndarray, np.ndarray]:
+    """Image (H, W, ...) strided by s = ceil(max(H, W) / max_side) (what run.rrd stores) and the
+    (3, 3) intrinsics of the strided image: pixel (u, v) of the full image is (u / s, v / s)."""
+    h, w = img.shape[:2]
+    s = int(np.ceil(max(h, w) / max_side))
+    K = np.asarray(K, np.float64)
+    if s <= 1:
+        return img, K
+    K = K.copy()
+    K[:2, :] /= s
+    return img[::s, ::s], K
+
+
+PNG_LEVEL = 3
+"""zlib level of the label PNGs (flat regions compress well at any level): a 160 x 120 demo
+label image takes 1.6 kB at level 3, 1.3 kB at 6 (at 3x the time)."""
+
+
+def _png(pixels: np.ndarray, palette: Optional[np.ndarray] = None) -> bytes:
+    """A PNG of (H, W) palette indices with ``palette`` (P, 3) uint8, or of (H, W, 3) RGB; 8 bits,
+    no row filter. Written here (zlib and struct) so that the recording thread imports no
+    image library (Pillow's import and plugin registration cost ~35 ms)."""
+    import struct
+    import zlib
+
+    def chunk(tag: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data))
+
+    h, w = pixels.shape[:2]
+    rows = np.zeros((h, 1 + pixels[0].size), np.uint8)  # each row: filter byte 0, then the pixels
+    rows[:, 1:] = pixels.reshape(h, -1)
+    head = struct.pack(">IIBBBBB", w, h, 8, 2 if palette is None else 3, 0, 0, 0)
+    plte = b"" if palette is None else chunk(b"PLTE", np.asarray(palette, np.uint8).tobytes())
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", head) + plte
+            + chunk(b"IDAT", zlib.compress(rows.tobytes(), PNG_LEVEL)) + chunk(b"IEND", b""))
+
+
+def label_png(labels: np.ndarray, colors: np.ndarray, unlabeled=(70, 70, 70)) -> bytes:
+    """(H, W) class ids (IGNORE = -1) -> PNG bytes. Up to 255 classes: a palette PNG whose pixel
+    values are the class ids (unlabeled: :data:`UNLABELED_INDEX`) and whose palette is the
+    taxonomy's colours ``colors`` (C, 3) uint8, so viewers show colours and the ids come back
+    exactly (:func:`decode_label_png`); more classes: RGB of those colours."""
+    colors = np.asarray(colors, np.uint8).reshape(-1, 3)
+    c = len(colors)
+    if c < UNLABELED_INDEX:
+        pal = np.zeros((256, 3), np.uint8)
+        pal[:c] = colors
+        pal[UNLABELED_INDEX] = unlabeled
+        return _png(np.where(labels < 0, UNLABELED_INDEX, labels).astype(np.uint8), pal)
+    table = np.vstack([colors, np.asarray([unlabeled], np.uint8)])  # index -1: unlabeled
+    return _png(table[labels])
+
+
+def decode_label_png(data: bytes, colors: np.ndarray) -> np.ndarray:
+    """:func:`label_png` bytes -> (H, W) int16 class ids, IGNORE (-1) where unlabeled. A
+    palette PNG gives the ids exactly; an RGB one is matched to ``colors`` (C, 3) (the first
+    class of a colour; any other colour: IGNORE)."""
+    import io
+
+    from PIL import Image
+
+    from diffuser_lab.data.scene import IGNORE
+
+    im = Image.open(io.BytesIO(data))
+    if im.mode == "P":
+        idx = np.asarray(im).astype(np.int16)
+        idx[idx == UNLABELED_INDEX] = IGNORE
+        return idx
+    rgb = np.asarray(im.convert("RGB")).astype(np.uint32)
+    key = rgb[..., 0] << 16 | rgb[..., 1] << 8 | rgb[..., 2]
+    cols = np.asarray(colors, np.uint32).reshape(-1, 3)
+    ckey = cols[:, 0] << 16 | cols[:, 1] << 8 | cols[:, 2]
+    order = np.argsort(ckey, kind="stable")  # stable: the first class of a repeated colour
+    sk = ckey[order]
+    at = np.clip(np.searchsorted(sk, key), 0, len(sk) - 1)
+    return np.where(sk[at] == key, order[at], IGNORE).astype(np.int16)
+
+
+def _quaternion(R: np.ndarray) -> tuple[float, float, float, float]:
+    """(3, 3) rotation matrix -> unit quaternion (x, y, z, w), w >= 0 (Shepperd's method: the
+    largest of 4w^2, 4x^2, 4y^2, 4z^2 is divided by; a tenth of scipy's Rotation's cost)."""
+    m = np.asarray(R, np.float64)
+    d = np.array([m[0, 0] + m[1, 1] + m[2, 2], m[0, 0] - m[1, 1] - m[2, 2],
+                  -m[0, 0] + m[1, 1] - m[2, 2], -m[0, 0] - m[1, 1] + m[2, 2]])
+    k = int(np.argmax(d))
+    r = np.sqrt(1.0 + d[k]) * 2.0  # 4 x the largest component
+    a, b, c = m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]  # 4w x, 4w y, 4w z
+    e, f, g = m[0, 1] + m[1, 0], m[0, 2] + m[2, 0], m[1, 2] + m[2, 1]  # 4x y, 4x z, 4y z
+    h = r * r / 4
+    q = np.array([(a, b, c, h), (h, e, f, a), (e, h, g, b), (f, g, h, c)][k]) / r
+    q /= np.linalg.norm(q)
+    return tuple(float(v) for v in (q if q[3] >= 0 else -q))
+
+
+def camera_messages(index: int, K: np.ndarray, T_cw: np.ndarray, shape: tuple[int, int],
+                    labels: Optional[np.ndarray], colors: Optional[np.ndarray], max_side: int,
+                    stamp_ns: int) -> list[tuple[str, Any]]:
+    """One frame's foxglove messages, ``[(topic, message)]``, all stamped ``stamp_ns``:
+
+    - /tf  FrameTransform world -> camera_<i>: the camera's pose in the world, inv(T_cw)
+      (translation metres, rotation quaternion), in the optical convention of Foxglove's camera
+      frames (x right, y down, z forward), which is our T_cw's;
+    - /cameras/calibration  CameraCalibration (frame camera_<i>) of the image stored: the frame
+      (H, W) = ``shape`` strided to ``max_side`` (:func:`strided`), K strided alike, P = [K | 0],
+      no distortion;
+    - /cameras/labels  CompressedImage (png, frame camera_<i>) of the (H, W) class ids ``labels``
+      strided the same way, in the taxonomy colours ``colors`` (C, 3) (:func:`label_png`); left
+      out when either is None.
+    """
+    from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
+    from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+    from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+
+    frame = camera_frame_id(index)
+    h, w = (int(v) for v in shape)
+    s = max(1, int(np.ceil(max(h, w) / max_side)))
+    _, K_img = strided(np.empty((h, w, 0), np.uint8), K, max_side)  # K of the strided image
+    T_wc = np.linalg.inv(np.asarray(T_cw, np.float64))
+    tf = FrameTransform(parent_frame_id=FRAME_ID, child_frame_id=frame)
+    tf.translation.SetInParent()  # present even when zero: Rerun's loader reads an absent one as null
+    tf.translation.x, tf.translation.y, tf.translation.z = (float(v) for v in T_wc[:3, 3])
+    q = _quaternion(T_wc[:3, :3])
+    tf.rotation.x, tf.rotation.y, tf.rotation.z, tf.rotation.w = q
+    P = np.zeros((3, 4))
+    P[:, :3] = K_img
+    cal = CameraCalibration(frame_id=frame, width=-(-w // s), height=-(-h // s), distortion_model="plumb_bob",
+                            D=[0.0] * 5, K=K_img.ravel().tolist(), R=np.eye(3).ravel().tolist(),
+                            P=P.ravel().tolist())
+    out: list[tuple[str, Any]] = [(TOPIC_TF, tf), (TOPIC_CALIBRATION, cal)]
+    if labels is not None and colors is not None:
+        lab, _ = strided(np.asarray(labels), K, max_side)
+        img = CompressedImage(frame_id=frame, format="png", data=label_png(lab, colors))
+        out.append((TOPIC_CAMERA_LABELS, img))
+    for _, msg in out:
+        msg.timestamp.FromNanoseconds(int(stamp_ns))
+    return out

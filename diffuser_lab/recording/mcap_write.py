@@ -11,6 +11,15 @@ Channels (message encoding ``protobuf``; schemas in :mod:`diffuser_lab.recording
     /diffuser_lab/metrics  diffuser_lab.IterationMetrics, per recorded iteration
     /diffuser_lab/z      diffuser_lab.ZState, per recorded iteration: the full (M, C) Z, stored
                          class-major (Z transposed: it compresses ~25% better; decode_z undoes it)
+    /tf                  foxglove.FrameTransform, per camera: world -> camera_<i> (its pose)
+    /cameras/calibration foxglove.CameraCalibration, per camera (frame camera_<i>), of the image stored
+    /cameras/labels      foxglove.CompressedImage, per camera: the 2D label image as a palette PNG
+                         (pixel = class id, 255 = unlabeled; palette = taxonomy colours), strided
+                         to ``record.max_image_side`` like run.rrd's
+
+One topic per kind and one message per camera, at successive times: Foxglove's Image and 3D
+panels show one frame at a time and playing the file sweeps through them, while every camera
+frame stays in the transform tree.
 
 Metadata records: ``diffuser_lab.config`` (``yaml``: the resolved config, ``overrides``: JSON list),
 ``diffuser_lab.run`` (scene, method, sizes, taxonomy as JSON) and, once the run has finished,
@@ -21,7 +30,9 @@ every completed iteration readable (:func:`.mcap_read.read_run` reads such a tru
 Compression and writing happen on one background thread (in order, a short bounded queue), so
 the diffusion does not wait for the compression; :meth:`McapRecorder.close` drains it. The file is written
 with ``O_DIRECT`` where the file system allows (:mod:`.direct_file`): no page-cache copies.
-Message ``sequence`` is the diffusion iteration; ``log_time`` is the wall clock (ns).
+Message ``sequence`` is the diffusion iteration; ``log_time`` (= ``publish_time`` = the foxglove
+messages' ``timestamp``) is :func:`log_time_ns`, a timeline that orders the messages by camera and
+by iteration (Foxglove's playback, Rerun's ``message_log_time``).
 """
 from __future__ import annotations
 
@@ -37,15 +48,19 @@ import numpy as np
 from . import schema
 from .direct_file import open_direct
 from .mcap_encode import (
+    TOPIC_CALIBRATION,
+    TOPIC_CAMERA_LABELS,
     TOPIC_EVIDENCE,
     TOPIC_LABELS,
     TOPIC_METRICS,
     TOPIC_RUN,
     TOPIC_SCENE,
+    TOPIC_TF,
     TOPIC_Z,
     _cloud,
     _point_cloud,
     _RawMessage,
+    camera_messages,
     point_cloud_bytes,
     z_state_bytes,
 )
@@ -59,6 +74,36 @@ COMPRESSION = "lz4"
 or none. Float32 Z is mostly mantissa noise and compresses little; compressing it is most of the
 cost of recording. Measured on one 51k x 20 demo Z state (4 MB, 30 iterations): zstd 8.0 ms ->
 0.46x, lz4 2.4 ms -> 0.50x (see docs/recording.md)."""
+FOXGLOVE_LAYOUT = Path(__file__).with_name("foxglove_layout.json")
+"""A Foxglove layout for run.mcap (Layouts > Import from file): the labelled cloud and the camera
+frames in a 3D panel, the label images in an Image panel, mIoU / labels changed / residual
+plotted against the iteration (``diffuser-lab-inspect RUN --foxglove-layout OUT.json`` copies it)."""
+CAMERA_STEP_NS = 50_000_000
+"""run.mcap's timeline: 50 ms from one camera to the next."""
+ITERATION_STEP_NS = 10_000_000
+"""run.mcap's timeline: 10 ms per diffusion iteration."""
+
+
+def log_time_ns(start_ns: int, kind: str, index: int = 0, n_cameras: int = 0) -> int:
+    """The log time of a run.mcap message, ns since the epoch (``start_ns``: the run's start,
+    a whole second). ``kind``:
+
+    - ``"scene"``: start;
+    - ``"camera"``: camera ``index`` at start + (index + 1) x 50 ms;
+    - ``"evidence"`` (RunInfo, the evidence cloud): start + (n_cameras + 1) x 50 ms;
+    - ``"iteration"``: iteration ``index`` at D + index x 10 ms, D the evidence's time rounded
+      up to a whole second (so iteration = 100 x the seconds since D).
+    """
+    evidence = start_ns + (int(n_cameras) + 1) * CAMERA_STEP_NS
+    if kind == "scene":
+        return start_ns
+    if kind == "camera":
+        return start_ns + (int(index) + 1) * CAMERA_STEP_NS
+    if kind == "evidence":
+        return evidence
+    if kind == "iteration":
+        return -(-evidence // 10**9) * 10**9 + int(index) * ITERATION_STEP_NS
+    raise ValueError(f"log_time_ns: unknown kind {kind!r}")
 
 
 class McapRecorder:
@@ -70,7 +115,8 @@ class McapRecorder:
 
     def __init__(self, path: Path, *, z_dtype: str = "q8", config_yaml: str = "",
                  overrides: Sequence[str] = (), interval: Optional[int] = None, max_iter: int = 0,
-                 compression: str = COMPRESSION, writer_thread: bool | None = None, clouds: str = "decades"):
+                 compression: str = COMPRESSION, writer_thread: bool | None = None, clouds: str = "decades",
+                 max_image_side: int = 320):
         from mcap.writer import CompressionType, Writer
 
         from diffuser_lab import __version__
@@ -79,6 +125,8 @@ class McapRecorder:
         self.z_dtype = z_dtype
         self.interval, self.max_iter = interval, int(max_iter)  # interval None: the 1-2-5 log schedule
         self.clouds = clouds
+        self.max_image_side = int(max_image_side)  # the label images are strided to this
+        self._start = time.time_ns() // 10**9 * 10**9  # the timeline's origin (log_time_ns)
         self._fh = open_direct(self.path)  # O_DIRECT where possible: no page-cache copies
         # no CRCs: on 4 MB Z chunks crc32 costs half as much as compressing them; records keep
         # their lengths, so a cut file is still read up to its last complete chunk
@@ -87,19 +135,25 @@ class McapRecorder:
             raise ValueError(f"record.compression={compression}: expected one of {', '.join(kinds)}")
         self.w = Writer(self._fh, compression=kinds[compression], enable_crcs=False)
         self.w.start(profile="", library=f"diffuser-lab {__version__}")
+        from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
+        from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+        from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
         from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 
         self._channels: dict[str, int] = {}
         self._schema_ids: dict[str, int] = {}
         for topic, cls in ((TOPIC_SCENE, PointCloud), (TOPIC_EVIDENCE, PointCloud), (TOPIC_RUN, schema.RunInfo),
                            (TOPIC_LABELS, PointCloud), (TOPIC_METRICS, schema.IterationMetrics),
-                           (TOPIC_Z, schema.ZState)):
+                           (TOPIC_Z, schema.ZState), (TOPIC_TF, FrameTransform),
+                           (TOPIC_CALIBRATION, CameraCalibration), (TOPIC_CAMERA_LABELS, CompressedImage)):
             sid = self._schema(cls)
             self._channels[topic] = self.w.register_channel(topic=topic, message_encoding="protobuf", schema_id=sid)
         self.w.add_metadata("diffuser_lab.config", {"yaml": config_yaml, "overrides": json.dumps(list(overrides))})
         self._cameras: list[Any] = []
+        self._camera_slots = 0  # 1 + the largest camera index logged: the evidence comes after
         self._labels_buf: Optional[np.ndarray] = None
         self._rgba: Optional[np.ndarray] = None  # (C + 1,) colours packed as the cloud's 4 rgba bytes
+        self._colors: Optional[np.ndarray] = None  # (C, 3) uint8 taxonomy colours (label images)
         # per-iteration message buffers, reused once the writer has copied them (a fresh 4 MB
         # buffer per recorded iteration costs more in page faults than the copy itself)
         self._free: dict[str, queue.SimpleQueue] = {TOPIC_LABELS: queue.SimpleQueue(), TOPIC_Z: queue.SimpleQueue()}
@@ -135,9 +189,14 @@ class McapRecorder:
                                                             data=schema.file_descriptor_set(cls))
         return self._schema_ids[name]
 
-    def _write(self, topic: str, msg: Any, sequence: int = 0) -> None:
-        """Queue ``msg`` (which must not change afterwards) for the writer thread."""
-        self._submit(self._add, topic, msg, int(sequence), time.time_ns())
+    def _write(self, topic: str, msg: Any, sequence: int = 0, t: Optional[int] = None) -> None:
+        """Queue ``msg`` (which must not change afterwards) for the writer thread, at log time
+        ``t`` (default: that of iteration ``sequence``, :meth:`_time`)."""
+        t = self._time("iteration", sequence) if t is None else int(t)
+        self._submit(self._add, topic, msg, int(sequence), t)
+
+    def _time(self, kind: str, index: int = 0) -> int:
+        return log_time_ns(self._start, kind, index, self._camera_slots)
 
     def _flush(self) -> None:
         self._submit(self.w.flush)
@@ -153,6 +212,7 @@ class McapRecorder:
     # -- static ----------------------------------------------------------------------------
     def log_scene(self, scene: Any) -> None:
         tax = scene.taxonomy
+        self._colors = np.asarray(tax.colors, np.uint8)
         colors = np.vstack([tax.colors, np.array([[70, 70, 70]], np.uint8)])  # last: unlabeled
         rgba = np.concatenate([colors, np.full((len(colors), 1), 255, np.uint8)], 1)
         self._rgba = np.ascontiguousarray(rgba).view("<u4").ravel()  # index -1 (IGNORE): unlabeled
@@ -168,13 +228,24 @@ class McapRecorder:
             buf["red"], buf["green"], buf["blue"] = scene.colors[:, 0], scene.colors[:, 1], scene.colors[:, 2]
         elif gt is None:
             buf["red"] = buf["green"] = buf["blue"] = 160
-        self._write(TOPIC_SCENE, _point_cloud(buf, time.time_ns()))
+        t = self._time("scene")
+        self._write(TOPIC_SCENE, _point_cloud(buf, t), t=t)
 
     def log_camera(self, index: int, frame: Any) -> None:
+        """Frame ``index``: its camera in RunInfo (full size) and its foxglove messages (pose,
+        calibration, label image: :func:`.mcap_encode.camera_messages`) at the camera's time."""
         h, w = frame.shape
         self._cameras.append(schema.Camera(name=str(frame.name), width=int(w), height=int(h),
                                            K=np.asarray(frame.K, float).ravel().tolist(),
                                            T_cw=np.asarray(frame.T_cw, float).ravel().tolist()))
+        labels = frame.labels
+        if labels is None and frame.probs is not None:  # soft labels: their argmax, as run.rrd
+            labels = np.argmax(frame.probs, axis=2)
+        t = self._time("camera", index)
+        self._camera_slots = max(self._camera_slots, int(index) + 1)
+        for topic, msg in camera_messages(index, frame.K, frame.T_cw, (h, w), labels, self._colors,
+                                          self.max_image_side, t):
+            self._write(topic, msg, index, t)
 
     def log_evidence(self, scene: Any, method: str, work_points: np.ndarray, to_work: Optional[np.ndarray],
                      seen: np.ndarray, bayesian: np.ndarray) -> None:
@@ -191,10 +262,11 @@ class McapRecorder:
                               seen=np.asarray(seen, np.uint8).tobytes(), interval=self.interval or 0,
                               max_iter=self.max_iter, z_dtype=self.z_dtype)
         info.cameras.extend(self._cameras)
-        self._write(TOPIC_RUN, info)
+        t = self._time("evidence")
+        self._write(TOPIC_RUN, info, t=t)
         buf = _cloud(work_points)
         self._paint(buf, bayesian)
-        self._write(TOPIC_EVIDENCE, _point_cloud(buf, time.time_ns()))
+        self._write(TOPIC_EVIDENCE, _point_cloud(buf, t), t=t)
         self._labels_buf = _cloud(work_points)  # the per-iteration cloud: positions filled once
         self._flush()
 
@@ -228,8 +300,8 @@ class McapRecorder:
     def _write_cloud(self, step: Step) -> None:
         buf = self._labels_buf
         self._paint(buf, step.labels)
-        self._write_pooled(TOPIC_LABELS, point_cloud_bytes(buf, time.time_ns(), self._pooled(TOPIC_LABELS)),
-                           step.iteration)
+        stamp = self._time("iteration", step.iteration)  # the message's timestamp: its log time
+        self._write_pooled(TOPIC_LABELS, point_cloud_bytes(buf, stamp, self._pooled(TOPIC_LABELS)), step.iteration)
 
     def _write_z(self, step: Step, final: bool) -> None:
         dtype = "float32" if final else self.z_dtype
