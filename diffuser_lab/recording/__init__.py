@@ -84,7 +84,8 @@ class RecordingHooks(RunHooks):
     def _open_rerun(self) -> None:
         from .rerun_log import RerunRecorder
 
-        self.rerun = RerunRecorder(self.run_dir / RRD_NAME, max_image_side=self.conf.record.max_image_side)
+        self.rerun = RerunRecorder(self.run_dir / RRD_NAME, max_image_side=self.conf.record.max_image_side,
+                                   live=getattr(self.conf.record, "live", None))
         self._files["rrd"] = RRD_NAME
 
     def _open_mcap(self, overrides: Sequence[str]) -> None:
