@@ -8,6 +8,7 @@ when :func:`to_object` turns the composed config into these dataclasses.
 from __future__ import annotations
 
 import dataclasses
+import re
 from dataclasses import dataclass, field
 from enum import Enum
 from typing import Any, Dict, List, Optional
@@ -627,6 +628,9 @@ class RecordConfig:
     max_depth_side: int = 160  # frames' depth images in run.rrd likewise (0: none); depth compresses ~5x worse than labels
     compression: McapCompression = McapCompression.zstd  # run.mcap's chunks
     retain_heap_mb: int = 256  # diffuser-lab (the CLI) has glibc keep this much freed memory for reuse (0: its defaults)
+    # also stream run.rrd's content to a Rerun viewer as the run goes: null/off, spawn (start one),
+    # or a viewer's gRPC URL (rerun+http://127.0.0.1:9876/proxy); run.rrd is written all the same
+    live: Optional[str] = None
 
     def __post_init__(self) -> None:
         _check(self.interval is None or self.interval >= 1, "record.interval", self.interval, ">= 1 or null")
@@ -634,6 +638,28 @@ class RecordConfig:
         _check(self.max_depth_side == 0 or self.max_depth_side >= 16, "record.max_depth_side", self.max_depth_side,
                "0 (no depth images) or >= 16")
         _check(0 <= self.retain_heap_mb <= 1024, "record.retain_heap_mb", self.retain_heap_mb, "in 0..1024")
+        live = live_target(self.live)
+        _check(live != "bad", "record.live", self.live,
+               "null, off, spawn or a Rerun gRPC URL: rerun+http://HOST:PORT/proxy (or rerun+https://, rerun://)")
+        _check(live is None or getattr(self.mode, "value", self.mode) in ("rerun", "both"), "record.live", self.live,
+               "record=rerun or record=both (the live stream is run.rrd's content)")
+
+
+_LIVE_URL = re.compile(r"(?:rerun|rerun\+https?)://(?:[^/\s:\[\]]+|\[[0-9A-Fa-f:.]+\])(?::(\d{1,5}))?/proxy")
+
+
+def live_target(value: Any) -> Optional[str]:
+    """record.live -> None (off), "spawn", a gRPC URL as Rerun's GrpcSink takes it
+    (scheme rerun://, rerun+http:// or rerun+https://, host[:port], path /proxy), or "bad"."""
+    if value is None or value is False or str(value).strip().lower() in ("", "off", "none", "null", "false"):
+        return None
+    v = str(value).strip()
+    if v == "spawn":
+        return v
+    m = _LIVE_URL.fullmatch(v)
+    if m and (m.group(1) is None or 1 <= int(m.group(1)) <= 65535):
+        return v
+    return "bad"
 
 
 @dataclass

@@ -251,12 +251,12 @@ def test_rrd_reads_back_with_rerun_and_holds_class_ids_per_iteration(cli_runs):
     assert reader.recordings() and reader.blueprints()  # a default blueprint ships with the data
     paths = {ch.entity_path for ch in reader.stream()}
     assert {"/world", "/world/scene/points", "/world/scene/ground_truth", "/world/cameras/0000",
-            "/world/depth/0000/depth", "/world/cameras/0000/labels", "/world/evidence/bayesian",
+            "/world/depth/0000", "/world/cameras/0000/labels", "/world/evidence/bayesian",
             "/world/diffusion/confidence", "/world/diffusion/wrong", "/metrics/miou",
-            "/metrics/residual", "/metrics/changed"} <= paths
+            "/metrics/residual_log10", "/metrics/changed_per_iter_log10"} <= paths
     p = subprocess.run([RERUN, "rrd", "verify", str(d / "run.rrd")], capture_output=True, text=True, timeout=120)
     assert p.returncode == 0, p.stderr
-    depth = next(ch for ch in reader.stream() if ch.entity_path == "/world/depth/0000/depth").to_record_batch()
+    depth = next(ch for ch in reader.stream() if ch.entity_path == "/world/depth/0000").to_record_batch()
     assert depth.column("DepthImage:meter").to_pylist() == [[1000.0]]  # uint16 millimetres
     cam = next(ch for ch in reader.stream() if ch.entity_path == "/world/cameras/0000").to_record_batch()
     assert {"Pinhole:image_from_camera", "Pinhole:resolution", "Transform3D:mat3x3",

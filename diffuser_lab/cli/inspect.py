@@ -4,6 +4,7 @@
     diffuser-lab-inspect RUN --config             also print the resolved config
     diffuser-lab-inspect RUN --at 120 --out z.npy extract Z (M, C) float32 of a recorded iteration ("last" works)
     diffuser-lab-inspect RUN --to-rrd OUT.rrd     re-log the run from its MCAP alone into a fresh .rrd
+    ... --to-rrd OUT.rrd --scores chair,table     also the classes' row-normalised scores per iteration
     diffuser-lab-inspect RUN --view               open the run in the Rerun viewer (run.rrd, else
                                                   the MCAP re-logged to a temporary .rrd)
     diffuser-lab-inspect RUN --foxglove-layout L.json  write the Foxglove layout for run.mcap
@@ -115,11 +116,43 @@ def table_text(metrics: Sequence[dict]) -> str:
     return "\n".join(rows)
 
 
-def mcap_to_rrd(mcap_path: Path | str, rrd_path: Path | str, *, max_image_side: int = 320) -> Any:
+def run_classes(mcap_path: Path | str) -> tuple[list[str], str]:
+    """(class names, taxonomy name) of a run.mcap, read from its first records only."""
+    import json
+
+    from diffuser_lab.recording import schema
+    from diffuser_lab.recording.mcap_encode import TOPIC_RUN
+    from diffuser_lab.recording.mcap_read import RunLog, iter_run
+
+    log = RunLog(path=Path(mcap_path))
+    for topic, data in iter_run(mcap_path, log):
+        if topic == "metadata:diffuser_lab.run" and data.get("class_names"):
+            return list(json.loads(data["class_names"])), str(data.get("taxonomy", ""))
+        if topic == TOPIC_RUN:
+            info = schema.RunInfo.FromString(data)
+            return list(info.class_names), str(info.taxonomy)
+    return [], ""
+
+
+def score_classes(mcap_path: Path | str, wanted: Sequence[str]) -> list[tuple[str, int]]:
+    """(name, class index) of ``wanted`` in the run's taxonomy; UsageError naming a bad one."""
+    names, tax = run_classes(mcap_path)
+    index = {n: i for i, n in enumerate(names)}
+    for w in wanted:
+        if w not in index:
+            raise UsageError(f"--scores: no class {w!r} in this run's taxonomy {tax or '?'}; its classes: "
+                             f"{', '.join(names) if names else '(none recorded)'}")
+    return [(w, index[w]) for w in dict.fromkeys(wanted)]
+
+
+def mcap_to_rrd(mcap_path: Path | str, rrd_path: Path | str, *, max_image_side: int = 320,
+                scores: Sequence[str] = ()) -> Any:
     """Re-log a run into a fresh .rrd from its run.mcap alone (same entities, blueprint and
     per-iteration class ids as the live run.rrd, the cameras with their label images; not their
-    depth or colour images, which run.mcap does not hold). Returns the
-    :class:`~diffuser_lab.recording.mcap_read.RunLog` (truncation)."""
+    depth or colour images, which run.mcap does not hold). ``scores``: class names whose
+    row-normalised scores Z_ic / sum_c Z_ic are logged too (``world/scores/<class>`` per recorded
+    iteration, a blueprint tab each; a name not in the taxonomy raises :class:`UsageError` before
+    anything is written). Returns the :class:`~diffuser_lab.recording.mcap_read.RunLog` (truncation)."""
     from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
     from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
     from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
@@ -141,8 +174,9 @@ def mcap_to_rrd(mcap_path: Path | str, rrd_path: Path | str, *, max_image_side: 
     from diffuser_lab.recording.rerun_log import RerunRecorder
     from diffuser_lab.recording.steps import StepTracker
 
+    layers = score_classes(mcap_path, scores) if scores else []
     log = RunLog(path=Path(mcap_path))
-    rec = RerunRecorder(Path(rrd_path), max_image_side=max_image_side)
+    rec = RerunRecorder(Path(rrd_path), max_image_side=max_image_side, score_classes=layers)
     tracker = None
     points = gt = None
     residual: dict[int, float] = {}
@@ -199,7 +233,9 @@ def mcap_to_rrd(mcap_path: Path | str, rrd_path: Path | str, *, max_image_side: 
                     continue  # the last state again, exact (the run converged on a recorded iteration)
                 log.z_iterations.append(it)
                 labels = np.frombuffer(msg.labels, "<i2") if msg.labels else None  # the run's own argmax
-                rec.log_step(tracker.step(it, decode_z(msg), residual.get(it, float("nan")), labels=labels), points)
+                step = tracker.step(it, decode_z(msg), residual.get(it, float("nan")), labels=labels)
+                rec.log_step(step, points)
+                rec.log_scores(step)
     finally:
         rec.close()
     return log
@@ -217,6 +253,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--at", metavar="ITER", help="a recorded iteration (or 'last') whose Z to extract")
     ap.add_argument("--out", metavar="Z.npy", help="with --at: write Z there, (M, C) float32")
     ap.add_argument("--to-rrd", metavar="OUT.rrd", help="re-log the run from its MCAP alone into OUT.rrd")
+    ap.add_argument("--scores", metavar="CLASS,..", help="with --to-rrd/--view: also re-log these classes' "
+                    "row-normalised scores Z_ic / sum_c Z_ic per recorded iteration (a tab each)")
     ap.add_argument("--view", action="store_true", help="open the run in the Rerun viewer")
     ap.add_argument("--foxglove-layout", metavar="OUT.json",
                     help="write a Foxglove layout for run.mcap (labelled cloud, cameras, label images, metrics)")
@@ -245,7 +283,12 @@ def _main(args: argparse.Namespace) -> int:
     run = Path(args.run)
     if args.out and args.at is None:
         raise UsageError("--out needs --at ITER")
-    if args.view and (run / "run.rrd").is_file() or (args.view and run.suffix == ".rrd"):
+    scores = [c.strip() for c in (args.scores or "").split(",") if c.strip()]
+    if args.scores is not None and not (args.to_rrd or args.view):
+        raise UsageError("--scores needs --to-rrd OUT.rrd or --view")
+    if args.scores is not None and not scores:
+        raise UsageError("--scores: give class names, e.g. --scores chair,table")
+    if args.view and not scores and ((run / "run.rrd").is_file() or run.suffix == ".rrd"):
         rrd = run if run.suffix == ".rrd" else run / "run.rrd"
         print(f"opening {rrd} in the Rerun viewer")
         return subprocess.call(_viewer() + [str(rrd)])
@@ -258,9 +301,10 @@ def _main(args: argparse.Namespace) -> int:
         return 0
     if args.to_rrd or args.view:
         out = Path(args.to_rrd) if args.to_rrd else Path(tempfile.mkdtemp(prefix="diffuser-lab-")) / "replay.rrd"
-        log = mcap_to_rrd(mcap, out)
+        log = mcap_to_rrd(mcap, out, scores=scores)
         _warn_truncated(log)
-        print(f"wrote {out} ({_size(out)}): {len(log.z_iterations)} iterations re-logged from {mcap}")
+        extra = f", scores of {', '.join(scores)}" if scores else ""
+        print(f"wrote {out} ({_size(out)}): {len(log.z_iterations)} iterations re-logged from {mcap}{extra}")
         if args.view:
             return subprocess.call(_viewer() + [str(out)])
         return 0

@@ -88,7 +88,8 @@ class RecordingHooks(RunHooks):
         from .rerun_log import RerunRecorder
 
         self.rerun = RerunRecorder(self.run_dir / RRD_NAME, max_image_side=self.conf.record.max_image_side,
-                                   max_depth_side=int(getattr(self.conf.record, "max_depth_side", 160)))
+                                   max_depth_side=int(getattr(self.conf.record, "max_depth_side", 160)),
+                                   live=getattr(self.conf.record, "live", None))
         self._files["rrd"] = RRD_NAME
 
     def _open_mcap(self, overrides: Sequence[str]) -> None:

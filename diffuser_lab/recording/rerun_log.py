@@ -7,20 +7,30 @@ Entity tree (``world`` is z-up, metres; class colours come from the AnnotationCo
     world/scene/ground_truth       Points3D, static: ground-truth class ids (when known)
     world/cameras/<i>              Transform3D + Pinhole, static; children labels (SegmentationImage,
                                    the 2D predictions), rgb (Image, if any)
-    world/depth/<i>                the same camera, Pinhole of the coarser depth image; child depth
-                                   (DepthImage, mm, at most record.max_depth_side pixels)
+    world/depth/<i>                Transform3D + Pinhole + DepthImage (mm), static: the same frame's
+                                   depth, apart so that views can leave its back-projected cloud out,
+                                   coarser (record.max_depth_side) under a pinhole of its own
     world/evidence/bayesian        Points3D, static: work points that received pixel mass, Bayesian labels
     world/evidence/unseen          Points3D, static: work points no pixel reached
     world/diffusion/labels         Points3D: positions static, class ids per recorded iteration
     world/diffusion/confidence     Points3D: positions static, class id = max_c Z / sum_c Z in 1/64 steps
                                    per iteration (its own AnnotationContext: viridis colours, labels)
-    world/diffusion/wrong          Points3D per iteration: annotated points whose label is wrong
-    metrics/residual|changed|miou|accuracy|confidence   Scalars per iteration
+    world/diffusion/wrong          Points3D per iteration: annotated points whose label is wrong, in
+                                   :func:`wrong_color` (a colour no class of the taxonomy has)
+    world/scores/<class>           Points3D: positions static, colour = Z_ic / sum_c Z_ic (viridis) and
+                                   the value (component ``score``) per iteration; only in a re-logged
+                                   .rrd (``diffuser-lab-inspect RUN --to-rrd OUT --scores chair,table``)
+    metrics/miou|accuracy|confidence       Scalars per iteration
+    metrics/residual_log10                 log10 of the relative residual (none where it is 0)
+    metrics/changed_per_iter_log10         log10 of the labels changed per iteration since the previous
+                                           recorded one, n_changed / (iteration - previous) (none where 0)
 
 Every per-iteration entity is on the ``diffusion_step`` sequence timeline.
 """
 from __future__ import annotations
 
+import logging
+import sys
 import uuid
 from pathlib import Path
 from typing import Optional, Sequence
@@ -30,6 +40,8 @@ import numpy as np
 from diffuser_lab.data.scene import IGNORE
 
 from .steps import Step
+
+log = logging.getLogger("diffuser_lab.recording")
 
 UNLABELED_ID = 65535
 """Class id logged for IGNORE (-1) in run.rrd (Rerun class ids are unsigned 16-bit)."""
@@ -44,6 +56,9 @@ _VIRIDIS = np.array([(68, 1, 84), (71, 44, 122), (59, 81, 139), (44, 113, 142), 
                      (39, 173, 129), (92, 200, 99), (170, 220, 50), (253, 231, 37)], np.float32)
 _LUT = np.stack([np.interp(np.linspace(0, 8, 256), np.arange(9), _VIRIDIS[:, c]) for c in range(3)], 1)
 CONFIDENCE_LUT = np.round(_LUT).astype(np.uint8)
+_CONFIDENCE_RGBA = ((CONFIDENCE_LUT[:, 0].astype(np.uint32) << 24) | (CONFIDENCE_LUT[:, 1].astype(np.uint32) << 16)
+                    | (CONFIDENCE_LUT[:, 2].astype(np.uint32) << 8) | np.uint32(255))
+"""CONFIDENCE_LUT packed as 0xRRGGBBAA (the --scores layers' colours: Rerun takes these as they are)."""
 CONFIDENCE_BINS = 64
 """Confidence is logged as a class id 0..63 (bin of max_c Z / sum_c Z) whose colour and label an
 AnnotationContext on the entity gives: 2 bytes a point per iteration instead of 4 for a colour,
@@ -58,6 +73,50 @@ def confidence_context():
     return rr.AnnotationContext([
         rr.AnnotationInfo(id=i, label=f"confidence {i / CONFIDENCE_BINS:.3f}-{(i + 1) / CONFIDENCE_BINS:.3f}",
                           color=tuple(int(x) for x in lut[i])) for i in range(CONFIDENCE_BINS)])
+
+UNLABELED_RGB = (70, 70, 70)
+RIGHT_RGB = (95, 95, 95)
+"""The errors tab draws every diffused point in this grey (a view override: no extra data)."""
+LIVE_PORT = 9876
+"""record.live=spawn: the port of the spawned viewer (Rerun's default)."""
+LIVE_FLUSH_S = 60.0
+"""record.live: how long closing waits for the viewer to take what is still queued."""
+
+
+def _lab(rgb: np.ndarray) -> np.ndarray:
+    """(..., 3) sRGB uint8 -> (..., 3) CIE L*a*b* (D65)."""
+    c = np.asarray(rgb, np.float64) / 255.0
+    lin = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+    m = np.array([[0.4124, 0.3576, 0.1805], [0.2126, 0.7152, 0.0722], [0.0193, 0.1192, 0.9505]])
+    t = (lin @ m.T) / np.array([0.95047, 1.0, 1.08883])
+    f = np.where(t > 0.008856, np.cbrt(t), 7.787 * t + 16.0 / 116.0)
+    return np.stack([116.0 * f[..., 1] - 16.0, 500.0 * (f[..., 0] - f[..., 1]), 200.0 * (f[..., 1] - f[..., 2])], -1)
+
+
+def wrong_color(class_colors: np.ndarray) -> tuple[tuple[int, int, int], float]:
+    """The colour of wrong points: of bright, saturated candidates (a 9-level RGB grid) the one
+    farthest (CIE76 delta E, Lab units) from every class colour and from the greys the viewer
+    draws (unlabeled, right points in the errors tab). Returns (rgb, its smallest distance)."""
+    levels = np.round(np.linspace(0, 255, 9))
+    cand = np.stack(np.meshgrid(levels, levels, levels, indexing="ij"), -1).reshape(-1, 3)
+    lab = _lab(cand)
+    ok = (lab[:, 0] >= 55) & (np.hypot(lab[:, 1], lab[:, 2]) >= 40)  # visible on the dark background, not grey
+    cand, lab = cand[ok], lab[ok]
+    avoid = np.concatenate([np.asarray(class_colors, np.float64).reshape(-1, 3), [UNLABELED_RGB, RIGHT_RGB]])
+    d = np.linalg.norm(lab[:, None, :] - _lab(avoid)[None, :, :], axis=2).min(1)
+    best = int(np.argmax(d))
+    return tuple(int(x) for x in cand[best]), float(d[best])
+
+
+def score_entity(name: str, taken: Sequence[str] = ()) -> str:
+    """world/scores/<name> with the name reduced to [A-Za-z0-9_-] (a suffix if already taken)."""
+    import re
+
+    base = "world/scores/" + (re.sub(r"[^A-Za-z0-9_-]+", "_", str(name)).strip("_") or "class")
+    path, k = base, 2
+    while path in taken:
+        path, k = f"{base}_{k}", k + 1
+    return path
 
 
 def class_ids(labels: np.ndarray) -> np.ndarray:
@@ -80,7 +139,7 @@ def annotation_context(names: Sequence[str], colors: np.ndarray):
 
     infos = [rr.AnnotationInfo(id=i, label=str(n), color=tuple(int(x) for x in colors[i]))
              for i, n in enumerate(names)]
-    infos.append(rr.AnnotationInfo(id=UNLABELED_ID, label="unlabeled", color=(70, 70, 70)))
+    infos.append(rr.AnnotationInfo(id=UNLABELED_ID, label="unlabeled", color=UNLABELED_RGB))
     return rr.AnnotationContext(infos)
 
 
@@ -96,30 +155,43 @@ def point_radius(points: np.ndarray) -> float:
     return float(max(0.5 * np.mean(d[:, 1]), 1e-4))
 
 
-def blueprint():
+def blueprint(score_layers: Sequence[tuple[str, str]] = ()):
     """The default layout: the labelled points in 3D beside the time series; other 3D views
-    (confidence, errors, ground truth, input + cameras, evidence) in tabs behind it."""
+    (confidence, errors, ground truth, input + cameras, depth, evidence, and one per
+    ``score_layers`` (class name, entity path)) in tabs behind it.
+
+    Rerun's entity filters have no wildcard inside a path (only a trailing ``/**``), so the
+    depth images live under ``world/depth`` and the camera tabs take ``world/cameras/**`` whole:
+    frustums and label images, no back-projected depth."""
+    import rerun as rr
     import rerun.blueprint as rrb
 
-    def view3d(name: str, contents: list[str]):
-        return rrb.Spatial3DView(name=name, origin="/world", contents=contents)
+    def view3d(name: str, contents: list[str], **kw):
+        return rrb.Spatial3DView(name=name, origin="/world", contents=contents, **kw)
 
+    # the errors tab draws the labels cloud in one grey (an override of this view only), so that
+    # the wrong points are the only colour in it
+    dim = {"/world/diffusion/labels": rr.Points3D.from_fields(colors=RIGHT_RGB).visualizer()}
+    scores = [view3d(f"scores: {name}", [f"/{path}"]) for name, path in score_layers]
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Tabs(
                 view3d("diffusion: labels", ["/world/diffusion/labels"]),
                 view3d("confidence", ["/world/diffusion/confidence"]),
-                view3d("errors (red)", ["/world/diffusion/labels", "/world/diffusion/wrong"]),
+                view3d("errors", ["/world/diffusion/labels", "/world/diffusion/wrong"], overrides=dim),
                 view3d("ground truth", ["/world/scene/ground_truth"]),
                 view3d("input + cameras", ["/world/scene/points", "/world/cameras/**"]),
-                view3d("evidence (Bayesian)", ["/world/evidence/**", "/world/cameras/*"]),
+                view3d("depth (back-projected)", ["/world/depth/**"]),
+                view3d("evidence (Bayesian)", ["/world/evidence/**", "/world/cameras/**"]),
+                *scores,
                 active_tab="diffusion: labels",
             ),
             rrb.Vertical(
                 rrb.TimeSeriesView(name="mIoU so far [%]", origin="/metrics", contents=["/metrics/miou"]),
-                rrb.TimeSeriesView(name="labels changed", origin="/metrics", contents=["/metrics/changed"]),
-                rrb.TimeSeriesView(name="relative residual |Z_t - Z_t-1|", origin="/metrics",
-                                   contents=["/metrics/residual"]),
+                rrb.TimeSeriesView(name="labels changed per iteration, log10", origin="/metrics",
+                                   contents=["/metrics/changed_per_iter_log10"]),
+                rrb.TimeSeriesView(name="relative residual |Z_t - Z_t-1|, log10", origin="/metrics",
+                                   contents=["/metrics/residual_log10"]),
             ),
             column_shares=[3, 2],
         ),
@@ -129,32 +201,73 @@ def blueprint():
 
 
 class RerunRecorder:
-    """Writes run.rrd. Methods take plain arrays so that a run can be re-logged from its MCAP."""
+    """Writes run.rrd. Methods take plain arrays so that a run can be re-logged from its MCAP.
+
+    Args:
+        live: also stream to a viewer: None (off), "spawn" (start one on :data:`LIVE_PORT`) or a
+            gRPC URL such as ``rerun+http://127.0.0.1:9876/proxy`` (see ``record.live``).
+        score_classes: (name, class index) of the classes whose scores :meth:`log_scores` logs
+            (``world/scores/<name>``, one blueprint tab each).
+    """
 
     file_key = "rrd"
 
     def __init__(self, path: Path, *, application_id: str = "diffuser_lab", recording_id: Optional[str] = None,
-                 max_image_side: int = 320, max_depth_side: int = 160):
+                 max_image_side: int = 320, max_depth_side: int = 160, live: Optional[str] = None,
+                 score_classes: Sequence[tuple[str, int]] = ()):
         import rerun as rr
+
+        from diffuser_lab.config import live_target
 
         self.rr = rr
         self.path = Path(path)
         self.max_image_side = int(max_image_side)
         self.max_depth_side = int(max_depth_side)  # 0: no depth images
+        self.score_paths: list[str] = []
+        for _name, _ in score_classes:
+            self.score_paths.append(score_entity(_name, self.score_paths))
+        self.score_index = np.asarray([int(c) for _, c in score_classes], np.int64)
+        bp = blueprint([(str(n), p) for (n, _), p in zip(score_classes, self.score_paths)])
         batcher = rr.ChunkBatcherConfig(flush_tick=BATCH_SECONDS, flush_num_bytes=BATCH_BYTES)
         self.rec = rr.RecordingStream(application_id, recording_id=recording_id or str(uuid.uuid4()),
                                       batcher_config=batcher)
-        self.rec.save(str(self.path), default_blueprint=blueprint())
+        target = live_target(live)
+        if target == "bad":
+            raise ValueError(f"live={live!r}: expected None, 'off', 'spawn' or a Rerun gRPC URL")
+        self.live = self._spawn() if target == "spawn" else target
+        grpc = None
+        if self.live is not None:
+            try:
+                grpc = rr.GrpcSink(self.live)
+            except Exception as exc:  # noqa: BLE001 - a URL Rerun refuses: the file still gets written
+                log.warning("record.live=%s: %s; writing %s only", self.live, exc, self.path.name)
+                self.live = None
+        if grpc is None:
+            self.rec.save(str(self.path), default_blueprint=bp)
+        else:  # both sinks get everything logged from here on
+            self.rec.set_sinks(rr.FileSink(str(self.path)), grpc, default_blueprint=bp)
         self.radius = 0.01
         self._work_radius = 0.01
+        self.wrong_rgb = (255, 0, 255)
         self._closed = False
+
+    def _spawn(self) -> str:
+        """Start a viewer (or find the one on LIVE_PORT) and return its gRPC URL."""
+        from rerun.sinks import spawn
+
+        exe = Path(sys.executable).with_name("rerun")  # the venv's, when not on PATH
+        spawn(port=LIVE_PORT, connect=False, hide_welcome_screen=True, recording=self.rec,
+              executable_path=str(exe) if exe.is_file() else None)
+        return f"rerun+http://127.0.0.1:{LIVE_PORT}/proxy"
 
     # -- static -----------------------------------------------------------------------------
     def log_taxonomy(self, names: Sequence[str], colors: np.ndarray) -> None:
         rr = self.rr
         self.rec.log("world", annotation_context(names, colors), rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        self.wrong_rgb = wrong_color(colors)[0]
         rr_series = [("miou", "mIoU so far [%]", (31, 119, 180)), ("accuracy", "accuracy [%]", (44, 160, 44)),
-                     ("changed", "labels changed", (214, 39, 40)), ("residual", "relative residual", (148, 103, 189)),
+                     ("changed_per_iter_log10", "log10 labels changed per iteration", (214, 39, 40)),
+                     ("residual_log10", "log10 relative residual", (148, 103, 189)),
                      ("confidence", "mean confidence", (255, 127, 14))]
         for key, name, color in rr_series:
             self.rec.log(f"metrics/{key}", rr.SeriesLines(names=name, colors=color), static=True)
@@ -184,12 +297,14 @@ class RerunRecorder:
                    depth: Optional[np.ndarray] = None, labels: Optional[np.ndarray] = None,
                    rgb: Optional[np.ndarray] = None) -> None:
         """One frame: pose (T_cw world -> camera), pinhole, and its images (strided down to
-        ``max_image_side``)."""
+        ``max_image_side``). The depth image goes to ``world/depth/<i>`` with its own copy of the
+        pose and pinhole (a few hundred bytes), the label and colour images under the camera."""
         rr = self.rr
         path = f"world/cameras/{index:04d}"
         T_wc = np.linalg.inv(np.asarray(T_cw, np.float64))
         K_img = np.asarray(K, np.float64)
         res = (int(width), int(height))
+        pose = rr.Transform3D(translation=T_wc[:3, 3], mat3x3=T_wc[:3, :3])
         if labels is not None:
             lab, K_img = self._shrink(labels, np.asarray(K, np.float64))
             res = (lab.shape[1], lab.shape[0])
@@ -197,17 +312,15 @@ class RerunRecorder:
         if rgb is not None:
             im, _ = self._shrink(rgb, np.asarray(K, np.float64))
             self.rec.log(f"{path}/rgb", rr.Image(np.ascontiguousarray(im)), static=True)
-        pose = rr.Transform3D(translation=T_wc[:3, 3], mat3x3=T_wc[:3, :3])
         self.rec.log(path, pose, rr.Pinhole(image_from_camera=K_img, resolution=res, image_plane_distance=0.25),
                      static=True)
         if depth is not None and self.max_depth_side:
-            # coarser than the labels (depth compresses ~5x worse), so under a camera of its own:
-            # world/depth/<i> has the pinhole of the strided image, which back-projects it
+            # coarser than the labels (depth compresses ~5x worse), with the pinhole of the
+            # strided image, which back-projects it
             d, K_d = self._shrink(np.asarray(depth, np.float32), np.asarray(K, np.float64), self.max_depth_side)
-            dpath = f"world/depth/{index:04d}"
-            self.rec.log(dpath, pose, rr.Pinhole(image_from_camera=K_d, resolution=(d.shape[1], d.shape[0]),
-                                                 image_plane_distance=0.25), static=True)
-            self.rec.log(f"{dpath}/depth", rr.DepthImage(depth_mm(d), meter=1000.0), static=True)
+            self.rec.log(f"world/depth/{index:04d}", pose,
+                         rr.Pinhole(image_from_camera=K_d, resolution=(d.shape[1], d.shape[0]), image_plane_distance=0.25),
+                         rr.DepthImage(depth_mm(d), meter=1000.0), static=True)
 
     def log_evidence(self, work_points: np.ndarray, seen: np.ndarray, bayesian: np.ndarray) -> None:
         """Work cloud (M, 3); seen (M,) bool; bayesian (M,) labels. Also logs the static
@@ -223,6 +336,8 @@ class RerunRecorder:
                      rr.Points3D(work_points[~seen], colors=(90, 90, 90), radii=r), static=True)
         self.rec.log("world/diffusion/labels", rr.Points3D(work_points, radii=r), static=True)
         self.rec.log("world/diffusion/confidence", confidence_context(), rr.Points3D(work_points, radii=r), static=True)
+        for p in self.score_paths:
+            self.rec.log(p, rr.Points3D(work_points, radii=r), static=True)
 
     # -- per iteration -------------------------------------------------------------------------
     def log_step(self, step: Step, points: Optional[np.ndarray] = None) -> None:
@@ -234,21 +349,55 @@ class RerunRecorder:
         q = np.minimum(np.multiply(step.confidence, CONFIDENCE_BINS, dtype=np.float32), CONFIDENCE_BINS - 1)
         rec.log("world/diffusion/confidence", rr.Points3D.from_fields(class_ids=q.astype(np.uint16)))
         if step.wrong is not None and points is not None:
-            rec.log("world/diffusion/wrong", rr.Points3D(points[step.wrong], colors=(230, 30, 30),
+            rec.log("world/diffusion/wrong", rr.Points3D(points[step.wrong], colors=self.wrong_rgb,
                                                          radii=1.2 * self.radius))
-        rec.log("metrics/residual", rr.Scalars(step.residual))
-        rec.log("metrics/changed", rr.Scalars(float(step.n_changed)))
+        # log10: after the first iteration (~all labels change, residual 1) both fall by orders of
+        # magnitude, which a linear axis shows as a flat line (Rerun 0.41's plots have no log axis);
+        # per iteration, as recorded iterations need not be evenly spaced
+        if step.residual > 0 and np.isfinite(step.residual):
+            rec.log("metrics/residual_log10", rr.Scalars(np.log10(step.residual)))
+        if step.n_changed > 0:
+            per_iter = step.n_changed / max(step.iteration - step.previous, 1)
+            rec.log("metrics/changed_per_iter_log10", rr.Scalars(np.log10(per_iter)))
         rec.log("metrics/confidence", rr.Scalars(step.mean_confidence))
         if step.miou is not None:
             rec.log("metrics/miou", rr.Scalars(step.miou))
             rec.log("metrics/accuracy", rr.Scalars(step.accuracy))
 
+    def score_values(self, Z: np.ndarray) -> np.ndarray:
+        """(M, C) scores -> (M, k) float32 Z_ic / sum_c Z_ic of the score classes, 0 where the row is 0."""
+        tot = Z.sum(1, dtype=np.float32)[:, None]
+        out = np.zeros((Z.shape[0], len(self.score_index)), np.float32)
+        np.divide(Z[:, self.score_index], tot, out=out, where=tot > 0)
+        return np.clip(out, 0.0, 1.0, out=out)
+
+    def log_scores(self, step: Step) -> None:
+        """The score classes' row-normalised Z of one recorded iteration: colour (viridis) and
+        value (component ``score``) per point of ``world/scores/<class>``."""
+        if not self.score_paths:
+            return
+        rr = self.rr
+        self.rec.set_time(TIMELINE, sequence=step.iteration)
+        vals = self.score_values(step.Z)
+        q = np.multiply(vals, 255.0, dtype=np.float32).astype(np.uint8)
+        for j, p in enumerate(self.score_paths):
+            self.rec.log(p, rr.Points3D.from_fields(colors=_CONFIDENCE_RGBA[q[:, j]]),
+                         rr.AnyValues(score=np.ascontiguousarray(vals[:, j])))
+
     def close(self) -> None:
         if self._closed:
             return
         self._closed = True
-        self.rec.flush()
+        if self.live is None:
+            self.rec.flush()
+        else:
+            try:
+                self.rec.flush(timeout_sec=LIVE_FLUSH_S)
+            except Exception as exc:  # noqa: BLE001 - the viewer went away or never came: the file is whole
+                log.warning("record.live: the viewer at %s did not get all of the run (%s); %s is complete",
+                            self.live, exc, self.path.name)
         self.rec.disconnect()
 
 
-__all__ = ["RerunRecorder", "blueprint", "class_ids", "UNLABELED_ID", "TIMELINE", "CONFIDENCE_LUT"]
+__all__ = ["RerunRecorder", "blueprint", "class_ids", "wrong_color", "score_entity", "UNLABELED_ID", "TIMELINE",
+           "CONFIDENCE_LUT"]
