@@ -137,3 +137,49 @@ def test_scannet0470_records_at_most_300_bytes_per_point(tmp_path):
     per_point = _bytes_per_point(tmp_path)
     print(f"scannet0470: {per_point:.0f} bytes per diffused point")
     assert per_point <= BUDGET
+
+
+def _with_hooks(cfg, scene, run_dir, **kw):
+    hooks = make_hooks(cfg, run_dir, **kw)
+    try:
+        res = run(cfg, scene=scene, hooks=hooks)
+    finally:
+        hooks.close()
+    return res, hooks
+
+
+def test_the_recording_process_writes_what_the_thread_writes(small_demo_scene, tmp_path):
+    from diffuser_lab.recording.process import ProcessHooks, available
+
+    if not available():
+        pytest.skip("no fork on this platform: the thread records")
+    cfg = default_config(**{"solver.max_iter": 40})
+    res_t, thread = _with_hooks(cfg, small_demo_scene, tmp_path / "thread")
+    res_p, proc = _with_hooks(cfg, small_demo_scene, tmp_path / "process", process=True)
+    assert isinstance(proc, ProcessHooks) and proc.files() == thread.files() == {"rrd": "run.rrd", "mcap": "run.mcap"}
+    np.testing.assert_array_equal(res_t.labels, res_p.labels)
+    assert proc.recorded == thread.recorded == [1, 2, 5, 10, 20, 40]
+    a, b = read_run(tmp_path / "thread" / "run.mcap", z="all"), read_run(tmp_path / "process" / "run.mcap", z="all")
+    assert a.z_iterations == b.z_iterations and a.metrics == b.metrics and b.summary["records"] == proc.files()
+    for it in a.z_iterations:
+        np.testing.assert_array_equal(a.z[it], b.z[it])
+    assert (tmp_path / "process" / "run.rrd").stat().st_size > 100_000
+
+
+def test_a_dead_recording_process_costs_the_records_not_the_run(small_demo_scene, tmp_path, caplog):
+    from diffuser_lab.recording.process import available
+
+    if not available():
+        pytest.skip("no fork on this platform: the thread records")
+    cfg = default_config(**{"solver.max_iter": 40})
+    hooks = make_hooks(cfg, tmp_path, process=True)
+    hooks._proc.kill()  # the recorder dies (OOM killer, a crash) before the run starts
+    hooks._proc.join()
+    try:
+        res = run(cfg, scene=small_demo_scene, hooks=hooks)
+    finally:
+        hooks.close()
+    np.testing.assert_array_equal(res.labels, run(cfg, scene=small_demo_scene).labels)
+    files = hooks.files()
+    assert "rrd" not in files and "mcap" not in files
+    assert set(files["errors"]) == {"rerun", "mcap"} and "recording process" in files["errors"]["mcap"]

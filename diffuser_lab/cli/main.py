@@ -152,7 +152,7 @@ def _task(cfg: Any) -> Optional[float]:
             from diffuser_lab.recording.heap import retain_freed_memory
 
             retain_freed_memory(conf.record.retain_heap_mb)  # process-wide: the command line's choice
-            hooks = make_hooks(conf, run_dir, overrides=list(hc.overrides.task))
+            hooks = make_hooks(conf, run_dir, overrides=list(hc.overrides.task), process=True)
         try:
             result = run(conf, hooks=hooks)
         finally:

@@ -291,17 +291,24 @@ class _Off(RunHooks):
         return {}
 
 
-def make_hooks(conf: Any, run_dir: Path | str, overrides: Sequence[str] = ()) -> RunHooks:
+def make_hooks(conf: Any, run_dir: Path | str, overrides: Sequence[str] = (), *, process: bool = False) -> RunHooks:
     """The run's recorders as configured by ``conf.record.mode`` (off | rerun | mcap | both).
     The returned object has the :class:`RunHooks` methods and ``files() -> {"rrd": .., "mcap": ..}``
-    (names relative to ``run_dir``)."""
+    (names relative to ``run_dir``). ``process``: record in a forked child process
+    (:mod:`.process`; what the ``diffuser-lab`` command does where ``fork`` exists), else on a
+    thread of this one."""
     mode = str(_value(conf.record.mode))
     if mode == "off":
         return _Off()
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
-    return RecordingHooks(conf, run_dir, rerun=mode in ("rerun", "both"), mcap=mode in ("mcap", "both"),
-                          overrides=overrides)
+    kinds = dict(rerun=mode in ("rerun", "both"), mcap=mode in ("mcap", "both"), overrides=overrides)
+    if process:
+        from . import process as proc
+
+        if proc.available():
+            return proc.ProcessHooks(conf, run_dir, **kinds)
+    return RecordingHooks(conf, run_dir, **kinds)
 
 
 __all__ = ["make_hooks", "RecordingHooks", "Step", "StepTracker", "RRD_NAME", "MCAP_NAME"]

@@ -1,0 +1,220 @@
+"""Recording in a process of its own: what the ``diffuser-lab`` command uses.
+
+On a thread, recording shares the interpreter's lock with the run: importing the Rerun SDK
+(~0.4 s of Python) and the per-iteration Python work then stall the run's own Python between
+its numpy calls (a background import made the demo's loading 0.5 s slower, twice the import's
+own time). A forked child has its own interpreter: it imports, encodes, compresses and writes on
+the second core while the run loads, and only the diffusion, which keeps both cores busy,
+shares the CPU with it.
+
+The child runs :class:`~diffuser_lab.recording.RecordingHooks` in-line, fed by the hook calls
+this side sends it through a pipe, in order, from a sender thread (a recorded Z is copied
+first: the solver reuses its buffer; at most :data:`Z_IN_FLIGHT_MB` wait). The child ignores
+SIGINT and, if the run dies, finishes the files with what it received (EOF on the pipe), so an
+interrupted or killed run leaves complete, readable records of the iterations sent. A child
+that dies costs a warning and ``files()["errors"]``, never the run.
+
+Without ``fork`` (not Linux) :func:`~diffuser_lab.recording.make_hooks` keeps the thread.
+"""
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import os
+import signal
+import threading
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any, Optional, Sequence
+
+import numpy as np
+
+from diffuser_lab.hooks import RunHooks
+
+from .schedule import recorded
+from .serial import SerialThread
+
+log = logging.getLogger("diffuser_lab.recording")
+
+Z_IN_FLIGHT_MB = 384
+"""Recorded Z copies that may wait for the recording process at once, in MB (at least 3
+states): the run only waits when the child is this far behind (the first states come within
+milliseconds, while the child may still be logging the cameras)."""
+QUEUE_SIZE = 64
+NICE = 10
+"""The recording process's niceness: the scheduler gives the run's threads the cores first."""
+CLOSE_TIMEOUT_S = 600.0
+
+
+def available() -> bool:
+    return "fork" in mp.get_all_start_methods()
+
+
+def _value(x: Any) -> Any:
+    return getattr(x, "value", x)
+
+
+def _child(conn, conf, run_dir: Path, rerun: bool, mcap: bool, overrides: Sequence[str]) -> None:
+    """The recording process: hook calls from ``conn`` into in-line RecordingHooks."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the run's: it closes us in order
+    try:  # below the run: its parallel kernels keep both cores busy; the records can wait for a free one
+        os.nice(NICE)
+    except OSError:
+        pass
+    from diffuser_lab import recording
+
+    recording.ASYNC = False
+    hooks = recording.RecordingHooks(conf, run_dir, rerun=rerun, mcap=mcap, overrides=overrides)
+    _warm_kernels(conf)
+    try:
+        while True:
+            try:
+                name, args = conn.recv()
+            except (EOFError, OSError):  # the run died: finish the files with what came
+                break
+            if name == "close":
+                break
+            getattr(hooks, name)(*args)
+    finally:
+        hooks.close()
+        try:
+            conn.send(("report", hooks.files(), list(hooks.recorded)))
+        except (OSError, ValueError):
+            pass
+        conn.close()
+
+
+def _warm_kernels(conf: Any) -> None:
+    """Load the recorders' compiled kernels now, while the run loads its scene (~0.3 s from
+    numba's cache), rather than at the first recorded iteration, inside the diffusion."""
+    from diffuser_lab.backends import numba as nb
+
+    if not nb.available():
+        return
+    from .mcap_encode import z_state_bytes
+    from .steps import StepTracker
+
+    Z = np.ones((4, 3), np.float32)
+    StepTracker(4, ["a", "b", "c"], np.zeros(4, np.int16)).step(1, Z, 0.0)
+    for dtype in {str(_value(conf.record.z_precision)), "float32"}:
+        z_state_bytes(1, Z, dtype, labels=np.zeros(4, np.int16))
+
+
+def _slim_scene(scene: Any) -> SimpleNamespace:
+    """What the recorders read of a Scene (no frames: they come one by one)."""
+    return SimpleNamespace(name=scene.name, n_points=scene.n_points, points=scene.points, colors=scene.colors,
+                           gt_labels=scene.gt_labels, taxonomy=scene.taxonomy)
+
+
+def _slim_result(res: Any) -> SimpleNamespace:
+    """What the recorders read of a RunResult (see recording._summary)."""
+    d = res.diffusion
+    diff = None if d is None else SimpleNamespace(iterations=d.iterations, converged=d.converged,
+                                                  residual=d.residual, Z=d.Z)
+    return SimpleNamespace(method=res.method, scene=_slim_scene(res.scene), work_points=np.empty((len(res.work_points), 0)),
+                           frames=[None] * len(res.frames), metrics=res.metrics,
+                           baseline={"bayesian": res.baseline.get("bayesian")}, predictions_2d=res.predictions_2d,
+                           diffusion=diff, timings_s=dict(res.timings_s))
+
+
+class ProcessHooks(RunHooks):
+    """RecordingHooks in a forked child (see the module doc); the same interface."""
+
+    def __init__(self, conf: Any, run_dir: Path, *, rerun: bool, mcap: bool, overrides: Sequence[str] = ()):
+        self.interval = None if conf.record.interval is None else int(conf.record.interval)
+        self.max_iter = int(conf.solver.max_iter)
+        self._wanted = [w for w, on in (("rerun", rerun), ("mcap", mcap)) if on]
+        self.recorded: list[int] = []
+        self.errors: dict[str, str] = {}
+        self._files: dict[str, str] = {}
+        self._dead: Optional[str] = None
+        self._closed = False
+        self._z_slots: Optional[threading.Semaphore] = None  # sized at the first recorded Z
+        ctx = mp.get_context("fork")
+        self._conn, child_conn = ctx.Pipe()
+        self._proc = ctx.Process(target=_child, args=(child_conn, conf, Path(run_dir), rerun, mcap, list(overrides)),
+                                 name="diffuser-lab-record", daemon=True)
+        self._proc.start()
+        child_conn.close()
+        self._sender = SerialThread("diffuser-lab-record-send", QUEUE_SIZE, stop_on_error=False)
+
+    # -- plumbing --------------------------------------------------------------------------------
+    def _send_now(self, name: str, args: tuple) -> None:
+        if self._dead is not None:
+            return
+        try:
+            self._conn.send((name, args))
+        except (OSError, ValueError) as exc:  # BrokenPipe: the child is gone
+            self._dead = f"the recording process ended early ({type(exc).__name__}: {exc})"
+            log.warning("recording switched off: %s", self._dead)
+
+    def _send(self, name: str, *args) -> None:
+        self._sender.submit(self._send_now, name, args)
+
+    # -- RunHooks ----------------------------------------------------------------------------------
+    def on_scene(self, scene: Any) -> None:
+        self._send("on_scene", _slim_scene(scene))
+
+    def on_frame(self, index: int, frame: Any) -> None:
+        self._send("on_frame", index, frame)
+
+    def on_evidence(self, points: np.ndarray, grid: Optional[Any], evidence: Any, bayesian: np.ndarray) -> None:
+        self._send("on_evidence", points, True if grid is not None else None, SimpleNamespace(seen=evidence.seen),
+                   bayesian)
+
+    def wants(self, iteration: int) -> bool:
+        return self._dead is None and bool(self._wanted) and recorded(iteration, self.interval, self.max_iter)
+
+    def observe(self, iteration: int, Z: np.ndarray, stats: dict) -> None:
+        if self._z_slots is None:
+            self._z_slots = threading.Semaphore(max(3, int(Z_IN_FLIGHT_MB * 2**20 // max(Z.nbytes, 1))))
+        self._z_slots.acquire()  # a recorder far behind makes the run wait instead of filling the memory
+        z = np.array(Z)  # the solver's buffer, valid during this call only
+
+        def send():
+            try:
+                self._send_now("observe", (iteration, z, {"residual": float(stats.get("residual", float("nan")))}))
+            finally:
+                self._z_slots.release()
+
+        self._sender.submit(send)
+
+    def on_result(self, result: Any) -> None:
+        self._send("on_result", _slim_result(result))
+
+    def close(self) -> None:
+        from diffuser_lab import progress
+
+        if self._closed:
+            return
+        self._closed = True
+        with progress.stage(f"finishing records ({', '.join(self._wanted) or 'none'})"):
+            self._sender.submit(self._send_now, "close", ())
+            self._sender.close()
+            report = None
+            try:
+                if self._conn.poll(CLOSE_TIMEOUT_S):
+                    report = self._conn.recv()
+            except (EOFError, OSError):
+                pass
+            self._proc.join(timeout=30)
+            if self._proc.is_alive():
+                self._proc.kill()
+            self._conn.close()
+        if report is not None and report[0] == "report":
+            files, self.recorded = report[1], report[2]
+            self.errors = dict(files.pop("errors", {}))
+            self._files = files
+        else:
+            why = self._dead or f"the recording process ended without a report (exit code {self._proc.exitcode})"
+            self.errors = {w: why for w in self._wanted}
+            log.warning("recording: %s", why)
+
+    def files(self) -> dict:
+        out = dict(self._files)
+        if self.errors:
+            out["errors"] = dict(self.errors)
+        return out
+
+
+__all__ = ["ProcessHooks", "available"]
