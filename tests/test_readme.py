@@ -211,8 +211,15 @@ def check_analysis(c: Command, p, work):
 def check_inspect(c: Command, p, work):
     if "--at" in c.text:
         assert re.search(r"^wrote z\.npy: Z at iteration 100", p.stdout, re.M), p.stdout
+    elif "--scores" in c.text:
+        assert "wrote scores.rrd" in p.stdout and "scores of chair, table" in p.stdout, p.stdout
     elif "--to-rrd" in c.text:
         assert "wrote replay.rrd" in p.stdout and (work["repo"] / "replay.rrd").stat().st_size > 1000
+    elif "--foxglove-layout" in c.text:
+        import json as _json
+
+        layout = _json.loads((work["repo"] / "layout.json").read_text())
+        assert "configById" in layout and "/diffusion/labels" in (work["repo"] / "layout.json").read_text()
     elif "cut.mcap" in c.text:
         assert "TRUNCATED" in p.stdout and "recorded" in p.stdout
     else:
