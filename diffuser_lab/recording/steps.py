@@ -139,10 +139,9 @@ class StepTracker:
 
     def step(self, iteration: int, Z: np.ndarray, residual: float, labels: Optional[np.ndarray] = None) -> Step:
         """``labels``: the (M,) labels of the exact Z when ``Z`` is a stored approximation (they
-        replace Z's argmax; confidence still comes from Z)."""
-        if labels is not None:
-            return self._with_labels(iteration, Z, residual, np.asarray(labels, np.int16))
-        f = _fused() if Z.dtype == np.float32 and Z.ndim == 2 and Z.shape[1] > 0 else None
+        replace Z's argmax; confidence still comes from Z; the numpy pass)."""
+        f = (_fused() if labels is None and Z.dtype == np.float32 and Z.ndim == 2 and Z.shape[1] > 0
+             else None)
         miou = acc = wrong = None
         if f is not None:
             m, c = Z.shape
@@ -160,8 +159,12 @@ class StepTracker:
             else:
                 wrong = None
         else:
-            labels, conf = labels_from_scores(Z), confidence(Z)
+            given = labels is not None
+            labels = np.asarray(labels, np.int16) if given else labels_from_scores(Z)
+            conf = confidence(Z)
             labelled = labels != IGNORE
+            if given:
+                conf[~labelled] = 0.0
             n_changed = int(np.count_nonzero(labels != self.prev_labels))
             if self.gt is not None:
                 lab = labels if self.to_work is None else labels[self.to_work]
@@ -173,26 +176,6 @@ class StepTracker:
         st = Step(iteration=int(iteration), Z=Z, labels=labels, confidence=conf, residual=float(residual),
                   n_changed=int(n_changed), previous=self.prev_iteration, miou=miou, accuracy=acc,
                   coverage=100.0 * n_lab / max(len(labels), 1), mean_confidence=mean_conf, wrong=wrong)
-        self.prev_labels = labels
-        self.prev_iteration = int(iteration)
-        return st
-
-
-    def _with_labels(self, iteration: int, Z: np.ndarray, residual: float, labels: np.ndarray) -> Step:
-        conf = confidence(Z)
-        labelled = labels != IGNORE
-        conf[~labelled] = 0.0
-        miou = acc = wrong = None
-        if self.gt is not None:
-            lab = labels if self.to_work is None else labels[self.to_work]
-            s = score(lab, self.gt, self.names)
-            miou, acc = s["miou"], s["accuracy"]
-            wrong = (lab != self.gt) & (self.gt != IGNORE)
-        n_lab = int(labelled.sum())
-        st = Step(iteration=int(iteration), Z=Z, labels=labels, confidence=conf, residual=float(residual),
-                  n_changed=int(np.count_nonzero(labels != self.prev_labels)), previous=self.prev_iteration,
-                  miou=miou, accuracy=acc, coverage=100.0 * n_lab / max(len(labels), 1),
-                  mean_confidence=float(conf[labelled].mean()) if n_lab else 0.0, wrong=wrong)
         self.prev_labels = labels
         self.prev_iteration = int(iteration)
         return st
