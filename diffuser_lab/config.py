@@ -37,6 +37,7 @@ class SceneSource(Enum):
 class Protocol(Enum):
     global_3d = "global_3d"  # label the scene's points, score 3D mIoU (paper Table I)
     single_frame = "single_frame"  # label each frame's back-projected depth, score 2D mIoU (Table II)
+    online = "online"  # frames one at a time in sequence order; the map labels itself as they come (online.*)
 
 
 class FrameNormals(Enum):
@@ -583,6 +584,50 @@ class ProtocolConfig:
         _check(self.normal_window_px >= 1, "protocol.normal_window_px", self.normal_window_px, ">= 1 pixels")
 
 
+class OnlineMap(Enum):
+    """protocol=online: what the map is."""
+
+    given = "given"  # the scene's cloud (a prior map or mesh): evidence arrives frame by frame
+    growing = "growing"  # each frame's depth back-projected and merged on a voxel grid: points appear as seen
+
+
+class BadFrame(Enum):
+    """protocol=online: a frame that fails the batch pipeline's checks (no depth, a pose that is not rigid)."""
+
+    skip = "skip"  # one warning line naming the frame, the run goes on
+    stop = "stop"  # one error line, the run stops (what it has recorded stays readable)
+
+
+@dataclass
+class OnlineConfig:
+    """protocol=online (diffuser_lab/method/online.py, docs/online.md): per frame the evidence it
+    adds, the graph extended for new points, ``steps`` warm-started steps of Z <- gamma P Z + B."""
+
+    map: OnlineMap = OnlineMap.given
+    steps: int = 8  # warm-started Jacobi steps per frame (fewer when they change Z by <= solver.tol)
+    # the batch iteration count the online result stands for; null = solver.max_iter. The steps
+    # iterate Z <- gamma P Z + B with gamma = 2^(-2 / horizon): its fixed point weights P^t B by
+    # gamma^t, half of the weight on t < horizon / 2 as the batch's T = horizon steps from Z = 0
+    # do, so the result stays where the early-stopped batch is as frames accumulate
+    horizon: Optional[int] = None
+    discount: Optional[float] = None  # gamma itself; null = from horizon; 1 = the undiscounted iteration
+    voxel_size: float = 0.02  # growing: map voxel edge, metres (the paper's 2 cm)
+    depth_stride: int = 2  # growing: every n-th depth pixel in both directions is back-projected
+    max_depth: Optional[float] = None  # growing: metres; depth beyond it adds no points (it still gives evidence)
+    bad_frames: BadFrame = BadFrame.skip
+    compare_batch: bool = True  # after the last frame, run the batch Diffuser on the same frames (and final cloud)
+
+    def __post_init__(self) -> None:
+        _check(1 <= self.steps <= 1000, "online.steps", self.steps, "in 1..1000")
+        _check(self.horizon is None or self.horizon >= 1, "online.horizon", self.horizon, ">= 1 or null")
+        _check(self.discount is None or 0.0 < self.discount <= 1.0, "online.discount", self.discount,
+               "in (0, 1] or null (= 2^(-2/horizon))")
+        _check(self.voxel_size > 0.0, "online.voxel_size", self.voxel_size, "> 0 metres")
+        _check(self.depth_stride >= 1, "online.depth_stride", self.depth_stride, ">= 1")
+        _check(self.max_depth is None or self.max_depth > 0, "online.max_depth", self.max_depth,
+               "> 0 metres or null")
+
+
 class RecordMode(Enum):
     off = "off"
     rerun = "rerun"  # run.rrd
@@ -686,6 +731,7 @@ class Config:
     method: MethodConfig = field(default_factory=MethodConfig)
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
     protocol: ProtocolConfig = field(default_factory=ProtocolConfig)
+    online: OnlineConfig = field(default_factory=OnlineConfig)
     record: RecordConfig = field(default_factory=RecordConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
 

@@ -6,6 +6,8 @@
     on_evidence(points, grid, evidence, bayesian)    once, on the cloud the diffusion runs on
     wants(iteration) -> bool, observe(iteration, Z, stats)   during the diffusion
     on_result(result)                                once, at the end (also gets the final Z)
+:func:`diffuser_lab.runs.online.online` (protocol=online) calls on_scene, then per frame taken
+on_frame(index, frame) and on_online_frame(frame, update), then on_result(online result).
 Arrays passed in are read-only views or must be treated as such.
 """
 from __future__ import annotations
@@ -35,6 +37,11 @@ class RunHooks:
     def observe(self, iteration: int, Z: np.ndarray, stats: dict) -> None:
         """Z: (M, C) float32 read-only scores after ``iteration``, valid during this call only (the
         solver reuses the memory for the next observed iteration); stats: ``residual``."""
+
+    def on_online_frame(self, frame: Any, update: Any) -> None:
+        """protocol=online, after each frame's update: ``update`` is a
+        :class:`~diffuser_lab.runs.online.OnlineUpdate` (the map's points, labels, Bayesian labels,
+        per-frame figures, metrics so far; ``update.scores()`` computes Z on demand)."""
 
     def on_result(self, result: Any) -> None:
         """result: :class:`~diffuser_lab.runs.pipeline.RunResult` (``result.diffusion.Z`` is the final Z)."""

@@ -146,6 +146,9 @@ def _task(cfg: Any) -> Optional[float]:
         from diffuser_lab.config import RecordMode
         from diffuser_lab.runs.pipeline import run
 
+        if conf.protocol.name == Protocol.online:
+            return _online(conf, run_dir, summary, hc, multirun, t_start)
+
         hooks = None
         if conf.record.mode != RecordMode.off:
             from diffuser_lab.recording import make_hooks
@@ -183,6 +186,41 @@ def _task(cfg: Any) -> Optional[float]:
             from diffuser_lab.backends import numba as nb
 
             nb.compile_in_background()
+
+
+def _online(conf: Any, run_dir: Path, summary: Any, hc: Any, multirun: bool, t_start: float) -> Optional[float]:
+    """protocol=online: the frames one at a time (diffuser_lab/runs/online.py), recorded on a frame
+    timeline; labels.npy holds the final map's labels (map order), map.npy its points."""
+    import numpy as np
+
+    from diffuser_lab.config import RecordMode
+    from diffuser_lab.runs import online as online_mod
+    from diffuser_lab.runs.records import write_labels
+
+    hooks = None
+    if conf.record.mode != RecordMode.off:
+        from diffuser_lab.recording import make_hooks
+
+        hooks = make_hooks(conf, run_dir, overrides=list(hc.overrides.task), process=True)
+    try:
+        result = online_mod.online(conf, hooks=hooks)
+    finally:
+        if hooks is not None:
+            hooks.close()
+    pts = result.scene.points if result.scene_labels is not None else result.points
+    labels = result.scene_labels if result.scene_labels is not None else result.labels
+    files = write_labels(run_dir, pts, labels, result.scene.taxonomy, ply=conf.output.labels_ply)
+    if result.mode == "growing":
+        np.save(run_dir / "map.npy", result.points)
+        files["map"] = "map.npy"
+    summary.data.update(online_mod.summary(result))
+    summary.update(records=hooks.files() if hooks is not None else {}, files=files, status="ok")
+    done = summary.data
+    if multirun:
+        say(job_line(hc.job.num, run_dir, done, time.perf_counter() - t_start))
+    elif not conf.output.quiet:
+        print(online_mod.table(result) + f"\nrun folder: {run_dir}")
+    return (done.get("metrics") or {}).get("miou")
 
 
 def _defer_compile(conf: Any) -> bool:

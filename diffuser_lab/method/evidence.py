@@ -90,8 +90,11 @@ def _class_vectors(frame: Frame, num_classes: int, hard: bool) -> tuple[np.ndarr
 
 
 def add_frame(ev: Evidence, points: np.ndarray, frame: Frame, *, depth_tol: float = 0.05,
-              pixel_radius: int = 0, hard: bool = False) -> None:
-    """Add one frame's pixel-to-point links to ``ev`` in place (Eq. 12, one term of Eq. 11)."""
+              pixel_radius: int = 0, hard: bool = False) -> np.ndarray:
+    """Add one frame's pixel-to-point links to ``ev`` in place (Eq. 12, one term of Eq. 11).
+
+    Returns (M,) int64 sorted indices of the points that passed the visibility check (their
+    rows of ``ev`` may have changed; the others did not)."""
     n, num_classes = ev.mass.shape
     labels, probs = _class_vectors(frame, num_classes, hard)
     if probs is None and pixel_radius == 0 and ev.mass.flags.c_contiguous:
@@ -104,8 +107,9 @@ def add_frame(ev: Evidence, points: np.ndarray, frame: Frame, *, depth_tol: floa
                                          T[:3, 3].copy(), np.asarray(frame.K, np.float64),
                                          np.ascontiguousarray(frame.depth, np.float32),
                                          np.ascontiguousarray(labels), depth_tol, ev.mass, ev.links)
-            ev.points_per_frame.append(int(np.count_nonzero(seen)))
-            return
+            seen = np.flatnonzero(seen)
+            ev.points_per_frame.append(int(seen.size))
+            return seen
     idx, rows, cols = visible_projection(points, frame, depth_tol)
     ev.points_per_frame.append(int(idx.size))
     h, w = frame.shape
@@ -126,6 +130,7 @@ def add_frame(ev: Evidence, points: np.ndarray, frame: Frame, *, depth_tol: floa
                 good = lab != IGNORE
                 ev.mass[i[good], lab[good]] += 1.0
                 ev.links[i[good]] += 1
+    return idx
 
 
 def accumulate(points: np.ndarray, frames: Iterable[Frame], num_classes: int, *, depth_tol: float = 0.05,
