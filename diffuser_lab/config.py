@@ -598,13 +598,21 @@ class BadFrame(Enum):
     stop = "stop"  # one error line, the run stops (what it has recorded stays readable)
 
 
+class OnlineSolver(Enum):
+    """protocol=online: how each frame's steps approach the discounted fixed point."""
+
+    gmres = "gmres"  # GMRES(online.steps) warm-started, per class column: the fewest products for a given error
+    jacobi = "jacobi"  # online.steps Jacobi steps Z <- gamma P Z + B, warm-started (scipy; the paper's iteration)
+
+
 @dataclass
 class OnlineConfig:
     """protocol=online (diffuser_lab/method/online.py, docs/online.md): per frame the evidence it
     adds, the graph extended for new points, ``steps`` warm-started steps of Z <- gamma P Z + B."""
 
     map: OnlineMap = OnlineMap.given
-    steps: int = 8  # warm-started Jacobi steps per frame (fewer when they change Z by <= solver.tol)
+    solver: OnlineSolver = OnlineSolver.gmres
+    steps: int = 8  # per frame: GMRES's Krylov steps (products with P) or Jacobi steps
     # the batch iteration count the online result stands for; null = solver.max_iter. The steps
     # iterate Z <- gamma P Z + B with gamma = 2^(-2 / horizon): its fixed point weights P^t B by
     # gamma^t, half of the weight on t < horizon / 2 as the batch's T = horizon steps from Z = 0

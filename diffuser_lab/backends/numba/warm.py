@@ -1,6 +1,7 @@
 """Fill numba's kernel cache: one small demo run with recording into a temporary folder, so the
 kernels a default run uses (kNN graph, evidence, Jacobi steps for the demo's classes, the
-recorders' per-iteration pass and the Z encodings of the default record) are compiled and cached on disk.
+recorders' per-iteration pass and the Z encodings of the default record) and those of
+protocol=online are compiled and cached on disk.
 
 ``python -m diffuser_lab.backends.numba.warm [LOCK]`` (what :func:`compile_in_background` starts;
 ``LOCK`` is removed at the end). Takes ~25 s on an empty cache, ~2 s on a warm one.
@@ -31,6 +32,13 @@ def warm() -> None:
             run(cfg, hooks=hooks)
         finally:
             hooks.close()
+    # protocol=online (its kernels; both map modes, without the batch comparison)
+    from diffuser_lab.runs.online import online
+
+    for mode in ("given", "growing"):
+        oc = default_config(**{"n_views": 3, "protocol.name": "online", "online.map": mode,
+                               "online.compare_batch": False, "record.mode": "off"})
+        online(oc)
 
 
 def main(argv: list[str]) -> None:

@@ -1,0 +1,176 @@
+"""protocol=online: the online Diffuser (diffuser_lab/method/online.py) and its runner
+(diffuser_lab/runs/online.py) on a given cloud: evidence frame by frame equal to the batch
+evidence, determinism, a frame that sees nothing, bad frames, the discount that keeps the result
+at the early-stopped batch instead of drifting towards the fixed point, the numpy path, the CLI."""
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from conftest import SHARED, run_cli
+from diffuser_lab.config import default_config
+from diffuser_lab.data.predictions import with_predictions
+from diffuser_lab.method import evidence as evidence_mod
+from diffuser_lab.method.diffusion import labels_from_scores
+from diffuser_lab.method.online import OnlineDiffuser, discount
+from diffuser_lab.runs.online import online
+from diffuser_lab.runs.pipeline import _work_cloud, load_scene, run
+
+SMALL = {"scene.demo.n_views": 10, "scene.demo.point_spacing": 0.08, "protocol.name": "online",
+         "record.mode": "off"}
+
+
+def _cfg(**kw):
+    return default_config(**{**SMALL, **kw})
+
+
+@pytest.fixture(scope="module")
+def demo():
+    cfg = _cfg()
+    scene = load_scene(cfg.scene)
+    frames = with_predictions(scene.frames, cfg.predictions, scene.taxonomy)
+    frames = [frames[i] for i in range(len(frames))]
+    pts, nrm, _ = _work_cloud(scene, cfg.scene.voxel_size)
+    return cfg, scene, frames, pts, nrm
+
+
+def _play(cfg, scene, frames, pts, nrm, backend="auto", reps=1):
+    od = OnlineDiffuser(cfg, scene.taxonomy, points=pts, normals=nrm, backend=backend)
+    for _ in range(reps):
+        for f in frames:
+            od.add_frame(f)
+    od.close()
+    return od
+
+
+def test_discount_keeps_half_the_weight_before_half_the_horizon():
+    g = discount(200)
+    assert g ** 100 == pytest.approx(0.5)
+    assert discount(10) < g < 1.0
+
+
+def test_evidence_frame_by_frame_equals_batch_evidence(demo):
+    cfg, scene, frames, pts, nrm = demo
+    od = _play(cfg, scene, frames, pts, nrm)
+    batch = evidence_mod.accumulate(pts, frames, scene.taxonomy.num_classes, depth_tol=cfg.evidence.depth_tol)
+    # the map's rows are the work points in the graph's order
+    np.testing.assert_array_equal(od.mass[: od.n], batch.mass[od.order])
+    np.testing.assert_array_equal(od.links[: od.n], batch.links[od.order])
+    # the online Bayesian baseline after the last frame is the batch one
+    np.testing.assert_array_equal(od.bayesian_labels, labels_from_scores(batch.mass)[od.order])
+    assert [h.seen for h in od.history] == batch.points_per_frame
+
+
+def test_online_run_is_deterministic(demo):
+    cfg, scene, frames, pts, nrm = demo
+    a = _play(cfg, scene, frames, pts, nrm)
+    b = _play(cfg, scene, frames, pts, nrm)
+    np.testing.assert_array_equal(a.labels, b.labels)
+    np.testing.assert_array_equal(a.scores(), b.scores())
+    assert [h.changed for h in a.history] == [h.changed for h in b.history]
+
+
+def test_a_frame_that_sees_nothing_changes_nothing(demo):
+    cfg, scene, frames, pts, nrm = demo
+    od = OnlineDiffuser(cfg, scene.taxonomy, points=pts, normals=nrm)
+    for f in frames[:4]:
+        od.add_frame(f)
+    Z, lab = od.scores(), od.labels.copy()
+    away = np.asarray(frames[4].T_cw).copy()
+    away[2, 3] -= 100.0  # the camera 100 m back along its axis: the whole room is behind it
+    od.add_frame(dataclasses.replace(frames[4], T_cw=away))
+    st = od.history[-1]
+    assert st.seen == 0 and st.steps == 0 and st.changed == 0
+    np.testing.assert_array_equal(od.scores(), Z)
+    np.testing.assert_array_equal(od.labels, lab)
+    od.close()
+
+
+def test_numpy_path_agrees_with_the_compiled_one(demo):
+    cfg, scene, frames, pts, nrm = demo
+    a = _play(cfg, scene, frames, pts, nrm, backend="auto")
+    b = _play(cfg, scene, frames, pts, nrm, backend="scipy")
+    assert np.mean(a.labels == b.labels) >= 0.999
+    za, zb = a.scores(), b.scores()
+    assert np.abs(za - zb).max() <= 1e-3 * np.abs(za).max()
+
+
+def test_final_labels_match_the_batch_diffuser(demo):
+    cfg, scene, frames, pts, nrm = demo
+    res = online(cfg, scene=scene)
+    b = res.batch
+    # this small room's 10 frames each see a small part of a coarse (8 cm) cloud, the hardest case for
+    # a few steps per frame (measured 95.1%, 47.7 vs 48.4 mIoU; docs/online.md has the full-size figures)
+    assert b["equal_labels"] >= 94.0, b
+    assert abs(res.metrics["miou"] - b["diffuser"]["miou"]) <= 1.5, (res.metrics["miou"], b)
+    # the online Bayesian on a given cloud is exactly the batch one on the same frames
+    assert res.bayesian["miou"] == pytest.approx(b["bayesian"]["miou"])
+    assert len(res.frames) == len(frames) and res.latency_ms["frames"] == len(frames)
+    assert all(f["diffuser_miou"] >= 0 for f in res.frames)
+
+
+def test_the_discount_stops_the_drift_towards_the_fixed_point(demo):
+    """Frames played again and again: the discounted iteration stays at the batch labels; the
+    undiscounted one (discount=1, the paper's iteration warm-started) keeps smoothing."""
+    cfg, scene, frames, pts, nrm = demo
+    batch = run(dataclasses.replace(cfg, protocol=dataclasses.replace(cfg.protocol, name="global_3d")), scene=scene)
+    want = labels_from_scores(batch.diffusion.Z)
+    eq = {}
+    for disc in (None, 1.0):
+        c = dataclasses.replace(cfg, online=dataclasses.replace(cfg.online, discount=disc))
+        od = _play(c, scene, frames, pts, nrm, reps=6)
+        eq[disc] = float(np.mean(od.labels[od.map_index] == want))
+    # measured: 98.8% discounted, 92.3% undiscounted after six passes
+    assert eq[None] >= 0.98, eq
+    assert eq[1.0] < eq[None] - 0.03, eq
+
+
+def test_bad_frames_are_skipped_or_stop_the_run(demo):
+    _, scene, _, _, _ = demo
+    pcfg = _cfg(**{"predictions.source": "gt"})
+    bad = [scene.frames[i] for i in range(len(scene.frames))]
+    bad[2] = dataclasses.replace(bad[2], depth=np.zeros_like(bad[2].depth))
+    T = np.asarray(bad[5].T_cw).copy()
+    T[:3, :3] *= 2.0  # not a rotation
+    bad[5] = dataclasses.replace(bad[5], T_cw=T)
+    sc = dataclasses.replace(scene, frames=bad)
+    frames = bad
+    with pytest.warns(UserWarning) as rec:
+        res = online(pcfg, scene=sc)
+    msgs = [str(w.message) for w in rec]
+    assert any("frame 2 skipped" in m and "no valid depth" in m for m in msgs), msgs
+    assert any("frame 5 skipped" in m and "not a rigid transform" in m for m in msgs), msgs
+    skipped = [f["index"] for f in res.frames if f["skipped"]]
+    assert skipped == [2, 5]
+    assert res.latency_ms["frames"] == len(frames) - 2
+    stop = _cfg(**{"predictions.source": "gt", "online.bad_frames": "stop"})
+    with pytest.raises(ValueError, match="no valid depth"):
+        online(stop, scene=sc)
+
+
+def test_cli_online_run_writes_its_folder(tmp_path):
+    r = run_cli("protocol=online", "scene.demo.n_views=6", "scene.demo.point_spacing=0.08", "record=off",
+                f"hydra.run.dir={tmp_path / 'run'}")
+    assert r.returncode == 0, r.stderr
+    assert "diffuser-lab online" in r.stdout and "per frame [ms]" in r.stdout
+    assert "final labels equal to the batch Diffuser's" in r.stdout
+    s = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert s["status"] == "ok" and s["protocol"] == "online" and len(s["online"]["frames"]) == 6
+    assert 50 < s["batch"]["equal_labels"] <= 100  # six tiny views: a mechanics check (figures: docs/online.md)
+    labels = np.load(tmp_path / "run" / "labels.npy")
+    assert labels.shape == (s["n_points"],)
+
+
+@pytest.mark.skipif(not (SHARED / "data" / "scannet" / "scene0470_00").is_dir(),
+                    reason=f"real ScanNet scene absent: {SHARED / 'data' / 'scannet' / 'scene0470_00'} not found")
+def test_scannet0470_given_map_keeps_the_batch_result():
+    """The issue's accuracy targets on the real scene (its latency targets: the benchmark)."""
+    from test_model_predictions import compose
+
+    cfg = compose("scene=scannet0470", "protocol=online", "record=off")
+    res = online(cfg)
+    assert res.batch["equal_labels"] >= 99.0, res.batch
+    assert abs(res.metrics["miou"] - res.batch["diffuser"]["miou"]) <= 0.5, (res.metrics, res.batch)
