@@ -14,7 +14,9 @@
 - ``convergence.png``: mIoU and residual against iteration, read from the runs' run.mcap files: one
   curve per configuration (seeds aggregated: mean, band min-max over seeds), coloured by the swept
   value (sequential colour map for numbers, qualitative for names), a second swept parameter as
-  line style (or as panel rows when it has more than four values).
+  line style (or as panel rows when it has more than four values);
+- ``online.png``: for online runs (``protocol=online``), mIoU and latency frame by frame
+  (:mod:`analysis.online`).
 
 Each ``plot_*`` function saves a PNG; the ``*_figure`` function behind it returns the matplotlib
 Figure (or None when there is nothing to draw) for inspection.
@@ -601,6 +603,11 @@ def make_plots(paths: list[str], out: str | Path) -> list[Path]:
         p = fn(runs, out)
         if p is not None:
             made.append(p)
+    from analysis.online import plot_online
+
+    p = plot_online(runs, out / "online.png")
+    if p is not None:
+        made.append(p)
     return made
 
 

@@ -23,6 +23,8 @@ CAPTIONS = {
     "per_class_iou": "Per-class IoU for each configuration (mean over seeds).",
     "convergence": "mIoU and relative residual per recorded iteration, one line per configuration: mean "
                    "over seeds (residual: geometric mean), band min–max over seeds.",
+    "online": "Online runs frame by frame: mIoU so far of the online Diffuser and Bayesian (batch runs on the "
+              "same frames dashed), the update's latency per frame with its median and p95, a growing map's size.",
 }
 
 
