@@ -125,8 +125,10 @@ def _map_gt(scene: Scene, points: np.ndarray, max_dist: float) -> Optional[np.nd
 
 
 def online(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHooks] = None,
-           backend: str = "auto") -> OnlineResult:
-    """Run the online protocol (module doc) on ``scene`` (default: the configured source)."""
+           backend: str = "auto", predicted: Optional[Sequence[Frame]] = None) -> OnlineResult:
+    """Run the online protocol (module doc) on ``scene`` (default: the configured source).
+    ``predicted``: the scene's frames with their predictions already attached (else they are
+    made as configured, frame by frame)."""
     hooks = hooks or RunHooks()
     t0 = time.perf_counter()
     t: dict = {}
@@ -140,7 +142,8 @@ def online(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHoo
         validate.check_points(scene)
     t["load"] = time.perf_counter() - t0
     hooks.on_scene(scene)
-    frames = with_predictions(scene.frames, cfg.predictions, tax, scene_name=scene.name)
+    frames = predicted if predicted is not None else with_predictions(scene.frames, cfg.predictions, tax,
+                                                                       scene_name=scene.name)
     tm = time.perf_counter()
     rows = None
     if growing:

@@ -1,0 +1,72 @@
+"""Online Diffuser targets (issue 20): per-frame update latency (the network and file reading
+excluded: frames are loaded and predicted before the clock starts) and the final result against
+the batch Diffuser, on three sequences:
+
+    scene=scannet0470, given map (40 views, ~48k points)   median <= 15 ms, p95 <= 50 ms,
+                                                           mIoU within 0.5 of batch, >= 99% labels equal
+    7-Scenes sample, growing map (100 frames, 640x480)     median <= 40 ms, p95 <= 120 ms, >= 97% equal
+    demo room, growing map (30 frames)                     median <= 40 ms, p95 <= 120 ms, >= 97% equal,
+                                                           mIoU within 1.0 of the batch run on the final cloud
+
+Measure with
+
+    .venv/bin/python -m pytest tests/benchmarks/test_online.py --benchmark-enable -s
+
+Each case plays its sequence through :class:`~diffuser_lab.method.online.OnlineDiffuser` twice in
+one process (the first pass loads the compiled kernels; the second is timed) and prints its
+figures. With benchmarks disabled (the default test run) the cases are skipped: the default run
+checks the accuracy targets in tests/test_online.py and tests/test_growing_online.py.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import SHARED
+
+SCANNET = SHARED / "data" / "scannet" / "scene0470_00"
+SEVEN = SHARED / "data" / "7scenes_sample"
+CASES = {
+    "scannet0470-given": (["scene=scannet0470"], 15.0, 50.0, 99.0, 0.5, SCANNET),
+    "7scenes-growing": (["scene=rgbd_folder", f"scene.rgbd_folder.root={SEVEN}", "online.map=growing",
+                         "predictions=model", "predictions.model._target_=tests.test_model_predictions.grey_levels",
+                         "predictions.cache_dir=null"], 40.0, 120.0, 97.0, None, SEVEN),
+    "demo-growing": (["online.map=growing"], 40.0, 120.0, 97.0, 1.0, None),
+}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+@pytest.mark.benchmark(group="online")
+def test_online_targets(benchmark, case):
+    from test_model_predictions import compose
+
+    from diffuser_lab.data.predictions import with_predictions
+    from diffuser_lab.data.taxonomy import resolve_taxonomy
+    from diffuser_lab.runs.online import online
+    from diffuser_lab.runs.pipeline import load_scene
+
+    args, med_t, p95_t, equal_t, miou_t, data = CASES[case]
+    if benchmark.disabled:
+        pytest.skip("benchmark only (--benchmark-enable)")
+    if data is not None and not data.is_dir():
+        pytest.skip(f"real data absent: {data} not found")
+    cfg = compose(*args, "protocol=online", "record=off")
+    scene = load_scene(cfg.scene, resolve_taxonomy(cfg), cfg.depth)
+    frames = with_predictions(scene.frames, cfg.predictions, scene.taxonomy, scene_name=scene.name)
+    frames = [frames[i] for i in range(len(frames))]  # loaded and predicted before any clock runs
+    import dataclasses
+
+    warm = dataclasses.replace(cfg, online=dataclasses.replace(cfg.online, compare_batch=False))
+    online(warm, scene=scene, predicted=frames)
+    res = benchmark.pedantic(lambda: online(cfg, scene=scene, predicted=frames), rounds=1, iterations=1)
+    L, b = res.latency_ms, res.batch
+    lat = np.array([f["latency_ms"] for f in res.frames])
+    parts = {k: float(np.median([f[k] for f in res.frames])) for k in ("map_ms", "evidence_ms", "steps_ms")}
+    print(f"\n{case}: {res.points.shape[0]:,} points, {len(res.frames)} frames: latency median {L['median']:.1f} ms "
+          f"p95 {L['p95']:.1f} max {L['max']:.1f} ({', '.join(f'{k} {v:.1f}' for k, v in parts.items())}); "
+          f"equal {b['equal_labels']:.2f}%; online mIoU {res.metrics['miou'] if res.metrics else None} "
+          f"batch {b.get('diffuser', {}).get('miou')}")
+    assert lat.size == len(frames)
+    assert L["median"] <= med_t and L["p95"] <= p95_t, L
+    assert b["equal_labels"] >= equal_t, b
+    if miou_t is not None and res.metrics is not None:
+        assert abs(res.metrics["miou"] - b["diffuser"]["miou"]) <= miou_t, (res.metrics["miou"], b)
