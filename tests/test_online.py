@@ -91,21 +91,26 @@ def test_a_frame_that_sees_nothing_changes_nothing(demo):
 
 def test_numpy_path_agrees_with_the_compiled_one(demo):
     cfg, scene, frames, pts, nrm = demo
-    a = _play(cfg, scene, frames, pts, nrm, backend="auto")
-    b = _play(cfg, scene, frames, pts, nrm, backend="scipy")
-    assert np.mean(a.labels == b.labels) >= 0.999
-    za, zb = a.scores(), b.scores()
-    assert np.abs(za - zb).max() <= 1e-3 * np.abs(za).max()
+    for solver in ("jacobi", "gmres"):
+        c = dataclasses.replace(cfg, online=dataclasses.replace(cfg.online, solver=solver))
+        a = _play(c, scene, frames, pts, nrm, backend="auto")
+        b = _play(c, scene, frames, pts, nrm, backend="scipy")
+        assert np.mean(a.labels == b.labels) >= 0.999, solver
+        za, zb = a.scores(), b.scores()
+        assert np.abs(za - zb).max() <= 1e-3 * np.abs(za).max(), solver
 
 
 def test_final_labels_match_the_batch_diffuser(demo):
     cfg, scene, frames, pts, nrm = demo
     res = online(cfg, scene=scene)
     b = res.batch
-    # this small room's 10 frames each see a small part of a coarse (8 cm) cloud, the hardest case for
-    # a few steps per frame (measured 95.1%, 47.7 vs 48.4 mIoU; docs/online.md has the full-size figures)
-    assert b["equal_labels"] >= 94.0, b
-    assert abs(res.metrics["miou"] - b["diffuser"]["miou"]) <= 1.5, (res.metrics["miou"], b)
+    # The hardest case for a few steps per frame: 10 frames in all (100 Jacobi steps, fewer than the
+    # batch's 200), each seeing a small part of a coarse (8 cm) cloud whose unseen points the batch
+    # reaches over long chains (measured: 87.8% equal; GMRES 95.1%; full-size figures: docs/online.md)
+    assert b["equal_labels"] >= 85.0, b
+    g = online(_cfg(**{"online.solver": "gmres", "online.steps": 8}), scene=scene)
+    assert g.batch["equal_labels"] >= 94.0 and g.batch["equal_labels"] > b["equal_labels"], g.batch
+    assert abs(g.metrics["miou"] - b["diffuser"]["miou"]) <= 1.5, (g.metrics["miou"], b)
     # the online Bayesian on a given cloud is exactly the batch one on the same frames
     assert res.bayesian["miou"] == pytest.approx(b["bayesian"]["miou"])
     assert len(res.frames) == len(frames) and res.latency_ms["frames"] == len(frames)
@@ -113,7 +118,7 @@ def test_final_labels_match_the_batch_diffuser(demo):
 
 
 def test_the_discount_stops_the_drift_towards_the_fixed_point(demo):
-    """Frames played again and again: the discounted iteration stays at the batch labels; the
+    """Frames played again and again (15 times): the discounted iteration stays at the batch labels; the
     undiscounted one (discount=1, the paper's iteration warm-started) keeps smoothing."""
     cfg, scene, frames, pts, nrm = demo
     batch = run(dataclasses.replace(cfg, protocol=dataclasses.replace(cfg.protocol, name="global_3d")), scene=scene)
@@ -121,9 +126,10 @@ def test_the_discount_stops_the_drift_towards_the_fixed_point(demo):
     eq = {}
     for disc in (None, 1.0):
         c = dataclasses.replace(cfg, online=dataclasses.replace(cfg.online, discount=disc))
-        od = _play(c, scene, frames, pts, nrm, reps=6)
+        od = _play(c, scene, frames, pts, nrm, reps=15)
         eq[disc] = float(np.mean(od.labels[od.map_index] == want))
-    # measured: 98.8% discounted, 92.3% undiscounted after six passes
+    # measured (equal labels after 1, 2, 5, 10, 15 passes): discounted 87.8, 93.9, 97.7, 98.7, 98.7%;
+    # undiscounted 86.9, 94.4, 96.7, 93.4, 92.5%: it passes the batch result and goes on smoothing
     assert eq[None] >= 0.98, eq
     assert eq[1.0] < eq[None] - 0.03, eq
 

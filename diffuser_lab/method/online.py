@@ -46,6 +46,12 @@ FLOOR = np.float32(SCORE_FLOOR)
 """Scores (divided by lambda, so of order 1 where evidence is) below this are flushed to zero."""
 
 
+STEPS_GIVEN = 10
+"""Default steps per frame on a given map (``online.steps=null``)."""
+STEPS_GROWING = 16
+"""... on a growing map: its new points start from Z = 0, not from a warm state."""
+
+
 def discount(horizon: int) -> float:
     """gamma = 2^(-2 / horizon): the discounted fixed point puts half its weight on the first
     horizon / 2 powers of P, as the batch's ``horizon`` steps from Z = 0 do."""
@@ -95,7 +101,7 @@ class OnlineDiffuser:
         self.growing = oc.map == OnlineMap.growing
         self.horizon = int(oc.horizon or cfg.solver.max_iter)
         self.gamma = float(oc.discount) if oc.discount is not None else discount(self.horizon)
-        self.steps = int(oc.steps)
+        self.steps = int(oc.steps) if oc.steps is not None else (STEPS_GROWING if self.growing else STEPS_GIVEN)
         self.tol = float(cfg.solver.tol)
         self.lam = float(cfg.evidence.pixel_weight)
         self.depth_tol = float(cfg.evidence.depth_tol)
