@@ -85,7 +85,8 @@ def _printed_block_after(cmd_line: int, marker: str) -> list[str]:
 def _rows(lines) -> dict[str, list[float]]:
     out = {}
     for ln in lines:
-        m = re.match(r"^(diffuser|bayesian \(baseline\)|2D predictions)\s+([\d.\s]+)$", ln.strip())
+        m = re.match(r"^(diffuser|bayesian \(baseline\)|2D predictions|(?:online|batch) (?:diffuser|bayesian))\s+"
+                     r"([\d.\s]+)$", ln.strip())
         if m:
             out[m.group(1)] = [float(x) for x in m.group(2).split()]
     return out
@@ -98,7 +99,10 @@ def check_run(c: Command, p, work):
     assert run_dir.resolve().is_relative_to((work["repo"] / "logs" / "runs").resolve()), run_dir
     s = json.loads((run_dir / "summary.json").read_text())
     assert s["status"] == "ok"
-    if s.get("protocol") != "single_frame":
+    if s.get("protocol") == "online":
+        assert re.search(r"^diffuser-lab online \| scene ", p.stdout, re.M), p.stdout[-2000:]
+        assert "per frame [ms]" in p.stdout and len(s["online"]["frames"]) == s["n_frames"]
+    elif s.get("protocol") != "single_frame":
         assert re.search(r"^diffuser-lab \| scene ", p.stdout, re.M)
         if s["metrics"] is None:  # no ground truth: what was labelled, as the README says
             assert "no ground truth: no mIoU; diffuser labelled" in p.stdout, p.stdout[-2000:]
@@ -111,7 +115,8 @@ def check_run(c: Command, p, work):
         assert re.search(r"model \S+, \d+ frames run, \d+ from cache", p.stdout), p.stdout[-2000:]
     # the README's sample outputs are what the command prints (seeded; 0.2 for another CPU's rounding)
     for marker, cond in (("It prints", c.text.startswith("bash scripts/dev.sh demo")),
-                         ("The global protocol prints", c.text == ".venv/bin/diffuser-lab scene=scannet0470")):
+                         ("The global protocol prints", c.text == ".venv/bin/diffuser-lab scene=scannet0470"),
+                         ("The first prints", c.text == ".venv/bin/diffuser-lab scene=scannet0470 protocol=online")):
         if cond:
             want, got = _rows(_printed_block_after(c.line, marker)), _rows(p.stdout.splitlines())
             assert want and set(want) == set(got), (want, got)
