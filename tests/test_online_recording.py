@@ -75,8 +75,24 @@ def rrd_rows(path, entity, component):
             if component not in rb.schema.names:
                 continue
             for f, v in zip(rb.column("frame").to_pylist(), rb.column(component).to_pylist()):
-                out[f] = v
+                if v is not None:
+                    out[f] = v
     return out
+
+
+def rrd_blocks(path, kind, component):
+    """{block entity: {frame: values}} of world/online/<kind>/<block> (rerun_log.ONLINE_BLOCK_ROWS)."""
+    from rerun.chunk import RrdReader
+
+    prefix = f"/world/online/{kind}/"
+    paths = {ch.entity_path for ch in RrdReader(path).stream() if ch.entity_path.startswith(prefix)}
+    return {p: rrd_rows(path, p, component) for p in sorted(paths)}
+
+
+def map_at(blocks, frame):
+    """The map's values at ``frame``: each block's latest entry at or before it, concatenated."""
+    parts = [np.asarray(b[max(f for f in b if f <= frame)]) for b in blocks.values() if any(f <= frame for f in b)]
+    return np.concatenate(parts) if parts else np.zeros(0)
 
 
 def plain(frames):
@@ -150,13 +166,18 @@ def test_mcap_map_cloud_and_cameras(thread_run):
 def test_rrd_frame_timeline_one_entry_per_frame(thread_run):
     path = thread_run.dir / "run.rrd"
     cap = thread_run.cap
-    ids = rrd_rows(path, "/world/online/labels", "Points3D:class_ids")
+    blocks = rrd_blocks(path, "labels", "Points3D:class_ids")
+    assert list(blocks) == ["/world/online/labels/0000"]  # a given map: one block
+    ids = blocks["/world/online/labels/0000"]
     assert sorted(ids) == cap.index
     for i in cap.index:
         np.testing.assert_array_equal(ids[i], class_ids(cap.labels[i]))
-    pos = rrd_rows(path, "/world/online/labels", "Points3D:positions")
+    pos = rrd_rows(path, "/world/online/labels/0000", "Points3D:positions")
     assert sorted(pos) == [0]  # a given map: positions once, class ids every frame
-    assert sorted(rrd_rows(path, "/world/online/bayesian", "Points3D:class_ids")) == cap.index
+    np.testing.assert_array_equal(np.asarray(pos[0], np.float32), thread_run.res.points)
+    bay = rrd_rows(path, "/world/online/bayesian/0000", "Points3D:class_ids")
+    assert sorted(bay) == cap.index
+    np.testing.assert_array_equal(bay[cap.index[-1]], class_ids(thread_run.res.bayesian_labels))
     assert sorted(rrd_rows(path, "/world/online/camera", "Transform3D:translation")) == cap.index
     assert sorted(rrd_rows(path, "/world/online/camera/labels", "SegmentationImage:buffer")) == cap.index
     miou = rrd_rows(path, "/metrics/diffuser_miou", "Scalars:scalars")
@@ -180,7 +201,7 @@ def test_process_and_thread_recorders_give_the_same_frames(thread_run, cli_runs)
     np.testing.assert_array_equal(b.z[b.z_iterations[-1]], a.z[a.z_iterations[-1]])
     s = json.loads((cli_runs["both"] / "summary.json").read_text())
     assert s["records"] == {"rrd": "run.rrd", "mcap": "run.mcap"}
-    ids = rrd_rows(cli_runs["both"] / "run.rrd", "/world/online/labels", "Points3D:class_ids")
+    ids = rrd_rows(cli_runs["both"] / "run.rrd", "/world/online/labels/0000", "Points3D:class_ids")
     assert sorted(ids) == [f["index"] for f in b.frames]
 
 
@@ -225,7 +246,7 @@ class _Frame(SimpleNamespace):
     pass
 
 
-def test_growing_map_records_synthetic(tmp_path):
+def test_growing_map_records_synthetic(tmp_path, monkeypatch):
     """The recorders on a growing map, driven by hand (no growing map implementation needed):
     positions re-logged on the frames that add points only, Z states as the map grows, ground
     truth of the map, the last state exact."""
@@ -233,6 +254,9 @@ def test_growing_map_records_synthetic(tmp_path):
     from diffuser_lab.runs.online import OnlineResult, OnlineUpdate
     from diffuser_lab.method.online import FrameStats
 
+    from diffuser_lab.recording import rerun_log
+
+    monkeypatch.setattr(rerun_log, "ONLINE_BLOCK_ROWS", 64)  # 150 points: blocks of 64, 64, 22
     cfg = default_config(**{**SMALL, "online.map": "growing", "record.interval": 2})
     tax = resolve_taxonomy(cfg)
     rng = np.random.default_rng(0)
@@ -270,16 +294,22 @@ def test_growing_map_records_synthetic(tmp_path):
     assert [log.z[i].shape[0] for i in log.z_iterations] == [0, 40, 90, 150]
     np.testing.assert_array_equal(log.z[4], Zs[4])
     path = tmp_path / "run.rrd"
-    pos = rrd_rows(path, "/world/online/labels", "Points3D:positions")
-    assert sorted(pos) == [1, 3, 4]  # frames that added points
-    np.testing.assert_array_equal(np.asarray(pos[4], np.float32), all_pts)
-    ids = rrd_rows(path, "/world/online/labels", "Points3D:class_ids")
-    assert sorted(ids) == [0, 1, 2, 3, 4]
-    np.testing.assert_array_equal(ids[2], labels[2])
-    gt = rrd_rows(path, "/world/online/ground_truth", "Points3D:class_ids")
-    np.testing.assert_array_equal(gt[4], class_ids(all_gt))
+    pos = rrd_blocks(path, "labels", "Points3D:positions")
+    # each block's positions again only on the frames that added rows to it
+    assert {p: sorted(v) for p, v in pos.items()} == {"/world/online/labels/0000": [1, 3],
+                                                      "/world/online/labels/0001": [3, 4],
+                                                      "/world/online/labels/0002": [4]}
+    for f, n in enumerate(sizes):
+        np.testing.assert_array_equal(np.asarray(map_at(pos, f), np.float32).reshape(-1, 3), all_pts[:n])
+    ids = rrd_blocks(path, "labels", "Points3D:class_ids")
+    assert sorted(ids["/world/online/labels/0000"]) == [1, 2, 3, 4]  # frame 0: an empty map
+    for f in range(1, 5):
+        np.testing.assert_array_equal(map_at(ids, f), class_ids(labels[f]))
+    gt = rrd_blocks(path, "ground_truth", "Points3D:class_ids")
+    np.testing.assert_array_equal(map_at(gt, 4), class_ids(all_gt))
     wrong = rrd_rows(path, "/world/online/wrong", "Points3D:positions")
-    want = all_pts[(labels[4] != all_gt) & (all_gt >= 0)]
+    want = all_pts[(labels[4] != all_gt) & (all_gt >= 0) & (labels[4] >= 0)]
+    assert 0 < len(want) < 150
     np.testing.assert_array_equal(np.asarray(wrong[4], np.float32), want)
     cam = rrd_rows(path, "/world/online/camera", "Transform3D:translation")
     assert cam[3][0][0] == pytest.approx(-0.3)  # T_wc = inv(T_cw): the camera moves
@@ -327,9 +357,13 @@ def test_growing_map_cli(tmp_path):
     assert pts == sorted(pts) and pts[-1] == s["n_points_diffused"]
     last = log.z_iterations[-1]
     assert log.z_dtype[last] == "float32" and log.z[last].shape[0] == pts[-1]
-    pos = rrd_rows(d / "run.rrd", "/world/online/labels", "Points3D:positions")
+    pos = rrd_blocks(d / "run.rrd", "labels", "Points3D:positions")
     grew = [f["index"] for f in log.frames if f["new_points"] > 0]
-    assert sorted(pos) == grew
+    assert sorted(set().union(*[set(v) for v in pos.values()])) == grew
+    last = log.frames[-1]["index"]
+    assert len(map_at(pos, last)) == pts[-1]
+    ids = rrd_blocks(d / "run.rrd", "labels", "Points3D:class_ids")
+    np.testing.assert_array_equal(map_at(ids, last), class_ids(np.load(d / "labels.npy")))
     assert inspect_main([str(d)]) == 0
 
 
@@ -370,7 +404,7 @@ def test_killed_online_run_leaves_readable_records(tmp_path):
 
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # a run.rrd closed in order has its footer
-        ids = rrd_rows(run_dir / "run.rrd", "/world/online/labels", "Points3D:class_ids")
+        ids = rrd_rows(run_dir / "run.rrd", "/world/online/labels/0000", "Points3D:class_ids")
     assert len(ids) >= 3 and sorted(ids) == list(range(len(ids)))
     p = subprocess.run([sys.executable, "-m", "diffuser_lab.cli.inspect", str(run_dir)], capture_output=True,
                        text=True, timeout=120)

@@ -410,7 +410,7 @@ _FRAME_METRICS = ("diffuser_miou", "diffuser_accuracy", "bayesian_miou", "bayesi
 
 def online_frame_message(rec: Any, state: str) -> Any:
     """diffuser_lab.OnlineFrame of a :class:`.online.FrameRecord` (metrics absent: NaN; other
-    metrics keys: JSON in ``extra``)."""
+    metrics keys and FrameStats fields: JSON in ``extra``)."""
     st = rec.stats
     msg = schema.OnlineFrame(**{k: st[k] for k in _FRAME_FIELDS if st.get(k) is not None},
                              skipped=st.get("skipped") or "", count=int(rec.count), state=state)
@@ -419,6 +419,8 @@ def online_frame_message(rec: Any, state: str) -> Any:
         v = m.get(k)
         setattr(msg, k, float("nan") if v is None else float(v))
     extra = {k: v for k, v in m.items() if k not in _FRAME_METRICS}
+    # FrameStats fields the schema does not name (a newer FrameStats) travel in extra too
+    extra.update({k: v for k, v in st.items() if k not in _FRAME_FIELDS and k != "skipped"})
     if extra:
         msg.extra = json.dumps(extra, default=_json_default)
     return msg

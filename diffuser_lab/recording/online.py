@@ -149,14 +149,16 @@ class MapMirror:
         return True
 
     def wrong(self, labels: np.ndarray) -> Optional[np.ndarray]:
-        """(P, 3) positions of annotated points whose label is wrong (growing: map points; given:
-        the scene's points through :attr:`to_map`), or None without ground truth."""
+        """(P, 3) positions of annotated, labelled points whose label is wrong (growing: map
+        points; given: the scene's points through :attr:`to_map`), or None without ground truth.
+        Points no frame has reached yet are left out: they are not yet wrong (mIoU counts them
+        as misses)."""
         if self.to_map is not None:
             lab = labels[self.to_map]
-            bad = (lab != self.scene_gt) & (self.scene_gt != IGNORE)
+            bad = (lab != self.scene_gt) & (self.scene_gt != IGNORE) & (lab != IGNORE)
             return self.scene_points[bad]
         if self.gt is not None and len(self.gt) == len(labels):
-            bad = (labels != self.gt) & (self.gt != IGNORE)
+            bad = (labels != self.gt) & (self.gt != IGNORE) & (labels != IGNORE)
             return self.points[bad]
         return None
 

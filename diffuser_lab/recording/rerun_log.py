@@ -30,10 +30,12 @@ Every per-iteration entity is on the ``diffusion_step`` sequence timeline.
 An online run (protocol=online, :meth:`RerunRecorder.log_online_frame`) has, besides the static
 ``world``, ``world/scene/*``, on the ``frame`` sequence timeline (= the frame's index)::
 
-    world/online/labels            Points3D: the map, class ids of the online Diffuser every frame,
-                                   positions re-logged on frames that added points
-    world/online/bayesian          Points3D: the same map, online Bayesian labels
-    world/online/ground_truth      Points3D: growing map with ground truth: the map points' classes
+    world/online/labels/<b>        Points3D: block b of the map (rows b x B ... (b + 1) x B - 1 in map
+                                   order, B = :data:`ONLINE_BLOCK_ROWS`; a given map is one block
+                                   0000), class ids of the online Diffuser every frame, positions
+                                   logged again only on frames that added points to the block
+    world/online/bayesian/<b>      Points3D: the same blocks, online Bayesian labels
+    world/online/ground_truth/<b>  Points3D: growing map with ground truth: the map points' classes
     world/online/wrong             Points3D: annotated points whose label is wrong (given map: scene points)
     world/online/camera            Transform3D + Pinhole: the frame's camera (one entity that moves),
                                    child labels (SegmentationImage, the 2D predictions)
@@ -212,6 +214,16 @@ def blueprint(score_layers: Sequence[tuple[str, str]] = ()):
     )
 
 
+ONLINE_BLOCK_ROWS = 16384
+"""A growing map in run.rrd is logged in blocks of this many map rows (map order only appends):
+a frame that adds points re-logs the positions of the blocks it filled, not the whole map's
+(on scene0470, 40 frames, 59k points: 65 MB as one entity)."""
+ONLINE_MAX_BLOCKS = 64
+"""Blocks whose labels the errors tab draws grey (its overrides name each block; 64 x 16384 rows:
+1M map points). The Rerun 0.41 viewer refuses a blueprint with 128 such overrides ("Data source
+finished without loading a recording"); 64 load."""
+
+
 def online_blueprint(has_gt: bool, growing: bool):
     """The layout of an online run: the map's labels (with the moving camera), the Bayesian
     labels, errors and ground truth (with ground truth), the input with the camera, in tabs
@@ -223,12 +235,13 @@ def online_blueprint(has_gt: bool, growing: bool):
         return rrb.Spatial3DView(name=name, origin="/world", contents=contents, **kw)
 
     cam = "/world/online/camera/**"
-    tabs = [view3d("online: labels", ["/world/online/labels", cam]),
-            view3d("bayesian", ["/world/online/bayesian", cam])]
+    tabs = [view3d("online: labels", ["/world/online/labels/**", cam]),
+            view3d("bayesian", ["/world/online/bayesian/**", cam])]
     if has_gt:
-        dim = {"/world/online/labels": rr.Points3D.from_fields(colors=RIGHT_RGB).visualizer()}
-        tabs.append(view3d("errors", ["/world/online/labels", "/world/online/wrong"], overrides=dim))
-        tabs.append(view3d("ground truth", ["/world/online/ground_truth" if growing else "/world/scene/ground_truth"]))
+        grey = rr.Points3D.from_fields(colors=RIGHT_RGB).visualizer()
+        dim = {f"/world/online/labels/{b:04d}": grey for b in range(ONLINE_MAX_BLOCKS if growing else 1)}
+        tabs.append(view3d("errors", ["/world/online/labels/**", "/world/online/wrong"], overrides=dim))
+        tabs.append(view3d("ground truth", ["/world/online/ground_truth/**" if growing else "/world/scene/ground_truth"]))
     tabs.append(view3d("camera", ["/world/scene/points", cam]))
     plots = [rrb.TimeSeriesView(name="mIoU so far [%]", origin="/metrics",
                                 contents=["/metrics/diffuser_miou", "/metrics/bayesian_miou"])] if has_gt else []
@@ -264,6 +277,7 @@ class RerunRecorder:
 
         self.rr = rr
         self.path = Path(path)
+        self.online = bool(online)
         self.max_image_side = int(max_image_side)
         self.max_depth_side = int(max_depth_side)  # 0: no depth images
         self.score_paths: list[str] = []
@@ -313,7 +327,7 @@ class RerunRecorder:
                      ("changed_per_iter_log10", "log10 labels changed per iteration", (214, 39, 40)),
                      ("residual_log10", "log10 relative residual", (148, 103, 189)),
                      ("confidence", "mean confidence", (255, 127, 14))]
-        for key, name, color in rr_series:
+        for key, name, color in rr_series if not self.online else ():  # an online run's: log_online_start
             self.rec.log(f"metrics/{key}", rr.SeriesLines(names=name, colors=color), static=True)
 
     def log_scene(self, points: np.ndarray, colors: Optional[np.ndarray], gt: Optional[np.ndarray]) -> None:
@@ -420,6 +434,7 @@ class RerunRecorder:
                                  ("points", "map points", (44, 160, 44))):
             self.rec.log(f"metrics/{key}", rr.SeriesLines(names=name, colors=color), static=True)
         self._online_radius: Optional[float] = None
+        self._block_rows: dict[int, int] = {}  # block -> map rows its positions were logged with
 
     def log_online_frame(self, rec, mirror, changed: bool) -> None:
         """One frame taken (:class:`.online.FrameRecord`) on the ``frame`` timeline; ``mirror``
@@ -430,20 +445,27 @@ class RerunRecorder:
         self.rec.set_time(FRAME_TIMELINE, sequence=rec.index)
         ids, bids = class_ids(rec.labels), class_ids(rec.bayesian)
         pts = mirror.points
-        if changed:
-            if self._online_radius is None and len(pts):
-                self._online_radius = point_radius(pts)
-            r = self._online_radius or 0.01
-            log("world/online/labels", rr.Points3D(pts, class_ids=ids, radii=r))
-            log("world/online/bayesian", rr.Points3D(pts, class_ids=bids, radii=r))
-            if mirror.gt is not None:
-                log("world/online/ground_truth", rr.Points3D(pts, class_ids=class_ids(mirror.gt), radii=r))
-        else:  # the positions logged last still hold
-            log("world/online/labels", rr.Points3D.from_fields(class_ids=ids))
-            log("world/online/bayesian", rr.Points3D.from_fields(class_ids=bids))
+        n = len(pts)
+        gt = None if mirror.gt is None or len(mirror.gt) != n else class_ids(mirror.gt)
+        if changed and self._online_radius is None and n:
+            self._online_radius = point_radius(pts)
+        r = self._online_radius or 0.01
+        B = ONLINE_BLOCK_ROWS if mirror.growing else max(n, 1)
+        for b in range(-(-n // B)):
+            lo, hi = b * B, min(n, (b + 1) * B)
+            path = f"{b:04d}"
+            if self._block_rows.get(b) != hi:  # new rows in this block: its positions again
+                self._block_rows[b] = hi
+                log(f"world/online/labels/{path}", rr.Points3D(pts[lo:hi], class_ids=ids[lo:hi], radii=r))
+                log(f"world/online/bayesian/{path}", rr.Points3D(pts[lo:hi], class_ids=bids[lo:hi], radii=r))
+                if gt is not None:
+                    log(f"world/online/ground_truth/{path}", rr.Points3D(pts[lo:hi], class_ids=gt[lo:hi], radii=r))
+            else:  # the positions logged last still hold
+                log(f"world/online/labels/{path}", rr.Points3D.from_fields(class_ids=ids[lo:hi]))
+                log(f"world/online/bayesian/{path}", rr.Points3D.from_fields(class_ids=bids[lo:hi]))
         wrong = mirror.wrong(rec.labels)
         if wrong is not None:
-            log("world/online/wrong", rr.Points3D(wrong, colors=self.wrong_rgb, radii=1.2 * (self._online_radius or 0.01)))
+            log("world/online/wrong", rr.Points3D(wrong, colors=self.wrong_rgb, radii=1.2 * r))
         T_wc = np.linalg.inv(np.asarray(rec.T_cw, np.float64))
         log("world/online/camera", rr.Transform3D(translation=T_wc[:3, 3], mat3x3=T_wc[:3, :3]),
             rr.Pinhole(image_from_camera=rec.K, resolution=(rec.width, rec.height), image_plane_distance=0.25))
