@@ -409,3 +409,26 @@ def test_killed_online_run_leaves_readable_records(tmp_path):
     p = subprocess.run([sys.executable, "-m", "diffuser_lab.cli.inspect", str(run_dir)], capture_output=True,
                        text=True, timeout=120)
     assert p.returncode == 0 and "did not finish" in p.stdout and "Traceback" not in p.stderr, p.stderr
+
+
+@pytest.mark.parametrize("process", [False, True])
+def test_a_failing_online_record_never_stops_the_run(thread_run, tmp_path, monkeypatch, process):
+    from diffuser_lab.recording import online as online_rec
+
+    calls = []
+
+    def boom(frame, update, *a, **kw):
+        calls.append(update.index)
+        if update.index == 2:
+            raise RuntimeError("no space left")
+        return real(frame, update, *a, **kw)
+
+    real = online_rec.frame_record
+    monkeypatch.setattr(online_rec, "frame_record", boom)
+    res, hooks, cap = recorded_online(thread_run.cfg, tmp_path, process=process)
+    np.testing.assert_array_equal(res.labels, thread_run.res.labels)  # the same run, to the end
+    errors = hooks.files()["errors"]
+    assert set(errors) == {"rerun", "mcap"} and "no space left" in errors["mcap"]
+    assert calls == [0, 1, 2]  # switched off after the failure
+    log = read_run(tmp_path / "run.mcap")
+    assert log.complete and [f["index"] for f in log.frames] == [0, 1]  # what came before stays readable

@@ -91,6 +91,7 @@ class RecordingHooks(RunHooks):
         self._n_sent = 0  # online: map points already handed to the recorders
         self._last = None  # online: (frame index, Z kept exactly, cloud) of the last frame taken
         self._last_scores = None  # online: the last update's Z callable (the final Z, see on_result)
+        self._online_off: Optional[str] = None  # online: why frames are no longer recorded
         if rerun:
             self._later(self._guard, "rerun", self._open_rerun)
         if mcap:
@@ -190,11 +191,22 @@ class RecordingHooks(RunHooks):
             self.online = True
             self._online_scene(self.scene)
         want_z = "mcap" in self._wanted and "mcap" not in self.errors
-        rec = frame_record(frame, update, self._sched, int(self.conf.record.max_image_side), self._n_sent, want_z)
+        if self._online_off is not None or all(w in self.errors for w in self._wanted):
+            return
+        try:
+            rec = frame_record(frame, update, self._sched, int(self.conf.record.max_image_side), self._n_sent, want_z)
+        except Exception as exc:  # noqa: BLE001 - in the run's thread: a record must never stop the run
+            self._online_failed(exc)
+            return
         self._n_sent = rec.n
         self._last = (rec.index, rec.Z is not None and rec.exact, rec.cloud)
         self._last_scores = update.scores if want_z else None
         self.online_record(rec)
+
+    def _online_failed(self, exc: BaseException) -> None:
+        # not self.errors: the recorders must still close their files (what came before stays)
+        self._online_off = f"recording the online run failed: {type(exc).__name__}: {exc}"
+        log.warning("recording switched off: %s", self._online_off)
 
     def online_record(self, rec: Any) -> None:
         """Record one :class:`~.online.FrameRecord` (queued; what the recording process calls)."""
@@ -321,12 +333,17 @@ class RecordingHooks(RunHooks):
 
     def on_result(self, result: Any) -> None:
         if self.online or not hasattr(result, "diffusion"):
-            fin = self.final_state(result)
-            if fin is not None:
-                self.online_final(*fin)
             from diffuser_lab.runs.online import summary
 
-            self.online_result(summary(result))
+            if self._online_off is not None:
+                return
+            try:
+                fin = self.final_state(result)
+                if fin is not None:
+                    self.online_final(*fin)
+                self.online_result(summary(result))
+            except Exception as exc:  # noqa: BLE001 - a record must never stop the run
+                self._online_failed(exc)
             return
 
         def finish():
@@ -362,8 +379,12 @@ class RecordingHooks(RunHooks):
     def files(self) -> dict:
         out = {k: v for k, v in self._files.items() if (k == "rrd" and "rerun" not in self.errors)
                or (k == "mcap" and "mcap" not in self.errors)}
-        if self.errors:
-            out["errors"] = dict(self.errors)
+        errors = dict(self.errors)
+        if self._online_off is not None:
+            for w in self._wanted:
+                errors.setdefault(w, self._online_off)
+        if errors:
+            out["errors"] = errors
         return out
 
 

@@ -180,6 +180,7 @@ class ProcessHooks(RunHooks):
         self._n_sent = 0
         self._last = None  # online: (frame index, Z kept exactly, cloud) of the last frame taken
         self._last_scores = None
+        self._online_off: Optional[str] = None  # why online frames are no longer sent (the child still closes)
 
     # -- plumbing --------------------------------------------------------------------------------
     def _send_now(self, name: str, args: tuple) -> None:
@@ -214,13 +215,17 @@ class ProcessHooks(RunHooks):
     def on_online_frame(self, frame: Any, update: Any) -> None:
         from .online import frame_record
 
-        if self._dead is not None:
+        if self._dead is not None or self._online_off is not None:
             return
         if self._sched is None:  # online() called with a config whose protocol is not online
             self.online = True
             self._online_schedule()
         want_z = "mcap" in self._wanted
-        rec = frame_record(frame, update, self._sched, int(self.conf.record.max_image_side), self._n_sent, want_z)
+        try:
+            rec = frame_record(frame, update, self._sched, int(self.conf.record.max_image_side), self._n_sent, want_z)
+        except Exception as exc:  # noqa: BLE001 - in the run's thread: a record must never stop the run
+            self._online_failed(exc)
+            return
         self._n_sent = rec.n
         self._last = (rec.index, rec.Z is not None and rec.exact, rec.cloud)
         self._last_scores = update.scores if want_z else None
@@ -270,16 +275,26 @@ class ProcessHooks(RunHooks):
         self._send("observe_shm", iteration, offset, Z.shape,
                    {"residual": float(stats.get("residual", float("nan")))})
 
+    def _online_failed(self, exc: BaseException) -> None:
+        """Stop sending (the files keep what was sent); close() reports it in errors."""
+        self._online_off = f"recording the online run failed: {type(exc).__name__}: {exc}"
+        log.warning("recording switched off: %s", self._online_off)
+
     def on_result(self, result: Any) -> None:
         if self.online or not hasattr(result, "diffusion"):
             from diffuser_lab.runs.online import summary
 
             from . import RecordingHooks
 
-            fin = RecordingHooks.final_state(self, result)  # the same rule, on this side's state
-            if fin is not None:
-                self._send("online_final", *fin)
-            self._send("online_result", summary(result))
+            if self._dead is not None or self._online_off is not None:
+                return
+            try:
+                fin = RecordingHooks.final_state(self, result)  # the same rule, on this side's state
+                if fin is not None:
+                    self._send("online_final", *fin)
+                self._send("online_result", summary(result))
+            except Exception as exc:  # noqa: BLE001 - a record must never stop the run
+                self._online_failed(exc)
             return
         self._send("on_result", _slim_result(result))
 
@@ -307,6 +322,9 @@ class ProcessHooks(RunHooks):
             files, self.recorded = report[1], report[2]
             self.errors = dict(files.pop("errors", {}))
             self._files = files
+            if self._online_off is not None:  # this side stopped sending (an online frame failed)
+                for w in self._wanted:
+                    self.errors.setdefault(w, self._online_off)
         else:
             why = self._dead or f"the recording process ended without a report (exit code {self._proc.exitcode})"
             self.errors = {w: why for w in self._wanted}
