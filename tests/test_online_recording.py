@@ -240,6 +240,11 @@ def test_inspect_online_summary_at_and_to_rrd(cli_runs, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "online run" in err[0] and "run.rrd" in err[0]
     assert not (tmp_path / "x.rrd").exists()
+    assert inspect_main([str(d), "--foxglove-layout", str(tmp_path / "layout.json")]) == 0
+    layout = (tmp_path / "layout.json").read_text()
+    json.loads(layout)
+    assert "/online/labels" in layout and "/diffuser_lab/online/frame.diffuser_miou" in layout
+    assert "/diffuser_lab/metrics" not in layout and "/diffusion/labels" not in layout
 
 
 class _Frame(SimpleNamespace):

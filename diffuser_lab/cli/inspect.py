@@ -364,7 +364,12 @@ def _main(args: argparse.Namespace) -> int:
     if args.foxglove_layout:
         from diffuser_lab.recording.mcap_write import FOXGLOVE_LAYOUT
 
-        shutil.copyfile(FOXGLOVE_LAYOUT, args.foxglove_layout)
+        if is_online_mcap(mcap):  # its topics and plot fields
+            from diffuser_lab.recording.mcap_write import online_foxglove_layout
+
+            Path(args.foxglove_layout).write_text(online_foxglove_layout())
+        else:
+            shutil.copyfile(FOXGLOVE_LAYOUT, args.foxglove_layout)
         print(f"wrote {args.foxglove_layout}: open {mcap} in Foxglove, then Layouts > Import from file")
         return 0
     if (args.to_rrd or args.view) and is_online_mcap(mcap):

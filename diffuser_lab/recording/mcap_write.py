@@ -88,6 +88,29 @@ FOXGLOVE_LAYOUT = Path(__file__).with_name("foxglove_layout.json")
 """A Foxglove layout for run.mcap (Layouts > Import from file): the labelled cloud and the camera
 frames in a 3D panel, the label images in an Image panel, mIoU / labels changed / residual
 plotted against the iteration (``diffuser-lab-inspect RUN --foxglove-layout OUT.json`` copies it)."""
+_ONLINE_LAYOUT = (  # FOXGLOVE_LAYOUT's topics and fields -> an online run's
+    ('"/diffusion/labels"', '"/online/labels"'), ('"diffusion: labels + cameras"', '"online: map labels + camera"'),
+    ('"/diffuser_lab/metrics.miou"', '"/diffuser_lab/online/frame.diffuser_miou"'),
+    ('"mIoU [%]"', '"online Diffuser mIoU [%]"'),
+    ('"/diffuser_lab/metrics.accuracy"', '"/diffuser_lab/online/frame.bayesian_miou"'),
+    ('"accuracy [%]"', '"online Bayesian mIoU [%]"'),
+    ('"/diffuser_lab/metrics.n_changed"', '"/diffuser_lab/online/frame.changed"'),
+    ('"/diffuser_lab/metrics.residual"', '"/diffuser_lab/online/frame.latency_ms"'),
+    ('"relative residual |Z_t - Z_t-1|"', '"latency [ms]"'), ('"residual"', '"latency [ms]"'),
+    ('"/diffuser_lab/metrics.iteration"', '"/diffuser_lab/online/frame.index"'), ('"iteration"', '"frame"'),
+)
+
+
+def online_foxglove_layout() -> str:
+    """FOXGLOVE_LAYOUT for an online run's run.mcap (JSON text): the map cloud (/online/labels,
+    on the kept ``record.clouds`` frames), the camera and its label images, and mIoU so far,
+    labels changed and latency plotted against the frame index."""
+    text = FOXGLOVE_LAYOUT.read_text()
+    for old, new in _ONLINE_LAYOUT:
+        text = text.replace(old, new)
+    return text
+
+
 CAMERA_STEP_NS = 50_000_000
 """run.mcap's timeline: 50 ms from one camera to the next."""
 ITERATION_STEP_NS = 10_000_000
