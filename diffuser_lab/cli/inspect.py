@@ -9,6 +9,10 @@
                                                   the MCAP re-logged to a temporary .rrd)
     diffuser-lab-inspect RUN --foxglove-layout L.json  write the Foxglove layout for run.mcap
 
+An online run (protocol=online) prints a per-frame summary instead (frames, latency, final
+mIoU, the frames whose Z was kept); ``--at FRAME`` takes a frame index; ``--to-rrd`` refuses
+(its run.mcap keeps the map's labels only on the kept frames: open its run.rrd).
+
 Everything is read from run.mcap (no summary section needed): a truncated file (killed run,
 cut copy) gives its complete leading iterations and a warning on stderr, exit code 0.
 Exit codes: 0 ok, 1 unreadable file, 2 bad arguments (missing file, iteration not recorded).
@@ -104,6 +108,69 @@ def summary_text(log: Any) -> str:
     else:
         lines.append("result    (no summary: the run did not finish)")
     return "\n".join(lines)
+
+
+def online_text(log: Any) -> str:
+    """An online run at a glance: frames, latency, final mIoU, the Z states kept."""
+    meta, s, fr = log.online or {}, log.summary, log.frames
+    run = log.run
+    lines = [f"run.mcap: {log.path} ({_size(log.path)}, {'complete' if log.complete else 'TRUNCATED'})"]
+    n_seq = int(meta.get("n_frames", 0) or 0)
+    pts = fr[-1]["points"] if fr else 0
+    lines.append(f"scene     {run.get('scene', '?')} | online, {meta.get('map', '?')} map: {pts:,} points | "
+                 f"{len(fr)} of {n_seq} frames recorded | {len(log.class_names)} classes ({run.get('taxonomy', '')})")
+    lines.append(f"overrides {' '.join(log.overrides) if log.overrides else '(none)'}")
+    if fr:
+        lat = np.array([f["latency_ms"] for f in fr], float)
+        lines.append(f"latency   median {np.median(lat):.1f} ms, p95 {np.percentile(lat, 95):.1f} ms, "
+                     f"max {lat.max():.1f} ms per frame (the update alone)")
+    from diffuser_lab.recording.schedule import describe
+
+    its = log.z_iterations
+    dts = sorted(set(log.z_dtype.values()), key=lambda d: d == "float32")
+    interval = meta.get("interval", "null")
+    how = describe(None if interval in ("null", "", None) else int(interval)).replace("iteration", "frame")
+    lines.append(f"states    {len(its)} kept: frames {_iters(its)} ({how} over the frames taken, first and last; "
+                 f"Z {' / last '.join(dts) if dts else '-'})")
+    last = fr[-1] if fr else {}
+    if s is not None:
+        m, b = s.get("metrics") or {}, (s.get("baseline") or {}).get("bayesian") or {}
+        bd = (s.get("batch") or {}).get("diffuser") or {}
+        lines.append(f"result    final mIoU {_f(m.get('miou'))} (online Bayesian {_f(b.get('miou'))}, batch Diffuser "
+                     f"{_f(bd.get('miou'))}) | {s.get('n_frames_skipped', 0)} frames skipped")
+    else:
+        lines.append(f"result    (no summary: the run did not finish) | mIoU so far at frame {last.get('index', '-')}: "
+                     f"{_f(last.get('diffuser_miou'))} (Bayesian {_f(last.get('bayesian_miou'))})")
+    return "\n".join(lines)
+
+
+def online_table_text(frames: Sequence[dict], kept: Sequence[int]) -> str:
+    """One line per frame whose Z was kept (and the last frame recorded)."""
+    head = (f"{'frame':>6s}  {'latency':>8s}  {'points':>9s}  {'new':>7s}  {'changed':>8s}  {'steps':>5s}  "
+            f"{'mIoU':>6s}  {'bayes':>6s}  {'Z':>7s}")
+    keep = set(kept)
+    rows = [head]
+    for i, f in enumerate(frames):
+        if f["index"] not in keep and i != len(frames) - 1:
+            continue
+        rows.append(f"{f['index']:6d}  {f['latency_ms']:8.1f}  {f['points']:9,d}  {f['new_points']:7,d}  "
+                    f"{f['changed']:8,d}  {f['steps']:5d}  {_f(f['diffuser_miou']):>6s}  {_f(f['bayesian_miou']):>6s}  "
+                    f"{f['state'] or '-':>7s}")
+    return "\n".join(rows)
+
+
+def is_online_mcap(mcap_path: Path | str) -> bool:
+    """Whether a run.mcap is an online run's (its first records only)."""
+    from diffuser_lab.recording.mcap_encode import TOPIC_ONLINE_FRAME, TOPIC_RUN, TOPIC_Z
+    from diffuser_lab.recording.mcap_read import RunLog, iter_run
+
+    log = RunLog(path=Path(mcap_path))
+    for topic, _ in iter_run(mcap_path, log):
+        if topic in ("metadata:diffuser_lab.online", TOPIC_ONLINE_FRAME):
+            return True
+        if topic in (TOPIC_RUN, TOPIC_Z):
+            return False
+    return False
 
 
 def table_text(metrics: Sequence[dict]) -> str:
@@ -274,7 +341,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 def _warn_truncated(log: Any) -> None:
     if log.truncated:
         print(f"{PROG}: warning: {log.path} is truncated ({log.error}); read {len(log.z_iterations)} complete "
-              f"iteration(s){', last ' + str(log.z_iterations[-1]) if log.z_iterations else ''}", file=sys.stderr)
+              f"{'frame state' if log.online is not None else 'iteration'}(s)"
+              f"{', last ' + str(log.z_iterations[-1]) if log.z_iterations else ''}", file=sys.stderr)
 
 
 def _main(args: argparse.Namespace) -> int:
@@ -296,9 +364,17 @@ def _main(args: argparse.Namespace) -> int:
     if args.foxglove_layout:
         from diffuser_lab.recording.mcap_write import FOXGLOVE_LAYOUT
 
-        shutil.copyfile(FOXGLOVE_LAYOUT, args.foxglove_layout)
+        if is_online_mcap(mcap):  # its topics and plot fields
+            from diffuser_lab.recording.mcap_write import online_foxglove_layout
+
+            Path(args.foxglove_layout).write_text(online_foxglove_layout())
+        else:
+            shutil.copyfile(FOXGLOVE_LAYOUT, args.foxglove_layout)
         print(f"wrote {args.foxglove_layout}: open {mcap} in Foxglove, then Layouts > Import from file")
         return 0
+    if (args.to_rrd or args.view) and is_online_mcap(mcap):
+        raise UsageError(f"{mcap}: an online run's run.mcap keeps the map's labels only on the frames whose Z it "
+                         f"kept, so it is not re-logged; open the run's run.rrd (diffuser-lab-inspect RUN --view)")
     if args.to_rrd or args.view:
         out = Path(args.to_rrd) if args.to_rrd else Path(tempfile.mkdtemp(prefix="diffuser-lab-")) / "replay.rrd"
         log = mcap_to_rrd(mcap, out, scores=scores)
@@ -315,26 +391,34 @@ def _main(args: argparse.Namespace) -> int:
     if log.info is None and not log.metadata and not log.truncated:
         raise UsageError(f"{mcap}: not a diffuser-lab run.mcap (no run records)")
     _warn_truncated(log)
+    what = "frame" if log.online is not None else "iteration"
     if args.at is not None:
         if not log.z_iterations:
             raise UsageError(f"{mcap}: no Z state recorded (method without diffusion, or cut before the first)")
         it = log.z_iterations[-1] if args.at == "last" else _int(args.at)
         if it not in log.z:
-            raise UsageError(f"iteration {it} was not recorded; recorded: {_iters(log.z_iterations)}")
+            raise UsageError(f"{what} {it} was not recorded; recorded: {_iters(log.z_iterations)}")
         from diffuser_lab.recording.mcap_encode import z_precision_text
 
         Z = log.z[it]
         precision = z_precision_text(log.z_dtype.get(it, "float32"))
         if args.out:
             np.save(args.out, Z)
-            print(f"wrote {args.out}: Z at iteration {it}, {Z.shape[0]:,} x {Z.shape[1]} float32; "
+            print(f"wrote {args.out}: Z at {what} {it}, {Z.shape[0]:,} x {Z.shape[1]} float32; "
                   f"stored as {precision}")
         else:
             from diffuser_lab.method.diffusion import labels_from_scores
 
             lab = labels_from_scores(Z)
-            print(f"Z at iteration {it}: {Z.shape[0]:,} x {Z.shape[1]} float32, max {Z.max():.3e}, "
+            print(f"Z at {what} {it}: {Z.shape[0]:,} x {Z.shape[1]} float32, max {Z.max():.3e}, "
                   f"{int((lab >= 0).sum()):,} labelled points; stored as {precision} (use --out z.npy to save it)")
+        return 0
+    if log.online is not None:
+        print(online_text(log))
+        if args.config:
+            print("config:\n" + log.config_yaml)
+        if not args.no_table and log.frames:
+            print(online_table_text(log.frames, log.z_iterations))
         return 0
     print(summary_text(log))
     if args.config:

@@ -15,6 +15,10 @@ bounded: a recorder that falls behind slows the run down instead of filling the 
 A recorder that fails (disk full, a bug) is switched off with a warning and the run goes on;
 the failure is reported in ``files()["errors"]`` (and so in summary.json's ``records``).
 
+An online run (protocol=online) is recorded per frame instead (:mod:`.online`): each
+``on_online_frame`` becomes a :class:`~.online.FrameRecord` in the run's thread (copies of the
+labels, the new map points, Z only on the kept frames), written on the recording thread.
+
 Usage (the CLI does this when ``record != off``)::
 
     hooks = make_hooks(conf, run_dir, overrides=[])
@@ -78,6 +82,16 @@ class RecordingHooks(RunHooks):
         self._z_free: queue.SimpleQueue = queue.SimpleQueue()  # recorded-Z buffers back from the worker
         self._z_made = 0
         self._worker = SerialThread("diffuser-lab-record", QUEUE_SIZE, stop_on_error=False) if ASYNC else None
+        from .online import is_online
+
+        self.online = is_online(conf)  # protocol=online: per-frame records (on_online_frame)
+        self.frames_recorded: list[int] = []  # online: frame indices recorded, in order
+        self._sched = None
+        self._mirror = None
+        self._n_sent = 0  # online: map points already handed to the recorders
+        self._last = None  # online: (frame index, Z kept exactly, cloud) of the last frame taken
+        self._last_scores = None  # online: the last update's Z callable (the final Z, see on_result)
+        self._online_off: Optional[str] = None  # online: why frames are no longer recorded
         if rerun:
             self._later(self._guard, "rerun", self._open_rerun)
         if mcap:
@@ -89,7 +103,7 @@ class RecordingHooks(RunHooks):
 
         self.rerun = RerunRecorder(self.run_dir / RRD_NAME, max_image_side=self.conf.record.max_image_side,
                                    max_depth_side=int(getattr(self.conf.record, "max_depth_side", 160)),
-                                   live=getattr(self.conf.record, "live", None))
+                                   live=getattr(self.conf.record, "live", None), online=self.online)
         self._files["rrd"] = RRD_NAME
 
     def _open_mcap(self, overrides: Sequence[str]) -> None:
@@ -153,8 +167,98 @@ class RecordingHooks(RunHooks):
             self.rerun.log_scene(scene.points, scene.colors, scene.gt_labels)
 
         self._each(rr_scene, lambda: self.mcap.log_scene(scene))
+        if self.online:
+            self._online_scene(scene)
+
+    def _online_scene(self, scene: Any) -> None:
+        from .online import FrameSchedule, MapMirror, online_meta
+
+        growing = str(_value(self.conf.online.map)) == "growing"
+        self._sched = FrameSchedule(self.interval, str(_value(self.conf.record.clouds)), len(scene.frames))
+        meta = online_meta(self.conf, scene)
+
+        def mirror():
+            self._mirror = MapMirror(growing, scene.points, scene.gt_labels)
+
+        self._later(mirror)
+        self._each(lambda: self.rerun.log_online_start(scene.gt_labels is not None, growing),
+                   lambda: self.mcap.log_online_start(meta))
+
+    def on_online_frame(self, frame: Any, update: Any) -> None:
+        from .online import frame_record
+
+        if self._sched is None:  # online() called with a config whose protocol is not online
+            self.online = True
+            self._online_scene(self.scene)
+        want_z = "mcap" in self._wanted and "mcap" not in self.errors
+        if self._online_off is not None or all(w in self.errors for w in self._wanted):
+            return
+        try:
+            rec = frame_record(frame, update, self._sched, int(self.conf.record.max_image_side), self._n_sent, want_z)
+        except Exception as exc:  # noqa: BLE001 - in the run's thread: a record must never stop the run
+            self._online_failed(exc)
+            return
+        self._n_sent = rec.n
+        self._last = (rec.index, rec.Z is not None and rec.exact, rec.cloud)
+        self._last_scores = update.scores if want_z else None
+        self.online_record(rec)
+
+    def _online_failed(self, exc: BaseException) -> None:
+        # not self.errors: the recorders must still close their files (what came before stays)
+        self._online_off = f"recording the online run failed: {type(exc).__name__}: {exc}"
+        log.warning("recording switched off: %s", self._online_off)
+
+    def online_record(self, rec: Any) -> None:
+        """Record one :class:`~.online.FrameRecord` (queued; what the recording process calls)."""
+        if self._sched is None:  # online() called with a config whose protocol is not online
+            self.online = True
+            self._online_scene(self.scene)
+
+        def record():
+            changed = self._mirror.update(rec)
+            pts = self._mirror.points
+            if self.rerun is not None:
+                self._guard("rerun", lambda: self.rerun.log_online_frame(rec, self._mirror, changed))
+            if self.mcap is not None:
+                self._guard("mcap", lambda: self.mcap.log_online_frame(rec, pts))
+            self.frames_recorded.append(rec.index)
+            if rec.Z is not None:
+                self.recorded.append(rec.index)
+
+        self._later(record)
+
+    def online_final(self, index: int, Z: np.ndarray, labels: np.ndarray, cloud: bool) -> None:
+        """The last frame taken was not the sequence's last: keep its Z exactly (see on_result)."""
+        def final():
+            if self.mcap is not None:
+                pts = self._mirror.points
+                self._guard("mcap", lambda: self.mcap.log_online_final(index, Z, labels, pts, cloud))
+            if not self.recorded or self.recorded[-1] != index:
+                self.recorded.append(index)
+
+        self._later(final)
+
+    def online_result(self, summary: dict) -> None:
+        """The run's summary (:func:`diffuser_lab.runs.online.summary`) into run.mcap."""
+        def finish():
+            if self.mcap is not None:
+                s = {**summary, "records": self.files(), "recorded_frames": list(self.recorded)}
+                self._guard("mcap", lambda: self.mcap.log_summary(s))
+
+        self._later(finish)
+
+    def final_state(self, result: Any) -> Optional[tuple]:
+        """(frame index, Z, labels, cloud) of the run's last frame taken when its Z was not kept
+        exactly (frames after it were skipped), else None. Z comes from the last update's
+        callable: the map does not change after the last frame."""
+        if self._last is None or self._last[1] or self._last_scores is None:
+            return None
+        index, _, cloud = self._last
+        return index, np.asarray(self._last_scores(), np.float32), np.array(result.labels, np.int16), not cloud
 
     def on_frame(self, index: int, frame: Any) -> None:
+        if self.online:  # the frame comes again with its update (on_online_frame)
+            return
         def rr_frame():
             h, w = frame.shape
             labels = frame.labels if frame.labels is not None else (
@@ -228,6 +332,20 @@ class RecordingHooks(RunHooks):
         self._later(record)
 
     def on_result(self, result: Any) -> None:
+        if self.online or not hasattr(result, "diffusion"):
+            from diffuser_lab.runs.online import summary
+
+            if self._online_off is not None:
+                return
+            try:
+                fin = self.final_state(result)
+                if fin is not None:
+                    self.online_final(*fin)
+                self.online_result(summary(result))
+            except Exception as exc:  # noqa: BLE001 - a record must never stop the run
+                self._online_failed(exc)
+            return
+
         def finish():
             d = result.diffusion
             if d is not None and (not self.recorded or self.recorded[-1] != d.iterations):
@@ -261,8 +379,12 @@ class RecordingHooks(RunHooks):
     def files(self) -> dict:
         out = {k: v for k, v in self._files.items() if (k == "rrd" and "rerun" not in self.errors)
                or (k == "mcap" and "mcap" not in self.errors)}
-        if self.errors:
-            out["errors"] = dict(self.errors)
+        errors = dict(self.errors)
+        if self._online_off is not None:
+            for w in self._wanted:
+                errors.setdefault(w, self._online_off)
+        if errors:
+            out["errors"] = errors
         return out
 
 

@@ -20,6 +20,8 @@ TOPIC_Z = "/diffuser_lab/z"
 TOPIC_TF = "/tf"
 TOPIC_CALIBRATION = "/cameras/calibration"
 TOPIC_CAMERA_LABELS = "/cameras/labels"
+TOPIC_ONLINE_FRAME = "/diffuser_lab/online/frame"
+TOPIC_ONLINE_LABELS = "/online/labels"
 FRAME_ID = "world"
 UNLABELED_INDEX = 255
 """Palette index of unlabeled pixels (IGNORE) in the label PNGs; class c is index c."""

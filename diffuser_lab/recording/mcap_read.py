@@ -8,7 +8,16 @@ from pathlib import Path
 from typing import Any, Iterable, Iterator, Optional
 
 from . import schema
-from .mcap_encode import MAGIC, TOPIC_METRICS, TOPIC_RUN, TOPIC_SCENE, TOPIC_Z, decode_point_cloud, decode_z
+from .mcap_encode import (
+    MAGIC,
+    TOPIC_METRICS,
+    TOPIC_ONLINE_FRAME,
+    TOPIC_RUN,
+    TOPIC_SCENE,
+    TOPIC_Z,
+    decode_point_cloud,
+    decode_z,
+)
 
 
 @dataclass
@@ -25,6 +34,8 @@ class RunLog:
             :func:`~.mcap_encode.z_precision_text`). A state written twice (the last one, kept
             exact after the run converged on a recorded iteration) is read as its later copy.
         scene: {field: array} of the /scene/points cloud (x y z red green blue alpha label), or None.
+        frames: protocol=online: per frame taken, dicts with the OnlineFrame fields (None for NaN);
+            the Z states (``z``, ``z_iterations``) are then keyed by frame index.
         truncated: the file ended before its footer (killed run or cut copy).
         error: what stopped the reading early, or None.
     """
@@ -37,6 +48,7 @@ class RunLog:
     z: dict = field(default_factory=dict)
     z_dtype: dict = field(default_factory=dict)
     scene: Optional[dict] = None
+    frames: list = field(default_factory=list)
     truncated: bool = False
     error: Optional[str] = None
     complete: bool = False
@@ -53,6 +65,11 @@ class RunLog:
     def summary(self) -> Optional[dict]:
         s = self.metadata.get("diffuser_lab.summary")
         return json.loads(s["json"]) if s else None
+
+    @property
+    def online(self) -> Optional[dict]:
+        """The ``diffuser_lab.online`` metadata of an online run (map, n_frames, ...), else None."""
+        return self.metadata.get("diffuser_lab.online")
 
     @property
     def run(self) -> dict:
@@ -108,6 +125,19 @@ def metrics_dict(data: bytes) -> dict:
     return d
 
 
+def online_frame_dict(data: bytes) -> dict:
+    """OnlineFrame bytes -> dict (NaN metrics -> None, ``extra`` JSON merged in)."""
+    m = schema.OnlineFrame.FromString(data)
+    d = {f.name: getattr(m, f.name) for f in m.DESCRIPTOR.fields if f.name != "extra"}
+    for k in ("diffuser_miou", "diffuser_accuracy", "bayesian_miou", "bayesian_accuracy", "coverage"):
+        if d[k] != d[k]:
+            d[k] = None
+    d["skipped"] = d["skipped"] or None
+    if m.extra:
+        d.update(json.loads(m.extra))
+    return d
+
+
 def read_run(path: Path | str, *, z: Optional[Iterable[int]] | str = None, scene: bool = False) -> RunLog:
     """Read a run.mcap, also a truncated one (see :func:`iter_run`).
 
@@ -127,6 +157,8 @@ def read_run(path: Path | str, *, z: Optional[Iterable[int]] | str = None, scene
     for topic, data in iter_run(path, out):
         if topic == TOPIC_METRICS:
             out.metrics.append(metrics_dict(data))
+        elif topic == TOPIC_ONLINE_FRAME:
+            out.frames.append(online_frame_dict(data))
         elif topic == TOPIC_Z:
             msg = schema.ZState.FromString(data)
             if not out.z_iterations or out.z_iterations[-1] != int(msg.iteration):
@@ -158,4 +190,4 @@ def work_points(info: Any, scene_points: Optional[Any] = None):
     return np.asarray(scene_points, np.float32)
 
 
-__all__ = ["RunLog", "read_run", "iter_run", "metrics_dict", "work_points"]
+__all__ = ["RunLog", "read_run", "iter_run", "metrics_dict", "online_frame_dict", "work_points"]

@@ -30,6 +30,14 @@ every completed iteration readable (:func:`.mcap_read.read_run` reads such a tru
 Compression and writing happen on one background thread (in order, a short bounded queue), so
 the diffusion does not wait for the compression; :meth:`McapRecorder.close` drains it. The file is written
 with ``O_DIRECT`` where the file system allows (:mod:`.direct_file`): no page-cache copies.
+An online run (protocol=online, docs/recording.md "Online runs") has no /evidence/bayesian,
+/diffuser_lab/run, /diffusion/labels or /diffuser_lab/metrics; per frame taken instead:
+``/diffuser_lab/online/frame`` (diffuser_lab.OnlineFrame), the camera on /tf,
+/cameras/calibration and /cameras/labels, and on the frames the schedule keeps the map's Z on
+/diffuser_lab/z (``iteration`` = the frame's index) and ``/online/labels`` (foxglove.PointCloud of
+the map, coloured by label); metadata ``diffuser_lab.online``. Frame i is at the run's start +
+(i + 1) x 100 ms, each frame flushed as it comes.
+
 Message ``sequence`` is the diffusion iteration; ``log_time`` (= ``publish_time`` = the foxglove
 messages' ``timestamp``) is :func:`log_time_ns`, a timeline that orders the messages by camera and
 by iteration (Foxglove's playback, Rerun's ``message_log_time``).
@@ -53,6 +61,8 @@ from .mcap_encode import (
     TOPIC_EVIDENCE,
     TOPIC_LABELS,
     TOPIC_METRICS,
+    TOPIC_ONLINE_FRAME,
+    TOPIC_ONLINE_LABELS,
     TOPIC_RUN,
     TOPIC_SCENE,
     TOPIC_TF,
@@ -78,6 +88,29 @@ FOXGLOVE_LAYOUT = Path(__file__).with_name("foxglove_layout.json")
 """A Foxglove layout for run.mcap (Layouts > Import from file): the labelled cloud and the camera
 frames in a 3D panel, the label images in an Image panel, mIoU / labels changed / residual
 plotted against the iteration (``diffuser-lab-inspect RUN --foxglove-layout OUT.json`` copies it)."""
+_ONLINE_LAYOUT = (  # FOXGLOVE_LAYOUT's topics and fields -> an online run's
+    ('"/diffusion/labels"', '"/online/labels"'), ('"diffusion: labels + cameras"', '"online: map labels + camera"'),
+    ('"/diffuser_lab/metrics.miou"', '"/diffuser_lab/online/frame.diffuser_miou"'),
+    ('"mIoU [%]"', '"online Diffuser mIoU [%]"'),
+    ('"/diffuser_lab/metrics.accuracy"', '"/diffuser_lab/online/frame.bayesian_miou"'),
+    ('"accuracy [%]"', '"online Bayesian mIoU [%]"'),
+    ('"/diffuser_lab/metrics.n_changed"', '"/diffuser_lab/online/frame.changed"'),
+    ('"/diffuser_lab/metrics.residual"', '"/diffuser_lab/online/frame.latency_ms"'),
+    ('"relative residual |Z_t - Z_t-1|"', '"latency [ms]"'), ('"residual"', '"latency [ms]"'),
+    ('"/diffuser_lab/metrics.iteration"', '"/diffuser_lab/online/frame.index"'), ('"iteration"', '"frame"'),
+)
+
+
+def online_foxglove_layout() -> str:
+    """FOXGLOVE_LAYOUT for an online run's run.mcap (JSON text): the map cloud (/online/labels,
+    on the kept ``record.clouds`` frames), the camera and its label images, and mIoU so far,
+    labels changed and latency plotted against the frame index."""
+    text = FOXGLOVE_LAYOUT.read_text()
+    for old, new in _ONLINE_LAYOUT:
+        text = text.replace(old, new)
+    return text
+
+
 CAMERA_STEP_NS = 50_000_000
 """run.mcap's timeline: 50 ms from one camera to the next."""
 ITERATION_STEP_NS = 10_000_000
@@ -156,7 +189,8 @@ class McapRecorder:
         self._colors: Optional[np.ndarray] = None  # (C, 3) uint8 taxonomy colours (label images)
         # per-iteration message buffers, reused once the writer has copied them (a fresh 4 MB
         # buffer per recorded iteration costs more in page faults than the copy itself)
-        self._free: dict[str, queue.SimpleQueue] = {TOPIC_LABELS: queue.SimpleQueue(), TOPIC_Z: queue.SimpleQueue()}
+        self._free: dict[str, queue.SimpleQueue] = {TOPIC_LABELS: queue.SimpleQueue(), TOPIC_Z: queue.SimpleQueue(),
+                                                     TOPIC_ONLINE_LABELS: queue.SimpleQueue()}
         self._closed = False
         self._clouded = False  # the last recorded iteration got its labelled cloud
         # the writer thread, when there is one, is the only user of self.w from here on
@@ -318,6 +352,61 @@ class McapRecorder:
         """Queue a serialized message whose buffer returns to ``topic``'s pool once written."""
         self._write(topic, _RawMessage(mv, functools.partial(self._free[topic].put, mv.obj)), sequence)
 
+    # -- protocol=online ------------------------------------------------------------------------
+    def log_online_start(self, meta: dict) -> None:
+        """An online run: its channels and the ``diffuser_lab.online`` metadata (:func:`.online.online_meta`)."""
+        from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+
+        def start():
+            for topic, cls in ((TOPIC_ONLINE_FRAME, schema.OnlineFrame), (TOPIC_ONLINE_LABELS, PointCloud)):
+                self._channels[topic] = self.w.register_channel(topic=topic, message_encoding="protobuf",
+                                                                schema_id=self._schema(cls))
+            self.w.add_metadata("diffuser_lab.online", meta)
+
+        self._submit(start)  # on the writer thread, before the frames' messages
+
+    def _frame_time(self, index: int) -> int:
+        from .online import FRAME_STEP_NS
+
+        return self._start + (int(index) + 1) * FRAME_STEP_NS
+
+    def log_online_frame(self, rec: Any, points: np.ndarray) -> None:
+        """One frame taken (:class:`.online.FrameRecord`); ``points`` (n, 3) the map after it."""
+        i = rec.index
+        t = self._frame_time(i)
+        for topic, msg in camera_messages(i, rec.K, rec.T_cw, (rec.height, rec.width), rec.image, self._colors,
+                                          self.max_image_side, t):
+            self._write(topic, msg, i, t)
+        self._write(TOPIC_ONLINE_FRAME, online_frame_message(rec, "" if rec.Z is None else
+                                                            ("float32" if rec.exact else self.z_dtype)), i, t)
+        if rec.cloud:
+            self._online_cloud(i, points, rec.labels, t)
+        if rec.Z is not None:
+            self._online_z(i, rec.Z, rec.labels, rec.exact, t)
+        self._flush()  # ends the chunk: a killed run keeps this frame
+
+    def log_online_final(self, index: int, Z: np.ndarray, labels: np.ndarray, points: np.ndarray,
+                         cloud: bool) -> None:
+        """The last frame taken was not the sequence's last (frames after it skipped): its Z
+        again, exact (readers take the later copy), and its cloud if it had none."""
+        t = self._frame_time(index)
+        if cloud:
+            self._online_cloud(index, points, labels, t)
+        self._online_z(index, Z, labels, True, t)
+        self._flush()
+
+    def _online_cloud(self, index: int, points: np.ndarray, labels: np.ndarray, t: int) -> None:
+        buf = _cloud(points)
+        self._paint(buf, labels)
+        mv = point_cloud_bytes(buf, t, self._pooled(TOPIC_ONLINE_LABELS))
+        self._write(TOPIC_ONLINE_LABELS, _RawMessage(mv, functools.partial(self._free[TOPIC_ONLINE_LABELS].put, mv.obj)),
+                    index, t)
+
+    def _online_z(self, index: int, Z: np.ndarray, labels: np.ndarray, exact: bool, t: int) -> None:
+        dtype = "float32" if exact else self.z_dtype
+        mv = z_state_bytes(index, Z, dtype, self._pooled(TOPIC_Z), labels=labels)
+        self._write(TOPIC_Z, _RawMessage(mv, functools.partial(self._free[TOPIC_Z].put, mv.obj)), index, t)
+
     def log_summary(self, summary: dict) -> None:
         self._submit(self.w.add_metadata, "diffuser_lab.summary",
                      {"json": json.dumps(summary, default=_json_default)})
@@ -335,6 +424,29 @@ class McapRecorder:
             self._fh.close()
         if self._error is not None:
             raise RuntimeError(f"writing {self.path.name} failed: {self._error}") from self._error
+
+
+_FRAME_FIELDS = ("index", "name", "latency_ms", "map_ms", "evidence_ms", "steps_ms", "points", "new_points", "seen",
+                 "graph_rows", "steps", "residual", "changed")
+_FRAME_METRICS = ("diffuser_miou", "diffuser_accuracy", "bayesian_miou", "bayesian_accuracy", "coverage")
+
+
+def online_frame_message(rec: Any, state: str) -> Any:
+    """diffuser_lab.OnlineFrame of a :class:`.online.FrameRecord` (metrics absent: NaN; other
+    metrics keys and FrameStats fields: JSON in ``extra``)."""
+    st = rec.stats
+    msg = schema.OnlineFrame(**{k: st[k] for k in _FRAME_FIELDS if st.get(k) is not None},
+                             skipped=st.get("skipped") or "", count=int(rec.count), state=state)
+    m = rec.metrics or {}
+    for k in _FRAME_METRICS:
+        v = m.get(k)
+        setattr(msg, k, float("nan") if v is None else float(v))
+    extra = {k: v for k, v in m.items() if k not in _FRAME_METRICS}
+    # FrameStats fields the schema does not name (a newer FrameStats) travel in extra too
+    extra.update({k: v for k, v in st.items() if k not in _FRAME_FIELDS and k != "skipped"})
+    if extra:
+        msg.extra = json.dumps(extra, default=_json_default)
+    return msg
 
 
 def _json_default(o: Any) -> Any:

@@ -14,6 +14,10 @@ SIGINT and, if the run dies, finishes the files with what it received (EOF on th
 interrupted or killed run leaves complete, readable records of the iterations sent. A child
 that dies costs a warning and ``files()["errors"]``, never the run.
 
+An online run's frames go as :class:`~.online.FrameRecord` s built on this side (plain arrays:
+the update's views and its Z callable do not cross a pipe; Z is computed here, on the kept
+frames only, and pickled: a few states per run).
+
 Without ``fork`` (not Linux) :func:`~diffuser_lab.recording.make_hooks` keeps the thread.
 """
 from __future__ import annotations
@@ -60,9 +64,14 @@ def _value(x: Any) -> Any:
     return getattr(x, "value", x)
 
 
-def _child(conn, conf, run_dir: Path, rerun: bool, mcap: bool, overrides: Sequence[str], shm, done) -> None:
+def _child(conn, conf, run_dir: Path, rerun: bool, mcap: bool, overrides: Sequence[str], shm, done,
+           run_end=None) -> None:
     """The recording process: hook calls from ``conn`` into in-line RecordingHooks; recorded Z
-    states arrive in ``shm`` slots, each handed back (``done.release()``) once recorded."""
+    states arrive in ``shm`` slots, each handed back (``done.release()``) once recorded.
+    ``run_end``: the run's end of the pipe, inherited by the fork: closed here, else the run's
+    death would never read as EOF (this process would hold the pipe open itself)."""
+    if run_end is not None:
+        run_end.close()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the run's: it closes us in order
     try:  # below the run: its parallel kernels keep both cores busy; the records can wait for a free one
         os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
@@ -122,7 +131,8 @@ def _warm_kernels(conf: Any) -> None:
 def _slim_scene(scene: Any) -> SimpleNamespace:
     """What the recorders read of a Scene (no frames: they come one by one)."""
     return SimpleNamespace(name=scene.name, n_points=scene.n_points, points=scene.points, colors=scene.colors,
-                           gt_labels=scene.gt_labels, taxonomy=scene.taxonomy)
+                           gt_labels=scene.gt_labels, taxonomy=scene.taxonomy,
+                           frames=[None] * len(getattr(scene, "frames", ())))  # online: the schedule's length
 
 
 def _slim_result(res: Any) -> SimpleNamespace:
@@ -156,11 +166,21 @@ class ProcessHooks(RunHooks):
         self._n_slots = 0  # set at the first recorded Z
         self._written = self._accounted = 0
         self._proc = ctx.Process(target=_child, args=(child_conn, conf, Path(run_dir), rerun, mcap, list(overrides),
-                                                      self._shm, self._done),
+                                                      self._shm, self._done, self._conn),
                                  name="diffuser-lab-record", daemon=True)
         self._proc.start()
         child_conn.close()
         self._sender = SerialThread("diffuser-lab-record-send", QUEUE_SIZE, stop_on_error=False)
+        from .online import is_online
+
+        self.conf = conf
+        self.online = is_online(conf)
+        self._sched = None
+        self._scene = None
+        self._n_sent = 0
+        self._last = None  # online: (frame index, Z kept exactly, cloud) of the last frame taken
+        self._last_scores = None
+        self._online_off: Optional[str] = None  # why online frames are no longer sent (the child still closes)
 
     # -- plumbing --------------------------------------------------------------------------------
     def _send_now(self, name: str, args: tuple) -> None:
@@ -177,10 +197,39 @@ class ProcessHooks(RunHooks):
 
     # -- RunHooks ----------------------------------------------------------------------------------
     def on_scene(self, scene: Any) -> None:
+        self._scene = scene
+        if self.online:
+            self._online_schedule()
         self._send("on_scene", _slim_scene(scene))
 
+    def _online_schedule(self) -> None:
+        from .online import FrameSchedule
+
+        self._sched = FrameSchedule(self.interval, str(_value(self.conf.record.clouds)), len(self._scene.frames))
+
     def on_frame(self, index: int, frame: Any) -> None:
+        if self.online:  # the frame comes again with its update (on_online_frame)
+            return
         self._send("on_frame", index, frame)
+
+    def on_online_frame(self, frame: Any, update: Any) -> None:
+        from .online import frame_record
+
+        if self._dead is not None or self._online_off is not None:
+            return
+        if self._sched is None:  # online() called with a config whose protocol is not online
+            self.online = True
+            self._online_schedule()
+        want_z = "mcap" in self._wanted
+        try:
+            rec = frame_record(frame, update, self._sched, int(self.conf.record.max_image_side), self._n_sent, want_z)
+        except Exception as exc:  # noqa: BLE001 - in the run's thread: a record must never stop the run
+            self._online_failed(exc)
+            return
+        self._n_sent = rec.n
+        self._last = (rec.index, rec.Z is not None and rec.exact, rec.cloud)
+        self._last_scores = update.scores if want_z else None
+        self._send("online_record", rec)
 
     def on_evidence(self, points: np.ndarray, grid: Optional[Any], evidence: Any, bayesian: np.ndarray) -> None:
         self._send("on_evidence", points, True if grid is not None else None, SimpleNamespace(seen=evidence.seen),
@@ -226,7 +275,27 @@ class ProcessHooks(RunHooks):
         self._send("observe_shm", iteration, offset, Z.shape,
                    {"residual": float(stats.get("residual", float("nan")))})
 
+    def _online_failed(self, exc: BaseException) -> None:
+        """Stop sending (the files keep what was sent); close() reports it in errors."""
+        self._online_off = f"recording the online run failed: {type(exc).__name__}: {exc}"
+        log.warning("recording switched off: %s", self._online_off)
+
     def on_result(self, result: Any) -> None:
+        if self.online or not hasattr(result, "diffusion"):
+            from diffuser_lab.runs.online import summary
+
+            from . import RecordingHooks
+
+            if self._dead is not None or self._online_off is not None:
+                return
+            try:
+                fin = RecordingHooks.final_state(self, result)  # the same rule, on this side's state
+                if fin is not None:
+                    self._send("online_final", *fin)
+                self._send("online_result", summary(result))
+            except Exception as exc:  # noqa: BLE001 - a record must never stop the run
+                self._online_failed(exc)
+            return
         self._send("on_result", _slim_result(result))
 
     def close(self) -> None:
@@ -253,6 +322,9 @@ class ProcessHooks(RunHooks):
             files, self.recorded = report[1], report[2]
             self.errors = dict(files.pop("errors", {}))
             self._files = files
+            if self._online_off is not None:  # this side stopped sending (an online frame failed)
+                for w in self._wanted:
+                    self.errors.setdefault(w, self._online_off)
         else:
             why = self._dead or f"the recording process ended without a report (exit code {self._proc.exitcode})"
             self.errors = {w: why for w in self._wanted}

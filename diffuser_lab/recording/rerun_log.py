@@ -26,6 +26,20 @@ Entity tree (``world`` is z-up, metres; class colours come from the AnnotationCo
                                            recorded one, n_changed / (iteration - previous) (none where 0)
 
 Every per-iteration entity is on the ``diffusion_step`` sequence timeline.
+
+An online run (protocol=online, :meth:`RerunRecorder.log_online_frame`) has, besides the static
+``world``, ``world/scene/*``, on the ``frame`` sequence timeline (= the frame's index)::
+
+    world/online/labels/<b>        Points3D: block b of the map (rows b x B ... (b + 1) x B - 1 in map
+                                   order, B = :data:`ONLINE_BLOCK_ROWS`; a given map is one block
+                                   0000), class ids of the online Diffuser every frame, positions
+                                   logged again only on frames that added points to the block
+    world/online/bayesian/<b>      Points3D: the same blocks, online Bayesian labels
+    world/online/ground_truth/<b>  Points3D: growing map with ground truth: the map points' classes
+    world/online/wrong             Points3D: annotated points whose label is wrong (given map: scene points)
+    world/online/camera            Transform3D + Pinhole: the frame's camera (one entity that moves),
+                                   child labels (SegmentationImage, the 2D predictions)
+    metrics/latency_ms|points|changed|diffuser_miou|bayesian_miou   Scalars per frame
 """
 from __future__ import annotations
 
@@ -200,6 +214,48 @@ def blueprint(score_layers: Sequence[tuple[str, str]] = ()):
     )
 
 
+ONLINE_BLOCK_ROWS = 16384
+"""A growing map in run.rrd is logged in blocks of this many map rows (map order only appends):
+a frame that adds points re-logs the positions of the blocks it filled, not the whole map's
+(on scene0470, 40 frames, 59k points: 65 MB as one entity)."""
+ONLINE_MAX_BLOCKS = 64
+"""Blocks whose labels the errors tab draws grey (its overrides name each block; 64 x 16384 rows:
+1M map points). The Rerun 0.41 viewer refuses a blueprint with 128 such overrides ("Data source
+finished without loading a recording"); 64 load."""
+
+
+def online_blueprint(has_gt: bool, growing: bool):
+    """The layout of an online run: the map's labels (with the moving camera), the Bayesian
+    labels, errors and ground truth (with ground truth), the input with the camera, in tabs
+    beside the per-frame plots and the camera's label image."""
+    import rerun as rr
+    import rerun.blueprint as rrb
+
+    def view3d(name: str, contents: list[str], **kw):
+        return rrb.Spatial3DView(name=name, origin="/world", contents=contents, **kw)
+
+    cam = "/world/online/camera/**"
+    tabs = [view3d("online: labels", ["/world/online/labels/**", cam]),
+            view3d("bayesian", ["/world/online/bayesian/**", cam])]
+    if has_gt:
+        grey = rr.Points3D.from_fields(colors=RIGHT_RGB).visualizer()
+        dim = {f"/world/online/labels/{b:04d}": grey for b in range(ONLINE_MAX_BLOCKS if growing else 1)}
+        tabs.append(view3d("errors", ["/world/online/labels/**", "/world/online/wrong"], overrides=dim))
+        tabs.append(view3d("ground truth", ["/world/online/ground_truth/**" if growing else "/world/scene/ground_truth"]))
+    tabs.append(view3d("camera", ["/world/scene/points", cam]))
+    plots = [rrb.TimeSeriesView(name="mIoU so far [%]", origin="/metrics",
+                                contents=["/metrics/diffuser_miou", "/metrics/bayesian_miou"])] if has_gt else []
+    plots += [rrb.TimeSeriesView(name="latency [ms]", origin="/metrics", contents=["/metrics/latency_ms"]),
+              rrb.TimeSeriesView(name="labels changed", origin="/metrics", contents=["/metrics/changed"]),
+              rrb.TimeSeriesView(name="map points", origin="/metrics", contents=["/metrics/points"]),
+              rrb.Spatial2DView(name="camera: 2D labels", origin="/world/online/camera")]
+    return rrb.Blueprint(
+        rrb.Horizontal(rrb.Tabs(*tabs, active_tab="online: labels"), rrb.Vertical(*plots), column_shares=[3, 2]),
+        rrb.TimePanel(state="expanded"),
+        collapse_panels=True,
+    )
+
+
 class RerunRecorder:
     """Writes run.rrd. Methods take plain arrays so that a run can be re-logged from its MCAP.
 
@@ -214,20 +270,22 @@ class RerunRecorder:
 
     def __init__(self, path: Path, *, application_id: str = "diffuser_lab", recording_id: Optional[str] = None,
                  max_image_side: int = 320, max_depth_side: int = 160, live: Optional[str] = None,
-                 score_classes: Sequence[tuple[str, int]] = ()):
+                 score_classes: Sequence[tuple[str, int]] = (), online: bool = False):
         import rerun as rr
 
         from diffuser_lab.config import live_target
 
         self.rr = rr
         self.path = Path(path)
+        self.online = bool(online)
         self.max_image_side = int(max_image_side)
         self.max_depth_side = int(max_depth_side)  # 0: no depth images
         self.score_paths: list[str] = []
         for _name, _ in score_classes:
             self.score_paths.append(score_entity(_name, self.score_paths))
         self.score_index = np.asarray([int(c) for _, c in score_classes], np.int64)
-        bp = blueprint([(str(n), p) for (n, _), p in zip(score_classes, self.score_paths)])
+        # an online run's layout depends on its ground truth: sent with log_online_start
+        bp = None if online else blueprint([(str(n), p) for (n, _), p in zip(score_classes, self.score_paths)])
         batcher = rr.ChunkBatcherConfig(flush_tick=BATCH_SECONDS, flush_num_bytes=BATCH_BYTES)
         self.rec = rr.RecordingStream(application_id, recording_id=recording_id or str(uuid.uuid4()),
                                       batcher_config=batcher)
@@ -269,7 +327,7 @@ class RerunRecorder:
                      ("changed_per_iter_log10", "log10 labels changed per iteration", (214, 39, 40)),
                      ("residual_log10", "log10 relative residual", (148, 103, 189)),
                      ("confidence", "mean confidence", (255, 127, 14))]
-        for key, name, color in rr_series:
+        for key, name, color in rr_series if not self.online else ():  # an online run's: log_online_start
             self.rec.log(f"metrics/{key}", rr.SeriesLines(names=name, colors=color), static=True)
 
     def log_scene(self, points: np.ndarray, colors: Optional[np.ndarray], gt: Optional[np.ndarray]) -> None:
@@ -364,6 +422,63 @@ class RerunRecorder:
             rec.log("metrics/miou", rr.Scalars(step.miou))
             rec.log("metrics/accuracy", rr.Scalars(step.accuracy))
 
+    # -- protocol=online ------------------------------------------------------------------------
+    def log_online_start(self, has_gt: bool, growing: bool) -> None:
+        """An online run: its blueprint (:func:`online_blueprint`) and plot styles."""
+        rr = self.rr
+        self.rec.send_blueprint(online_blueprint(has_gt, growing), make_active=False, make_default=True)
+        for key, name, color in (("diffuser_miou", "online Diffuser mIoU so far [%]", (31, 119, 180)),
+                                 ("bayesian_miou", "online Bayesian mIoU so far [%]", (255, 127, 14)),
+                                 ("latency_ms", "latency [ms]", (214, 39, 40)),
+                                 ("changed", "labels changed", (148, 103, 189)),
+                                 ("points", "map points", (44, 160, 44))):
+            self.rec.log(f"metrics/{key}", rr.SeriesLines(names=name, colors=color), static=True)
+        self._online_radius: Optional[float] = None
+        self._block_rows: dict[int, int] = {}  # block -> map rows its positions were logged with
+
+    def log_online_frame(self, rec, mirror, changed: bool) -> None:
+        """One frame taken (:class:`.online.FrameRecord`) on the ``frame`` timeline; ``mirror``
+        (:class:`.online.MapMirror`) holds the map after it, ``changed``: it has new points."""
+        from .online import TIMELINE as FRAME_TIMELINE
+
+        rr, log = self.rr, self.rec.log
+        self.rec.set_time(FRAME_TIMELINE, sequence=rec.index)
+        ids, bids = class_ids(rec.labels), class_ids(rec.bayesian)
+        pts = mirror.points
+        n = len(pts)
+        gt = None if mirror.gt is None or len(mirror.gt) != n else class_ids(mirror.gt)
+        if changed and self._online_radius is None and n:
+            self._online_radius = point_radius(pts)
+        r = self._online_radius or 0.01
+        B = ONLINE_BLOCK_ROWS if mirror.growing else max(n, 1)
+        for b in range(-(-n // B)):
+            lo, hi = b * B, min(n, (b + 1) * B)
+            path = f"{b:04d}"
+            if self._block_rows.get(b) != hi:  # new rows in this block: its positions again
+                self._block_rows[b] = hi
+                log(f"world/online/labels/{path}", rr.Points3D(pts[lo:hi], class_ids=ids[lo:hi], radii=r))
+                log(f"world/online/bayesian/{path}", rr.Points3D(pts[lo:hi], class_ids=bids[lo:hi], radii=r))
+                if gt is not None:
+                    log(f"world/online/ground_truth/{path}", rr.Points3D(pts[lo:hi], class_ids=gt[lo:hi], radii=r))
+            else:  # the positions logged last still hold
+                log(f"world/online/labels/{path}", rr.Points3D.from_fields(class_ids=ids[lo:hi]))
+                log(f"world/online/bayesian/{path}", rr.Points3D.from_fields(class_ids=bids[lo:hi]))
+        wrong = mirror.wrong(rec.labels)
+        if wrong is not None:
+            log("world/online/wrong", rr.Points3D(wrong, colors=self.wrong_rgb, radii=1.2 * r))
+        T_wc = np.linalg.inv(np.asarray(rec.T_cw, np.float64))
+        log("world/online/camera", rr.Transform3D(translation=T_wc[:3, 3], mat3x3=T_wc[:3, :3]),
+            rr.Pinhole(image_from_camera=rec.K, resolution=(rec.width, rec.height), image_plane_distance=0.25))
+        if rec.image is not None:
+            log("world/online/camera/labels", rr.SegmentationImage(class_ids(rec.image)))
+        st, m = rec.stats, rec.metrics or {}
+        log("metrics/latency_ms", rr.Scalars(float(st["latency_ms"])))
+        log("metrics/points", rr.Scalars(float(rec.n)))
+        log("metrics/changed", rr.Scalars(float(st["changed"])))
+        for key in ("diffuser_miou", "bayesian_miou"):
+            if m.get(key) is not None:
+                log(f"metrics/{key}", rr.Scalars(float(m[key])))
+
     def score_values(self, Z: np.ndarray) -> np.ndarray:
         """(M, C) scores -> (M, k) float32 Z_ic / sum_c Z_ic of the score classes, 0 where the row is 0."""
         tot = Z.sum(1, dtype=np.float32)[:, None]
@@ -399,5 +514,5 @@ class RerunRecorder:
         self.rec.disconnect()
 
 
-__all__ = ["RerunRecorder", "blueprint", "class_ids", "wrong_color", "score_entity", "UNLABELED_ID", "TIMELINE",
+__all__ = ["RerunRecorder", "blueprint", "online_blueprint", "class_ids", "wrong_color", "score_entity", "UNLABELED_ID", "TIMELINE",
            "CONFIDENCE_LUT"]

@@ -50,6 +50,22 @@ The schemas travel inside every run.mcap (a ``FileDescriptorSet`` per schema rec
       double coverage = 7;           // percent of work points with a label
       double mean_confidence = 8;    // mean over labelled points of max_c Z / sum_c Z
     }
+    message OnlineFrame {            // protocol=online: every frame taken (FrameStats + metrics so far)
+      uint32 index = 1;              // the frame's index in the sequence
+      string name = 2;
+      double latency_ms = 3;  double map_ms = 4;  double evidence_ms = 5;  double steps_ms = 6;
+      uint32 points = 7;             // map points after the frame
+      uint32 new_points = 8;  uint32 seen = 9;  uint32 graph_rows = 10;  uint32 steps = 11;
+      double residual = 12;          // the last step's max|Z_t - Z_t-1| / max Z_t
+      uint32 changed = 13;           // points whose label changed
+      string skipped = 14;           // why the frame was skipped, else empty
+      double diffuser_miou = 15;  double diffuser_accuracy = 16;   // percent so far; NaN without ground truth
+      double bayesian_miou = 17;  double bayesian_accuracy = 18;
+      double coverage = 19;          // percent of map points with a label; NaN without ground truth
+      uint32 count = 20;             // 1-based count of frames taken
+      string state = 21;             // how /diffuser_lab/z keeps this frame's Z: "" (not kept), q8, ..., float32
+      string extra = 22;             // other metrics so far, JSON
+    }
 """
 from __future__ import annotations
 
@@ -84,6 +100,16 @@ _MESSAGES = [
                           ("n_changed", 3, "uint32", False), ("previous_iteration", 4, "uint32", False),
                           ("miou", 5, "double", False), ("accuracy", 6, "double", False),
                           ("coverage", 7, "double", False), ("mean_confidence", 8, "double", False)]),
+    ("OnlineFrame", [("index", 1, "uint32", False), ("name", 2, "string", False), ("latency_ms", 3, "double", False),
+                     ("map_ms", 4, "double", False), ("evidence_ms", 5, "double", False),
+                     ("steps_ms", 6, "double", False), ("points", 7, "uint32", False),
+                     ("new_points", 8, "uint32", False), ("seen", 9, "uint32", False),
+                     ("graph_rows", 10, "uint32", False), ("steps", 11, "uint32", False),
+                     ("residual", 12, "double", False), ("changed", 13, "uint32", False),
+                     ("skipped", 14, "string", False), ("diffuser_miou", 15, "double", False),
+                     ("diffuser_accuracy", 16, "double", False), ("bayesian_miou", 17, "double", False),
+                     ("bayesian_accuracy", 18, "double", False), ("coverage", 19, "double", False),
+                     ("count", 20, "uint32", False), ("state", 21, "string", False), ("extra", 22, "string", False)]),
 ]
 
 
@@ -109,6 +135,7 @@ Camera = GetMessageClass(_POOL.FindMessageTypeByName(f"{PACKAGE}.Camera"))
 RunInfo = GetMessageClass(_POOL.FindMessageTypeByName(f"{PACKAGE}.RunInfo"))
 ZState = GetMessageClass(_POOL.FindMessageTypeByName(f"{PACKAGE}.ZState"))
 IterationMetrics = GetMessageClass(_POOL.FindMessageTypeByName(f"{PACKAGE}.IterationMetrics"))
+OnlineFrame = GetMessageClass(_POOL.FindMessageTypeByName(f"{PACKAGE}.OnlineFrame"))
 
 
 def file_descriptor_set(message_class) -> bytes:
@@ -128,4 +155,4 @@ def file_descriptor_set(message_class) -> bytes:
     return fds.SerializeToString()
 
 
-__all__ = ["Camera", "RunInfo", "ZState", "IterationMetrics", "file_descriptor_set", "file_descriptor_proto"]
+__all__ = ["Camera", "RunInfo", "ZState", "IterationMetrics", "OnlineFrame", "file_descriptor_set", "file_descriptor_proto"]

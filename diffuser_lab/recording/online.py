@@ -1,0 +1,183 @@
+"""Records of an online run (protocol=online): what each frame hands the recorders.
+
+The run calls ``on_online_frame(frame, update)`` after every frame it takes
+(:class:`~diffuser_lab.runs.online.OnlineUpdate`: views valid during the call only and a
+callable for Z). :func:`frame_record` turns that, in the caller's thread, into a
+:class:`FrameRecord` of plain arrays that can wait in a queue or go through a pipe: the map's
+new points only (a map only grows, and a given map never changes), the labels, the frame's
+label image already strided to ``record.max_image_side``, and Z only on the frames the schedule
+keeps (:func:`~.schedule.recorded` over the 1-based count of frames taken; the sequence's last
+frame always, exact). :class:`MapMirror` rebuilds the map on the recorders' side from those.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any, Optional
+
+import numpy as np
+
+from diffuser_lab.data.scene import IGNORE
+
+from .mcap_encode import strided
+from .schedule import recorded, with_cloud
+
+FRAME_STEP_NS = 100_000_000
+"""run.mcap's timeline of an online run: frame i at the run's start + (i + 1) x 100 ms."""
+TIMELINE = "frame"
+"""run.rrd's timeline of an online run: sequence = the frame's index."""
+
+
+@dataclass
+class FrameRecord:
+    """One taken frame, as the recorders need it (plain arrays, picklable).
+
+    Attributes:
+        index: the frame's index in the sequence; count: 1-based count of frames taken so far.
+        name: the frame's name. stats: :class:`~diffuser_lab.method.online.FrameStats` as a dict.
+        metrics: ``update.metrics`` (mIoU so far etc., {} without ground truth).
+        n: map points after the frame. new_points: (m, 3) float32 rows appended to the map
+            (the whole map at the first frame), world metres. new_gt: (m,) int16 their ground
+            truth (growing map with ground truth), or None.
+        labels, bayesian: (n,) int16 online Diffuser / Bayesian labels, map order (IGNORE = none).
+        Z: (n, C) float32 scores in the paper's units on the kept frames, else None.
+        exact: Z is the run's last (kept float32); cloud: a labelled cloud goes into run.mcap.
+        K, T_cw: (3, 3) intrinsics of the stored label image, (4, 4) world -> camera.
+        width, height: of the stored label image. image: (h, w) int16 2D labels (strided) or None.
+    """
+
+    index: int
+    count: int
+    name: str
+    stats: dict
+    metrics: dict
+    n: int
+    new_points: Optional[np.ndarray]
+    new_gt: Optional[np.ndarray]
+    labels: np.ndarray
+    bayesian: np.ndarray
+    Z: Optional[np.ndarray]
+    exact: bool
+    cloud: bool
+    K: np.ndarray
+    T_cw: np.ndarray
+    width: int
+    height: int
+    image: Optional[np.ndarray]
+
+
+class FrameSchedule:
+    """Which taken frames keep their Z state and a labelled cloud (``record.interval`` and
+    ``record.clouds`` over the 1-based count of frames taken, ``n_frames`` the sequence's
+    length: the first and the last always)."""
+
+    def __init__(self, interval: Optional[int], clouds: str, n_frames: int):
+        self.interval, self.clouds, self.n_frames = interval, clouds, int(n_frames)
+        self.count = 0
+        self.kept: list[int] = []  # frame indices whose Z was kept
+
+    def next(self, index: int) -> tuple[int, bool, bool, bool]:
+        """Count frame ``index`` as taken: (count, keep Z, Z exact, cloud)."""
+        self.count += 1
+        last = int(index) == self.n_frames - 1
+        keep = last or recorded(self.count, self.interval, self.n_frames)
+        cloud = keep and with_cloud(self.count, self.clouds, last)
+        if keep:
+            self.kept.append(int(index))
+        return self.count, keep, last, cloud
+
+
+def frame_record(frame: Any, update: Any, sched: FrameSchedule, max_image_side: int, n_before: int,
+                 want_z: bool = True) -> FrameRecord:
+    """A :class:`FrameRecord` of ``update`` (``n_before``: map points the recorders have)."""
+    count, keep, last, cloud = sched.next(update.index)
+    n = int(update.points.shape[0])
+    new = np.array(update.points[n_before:], np.float32) if n > n_before else None
+    gt = None
+    if new is not None and update.gt is not None and len(update.gt) == n:
+        gt = np.array(update.gt[n_before:], np.int16)
+    h, w = frame.shape
+    s = _stride(h, w, max_image_side)  # as run.rrd and run.mcap store label images (strided)
+    K = strided(np.empty((h, w, 0), np.uint8), frame.K, max_image_side)[1]
+    img = frame.labels
+    if img is None and frame.probs is not None:  # soft labels: the argmax, of the strided probabilities only
+        img = np.argmax(frame.probs[::s, ::s], axis=2)
+    elif img is not None:
+        img = np.asarray(img)[::s, ::s]
+    img = None if img is None else np.array(img, np.int16)
+    sh, sw = -(-h // s), -(-w // s)
+    Z = np.asarray(update.scores(), np.float32) if keep and want_z else None
+    return FrameRecord(index=int(update.index), count=count, name=str(frame.name),
+                       stats=dataclasses.asdict(update.stats), metrics=dict(update.metrics), n=n,
+                       new_points=new, new_gt=gt, labels=np.array(update.labels, np.int16),
+                       bayesian=np.array(update.bayesian, np.int16), Z=Z, exact=last, cloud=cloud,
+                       K=np.asarray(K, np.float64), T_cw=np.array(frame.T_cw, np.float64), width=int(sw),
+                       height=int(sh), image=img)
+
+
+def _stride(h: int, w: int, max_side: int) -> int:
+    return max(1, int(np.ceil(max(h, w) / max_side)))
+
+
+class MapMirror:
+    """The map as the recorders see it, rebuilt from :class:`FrameRecord` s.
+
+    Attributes:
+        points: (n, 3) float32 map points (map order); gt: (n,) int16 their ground truth or None.
+        to_map: given map with scene ground truth: (N,) index of each scene point's map row
+            (nearest map point, as the batch recorder transfers), else None.
+    """
+
+    def __init__(self, growing: bool, scene_points: Optional[np.ndarray], scene_gt: Optional[np.ndarray]):
+        self.growing = growing
+        self.scene_points, self.scene_gt = scene_points, scene_gt
+        self.points = np.zeros((0, 3), np.float32)
+        self.gt: Optional[np.ndarray] = None
+        self.to_map: Optional[np.ndarray] = None
+
+    def update(self, rec: FrameRecord) -> bool:
+        """Append the record's new points; True when the map changed."""
+        if rec.new_points is None:
+            return False
+        self.points = rec.new_points if not len(self.points) else np.concatenate([self.points, rec.new_points])
+        if rec.new_gt is not None:
+            self.gt = rec.new_gt if self.gt is None else np.concatenate([self.gt, rec.new_gt])
+        if not self.growing and self.scene_gt is not None and self.scene_points is not None:
+            from .steps import original_to_work
+
+            self.to_map = original_to_work(self.points, self.scene_points)
+        return True
+
+    def wrong(self, labels: np.ndarray) -> Optional[np.ndarray]:
+        """(P, 3) positions of annotated, labelled points whose label is wrong (growing: map
+        points; given: the scene's points through :attr:`to_map`), or None without ground truth.
+        Points no frame has reached yet are left out: they are not yet wrong (mIoU counts them
+        as misses)."""
+        if self.to_map is not None:
+            lab = labels[self.to_map]
+            bad = (lab != self.scene_gt) & (self.scene_gt != IGNORE) & (lab != IGNORE)
+            return self.scene_points[bad]
+        if self.gt is not None and len(self.gt) == len(labels):
+            bad = (labels != self.gt) & (self.gt != IGNORE) & (labels != IGNORE)
+            return self.points[bad]
+        return None
+
+
+def online_meta(conf: Any, scene: Any) -> dict:
+    """What run.mcap's ``diffuser_lab.online`` metadata record says (strings)."""
+    import json
+
+    v = lambda x: getattr(x, "value", x)  # noqa: E731
+    rc = conf.record
+    return {"map": str(v(conf.online.map)), "n_frames": str(len(scene.frames)),
+            "interval": json.dumps(rc.interval), "z_dtype": str(v(rc.z_precision)), "clouds": str(v(rc.clouds)),
+            "has_gt": json.dumps(scene.gt_labels is not None), "frame_step_ns": str(FRAME_STEP_NS)}
+
+
+def is_online(conf: Any) -> bool:
+    p = getattr(getattr(conf, "protocol", None), "name", None)
+    return str(getattr(p, "value", p)) == "online"
+
+
+__all__ = ["FrameRecord", "FrameSchedule", "MapMirror", "frame_record", "online_meta", "is_online",
+           "FRAME_STEP_NS", "TIMELINE"]
