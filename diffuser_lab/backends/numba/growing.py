@@ -4,13 +4,15 @@ the incremental kNN graph's hash grid and queries.
 Hash tables: open addressing with linear probing on non-negative int64 keys (-1 = empty slot),
 Fibonacci hashing, at most half full (the caller grows them first, :func:`rehash`).
 
-Graph grid: cubic cells of ``h`` metres (a high quantile of the K-th neighbour distance), each
-cell numbered once in a hash table of its packed coordinates; per add the points are
-counting-sorted into cells (CSR, stable: within a cell indices ascend). A query gathers the
-candidates of its cell's 3x3x3 block once per cell (shared by every queried point of that cell),
-keeps the K best by (squared distance, index) and is exact when the K-th distance is within the
-block's guaranteed radius (``h`` + the point's distance to its cell's faces); the other points
-are searched again ring by ring (:func:`_rings`) until no closer point can remain. Squared
+Graph grid: cubic cells of ``h`` metres (a high quantile of the rows' K-th neighbour distance),
+numbered once in a hash table of their packed coordinates and linked to their 26 neighbours
+(``cell_nb``), so a query reads no table. Each cell's points are one run of a pool (float64
+coordinates and indices, in index order, so an add's points are each run's tail) with room to
+grow; a full run moves to the pool's end with twice the room (amortised O(new points) per add).
+A query scans its cell's 3x3x3 block keeping the K best by (squared distance, index) under a
+threshold guessed from the previous row, and is exact when the K-th distance is within the
+block's guaranteed radius (``h`` + the point's distance to its cell's faces); the other points are
+searched again ring by ring (:func:`query_rings`) until no closer point can remain. Squared
 distances are float64 from the float32 coordinates, as in :func:`~diffuser_lab.method.graph.build_graph`.
 """
 from __future__ import annotations
@@ -225,7 +227,7 @@ if NB is not None:
         for t in prange(nparts):
             bd = np.empty(k)
             bj = np.empty(k, np.int64)
-            thr = np.inf  # guessed from the previous point (the rows are sorted by cell)
+            thr = 0.5 * h2  # then guessed from the previous point (the rows are sorted by cell)
             for qi in range(t * nq // nparts, (t + 1) * nq // nparts):
                 i = Q[qi]
                 c = cell_of[i]
@@ -255,7 +257,7 @@ if NB is not None:
                                     lim = min(lim, bd[k - 1])
                     if cnt == k or thr == np.inf:
                         break
-                    thr = np.inf  # too few within the guess: all candidates
+                    thr = thr * 4.0 if thr < 16.0 * h2 else np.inf  # too few within the guess: wider
                     mk = False  # flags are set already
                 for e in range(cnt, k):  # fewer than K candidates: fail below
                     bd[e] = np.inf
@@ -263,7 +265,7 @@ if NB is not None:
                 cx, cy, cz = cell_c[c, 0], cell_c[c, 1], cell_c[c, 2]
                 fd = min(_face(px, cx, h), _face(py, cy, h), _face(pz, cz, h)) + h
                 fail[i] = 1 if (cnt < k or bd[k - 1] > fd * fd) else 0
-                thr = bd[k - 1] * 1.5 if cnt == k else np.inf
+                thr = bd[k - 1] * 1.5 if cnt == k else 0.5 * h2
                 dz0 = np.inf
                 for e in range(k):
                     nbr[i, e] = bj[e]
