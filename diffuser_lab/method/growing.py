@@ -542,9 +542,18 @@ class IncrementalKnnGraph:
         new = np.arange(n_old, n, dtype=np.int64)
         aff = self._nb_rows(new, n_old, mark=True)
         if wide.size:
-            dn, _ = cKDTree(self._P[n_old:n]).query(self._P[wide], k=1)
-            near = wide[dn.astype(np.float64) ** 2 <= kth2[wide] * (1 + 1e-9)]
-            aff[near[self._closer(near, n_old)]] = 1
+            # their nearest new point, searched no farther than their own reach (bounds the
+            # KD-tree's work for the many far from this add); the few near ones are recomputed
+            # by rings, exactly (one at a tie of its K-th distance is reported though unchanged)
+            tree = cKDTree(self._P[n_old:n])
+            reach = np.sqrt(kth2[wide]) * (1 + 1e-9)
+            short = reach <= 2 * self._grid["h"]
+            dn = np.full(wide.size, np.inf)
+            if short.any():
+                dn[short] = tree.query(self._P[wide[short]], k=1, distance_upper_bound=float(reach[short].max()))[0]
+            if (~short).any():
+                dn[~short] = tree.query(self._P[wide[~short]], k=1)[0]
+            aff[wide[dn < reach]] = 1
         rows = np.flatnonzero(aff).astype(np.int64)
         self._d0_before = self._d0[rows].copy()
         far = kth2[rows] > h2
