@@ -619,9 +619,10 @@ class OnlineConfig:
     # do, so the result stays where the early-stopped batch is as frames accumulate
     horizon: Optional[int] = None
     discount: Optional[float] = None  # gamma itself; null = from horizon; 1 = the undiscounted iteration
-    voxel_size: float = 0.02  # growing: map voxel edge, metres (the paper's 2 cm)
+    voxel_size: float = 0.03  # growing: map voxel edge, metres (online mappers use 2-10 cm; the paper 2 cm)
     depth_stride: int = 2  # growing: every n-th depth pixel in both directions is back-projected
     max_depth: Optional[float] = None  # growing: metres; depth beyond it adds no points (it still gives evidence)
+    revisit: int = 5  # growing: a new point also gets the evidence of this many frames before the one that added it
     bad_frames: BadFrame = BadFrame.skip
     compare_batch: bool = True  # after the last frame, run the batch Diffuser on the same frames (and final cloud)
 
@@ -632,6 +633,7 @@ class OnlineConfig:
                "in (0, 1] or null (= 2^(-2/horizon))")
         _check(self.voxel_size > 0.0, "online.voxel_size", self.voxel_size, "> 0 metres")
         _check(self.depth_stride >= 1, "online.depth_stride", self.depth_stride, ">= 1")
+        _check(0 <= self.revisit <= 1000, "online.revisit", self.revisit, "in 0..1000 (0 = none)")
         _check(self.max_depth is None or self.max_depth > 0, "online.max_depth", self.max_depth,
                "> 0 metres or null")
 

@@ -91,6 +91,21 @@ class VoxelMap:
         else:
             self._sorted = np.empty(0, np.int64)  # occupied voxels' keys, ascending
 
+    def occupied(self, points: np.ndarray) -> np.ndarray:
+        """(M,) bool: the point's voxel already holds a map point (:meth:`insert` would drop it)."""
+        points = np.ascontiguousarray(points, np.float32)
+        if self.n == 0 or points.shape[0] == 0:
+            return np.zeros(points.shape[0], bool)
+        if self._nb:
+            from diffuser_lab.backends.numba import growing as kg
+
+            out = np.empty(points.shape[0], np.bool_)
+            kg.voxel_occupied(points, self.voxel_size, self._table.keys, self._table.bits, out)
+            return out
+        keys = voxel_keys(points, self.voxel_size)
+        pos = np.minimum(np.searchsorted(self._sorted, keys), self._sorted.shape[0] - 1)
+        return self._sorted[pos] == keys
+
     def insert(self, points: np.ndarray, normals: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
         """Merge one frame.
 

@@ -7,14 +7,16 @@ the batch Diffuser, on three sequences:
     7-Scenes sample, growing map (100 frames, 640x480)     median <= 40 ms, p95 <= 120 ms, >= 97% equal
     demo room, growing map (30 frames)                     median <= 40 ms, p95 <= 120 ms, >= 97% equal,
                                                            mIoU within 1.0 of the batch run on the final cloud
+    (growing maps at the default online.voxel_size=0.03; the 7-Scenes frames labelled by the tests'
+    toy network tests.test_model_predictions.grey_levels: the sample has no ground truth)
 
 Measure with
 
     .venv/bin/python -m pytest tests/benchmarks/test_online.py --benchmark-enable -s
 
-Each case plays its sequence through :class:`~diffuser_lab.method.online.OnlineDiffuser` twice in
-one process (the first pass loads the compiled kernels; the second is timed) and prints its
-figures. With benchmarks disabled (the default test run) the cases are skipped: the default run
+Each case plays its sequence through :class:`~diffuser_lab.method.online.OnlineDiffuser` once to
+load the compiled kernels, then three timed passes (latency: the medians of the three passes'
+median, p95, max); the last pass is compared with the batch Diffuser; the figures are printed. With benchmarks disabled (the default test run) the cases are skipped: the default run
 checks the accuracy targets in tests/test_online.py and tests/test_growing_online.py.
 """
 from __future__ import annotations
@@ -25,6 +27,7 @@ from conftest import SHARED
 
 SCANNET = SHARED / "data" / "scannet" / "scene0470_00"
 SEVEN = SHARED / "data" / "7scenes_sample"
+ROUNDS = 3  # timed passes; the figures are the medians of theirs (a 2-core machine's noise is ~+-20%)
 CASES = {
     "scannet0470-given": (["scene=scannet0470"], 15.0, 50.0, 99.0, 0.5, SCANNET),
     "7scenes-growing": (["scene=rgbd_folder", f"scene.rgbd_folder.root={SEVEN}", "online.map=growing",
@@ -57,9 +60,12 @@ def test_online_targets(benchmark, case):
 
     warm = dataclasses.replace(cfg, online=dataclasses.replace(cfg.online, compare_batch=False))
     online(warm, scene=scene, predicted=frames)
+    rounds = [online(warm, scene=scene, predicted=frames) for _ in range(ROUNDS - 1)]
     res = benchmark.pedantic(lambda: online(cfg, scene=scene, predicted=frames), rounds=1, iterations=1)
+    rounds.append(res)
+    res.latency_ms = {k: float(np.median([r.latency_ms[k] for r in rounds])) for k in ("median", "p95", "max")}
     L, b = res.latency_ms, res.batch
-    lat = np.array([f["latency_ms"] for f in res.frames])
+    lat = np.array([f["latency_ms"] for f in res.frames])  # the last pass
     parts = {k: float(np.median([f[k] for f in res.frames])) for k in ("map_ms", "evidence_ms", "steps_ms")}
     print(f"\n{case}: {res.points.shape[0]:,} points, {len(res.frames)} frames: latency median {L['median']:.1f} ms "
           f"p95 {L['p95']:.1f} max {L['max']:.1f} ({', '.join(f'{k} {v:.1f}' for k, v in parts.items())}); "

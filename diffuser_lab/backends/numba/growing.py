@@ -101,6 +101,22 @@ if NB is not None:
                     nsums[v, a] += np.float64(normals[i, a])
         return t
 
+    @njit(cache=True, boundscheck=False)
+    def voxel_occupied(points, size, hk, bits, out):
+        """out[i]: point i's voxel is in the table (a map point holds it)."""
+        last = np.int64(-1)
+        hit = False
+        for i in range(points.shape[0]):
+            x = _coord(points[i, 0], size)
+            y = _coord(points[i, 1], size)
+            z = _coord(points[i, 2], size)
+            key = np.int64(_spread(np.uint64(x)) | (_spread(np.uint64(y)) << np.uint64(1))
+                           | (_spread(np.uint64(z)) << np.uint64(2)))
+            if key != last:
+                hit = hk[_find(hk, bits, key)] == key
+                last = key
+            out[i] = hit
+
     # --- graph grid ---
 
     @njit(cache=True, boundscheck=False, inline="always")
