@@ -112,16 +112,13 @@ def latency_summary(frames: list[dict]) -> dict:
             "mean": float(lat.mean()), "frames": int(lat.size)}
 
 
-def _map_gt(scene: Scene, points: np.ndarray, max_dist: float) -> Optional[np.ndarray]:
-    """Ground truth of map points: the label of the nearest scene point within ``max_dist``."""
-    if scene.gt_labels is None or points.shape[0] == 0:
-        return None if scene.gt_labels is None else np.zeros(0, np.int16)
-    from scipy.spatial import cKDTree
-
-    if not hasattr(scene, "_gt_tree"):
-        scene._gt_tree = cKDTree(scene.points)  # type: ignore[attr-defined]
-    d, idx = scene._gt_tree.query(points, k=1, workers=-1)  # type: ignore[attr-defined]
-    return np.where(d <= max_dist, scene.gt_labels[idx], IGNORE).astype(np.int16)
+def _map_gt(tree, gt_labels: np.ndarray, points: np.ndarray, max_dist: float) -> np.ndarray:
+    """Ground truth of map points: the label of the nearest scene point (``tree``: a cKDTree of
+    the scene's points) within ``max_dist`` metres, else IGNORE."""
+    if points.shape[0] == 0:
+        return np.zeros(0, np.int16)
+    d, idx = tree.query(points, k=1, workers=-1)
+    return np.where(d <= max_dist, gt_labels[idx], IGNORE).astype(np.int16)
 
 
 def online(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHooks] = None,
@@ -148,7 +145,11 @@ def online(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHoo
     rows = None
     if growing:
         od = OnlineDiffuser(cfg, tax, backend=backend)
-        gt_map = np.zeros(0, np.int16) if scene.gt_labels is not None else None
+        gt_map = gt_tree = None
+        if scene.gt_labels is not None:  # a map point's truth: the nearest labelled scene point's
+            from scipy.spatial import cKDTree
+
+            gt_map, gt_tree = np.zeros(0, np.int16), cKDTree(scene.points)
         gt_dist = max(2.0 * cfg.online.voxel_size, 0.05)
     else:
         pts, nrm, grid = _work_cloud(scene, cfg.scene.voxel_size)
@@ -172,9 +173,7 @@ def online(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHoo
                     f = frames[i]
                     check_online_frame(f)
                 except (ValueError, OSError) as exc:
-                    from diffuser_lab.cli.main import one_line
-
-                    msg = one_line(exc)
+                    msg = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
                     if cfg.online.bad_frames == BadFrame.stop:
                         raise
                     warnings.warn(f"online: frame {i} skipped: {msg}", stacklevel=2)
@@ -191,7 +190,8 @@ def online(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHoo
                 st = od.history[-1]
                 tq = time.perf_counter()
                 if growing and gt_map is not None and st.new_points:
-                    gt_map = np.concatenate([gt_map, _map_gt(scene, od.points[-st.new_points:], gt_dist)])
+                    gt_map = np.concatenate([gt_map, _map_gt(gt_tree, scene.gt_labels, od.points[-st.new_points:],
+                                                             gt_dist)])
                 if growing:
                     gt_now, lab_now, bay_now = gt_map, od.labels, od.bayesian_labels
                 else:
@@ -264,7 +264,7 @@ def compare_with_batch(cfg: Config, scene: Scene, kept: list[int], od: OnlineDif
     else:
         # the batch's work rows are the map's rows re-ordered: compare on the diffused points
         batch_map = np.empty_like(res.labels)
-        batch_map[od.map_index] = b.labels if b.voxels is None else _work_labels(b)
+        batch_map[od.map_index] = _work_labels(b)
         online_map = res.labels
     out = {"equal_labels": float(100.0 * np.mean(batch_map == online_map)) if online_map.size else None,
            "iterations": int(b.diffusion.iterations) if b.diffusion is not None else None,
