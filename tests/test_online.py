@@ -250,3 +250,46 @@ def test_growing_map_matches_the_batch_run_on_its_final_cloud(grow_demo):
     # small room, 8 frames, 6 cm voxels (measured 93.8%, mIoU 39.0 vs 37.8; full size: docs/online.md)
     assert res.batch["equal_labels"] >= 92.0, res.batch
     assert abs(res.metrics["miou"] - res.batch["diffuser"]["miou"]) <= 3.0, (res.metrics, res.batch)
+
+
+def test_cli_bad_frame_skips_or_stops_and_keeps_the_records(tmp_path):
+    """A posed RGB-D folder whose frame 2 has no valid depth (every pixel 65535): skipped with one
+    warning line, or (online.bad_frames=stop) one error line, exit 1, and the records of frames 0-1
+    readable. (A pose that is not rigid stops the rgbd_folder loader itself, before any frame.)"""
+    from datasets import _save_u16, make_world, write_rgbd
+
+    root = write_rgbd(tmp_path, make_world())
+    depth = root / "frame-000002.depth.png"
+    from PIL import Image
+
+    h, w = np.asarray(Image.open(depth)).shape
+    _save_u16(depth, np.full((h, w), 65535))
+    args = ["scene=rgbd_folder", f"scene.rgbd_folder.root={root}", "protocol=online", "predictions=model",
+            "predictions.model._target_=tests.test_model_predictions.grey_levels", "predictions.cache_dir=null",
+            "scene.rgbd_folder.cloud_voxel=0.05"]
+    r = run_cli(*args, f"hydra.run.dir={tmp_path / 'skip'}")
+    assert r.returncode == 0, r.stderr
+    warn = [ln for ln in r.stderr.splitlines() if "online: frame 2 skipped" in ln]
+    assert len(warn) == 1 and "frame-000002" in warn[0] and "no valid depth" in warn[0], r.stderr
+    s = json.loads((tmp_path / "skip" / "summary.json").read_text())
+    assert s["status"] == "ok" and s["n_frames_skipped"] == 1
+    r = run_cli(*args, "online.bad_frames=stop", f"hydra.run.dir={tmp_path / 'stop'}")
+    assert r.returncode == 1
+    errors = [ln for ln in r.stderr.splitlines() if ln.startswith("diffuser-lab: error:")]
+    assert len(errors) == 1 and "frame-000002" in errors[0] and "no valid depth" in errors[0], r.stderr
+    s = json.loads((tmp_path / "stop" / "summary.json").read_text())
+    assert s["status"] == "failed" and "no valid depth" in s["error"]
+    from diffuser_lab.recording.mcap_read import read_run
+
+    log = read_run(tmp_path / "stop" / "run.mcap")
+    assert [f["index"] for f in log.frames] == [0, 1], log.frames  # the frames before the stop, whole
+    i = subprocess_inspect(tmp_path / "stop")
+    assert i.returncode == 0 and "frames" in i.stdout, i.stdout + i.stderr
+
+
+def subprocess_inspect(run_dir):
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-m", "diffuser_lab.cli.inspect", str(run_dir)], capture_output=True,
+                          text=True, timeout=300)
