@@ -12,7 +12,7 @@ the batch Diffuser, on three sequences:
 
 Measure with
 
-    .venv/bin/python -m pytest tests/benchmarks/test_online.py --benchmark-enable -s
+    .venv/bin/python -m pytest tests/benchmarks/test_online_targets.py --benchmark-enable -s
 
 Each case plays its sequence through :class:`~diffuser_lab.method.online.OnlineDiffuser` once to
 load the compiled kernels, then three timed passes (latency: the medians of the three passes'
