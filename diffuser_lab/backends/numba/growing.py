@@ -28,6 +28,7 @@ if NB is not None:
     from numba import njit, prange
 
     from diffuser_lab.data.geometry import _spread_bits
+    from .knn import exp_split  # Eq. 4 weights bit for bit as the batch graph
 
     _spread = njit(cache=True, boundscheck=False, inline="always")(_spread_bits)
 
@@ -206,6 +207,19 @@ if NB is not None:
         return pend
 
     @njit(cache=True, boundscheck=False, inline="always")
+    def _store_row(i, bd, bj, k, nbr, d2, d0, kth2):
+        """Row i of the graph from the ascending K-buffer bd/bj: neighbours, squared distances, the
+        nearest distinct one (d0, inf if none) and the K-th (kth2)."""
+        dz0 = np.inf
+        for e in range(k):
+            nbr[i, e] = bj[e]
+            d2[i, e] = bd[e]
+            if bd[e] > 0.0 and dz0 == np.inf:
+                dz0 = bd[e]
+        d0[i] = dz0
+        kth2[i] = bd[k - 1]
+
+    @njit(cache=True, boundscheck=False, inline="always")
     def _push(bd, bj, cnt, k, d, j):
         """Insert (d, j) into the ascending K-buffer bd/bj holding cnt entries; returns the new cnt."""
         if cnt == k:
@@ -282,14 +296,7 @@ if NB is not None:
                 fd = min(_face(px, cx, h), _face(py, cy, h), _face(pz, cz, h)) + h
                 fail[i] = 1 if (cnt < k or bd[k - 1] > fd * fd) else 0
                 thr = bd[k - 1] * 1.5 if cnt == k else 0.5 * h2
-                dz0 = np.inf
-                for e in range(k):
-                    nbr[i, e] = bj[e]
-                    d2[i, e] = bd[e]
-                    if bd[e] > 0.0 and dz0 == np.inf:
-                        dz0 = bd[e]
-                d0[i] = dz0
-                kth2[i] = bd[k - 1]
+                _store_row(i, bd, bj, k, nbr, d2, d0, kth2)
 
     @njit(cache=True, parallel=True, boundscheck=False)
     def merge_rows(Q, P, cell_of, cell_nb, cend, fresh, X, Y, Z, J, k, nbr, d2, d0, kth2, nparts):
@@ -321,14 +328,7 @@ if NB is not None:
                         d = ex * ex + ey * ey + ez * ez
                         if d <= bd[k - 1]:
                             cnt = _push(bd, bj, cnt, k, d, J[p])
-                dz0 = np.inf
-                for e in range(k):
-                    nbr[i, e] = bj[e]
-                    d2[i, e] = bd[e]
-                    if bd[e] > 0.0 and dz0 == np.inf:
-                        dz0 = bd[e]
-                d0[i] = dz0
-                kth2[i] = bd[k - 1]
+                _store_row(i, bd, bj, k, nbr, d2, d0, kth2)
 
     @njit(cache=True, parallel=True, boundscheck=False)
     def query_rings(rows, P, h, hk, hv, bits, cstart, cend, X, Y, Z, J, cmin, cmax, k, nbr, d2, d0, kth2):
@@ -373,18 +373,7 @@ if NB is not None:
                 if (cnt == k and bd[k - 1] <= g * g) or r >= rmax:
                     break
                 r += 1
-            dz0 = np.inf
-            for e in range(k):
-                nbr[i, e] = bj[e]
-                d2[i, e] = bd[e]
-                if bd[e] > 0.0 and dz0 == np.inf:
-                    dz0 = bd[e]
-            d0[i] = dz0
-            kth2[i] = bd[k - 1]
-
-    _LN2_HI = 0.6931471803691238
-    _LN2_LO = 1.9082149292705877e-10
-    _INV_LN2 = 1.4426950408889634
+            _store_row(i, bd, bj, k, nbr, d2, d0, kth2)
 
     @njit(cache=True, parallel=True, boundscheck=False)
     def row_weights(rows, nbr, d2, N, use_n, invariant, a_d, a_s, w, wsum, nparts):
@@ -413,23 +402,7 @@ if NB is not None:
                     for e in range(k):
                         ex[e] = -d2[i, e] * a_d
                 for e in range(k):
-                    x = max(ex[e], -150.0)
-                    nf = np.rint(x * _INV_LN2)
-                    r = (x - nf * _LN2_HI) - nf * _LN2_LO
-                    p = 1.0 / 479001600.0
-                    p = p * r + 1.0 / 39916800.0
-                    p = p * r + 1.0 / 3628800.0
-                    p = p * r + 1.0 / 362880.0
-                    p = p * r + 1.0 / 40320.0
-                    p = p * r + 1.0 / 5040.0
-                    p = p * r + 1.0 / 720.0
-                    p = p * r + 1.0 / 120.0
-                    p = p * r + 1.0 / 24.0
-                    p = p * r + 1.0 / 6.0
-                    p = p * r + 0.5
-                    p = p * r + 1.0
-                    ex[e] = p * r + 1.0
-                    pw[e] = (np.int64(nf) + 1023) << 52  # the bits of 2.0**nf
+                    ex[e], pw[e] = exp_split(ex[e])
                 acc = 0.0
                 for e in range(k):
                     v = np.float32(ex[e] * pwf[e])

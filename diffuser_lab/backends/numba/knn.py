@@ -537,6 +537,28 @@ if NB is not None:
     _LN2_LO = 1.9082149292705877e-10
     _INV_LN2 = 1.4426950408889634
 
+    @njit(cache=True, boundscheck=False, inline="always")
+    def exp_split(x):
+        """exp(max(x, -150)) for x <= 0 as (m, bits): m in [0.7, 1.5] and the int64 bits of the
+        float64 2^n, exp = m * 2^n (exp(-150) is 0 in float32). Kept apart so that a loop of them
+        vectorises: callers store the bits in an int64 array viewed as float64."""
+        x = max(x, -150.0)
+        nf = np.rint(x * _INV_LN2)
+        r = (x - nf * _LN2_HI) - nf * _LN2_LO
+        p = 1.0 / 479001600.0
+        p = p * r + 1.0 / 39916800.0
+        p = p * r + 1.0 / 3628800.0
+        p = p * r + 1.0 / 362880.0
+        p = p * r + 1.0 / 40320.0
+        p = p * r + 1.0 / 5040.0
+        p = p * r + 1.0 / 720.0
+        p = p * r + 1.0 / 120.0
+        p = p * r + 1.0 / 24.0
+        p = p * r + 1.0 / 6.0
+        p = p * r + 0.5
+        p = p * r + 1.0
+        return p * r + 1.0, (np.int64(nf) + 1023) << 52
+
     @njit(cache=True, boundscheck=False)
     def _weights_rows(P4, idx, N4, use_n, invariant, a_d, a_s, out_w, out_sum, lo, hi):
         """Eq. 4 for rows lo..hi-1: out_w = exp(-d2 a_d - |n_i - n_j|^2 a_s) (float32; d2 and the
@@ -574,23 +596,7 @@ if NB is not None:
                         ex[e0 + s] = -(dx * dx + dy * dy + dz * dz) * a_d
             ne = (r1 - r0) * k
             for e in range(ne):
-                x = max(ex[e], -150.0)  # exp(-150) is 0 in float32
-                nf = np.rint(x * _INV_LN2)
-                r = (x - nf * _LN2_HI) - nf * _LN2_LO
-                p = 1.0 / 479001600.0
-                p = p * r + 1.0 / 39916800.0
-                p = p * r + 1.0 / 3628800.0
-                p = p * r + 1.0 / 362880.0
-                p = p * r + 1.0 / 40320.0
-                p = p * r + 1.0 / 5040.0
-                p = p * r + 1.0 / 720.0
-                p = p * r + 1.0 / 120.0
-                p = p * r + 1.0 / 24.0
-                p = p * r + 1.0 / 6.0
-                p = p * r + 0.5
-                p = p * r + 1.0
-                ex[e] = p * r + 1.0
-                pw[e] = (np.int64(nf) + 1023) << 52  # the bits of 2.0**nf
+                ex[e], pw[e] = exp_split(ex[e])
             base = r0 * k
             for e in range(ne):
                 wf[base + e] = np.float32(ex[e] * pwf[e])
