@@ -86,12 +86,8 @@ class RecordingHooks(RunHooks):
 
         self.online = is_online(conf)  # protocol=online: per-frame records (on_online_frame)
         self.frames_recorded: list[int] = []  # online: frame indices recorded, in order
-        self._sched = None
+        self._online = None  # online: the run's side of the per-frame records (.online.OnlineFrames)
         self._mirror = None
-        self._n_sent = 0  # online: map points already handed to the recorders
-        self._last = None  # online: (frame index, Z kept exactly, cloud) of the last frame taken
-        self._last_scores = None  # online: the last update's Z callable (the final Z, see on_result)
-        self._online_off: Optional[str] = None  # online: why frames are no longer recorded
         if rerun:
             self._later(self._guard, "rerun", self._open_rerun)
         if mcap:
@@ -171,10 +167,10 @@ class RecordingHooks(RunHooks):
             self._online_scene(scene)
 
     def _online_scene(self, scene: Any) -> None:
-        from .online import FrameSchedule, MapMirror, online_meta
+        from .online import MapMirror, OnlineFrames, online_meta
 
         growing = str(_value(self.conf.online.map)) == "growing"
-        self._sched = FrameSchedule(self.interval, str(_value(self.conf.record.clouds)), len(scene.frames))
+        self._online = OnlineFrames(self.conf, len(scene.frames))
         meta = online_meta(self.conf, scene)
 
         def mirror():
@@ -185,32 +181,18 @@ class RecordingHooks(RunHooks):
                    lambda: self.mcap.log_online_start(meta))
 
     def on_online_frame(self, frame: Any, update: Any) -> None:
-        from .online import frame_record
-
-        if self._sched is None:  # online() called with a config whose protocol is not online
+        if self._online is None:  # online() called with a config whose protocol is not online
             self.online = True
             self._online_scene(self.scene)
-        want_z = "mcap" in self._wanted and "mcap" not in self.errors
-        if self._online_off is not None or all(w in self.errors for w in self._wanted):
+        if all(w in self.errors for w in self._wanted):
             return
-        try:
-            rec = frame_record(frame, update, self._sched, int(self.conf.record.max_image_side), self._n_sent, want_z)
-        except Exception as exc:  # noqa: BLE001 - in the run's thread: a record must never stop the run
-            self._online_failed(exc)
-            return
-        self._n_sent = rec.n
-        self._last = (rec.index, rec.Z is not None and rec.exact, rec.cloud)
-        self._last_scores = update.scores if want_z else None
-        self.online_record(rec)
-
-    def _online_failed(self, exc: BaseException) -> None:
-        # not self.errors: the recorders must still close their files (what came before stays)
-        self._online_off = f"recording the online run failed: {type(exc).__name__}: {exc}"
-        log.warning("recording switched off: %s", self._online_off)
+        rec = self._online.record(frame, update, want_z="mcap" in self._wanted and "mcap" not in self.errors)
+        if rec is not None:
+            self.online_record(rec)
 
     def online_record(self, rec: Any) -> None:
         """Record one :class:`~.online.FrameRecord` (queued; what the recording process calls)."""
-        if self._sched is None:  # online() called with a config whose protocol is not online
+        if self._online is None:  # online() called with a config whose protocol is not online
             self.online = True
             self._online_scene(self.scene)
 
@@ -246,15 +228,6 @@ class RecordingHooks(RunHooks):
                 self._guard("mcap", lambda: self.mcap.log_summary(s))
 
         self._later(finish)
-
-    def final_state(self, result: Any) -> Optional[tuple]:
-        """(frame index, Z, labels, cloud) of the run's last frame taken when its Z was not kept
-        exactly (frames after it were skipped), else None. Z comes from the last update's
-        callable: the map does not change after the last frame."""
-        if self._last is None or self._last[1] or self._last_scores is None:
-            return None
-        index, _, cloud = self._last
-        return index, np.asarray(self._last_scores(), np.float32), np.array(result.labels, np.int16), not cloud
 
     def on_frame(self, index: int, frame: Any) -> None:
         if self.online:  # the frame comes again with its update (on_online_frame)
@@ -333,17 +306,8 @@ class RecordingHooks(RunHooks):
 
     def on_result(self, result: Any) -> None:
         if self.online or not hasattr(result, "diffusion"):
-            from diffuser_lab.runs.online import summary
-
-            if self._online_off is not None:
-                return
-            try:
-                fin = self.final_state(result)
-                if fin is not None:
-                    self.online_final(*fin)
-                self.online_result(summary(result))
-            except Exception as exc:  # noqa: BLE001 - a record must never stop the run
-                self._online_failed(exc)
+            if self._online is not None:
+                self._online.finish(result, self.online_final, self.online_result)
             return
 
         def finish():
@@ -380,9 +344,8 @@ class RecordingHooks(RunHooks):
         out = {k: v for k, v in self._files.items() if (k == "rrd" and "rerun" not in self.errors)
                or (k == "mcap" and "mcap" not in self.errors)}
         errors = dict(self.errors)
-        if self._online_off is not None:
-            for w in self._wanted:
-                errors.setdefault(w, self._online_off)
+        if self._online is not None:  # not self.errors: the recorders must still close their files
+            errors = {**self._online.errors(self._wanted), **errors}
         if errors:
             out["errors"] = errors
         return out

@@ -12,6 +12,7 @@ frame always, exact). :class:`MapMirror` rebuilds the map on the recorders' side
 from __future__ import annotations
 
 import dataclasses
+import logging
 from dataclasses import dataclass
 from typing import Any, Optional
 
@@ -21,6 +22,8 @@ from diffuser_lab.data.scene import IGNORE
 
 from .mcap_encode import strided
 from .schedule import recorded, with_cloud
+
+log = logging.getLogger("diffuser_lab.recording")
 
 FRAME_STEP_NS = 100_000_000
 """run.mcap's timeline of an online run: frame i at the run's start + (i + 1) x 100 ms."""
@@ -115,6 +118,70 @@ def frame_record(frame: Any, update: Any, sched: FrameSchedule, max_image_side: 
                        height=int(sh), image=img)
 
 
+class OnlineFrames:
+    """The run's side of recording an online run, one for both recorders (the thread one and the
+    recording process): the frame schedule, the map points already handed on, the last frame taken
+    and its Z callable (for the final exact Z), and why recording stopped (``off``: the files keep
+    what came before and close; ``files()`` reports it)."""
+
+    def __init__(self, conf: Any, n_frames: int):
+        v = lambda x: getattr(x, "value", x)  # noqa: E731
+        rc = conf.record
+        self.sched = FrameSchedule(None if rc.interval is None else int(rc.interval), str(v(rc.clouds)), n_frames)
+        self.max_image_side = int(rc.max_image_side)
+        self.n_sent = 0  # map points already handed to the recorders
+        self.last: Optional[tuple] = None  # (frame index, Z kept exactly, cloud) of the last frame taken
+        self.last_scores = None  # the last update's Z callable
+        self.off: Optional[str] = None
+
+    def record(self, frame: Any, update: Any, want_z: bool) -> Optional[FrameRecord]:
+        """The update's :class:`FrameRecord`, or None once recording failed (in the run's thread: a
+        record never stops the run)."""
+        if self.off is not None:
+            return None
+        try:
+            rec = frame_record(frame, update, self.sched, self.max_image_side, self.n_sent, want_z)
+        except Exception as exc:  # noqa: BLE001
+            self.failed(exc)
+            return None
+        self.n_sent = rec.n
+        self.last = (rec.index, rec.Z is not None and rec.exact, rec.cloud)
+        self.last_scores = update.scores if want_z else None
+        return rec
+
+    def failed(self, exc: BaseException) -> None:
+        self.off = f"recording the online run failed: {type(exc).__name__}: {exc}"
+        log.warning("recording switched off: %s", self.off)
+
+    def final_state(self, result: Any) -> Optional[tuple]:
+        """(frame index, Z, labels, cloud) of the run's last frame taken when its Z was not kept
+        exactly (frames after it were skipped), else None. Z comes from the last update's
+        callable: the map does not change after the last frame."""
+        if self.last is None or self.last[1] or self.last_scores is None:
+            return None
+        index, _, cloud = self.last
+        return index, np.asarray(self.last_scores(), np.float32), np.array(result.labels, np.int16), not cloud
+
+    def finish(self, result: Any, final, summary) -> None:
+        """Hand on the final exact Z (``final(index, Z, labels, cloud)``, where needed) and the run's
+        summary (``summary(dict)``)."""
+        from diffuser_lab.runs.online import summary as online_summary
+
+        if self.off is not None:
+            return
+        try:
+            fin = self.final_state(result)
+            if fin is not None:
+                final(*fin)
+            summary(online_summary(result))
+        except Exception as exc:  # noqa: BLE001 - a record must never stop the run
+            self.failed(exc)
+
+    def errors(self, wanted) -> dict:
+        """{recorder: why} for ``files()["errors"]`` once recording failed."""
+        return {w: self.off for w in wanted} if self.off is not None else {}
+
+
 def _stride(h: int, w: int, max_side: int) -> int:
     return max(1, int(np.ceil(max(h, w) / max_side)))
 
@@ -179,5 +246,5 @@ def is_online(conf: Any) -> bool:
     return str(getattr(p, "value", p)) == "online"
 
 
-__all__ = ["FrameRecord", "FrameSchedule", "MapMirror", "frame_record", "online_meta", "is_online",
+__all__ = ["FrameRecord", "FrameSchedule", "OnlineFrames", "MapMirror", "frame_record", "online_meta", "is_online",
            "FRAME_STEP_NS", "TIMELINE"]

@@ -175,12 +175,8 @@ class ProcessHooks(RunHooks):
 
         self.conf = conf
         self.online = is_online(conf)
-        self._sched = None
+        self._online = None  # online: the run's side of the per-frame records (.online.OnlineFrames)
         self._scene = None
-        self._n_sent = 0
-        self._last = None  # online: (frame index, Z kept exactly, cloud) of the last frame taken
-        self._last_scores = None
-        self._online_off: Optional[str] = None  # why online frames are no longer sent (the child still closes)
 
     # -- plumbing --------------------------------------------------------------------------------
     def _send_now(self, name: str, args: tuple) -> None:
@@ -203,9 +199,9 @@ class ProcessHooks(RunHooks):
         self._send("on_scene", _slim_scene(scene))
 
     def _online_schedule(self) -> None:
-        from .online import FrameSchedule
+        from .online import OnlineFrames
 
-        self._sched = FrameSchedule(self.interval, str(_value(self.conf.record.clouds)), len(self._scene.frames))
+        self._online = OnlineFrames(self.conf, len(self._scene.frames))
 
     def on_frame(self, index: int, frame: Any) -> None:
         if self.online:  # the frame comes again with its update (on_online_frame)
@@ -213,23 +209,14 @@ class ProcessHooks(RunHooks):
         self._send("on_frame", index, frame)
 
     def on_online_frame(self, frame: Any, update: Any) -> None:
-        from .online import frame_record
-
-        if self._dead is not None or self._online_off is not None:
+        if self._dead is not None:
             return
-        if self._sched is None:  # online() called with a config whose protocol is not online
+        if self._online is None:  # online() called with a config whose protocol is not online
             self.online = True
             self._online_schedule()
-        want_z = "mcap" in self._wanted
-        try:
-            rec = frame_record(frame, update, self._sched, int(self.conf.record.max_image_side), self._n_sent, want_z)
-        except Exception as exc:  # noqa: BLE001 - in the run's thread: a record must never stop the run
-            self._online_failed(exc)
-            return
-        self._n_sent = rec.n
-        self._last = (rec.index, rec.Z is not None and rec.exact, rec.cloud)
-        self._last_scores = update.scores if want_z else None
-        self._send("online_record", rec)
+        rec = self._online.record(frame, update, want_z="mcap" in self._wanted)
+        if rec is not None:
+            self._send("online_record", rec)
 
     def on_evidence(self, points: np.ndarray, grid: Optional[Any], evidence: Any, bayesian: np.ndarray) -> None:
         self._send("on_evidence", points, True if grid is not None else None, SimpleNamespace(seen=evidence.seen),
@@ -275,26 +262,11 @@ class ProcessHooks(RunHooks):
         self._send("observe_shm", iteration, offset, Z.shape,
                    {"residual": float(stats.get("residual", float("nan")))})
 
-    def _online_failed(self, exc: BaseException) -> None:
-        """Stop sending (the files keep what was sent); close() reports it in errors."""
-        self._online_off = f"recording the online run failed: {type(exc).__name__}: {exc}"
-        log.warning("recording switched off: %s", self._online_off)
-
     def on_result(self, result: Any) -> None:
         if self.online or not hasattr(result, "diffusion"):
-            from diffuser_lab.runs.online import summary
-
-            from . import RecordingHooks
-
-            if self._dead is not None or self._online_off is not None:
-                return
-            try:
-                fin = RecordingHooks.final_state(self, result)  # the same rule, on this side's state
-                if fin is not None:
-                    self._send("online_final", *fin)
-                self._send("online_result", summary(result))
-            except Exception as exc:  # noqa: BLE001 - a record must never stop the run
-                self._online_failed(exc)
+            if self._dead is None and self._online is not None:
+                self._online.finish(result, lambda *fin: self._send("online_final", *fin),
+                                    lambda summary: self._send("online_result", summary))
             return
         self._send("on_result", _slim_result(result))
 
@@ -322,9 +294,8 @@ class ProcessHooks(RunHooks):
             files, self.recorded = report[1], report[2]
             self.errors = dict(files.pop("errors", {}))
             self._files = files
-            if self._online_off is not None:  # this side stopped sending (an online frame failed)
-                for w in self._wanted:
-                    self.errors.setdefault(w, self._online_off)
+            if self._online is not None:  # this side stopped sending (an online frame failed)
+                self.errors = {**self._online.errors(self._wanted), **self.errors}
         else:
             why = self._dead or f"the recording process ended without a report (exit code {self._proc.exitcode})"
             self.errors = {w: why for w in self._wanted}
