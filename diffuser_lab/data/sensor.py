@@ -114,6 +114,18 @@ def incidence_angles(normals: np.ndarray, K: np.ndarray) -> np.ndarray:
     return np.arccos(np.clip(cos, 0.0, 1.0))
 
 
+def box_smoothed_depth(depth: np.ndarray, window: int) -> np.ndarray:
+    """(H, W) depth averaged over the valid (> 0) pixels of each ``window`` x ``window`` box, 0 where
+    the pixel itself has no depth (float64 for float64 input, else float32)."""
+    from scipy.ndimage import uniform_filter
+
+    d = np.asarray(depth)
+    d = d if d.dtype == np.float64 else d.astype(np.float32)
+    ok = (d > 0).astype(d.dtype)
+    cnt = uniform_filter(ok, window, mode="constant")
+    return np.where(ok > 0, uniform_filter(d * ok, window, mode="constant") / np.maximum(cnt, 1e-12), 0.0)
+
+
 def normals_from_depth(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
     """(H, W, 3) float64 unit camera-frame normals of an organised depth image (zero where unknown).
 

@@ -44,7 +44,7 @@ import scipy.sparse as sp
 from diffuser_lab.config import BayesianMode, OnlineMap
 from diffuser_lab.data.scene import IGNORE, Frame, Taxonomy
 from diffuser_lab.method import evidence as evidence_mod
-from diffuser_lab.method.diffusion import EDGE_FLOOR, SCORE_FLOOR
+from diffuser_lab.method.diffusion import EDGE_FLOOR, SCORE_FLOOR, labels_from_scores
 
 FLOOR = np.float32(SCORE_FLOOR)
 """Scores (divided by lambda, so of order 1 where evidence is) below this are flushed to zero."""
@@ -180,6 +180,7 @@ class OnlineDiffuser:
         self.Pneg = grow(get("Pneg"), (cap, k), np.float32) if self.use_nb else None
         self.B = grow(get("B"), (cap, max(self.width, 1)), np.float32)
         self.Z = grow(get("Z"), (cap, max(self.width, 1)), np.float32)
+        self.Zb = np.zeros((cap, max(self.width, 1)), np.float32)  # the compiled Jacobi's second buffer
         self._U = None  # the GMRES basis, (steps + 1, cap, width), made on first use
         self._labels = grow(get("_labels"), (cap,), np.int16, IGNORE)
         self._bayes = grow(get("_bayes"), (cap,), np.int16, IGNORE)
@@ -425,16 +426,13 @@ class OnlineDiffuser:
         if len(old_active):
             Z[:n, cols] = self.Z[:n, : len(old_active)]
             B[:n, cols] = self.B[:n, : len(old_active)]
-        self.Z, self.B, self._U = Z, B, None
+        self.Z, self.B, self.Zb, self._U = Z, B, np.zeros((cap, width), np.float32), None
         self.width = width
 
     def _update_bayes(self, rows: np.ndarray) -> None:
         if rows.size == 0:
             return
-        m = (self.base_mass if self.separate_base else self.mass)[rows]
-        lab = np.argmax(m, axis=1).astype(np.int16)
-        lab[m.max(1) <= 0] = IGNORE
-        self._bayes[rows] = lab
+        self._bayes[rows] = labels_from_scores((self.base_mass if self.separate_base else self.mass)[rows])
 
     def _renormalise(self, rows: np.ndarray) -> None:
         """Rows ``rows`` of Eqs. 14-15 (P with the discount folded in, B divided by lambda)."""
@@ -540,10 +538,8 @@ class OnlineDiffuser:
         return sp.csr_matrix((self.P[:n].ravel(), self.nbr[:n].ravel(), np.arange(0, n * k + 1, k)), shape=(n, n))
 
     def _labels_numpy(self, n: int) -> int:
-        na = len(self.active)
-        Z = self.Z[:n, :na]
-        lab = self.active[np.argmax(Z, axis=1)].astype(np.int16)
-        lab[Z.max(1) <= 0] = IGNORE
+        lab = labels_from_scores(self.Z[:n, : len(self.active)])  # column ids, IGNORE where nothing came
+        lab = np.where(lab == IGNORE, IGNORE, self.active[np.maximum(lab, 0)]).astype(np.int16)
         changed = int(np.count_nonzero(lab != self._labels[:n]))
         self._labels[:n] = lab
         return changed
@@ -557,10 +553,10 @@ class OnlineDiffuser:
         if self.use_nb:
             from diffuser_lab.backends.numba import online as kern
 
-            Zb = self._U[0, :n] if self._U is not None and self._U.shape[1] >= self._cap else np.empty_like(Z)
-            out = self.runner.run(self.width, self.nbr[:n], self.P[:n], Z, Zb, B, FLOOR, self.tol, self.steps)
+            out = self.runner.run(self.width, self.nbr[:n], self.P[:n], Z, self.Zb[:n], B, FLOOR, self.tol, self.steps)
             if len(out) % 2:  # the last state is in the second buffer
-                Z[:] = Zb
+                self.Z, self.Zb = self.Zb, self.Z
+                Z = self.Z[:n]
             r = float(out[-1, 0] / out[-1, 1]) if out[-1, 1] > 0 else 0.0
             changed = int(kern.argmax_rows(Z, len(self.active), self.active, self._labels[:n]))
             return len(out), r, changed
@@ -591,13 +587,10 @@ def frame_normals(depth: np.ndarray, K: np.ndarray, T_cw: np.ndarray, pix: np.nd
     sided where a neighbour has no depth) of the depth box-smoothed over ``window`` pixels, as
     :func:`diffuser_lab.data.sensor.normals_from_depth` computes them, but only at ``pix``; turned
     towards the camera."""
-    from scipy.ndimage import uniform_filter
+    from diffuser_lab.data.sensor import box_smoothed_depth
 
-    d = np.asarray(depth, np.float32)
-    h, w = d.shape
-    ok = (d > 0).astype(np.float32)
-    cnt = uniform_filter(ok, window, mode="constant")
-    smooth = np.where(ok > 0, uniform_filter(d * ok, window, mode="constant") / np.maximum(cnt, 1e-12), 0.0)
+    smooth = box_smoothed_depth(np.asarray(depth, np.float32), window)
+    h, w = smooth.shape
     r, c = pix[:, 0].astype(np.int64), pix[:, 1].astype(np.int64)
     K = np.asarray(K, np.float64)
 

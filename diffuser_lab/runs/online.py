@@ -22,6 +22,7 @@ from diffuser_lab.data.predictions import describe as describe_predictions
 from diffuser_lab.data.predictions import with_predictions
 from diffuser_lab.data.scene import IGNORE, Frame, Scene
 from diffuser_lab.hooks import RunHooks
+from diffuser_lab.method.diffusion import labels_from_scores
 from diffuser_lab.method.metrics import confusion_matrix, score, scores_from_confusion
 from diffuser_lab.method.online import FrameStats, OnlineDiffuser
 
@@ -264,7 +265,7 @@ def compare_with_batch(cfg: Config, scene: Scene, kept: list[int], od: OnlineDif
     else:
         # the batch's work rows are the map's rows re-ordered: compare on the diffused points
         batch_map = np.empty_like(res.labels)
-        batch_map[od.map_index] = _work_labels(b)
+        batch_map[od.map_index] = labels_from_scores(b.diffusion.Z)
         online_map = res.labels
     out = {"equal_labels": float(100.0 * np.mean(batch_map == online_map)) if online_map.size else None,
            "iterations": int(b.diffusion.iterations) if b.diffusion is not None else None,
@@ -274,12 +275,6 @@ def compare_with_batch(cfg: Config, scene: Scene, kept: list[int], od: OnlineDif
         out["diffuser"] = {k: b.metrics[k] for k in ("miou", "accuracy", "coverage")}
         out["bayesian"] = {k: b.baseline["bayesian"][k] for k in ("miou", "accuracy", "coverage")}
     return out
-
-
-def _work_labels(b) -> np.ndarray:
-    from diffuser_lab.method.diffusion import labels_from_scores
-
-    return labels_from_scores(b.diffusion.Z)
 
 
 def summary(res: OnlineResult) -> dict:

@@ -75,14 +75,9 @@ def image_normals(f: Frame, pix: np.ndarray, to_work: np.ndarray, m: int, window
     per pixel; PCA over a noisy cloud's kNN sees it in 3D), normals by central differences
     (:func:`diffuser_lab.data.sensor.normals_from_depth`), turned towards the camera, averaged
     over each work point's pixels (``pix`` (P, 2) rows/cols -> ``to_work`` (P,) in 0..m-1)."""
-    from scipy.ndimage import uniform_filter
+    from diffuser_lab.data.sensor import box_smoothed_depth, normals_from_depth
 
-    from diffuser_lab.data.sensor import normals_from_depth
-
-    d = np.asarray(f.depth, np.float64)
-    ok = (d > 0).astype(np.float64)
-    cnt = uniform_filter(ok, window, mode="constant")
-    smooth = np.where(ok > 0, uniform_filter(d * ok, window, mode="constant") / np.maximum(cnt, 1e-12), 0.0)
+    smooth = box_smoothed_depth(np.asarray(f.depth, np.float64), window)
     n_cam = normals_from_depth(smooth, f.K)[pix[:, 0], pix[:, 1]]  # (P, 3) camera frame
     n_cam *= np.where(n_cam[:, 2:3] > 0, -1.0, 1.0)  # towards the camera (it looks along +z)
     R_wc = np.linalg.inv(f.T_cw)[:3, :3]

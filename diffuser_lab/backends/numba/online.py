@@ -39,24 +39,29 @@ if NB is not None:
                 if slot[a] >= 0:
                     B[i, slot[a]] = mass[i, a] * inv
 
+    @njit(cache=True, boundscheck=False, inline="always")
+    def _relabel(S, i, na, active, labels):
+        """labels[i] = active[argmax_{s < na} S[i, s]] (the first of equal maxima), -1 where the
+        row's first na entries are all <= 0; 1 if the label changed, else 0."""
+        best = -1
+        top = np.float32(0.0)
+        for a in range(na):
+            v = S[i, a]
+            if v > top:
+                top = v
+                best = a
+        lab = active[best] if best >= 0 else -1
+        if labels[i] == lab:
+            return 0
+        labels[i] = lab
+        return 1
+
     @njit(cache=True, boundscheck=False)
     def argmax_rows(S, na, active, labels):
-        """labels[i] = active[argmax_{s < na} S[i, s]] (the first of equal maxima), -1 where the
-        row's first na entries are all <= 0; returns how many labels changed."""
-        n = labels.shape[0]
+        """:func:`_relabel` for every row; returns how many labels changed."""
         cnt = 0
-        for i in range(n):
-            best = -1
-            top = np.float32(0.0)
-            for a in range(na):
-                v = S[i, a]
-                if v > top:
-                    top = v
-                    best = a
-            lab = active[best] if best >= 0 else -1
-            if labels[i] != lab:
-                cnt += 1
-                labels[i] = lab
+        for i in range(labels.shape[0]):
+            cnt += _relabel(S, i, na, active, labels)
         return cnt
 
     # -- GMRES(m) on (I - gamma P) Z = B, column by column, rows in fixed chunks (deterministic sums)
@@ -106,21 +111,11 @@ if NB is not None:
         for p in prange(parts):
             cnt = 0
             for r in range(p * step, min(n, (p + 1) * step)):
-                best = -1
-                top = np.float32(0.0)
                 for a in range(c):
                     v = Z[r, a]
                     for j in range(m):
                         v += np.float32(ys[j, a]) * U[j, r, a]
-                    if not v > np.float32(0.0):
-                        v = np.float32(0.0)
-                    Z[r, a] = v
-                    if v > top:
-                        top = v
-                        best = a
-                lab = active[best] if best >= 0 else -1
-                if labels[r] != lab:
-                    cnt += 1
-                    labels[r] = lab
+                    Z[r, a] = v if v > np.float32(0.0) else np.float32(0.0)
+                cnt += _relabel(Z, r, active.shape[0], active, labels)
             changed[p] = cnt
         return changed.sum()
