@@ -143,19 +143,12 @@ def _task(cfg: Any) -> Optional[float]:
                 print(table(sf) + f"\nrun folder: {run_dir}")
             return done["metrics"]["miou"]
 
-        from diffuser_lab.config import RecordMode
         from diffuser_lab.runs.pipeline import run
 
         if conf.protocol.name == Protocol.online:
             return _online(conf, run_dir, summary, hc, multirun, t_start)
 
-        hooks = None
-        if conf.record.mode != RecordMode.off:
-            from diffuser_lab.recording import make_hooks
-            from diffuser_lab.recording.heap import retain_freed_memory
-
-            retain_freed_memory(conf.record.retain_heap_mb)  # process-wide: the command line's choice
-            hooks = make_hooks(conf, run_dir, overrides=list(hc.overrides.task), process=True)
+        hooks = _record_hooks(conf, run_dir, hc)
         try:
             result = run(conf, hooks=hooks)
         finally:
@@ -188,20 +181,28 @@ def _task(cfg: Any) -> Optional[float]:
             nb.compile_in_background()
 
 
+def _record_hooks(conf: Any, run_dir: Path, hc: Any):
+    """The run's recorders (in a recording process), or None for record=off."""
+    from diffuser_lab.config import RecordMode
+
+    if conf.record.mode == RecordMode.off:
+        return None
+    from diffuser_lab.recording import make_hooks
+    from diffuser_lab.recording.heap import retain_freed_memory
+
+    retain_freed_memory(conf.record.retain_heap_mb)  # process-wide: the command line's choice
+    return make_hooks(conf, run_dir, overrides=list(hc.overrides.task), process=True)
+
+
 def _online(conf: Any, run_dir: Path, summary: Any, hc: Any, multirun: bool, t_start: float) -> Optional[float]:
     """protocol=online: the frames one at a time (diffuser_lab/runs/online.py), recorded on a frame
     timeline; labels.npy holds the final map's labels (map order), map.npy its points."""
     import numpy as np
 
-    from diffuser_lab.config import RecordMode
     from diffuser_lab.runs import online as online_mod
     from diffuser_lab.runs.records import write_labels
 
-    hooks = None
-    if conf.record.mode != RecordMode.off:
-        from diffuser_lab.recording import make_hooks
-
-        hooks = make_hooks(conf, run_dir, overrides=list(hc.overrides.task), process=True)
+    hooks = _record_hooks(conf, run_dir, hc)
     try:
         result = online_mod.online(conf, hooks=hooks)
     finally:
