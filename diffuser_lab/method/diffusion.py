@@ -115,7 +115,7 @@ def normalise(graph: KnnGraph, mass: np.ndarray, pixel_weight: float) -> System:
         from diffuser_lab.backends import numba as nb
 
         if nb.available():
-            from diffuser_lab.backends.numba.knn import normalise_sorted
+            from diffuser_lab.backends.numba.normalise import normalise_sorted
 
             # the numpy lines below fused into three compiled passes (same float32 results)
             res = normalise_sorted(graph.order, graph.sorted_weights, graph.sorted_row_sums, mass, pixel_weight,

@@ -1,5 +1,5 @@
 """Compiled CPU kernels (numba), grouped by what they compute: ``knn.py`` (Morton order, grid
-kNN, Eq. 4 weights, the Eqs. 14-15 rows), ``jacobi.py`` (the Jacobi steps of Eq. 10 on threads
+kNN, Eq. 4 weights), ``normalise.py`` (the rows of Eqs. 14-15), ``jacobi.py`` (the Jacobi steps of Eq. 10 on threads
 meeting at a barrier, ``_sync.py``; generated row kernels in ``_unrolled.py``), ``evidence.py``
 (the fused evidence of one frame, Eqs. 1-2) and ``float16.py`` (Z states encoded for run.mcap).
 
@@ -173,3 +173,8 @@ def n_threads() -> int:
         if cap:
             n = min(n, cap)
     return max(1, n)
+
+
+def parts(n: int) -> int:
+    """Chunks for a parallel loop over n rows (several per thread, for balance)."""
+    return max(1, min(n_threads() * 8, n // 512 + 1))
