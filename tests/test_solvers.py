@@ -8,7 +8,8 @@ from scipy.spatial import cKDTree
 from diffuser_lab.backends import numba as nb
 from diffuser_lab.backends.numba import jacobi as kernels
 from diffuser_lab.config import default_config
-from diffuser_lab.method.diffusion import SortedSystem, diffuse, labels_from_scores, normalise, solve
+from diffuser_lab.method.diffusion import SortedSystem, diffuse, labels_from_scores, normalise
+from diffuser_lab.method.solvers import solve
 from diffuser_lab.method.evidence import accumulate
 from diffuser_lab.method.exact import solve_exact
 from diffuser_lab.method.graph import KnnGraph, SortedKnnGraph, build_graph

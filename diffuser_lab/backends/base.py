@@ -1,10 +1,12 @@
-"""The one interface between the diffusion loop and a Jacobi backend.
+"""The one interface between the diffusion core and a Jacobi backend.
 
-:func:`diffuser_lab.method.diffusion.diffuse` owns the iteration loop, the observer calls, the
-progress line and the early stop; a backend only runs steps of Eq. 10 on what
-:class:`IterationInputs` gives it and hands Z back in the paper's units. A backend never imports
-the method that dispatches to it. The stopping rule is :func:`residual` <= tol, checked after
-every step (the numba backend evaluates the same rule inside its compiled steps).
+:class:`diffuser_lab.method.diffusion.System` owns the normalised system (Eqs. 14-15), the
+iteration loop, the observer calls, the progress line and the early stop; a backend only runs
+steps of ``Z <- P Z + B`` (Eq. 10; an online run's discount gamma is folded into P) on what
+:class:`IterationInputs` gives it, keeps Z between calls (a warm start is the state it has) and
+hands Z back in the paper's units. A backend never imports the method that dispatches to it.
+The stopping rule is :func:`residual` <= tol, checked after every step (the compiled backends
+evaluate the same rule inside their compiled steps).
 """
 from __future__ import annotations
 
@@ -13,15 +15,19 @@ from typing import Optional
 
 import numpy as np
 
+NONE = -1
+"""The label of a row nothing reached (all its scores 0): the data layer's ``IGNORE``."""
+
 
 @dataclass
 class IterationInputs:
-    """What every Jacobi backend iterates on.
+    """What every Jacobi backend iterates on (rows in the iteration's order).
 
     Attributes:
-        active: (A,) int64 classes any pixel voted for; the other columns of Z stay exactly 0.
+        active: (A,) int64 ascending classes some evidence named; the other columns of Z stay exactly 0.
         shape: (N, C) of Z.
-        scale: max(B) as float32; the iteration runs on Z / scale (returned in paper units).
+        scale: float32; the iteration runs on Z / scale (returned in paper units): max(B) for a
+            batch run, lambda for an online one (whose B changes between calls).
         floor: float32 entries of Z / scale below this are flushed to zero after each step.
         order: (N,) int64 caller's index of the row that is iterated in place s (Morton order),
             or None when the rows are in the caller's order.
@@ -45,21 +51,57 @@ def residual(change: float, top: float) -> float:
     return float(change) / float(top) if top > 0 else 0.0
 
 
+def moved_state(Z: np.ndarray, old_active: np.ndarray, inputs: IterationInputs,
+                moved: Optional[np.ndarray]) -> np.ndarray:
+    """A state (n_old, A_old) carried to a changed system: (N, A) float32 whose rows are the old
+    rows (re-ordered by ``moved``: new row s = old row moved[s]) followed by new rows at 0, and
+    whose columns follow ``inputs.active`` (new classes at 0)."""
+    n, na = inputs.shape[0], len(inputs.active)
+    out = np.zeros((n, na), np.float32)
+    cols = np.searchsorted(inputs.active, old_active)
+    src = Z if moved is None else Z[moved]
+    out[: src.shape[0], cols] = src
+    return out
+
+
+def argmax_labels(Z: np.ndarray, active: np.ndarray, labels: np.ndarray) -> int:
+    """Eq. 16 on a state: labels (N,) int16 <- active[argmax_c Z[:, c]] (the first of equal
+    maxima), NONE where the row is all <= 0; returns how many labels changed."""
+    if Z.shape[1] == 0:
+        new = np.full(labels.shape, NONE, np.int16)
+    else:
+        best = np.argmax(Z, axis=1)
+        new = np.where(Z[np.arange(Z.shape[0]), best] > 0, active[best], NONE).astype(np.int16)
+    changed = int(np.count_nonzero(new != labels))
+    labels[:] = new
+    return changed
+
+
 class JacobiBackend:
-    """Steps of Eq. 10 ``Z <- P Z + B`` (Z from 0, entries below ``floor`` flushed to 0).
+    """Steps of Eq. 10 ``Z <- P Z + B`` (entries below ``floor`` flushed to 0) from Z = 0, or from
+    the state it has (warm start).
 
     ``steps(count)`` runs up to ``count`` steps and returns their (done, 2) float32 array of
     (max change, max Z), stopping after the first step whose :func:`residual` is <= ``tol``; a
     backend gives ``step()`` (one step, its (change, top)) or, to run many steps in compiled
     code, its own ``steps``. ``paper_units(out)`` gives Z (N, C) float32 in the caller's order
     and the paper's units (``out``, if given, is filled: its inactive columns must be 0);
-    ``close()`` frees threads; ``details()`` says what ran (``info`` of the result).
+    ``state()`` / ``load(Z)`` read and set Z / scale (N, A) in row order; ``update(inputs, rows,
+    moved)`` takes a changed system (rows renormalised, new rows, new classes, re-ordered rows:
+    an online run) keeping Z; ``labels(out)`` is Eq. 16 in row order; ``close()`` frees threads;
+    ``details()`` says what ran (``info`` of the result). ``rows_hint``: the number of rows the
+    system may grow to (thread pools are sized for it).
     """
 
     name = "?"
 
-    def __init__(self, inputs: IterationInputs, tol: float):
-        self.inputs, self.tol = inputs, float(tol)
+    def __init__(self, inputs: IterationInputs, tol: float, rows_hint: int = 0):
+        self.tol, self.rows_hint = float(tol), int(rows_hint)
+        self.setup(inputs)
+
+    def setup(self, inputs: IterationInputs) -> None:
+        """Take ``inputs`` (a new system); Z starts at 0."""
+        self.inputs = inputs
 
     @property
     def compiling(self) -> bool:
@@ -85,8 +127,47 @@ class JacobiBackend:
                 break
         return np.array(out, np.float32).reshape(-1, 2)
 
-    def paper_units(self, out: Optional[np.ndarray] = None) -> np.ndarray:  # pragma: no cover - interface
+    def state(self) -> np.ndarray:  # pragma: no cover - interface
+        """(N, A) float32 Z / scale in row order, columns ``inputs.active`` (a copy or a view)."""
         raise NotImplementedError
+
+    def load(self, Z: np.ndarray) -> None:  # pragma: no cover - interface
+        """Set Z / scale (N, A) in row order (a warm start)."""
+        raise NotImplementedError
+
+    def update(self, inputs: IterationInputs, rows: Optional[np.ndarray] = None,
+               moved: Optional[np.ndarray] = None) -> None:
+        """The system changed: P and B in ``rows`` (None: anywhere), rows appended (they start at
+        Z = 0), classes activated (their columns start at 0), rows re-ordered (new row s = old
+        row ``moved[s]``); ``inputs`` keeps ``scale`` and ``floor``. Z is kept. This default
+        re-takes the whole system; backends override it where a part is cheaper."""
+        Z = moved_state(self.state(), self.inputs.active, inputs, moved)
+        self.setup(inputs)
+        self.load(Z)
+
+    def labels(self, out: np.ndarray) -> int:
+        """Eq. 16 in row order: ``out`` (N,) int16 <- the class of each row's largest score
+        (NONE where nothing reached it); returns how many labels changed."""
+        return argmax_labels(self.state(), self.inputs.active, out)
+
+    def krylov(self, m: int) -> float:
+        """GMRES(m) on (I - P) Z = B from the current Z, each class column on its own, Z clamped
+        at 0 after it (``online.solver=gmres``); returns the relative residual |B - (I - P) Z|
+        / |B| of the least-squares solution (max over columns)."""
+        raise ValueError(f"online.solver=gmres runs on the numba or scipy backend, not {self.name}")
+
+    def paper_units(self, out: Optional[np.ndarray] = None) -> np.ndarray:
+        """Z (N, C) float32 in the caller's order and the paper's units."""
+        inp = self.inputs
+        Z_full = np.zeros(inp.shape, np.float32) if out is None else out
+        z = self.state() * inp.scale
+        if inp.order is None:
+            Z_full[:, inp.active] = z
+        else:
+            tmp = np.zeros(inp.shape, np.float32)
+            tmp[:, inp.active] = z
+            Z_full[inp.order] = tmp
+        return Z_full
 
     def close(self) -> None:
         pass

@@ -8,19 +8,28 @@ import numpy as np
 import scipy.sparse as sp
 
 from .base import IterationInputs, JacobiBackend
+from .krylov import KrylovOps, gmres
 
 
 class ScipyJacobi(JacobiBackend):
     name = "scipy"
 
-    def __init__(self, inputs: IterationInputs, tol: float):
-        super().__init__(inputs, tol)
+    def setup(self, inputs: IterationInputs) -> None:
+        super().setup(inputs)
         n = inputs.shape[0]
         Pm = sp.csr_matrix((inputs.data, inputs.indices, inputs.indptr), shape=(n, n), copy=True)  # never alias
         Pm.eliminate_zeros()
         self.P = Pm
-        self.B = np.ascontiguousarray(inputs.B[:, inputs.active]) / inputs.scale  # iterate on Z / max(B)
+        self.B = np.ascontiguousarray(inputs.B[:, inputs.active]) / inputs.scale  # iterate on Z / scale
         self.Z = np.zeros_like(self.B)
+        self._U: Optional[np.ndarray] = None
+
+    def update(self, inputs: IterationInputs, rows: Optional[np.ndarray] = None,
+               moved: Optional[np.ndarray] = None) -> None:
+        U = self._U
+        super().update(inputs, rows, moved)
+        if U is not None and U.shape[1:] == self.Z.shape:
+            self._U = U  # the GMRES basis keeps its memory
 
     def step(self) -> tuple[float, float]:
         Z = self.Z
@@ -32,13 +41,25 @@ class ScipyJacobi(JacobiBackend):
         self.Z = Z_new
         return change, top
 
-    def paper_units(self, out: Optional[np.ndarray] = None) -> np.ndarray:
-        inp = self.inputs
-        Z_full = np.zeros(inp.shape, np.float32) if out is None else out
-        if inp.order is None:
-            Z_full[:, inp.active] = self.Z * inp.scale
-        else:
-            tmp = np.zeros(inp.shape, np.float32)
-            tmp[:, inp.active] = self.Z * inp.scale
-            Z_full[inp.order] = tmp
-        return Z_full
+    def state(self) -> np.ndarray:
+        return self.Z
+
+    def load(self, Z: np.ndarray) -> None:
+        self.Z = np.array(Z, np.float32, copy=True).reshape(self.B.shape)
+
+    def krylov(self, m: int) -> float:
+        if self._U is None or self._U.shape != (m + 1,) + self.Z.shape:
+            self._U = np.zeros((m + 1,) + self.Z.shape, np.float32)
+        res, bn = gmres(self.Z, self.B, self._U, m, _CsrOps(self.P))
+        return res / bn if bn > 0 else 0.0
+
+
+class _CsrOps(KrylovOps):
+    def __init__(self, P: sp.csr_matrix):
+        self.P = P
+
+    def residual(self, Z, B, out) -> None:
+        out[:] = B - Z + self.P @ Z
+
+    def apply(self, X, out) -> None:
+        out[:] = X - self.P @ X

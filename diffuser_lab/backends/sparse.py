@@ -67,29 +67,71 @@ class SparseState:
 
 
 class SparseClassesBase(JacobiBackend):
-    """What both sparse backends share: B as CSR (iteration order, on Z / max(B)), the state, Z in
+    """What both sparse backends share: B as CSR (iteration order, on Z / scale), the state, Z in
     the paper's units, the drop statistics and the certificate (see module doc)."""
 
-    def __init__(self, inputs: IterationInputs, tol: float, per_point: int, rel: float = 0.0):
-        super().__init__(inputs, tol)
-        n, C = inputs.shape
+    def __init__(self, inputs: IterationInputs, tol: float, per_point: int, rel: float = 0.0, rows_hint: int = 0):
         self.rel = float(rel)
-        self.per_point = int(min(per_point, max(C, 1)))
+        self.per_point = int(min(per_point, max(inputs.shape[1], 1)))
+        self.dropped = 0.0  # Sum over steps of the dropped mass
+        self.kept = 0.0  # Sum over steps of the kept mass
+        super().__init__(inputs, tol, rows_hint)
+
+    def setup(self, inputs: IterationInputs) -> None:
+        super().setup(inputs)
+        n = inputs.shape[0]
         Bc = sp.csr_matrix(inputs.B)
         Bc.data /= inputs.scale
         Bc.data[Bc.data < inputs.floor] = 0.0
         Bc.eliminate_zeros()
         self.bptr, self.bcls, self.bval = Bc.indptr.astype(np.int64), Bc.indices.astype(np.int32), Bc.data.astype(
             np.float32)
-        self.state = SparseState(n, self.per_point)
-        self.dropped = 0.0  # Sum over steps of the dropped mass
-        self.kept = 0.0  # Sum over steps of the kept mass
+        self.state_ = SparseState(n, self.per_point)
+
+    def update(self, inputs: IterationInputs, rows: Optional[np.ndarray] = None,
+               moved: Optional[np.ndarray] = None) -> None:
+        """Keeps the slots and the error bound (they hold class ids, not columns): rows follow
+        ``moved``, new rows start empty."""
+        old = self.state_
+        self.setup(inputs)
+        new = self.state_
+        for name in ("cls", "val", "cnt", "err", "rs"):
+            a = getattr(old, name)
+            if moved is not None:
+                a = a[moved]
+            getattr(new, name)[: a.shape[0]] = a
+
+    def state(self) -> np.ndarray:
+        inp, st = self.inputs, self.state_
+        out = np.zeros((inp.shape[0], len(inp.active)), np.float32)
+        valid = np.arange(self.per_point)[None, :] < st.cnt[:, None]
+        r = np.broadcast_to(np.arange(inp.shape[0])[:, None], valid.shape)[valid]
+        out[r, np.searchsorted(inp.active, st.cls[valid])] = st.val[:, :self.per_point][valid]
+        return out
+
+    def load(self, Z: np.ndarray) -> None:
+        """The M largest scores of each row of ``Z`` (N, A) (error bound 0)."""
+        st, M = self.state_, self.per_point
+        n = Z.shape[0]
+        st.cls[:] = 0
+        st.val[:] = 0
+        st.err[:] = 0
+        if Z.shape[1] == 0:
+            st.cnt[:] = 0
+            return
+        top = np.argsort(-Z, axis=1, kind="stable")[:, :M]
+        v = np.take_along_axis(Z, top, 1)
+        keep = v > 0
+        st.cnt[:] = keep.sum(1)
+        st.cls[:, : top.shape[1]] = np.where(keep, self.inputs.active[top], 0)
+        st.val[:, : top.shape[1]] = np.where(keep, v, 0)
+        st.rs[:] = st.val[:, :M].sum(1)
 
     def details(self) -> dict:
         return {"backend": self.name, "sparse_classes": self.per_point, "sparse_rel": self.rel}
 
     def paper_units(self, out: Optional[np.ndarray] = None) -> np.ndarray:
-        inp, st = self.inputs, self.state
+        inp, st = self.inputs, self.state_
         n = inp.shape[0]
         if out is None:
             out = np.zeros(inp.shape, np.float32)
@@ -103,7 +145,7 @@ class SparseClassesBase(JacobiBackend):
 
     def report(self) -> dict:
         """The approximation of this run (module doc): certified fraction, bound, dropped mass."""
-        st, M = self.state, self.per_point
+        st, M = self.state_, self.per_point
         v = np.where(np.arange(M)[None, :] < st.cnt[:, None], st.val[:, :M], 0.0)
         top = -np.partition(-v, min(1, M - 1), axis=1)  # the two largest first
         top1 = top[:, 0]
@@ -118,7 +160,7 @@ class SparseClassesBase(JacobiBackend):
     def error_bound(self) -> np.ndarray:
         """(N,) float32 e_i in the caller's order and the paper's units: Zhat_ic <= Z_ic <= Zhat_ic + e_i."""
         inp = self.inputs
-        e = self.state.err * inp.scale
+        e = self.state_.err * inp.scale
         if inp.order is None:
             return e
         out = np.empty_like(e)
@@ -131,22 +173,22 @@ class SparseClassesJacobi(SparseClassesBase):
 
     name = "scipy-sparse"
 
-    def __init__(self, inputs: IterationInputs, tol: float, per_point: int, rel: float = 0.0):
-        super().__init__(inputs, tol, per_point, rel)
+    def setup(self, inputs: IterationInputs) -> None:
+        super().setup(inputs)
         n, C = inputs.shape
         self.P = sp.csr_matrix((inputs.data, inputs.indices, inputs.indptr), shape=(n, n), copy=True)
         self.P.eliminate_zeros()
         self.B = sp.csr_matrix((self.bval, self.bcls, self.bptr), shape=(n, C))
 
     def _matrix(self) -> sp.csr_matrix:
-        st = self.state
+        st = self.state_
         n, C = self.inputs.shape
         valid = np.arange(self.per_point)[None, :] < st.cnt[:, None]
         indptr = np.concatenate([[0], np.cumsum(st.cnt, dtype=np.int64)])
         return sp.csr_matrix((st.val[:, :self.per_point][valid], st.cls[valid], indptr), shape=(n, C))
 
     def step(self) -> tuple[float, float]:
-        st, M = self.state, self.per_point
+        st, M = self.state_, self.per_point
         n = self.inputs.shape[0]
         old = self._matrix()
         Y = (self.P @ old + self.B).tocsr()
@@ -170,7 +212,7 @@ class SparseClassesJacobi(SparseClassesBase):
         new.val[r, k] = Y.data[keep]
         new.cnt[:] = np.bincount(r, minlength=n)
         new.err[:] = err
-        self.state = new
+        self.state_ = new
         self.dropped += float(d.sum(dtype=np.float64))
         self.kept += float(new.val.sum(dtype=np.float64))
         diff = self._matrix() - old

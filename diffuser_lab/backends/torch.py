@@ -38,10 +38,14 @@ class TorchJacobi(JacobiBackend):
 
     name = "torch"
 
-    def __init__(self, inputs: IterationInputs, tol: float, device: Optional[str] = None):
-        super().__init__(inputs, tol)
-        torch = self.torch = _torch(device)
-        self.device = dev = torch.device(device or "cuda")
+    def __init__(self, inputs: IterationInputs, tol: float, rows_hint: int = 0, device: Optional[str] = None):
+        self.torch = _torch(device)
+        self.device = self.torch.device(device or "cuda")
+        super().__init__(inputs, tol, rows_hint)
+
+    def setup(self, inputs: IterationInputs) -> None:
+        super().setup(inputs)
+        torch, dev = self.torch, self.device
         n = inputs.shape[0]
         self.P = torch.sparse_csr_tensor(torch.from_numpy(np.asarray(inputs.indptr, np.int64)),
                                          torch.from_numpy(np.asarray(inputs.indices, np.int64)),
@@ -49,6 +53,12 @@ class TorchJacobi(JacobiBackend):
         self.B = torch.from_numpy(np.ascontiguousarray(inputs.B[:, inputs.active] / inputs.scale, np.float32)).to(dev)
         self.Z = torch.zeros_like(self.B)
         self.order = None if inputs.order is None else torch.from_numpy(inputs.order).to(dev)
+
+    def state(self) -> np.ndarray:
+        return self.Z.cpu().numpy()
+
+    def load(self, Z: np.ndarray) -> None:
+        self.Z = self.torch.from_numpy(np.ascontiguousarray(Z, np.float32)).to(self.device).reshape(self.B.shape)
 
     def details(self) -> dict:
         return {"backend": self.name, "device": str(self.device)}

@@ -7,10 +7,13 @@ from typing import Optional
 
 import numpy as np
 import scipy.sparse as sp
+import scipy.sparse.csgraph as csgraph
+import scipy.sparse.linalg as spla
 
 from diffuser_lab import progress
+from diffuser_lab.backends import resolve_backend
 
-from .diffusion import DiffusionResult, Observer, SortedSystem, System, _resolve_backend, observes, show
+from .diffusion import DiffusionResult, Observer, System, observes, show
 
 EXACT_DIRECT_MAX = 1_000_000
 """solver=exact factorises I - P (SuperLU) up to this many reachable points, else GMRES + ILU."""
@@ -28,27 +31,18 @@ def solve_exact(system: System, *, max_iter: int = 200, tol: float = 1e-4,
     ``residual`` is max over classes of |B_c - (I - P) Z_c| / |B_c|. The observer sees the
     result once, as iteration 1.
     """
-    import scipy.sparse.csgraph as csgraph
-    import scipy.sparse.linalg as spla
-
-    backend = _resolve_backend(backend)
+    backend = resolve_backend(backend)
     if backend == "torch":
         raise RuntimeError("solver=exact runs on the CPU (scipy); use solver.backend=auto with it")
-    active = np.flatnonzero(system.B.any(0))
-    full_shape = system.B.shape
+    active = system.active
+    full_shape = (system.n, system.num_classes)
     n = full_shape[0]
-    b_max = float(system.B.max()) if system.B.size else 0.0
-    scale = b_max if b_max > 0 else 1.0
-    if isinstance(system, SortedSystem):
-        order = system.order
-        indptr, indices, data = system.sorted_csr()
-        P = sp.csr_matrix((data.astype(np.float64), indices.copy(), indptr.copy()), shape=(n, n))
-        P.eliminate_zeros()
-        B = system.B[order][:, active].astype(np.float64) / scale
-    else:
-        order = np.arange(n)
-        P = system.P.astype(np.float64).tocsr()
-        B = system.B[:, active].astype(np.float64) / scale
+    scale = float(system.default_scale())
+    order = np.arange(n) if system.order is None else system.order
+    indptr, indices, data = system.sorted_csr()
+    P = sp.csr_matrix((data.astype(np.float64), indices.copy(), indptr.copy()), shape=(n, n))
+    P.eliminate_zeros()
+    B = system.B_rows[:, active].astype(np.float64) / scale
     with progress.stage(f"diffusion (exact, {n:,} points)"):
         # points that reach evidence: breadth-first search from a virtual node linked to every
         # evidence point, along the reversed edges (j -> i where P_ij > 0)

@@ -18,6 +18,9 @@ from typing import Optional
 
 import numpy as np
 
+from .diffusion import labels_from_scores
+from .solvers import solve
+
 EVIDENCE = "evidence"  # the frames' evidence with the method's pixel window (Eqs. 11-13)
 BASELINE = "baseline"  # the Bayesian baseline's: single pixel, likelihoods or votes (method.bayesian_mode)
 ONE_VIEW = "one_view"  # the evidence of one frame (method.view)
@@ -48,8 +51,6 @@ class FusionMethod:
         """(M,) int16 labels (IGNORE where no evidence reaches a point) and the DiffusionResult
         (None for methods without a graph). ``mass``: (M, C) the evidence the method reads;
         ``system``: the normalised graph system of Eqs. 14-15 for graph methods."""
-        from .diffusion import labels_from_scores, solve
-
         if not self.graph:
             return labels_from_scores(mass), None
         diff = solve(system, solver, observer=observer)

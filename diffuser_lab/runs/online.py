@@ -219,7 +219,7 @@ def online(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHoo
                        gt=(gt_map.copy() if gt_map is not None else None) if growing else None,
                        frames=history, metrics=None, bayesian=None,
                        settings={"steps": od.steps, "gamma": od.gamma, "horizon": od.horizon,
-                                 "backend": "numba" if od.use_nb else "scipy", "rho_m": float(od.rho),
+                                 "backend": od.backend_name, "rho_m": float(od.rho),
                                  "sigma_d_m": float(od.sigma_d)},
                        latency_ms=latency_summary(history))
     if growing:

@@ -23,7 +23,9 @@ from typing import Optional
 import numpy as np
 
 from ..base import IterationInputs, JacobiBackend, residual
+from ..krylov import gmres
 from . import NB, n_threads, slp
+from .krylov import NumbaKrylovOps
 
 WIDTHS = (8, 16, 24, 32)
 """Class-block widths of the generated Jacobi kernels; wider problems are split into blocks."""
@@ -236,7 +238,7 @@ def fixed_rows(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray) -> tup
 
 
 # ---------------------------------------------------------------------------------------------
-# Z back in the caller's order and the paper's units
+# Z back in the caller's order and the paper's units; labels (Eq. 16)
 
 if NB is not None:
     from numba import njit, prange
@@ -250,6 +252,44 @@ if NB is not None:
             o = order[i]
             for c in range(na):
                 out[o, active[c]] = Zs[i, c] * scale
+
+    @njit(cache=True, boundscheck=False)
+    def _block_argmax(Z, cnt, ids, best, arg):
+        """Per row the largest of Z[i, :cnt] above best[i] (the first of equal maxima; blocks come
+        in ascending class order, so an equal maximum of a later block never wins): best, arg."""
+        for i in range(Z.shape[0]):
+            for a in range(cnt):
+                v = Z[i, a]
+                if v > best[i]:
+                    best[i] = v
+                    arg[i] = ids[a]
+
+    @njit(cache=True, boundscheck=False)
+    def _set_labels(arg, labels):
+        """labels = arg; returns how many changed."""
+        changed = 0
+        for i in range(labels.shape[0]):
+            if labels[i] != arg[i]:
+                labels[i] = arg[i]
+                changed += 1
+        return changed
+
+    @njit(cache=True, boundscheck=False)
+    def _relabel_one(Z, cnt, ids, labels):
+        """One class block: labels[i] = ids[argmax Z[i, :cnt]] (-1 where all <= 0); returns how many changed."""
+        changed = 0
+        for i in range(labels.shape[0]):
+            top = np.float32(0.0)
+            lab = -1
+            for a in range(cnt):
+                v = Z[i, a]
+                if v > top:
+                    top = v
+                    lab = ids[a]
+            if labels[i] != lab:
+                labels[i] = lab
+                changed += 1
+        return changed
 
 
 def unpermute_scaled(Zs, order, active, scale, out):
@@ -267,57 +307,142 @@ def blocks_of(n_active: int) -> list[tuple[int, int, int]]:
     return out
 
 
+class Block:
+    """One class block of Z: classes ``active[first:first + cnt]`` in a (rows, width) layout (the
+    row kernels' widths; the padding columns stay 0). ``B``, ``Z`` (the current state) and ``Zn``
+    (the other buffer) have ``capacity`` rows, the first N in use."""
+
+    def __init__(self, first: int, cnt: int, width: int, capacity: int):
+        self.first, self.cnt, self.width = first, cnt, width
+        self.B = np.zeros((capacity, width), np.float32)
+        self.Z = np.zeros_like(self.B)
+        self.Zn = np.zeros_like(self.B)
+        self.U: Optional[np.ndarray] = None  # the GMRES basis, made on first use
+
+
 class NumbaJacobi(JacobiBackend):
     """Jacobi steps in compiled code on :class:`StepRunner` threads. With one class block (up
     to 32 classes) all ``count`` steps, the stopping rule included, run in one compiled call per
-    thread; several blocks share one residual and go a step at a time."""
+    thread; several blocks share one residual and go a step at a time.
+
+    P and the neighbours are read where the system keeps them (no copy); B is copied into the
+    blocks. A growing system (``rows_hint`` > 0) gets blocks with room to grow (capacity doubles);
+    :meth:`update` then copies only the changed rows of B."""
 
     name = "numba"
 
-    def __init__(self, inputs: IterationInputs, tol: float):
-        super().__init__(inputs, tol)
+    def __init__(self, inputs: IterationInputs, tol: float, rows_hint: int = 0):
+        self.runner = StepRunner(max(inputs.shape[0], int(rows_hint)))
+        self.blocks: list[Block] = []
+        self._wneg: Optional[np.ndarray] = None  # -P, for GMRES's products (I - P) X
+        super().__init__(inputs, tol, rows_hint)
+
+    def setup(self, inputs: IterationInputs) -> None:
+        super().setup(inputs)
         n = inputs.shape[0]
-        active = inputs.active
-        self.blocks = []
-        for first, cnt, width in blocks_of(len(active)):
-            Bb = np.zeros((n, width), np.float32)
-            Bb[:, :cnt] = inputs.B[:, active[first:first + cnt]] / inputs.scale  # iterate on Z / max(B)
-            self.blocks.append([first, cnt, width, Bb, np.zeros_like(Bb), np.zeros_like(Bb)])
+        cap = n if not self.rows_hint else max(n, 2 * self._capacity(), 1024)
+        self.blocks = [Block(first, cnt, width, cap) for first, cnt, width in blocks_of(len(inputs.active))]
+        self._take(inputs, None)
+
+    def _capacity(self) -> int:
+        return self.blocks[0].B.shape[0] if self.blocks else 0
+
+    def _take(self, inputs: IterationInputs, rows: Optional[np.ndarray]) -> None:
+        """The neighbours and P (views of the system's arrays where they allow it) and B's ``rows`` (None: all)."""
+        self.inputs = inputs
         self.nbr, self.wts = fixed_rows(inputs.indptr, inputs.indices, inputs.data)
-        self.ident = np.arange(n, dtype=np.int64) if inputs.order is None else inputs.order
-        self.runner = StepRunner(n)
+        n = inputs.shape[0]
+        for b in self.blocks:
+            cls = inputs.active[b.first:b.first + b.cnt]
+            if rows is None:
+                b.B[:n, :b.cnt] = inputs.B[:, cls] / inputs.scale  # iterate on Z / scale
+            elif rows.size:
+                b.B[rows, :b.cnt] = inputs.B[rows][:, cls] / inputs.scale
+        if self._wneg is not None:
+            self._wneg = np.negative(self.wts)
+
+    def update(self, inputs: IterationInputs, rows: Optional[np.ndarray] = None,
+               moved: Optional[np.ndarray] = None) -> None:
+        n_old, n = self.inputs.shape[0], inputs.shape[0]
+        if moved is not None or n > self._capacity() or len(inputs.active) != len(self.inputs.active):
+            super().update(inputs, rows, moved)  # re-laid out: state carried over
+            return
+        if rows is not None and n > n_old:  # appended rows (their Z is 0: never written)
+            rows = np.union1d(rows, np.arange(n_old, n))
+        self._take(inputs, rows)
 
     @property
     def compiling(self) -> bool:
         from . import first_compile
 
-        return bool(self.blocks) and first_compile(*{_step_kernels()[b[2]] for b in self.blocks})
+        return bool(self.blocks) and first_compile(*{_step_kernels()[b.width] for b in self.blocks})
 
     def steps(self, count: int) -> np.ndarray:
-        floor, tol = self.inputs.floor, self.tol
+        floor, tol, n = self.inputs.floor, self.tol, self.inputs.shape[0]
         if len(self.blocks) == 1:  # all steps in compiled code, no GIL needed between them
-            blk = self.blocks[0]
-            out = self.runner.run(blk[2], self.nbr, self.wts, blk[4], blk[5], blk[3], floor, tol, count)
+            b = self.blocks[0]
+            out = self.runner.run(b.width, self.nbr, self.wts, b.Z[:n], b.Zn[:n], b.B[:n], floor, tol, count)
             if len(out) % 2:
-                blk[4], blk[5] = blk[5], blk[4]
+                b.Z, b.Zn = b.Zn, b.Z
             return out
         out = []
         for _ in range(count):  # several class blocks share one residual: a step at a time
             ct = np.zeros(2, np.float32)
-            for blk in self.blocks:
-                ct = np.maximum(ct, self.runner.run(blk[2], self.nbr, self.wts, blk[4], blk[5], blk[3], floor, -1.0,
-                                                    1)[0])
-                blk[4], blk[5] = blk[5], blk[4]
+            for b in self.blocks:
+                ct = np.maximum(ct, self.runner.run(b.width, self.nbr, self.wts, b.Z[:n], b.Zn[:n], b.B[:n], floor,
+                                                    -1.0, 1)[0])
+                b.Z, b.Zn = b.Zn, b.Z
             out.append(ct)
             if residual(ct[0], ct[1]) <= tol:
                 break
         return np.array(out, np.float32).reshape(-1, 2)
 
+    def state(self) -> np.ndarray:
+        n = self.inputs.shape[0]
+        out = np.zeros((n, len(self.inputs.active)), np.float32)
+        for b in self.blocks:
+            out[:, b.first:b.first + b.cnt] = b.Z[:n, :b.cnt]
+        return out
+
+    def load(self, Z: np.ndarray) -> None:
+        n = self.inputs.shape[0]
+        for b in self.blocks:
+            b.Z[:n, :b.cnt] = Z[:, b.first:b.first + b.cnt]
+            b.Z[:n, b.cnt:] = 0.0
+
+    def labels(self, out: np.ndarray) -> int:
+        n, active = self.inputs.shape[0], self.inputs.active
+        if not self.blocks:
+            return super().labels(out)
+        if len(self.blocks) == 1:
+            b = self.blocks[0]
+            return int(_relabel_one(b.Z[:n], b.cnt, active[:b.cnt].astype(np.int16), out))
+        best = np.zeros(n, np.float32)
+        arg = np.full(n, -1, np.int16)
+        for b in self.blocks:
+            _block_argmax(b.Z[:n], b.cnt, active[b.first:b.first + b.cnt].astype(np.int16), best, arg)
+        return int(_set_labels(arg, out))
+
+    def krylov(self, m: int) -> float:
+        n = self.inputs.shape[0]
+        if self._wneg is None:
+            self._wneg = np.negative(self.wts)
+        res = bn = 0.0
+        for b in self.blocks:
+            if b.U is None or b.U.shape[0] != m + 1 or b.U.shape[1] < n:
+                b.U = np.zeros((m + 1, self._capacity(), b.width), np.float32)
+            ops = NumbaKrylovOps(self.runner, b.width, self.nbr, self.wts, self._wneg, n)
+            r, s = gmres(b.Z[:n], b.B[:n], b.U[:, :n], m, ops)
+            res, bn = max(res, r), max(bn, s)
+        return res / bn if bn > 0 else 0.0
+
     def paper_units(self, out: Optional[np.ndarray] = None) -> np.ndarray:
         inp = self.inputs
+        n = inp.shape[0]
         Z_full = np.zeros(inp.shape, np.float32) if out is None else out  # out: inactive columns stay 0
-        for first, cnt, width, _, Z, _ in self.blocks:
-            unpermute_scaled(Z, self.ident, inp.active[first:first + cnt].astype(np.int64), inp.scale, Z_full)
+        ident = np.arange(n, dtype=np.int64) if inp.order is None else inp.order
+        for b in self.blocks:
+            unpermute_scaled(b.Z[:n], ident, inp.active[b.first:b.first + b.cnt].astype(np.int64), inp.scale, Z_full)
         return Z_full
 
     def close(self) -> None:

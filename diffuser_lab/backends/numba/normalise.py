@@ -1,6 +1,6 @@
-"""Compiled Eqs. 14-15: the normalised system of a kNN graph's fixed-length rows, as
-:func:`diffuser_lab.method.diffusion.normalise` computes it with numpy (same float32 operations,
-numpy's pairwise order for the row sums of the pixel mass)."""
+"""Compiled Eqs. 14-15: rows of the normalised system of a kNN graph's fixed-length rows, as
+:func:`diffuser_lab.backends.normalise.normalise_rows_numpy` computes them (same float32
+operations, numpy's pairwise order for the row sums of the pixel mass)."""
 from __future__ import annotations
 
 import numpy as np
@@ -47,65 +47,40 @@ if NB is not None:
             return res
 
     @njit(cache=True, parallel=True, boundscheck=False)
-    def _pixsum_par(mass, lam, out, nparts):
-        """out[o] = (mass[o].astype(float32) * lam).sum() as numpy computes it."""
-        n, c = mass.shape
+    def _rows_par(rows, use_rows, order, use_order, w, wsum, mass, lam, gamma, floor, tiny, P, B, nparts):
+        """Rows s (``rows``, or all) of Eqs. 14-15: o = order[s] (or s) the row's point in ``mass``;
+        d = float32(wsum[s]) + Sum_c float32(mass[o, c]) * lam (numpy's order); inv = 1 / d (0
+        when d is not above tiny); P[s] = w[s] * inv, entries below floor set to 0, times gamma;
+        B[s] = (float32(mass[o]) * lam) * inv."""
+        m = rows.shape[0] if use_rows else w.shape[0]
+        k = w.shape[1]
+        c = mass.shape[1]
         for t in prange(nparts):
-            for o in range(t * n // nparts, (t + 1) * n // nparts):
-                out[o] = _pairwise_row(mass, o, 0, c, lam)
-
-    @njit(cache=True, parallel=True, boundscheck=False)
-    def _scale_rows_par(order, wsum, pixsum, w, floor, tiny, Ps, inv, nparts):
-        """Per sorted row s: inv = 1 / (float32(wsum[s]) + pixsum[order[s]]) (0 when that is not
-        above tiny), Ps[s] = w[s] * inv with entries below floor set to 0; inv kept per point."""
-        n, k = w.shape
-        for t in prange(nparts):
-            for s in range(t * n // nparts, (t + 1) * n // nparts):
-                o = order[s]
-                d = np.float32(wsum[s]) + pixsum[o]
+            for r in range(t * m // nparts, (t + 1) * m // nparts):
+                s = rows[r] if use_rows else r
+                o = order[s] if use_order else s
+                d = np.float32(wsum[s]) + _pairwise_row(mass, o, 0, c, lam)
                 iv = np.float32(1.0) / d if d > tiny else np.float32(0.0)
-                inv[o] = iv
-                for c in range(k):
-                    v = w[s, c] * iv
-                    Ps[s, c] = np.float32(0.0) if v < floor else v
-
-    @njit(cache=True, parallel=True, boundscheck=False)
-    def _pix_scaled_par(mass, lam, inv, B, nparts):
-        """B = (mass.astype(float32) * lam) * inv[:, None]."""
-        n, c = mass.shape
-        for t in prange(nparts):
-            for o in range(t * n // nparts, (t + 1) * n // nparts):
-                iv = inv[o]
+                for j in range(k):
+                    v = w[s, j] * iv
+                    P[s, j] = np.float32(0.0) if v < floor else v * gamma
                 for a in range(c):
-                    B[o, a] = (np.float32(mass[o, a]) * lam) * iv
+                    B[s, a] = (np.float32(mass[o, a]) * lam) * iv
 
 
-def normalise_sorted(order: np.ndarray, sorted_weights: np.ndarray, sorted_row_sums: np.ndarray, mass: np.ndarray,
-                     pixel_weight: float, edge_floor: float) -> tuple[np.ndarray, np.ndarray] | None:
-    """Eqs. 14-15 for a :class:`~diffuser_lab.method.graph.SortedKnnGraph` in three parallel passes,
-    bit for bit the numpy computation of :func:`diffuser_lab.method.diffusion.normalise`.
+def takes(mass: np.ndarray) -> bool:
+    """Whether :func:`normalise_rows` takes this pixel mass (a 2-D numeric array of at most 128
+    classes: numpy's pairwise sums of longer rows are not reproduced)."""
+    return mass.ndim == 2 and mass.dtype.kind in "fiu" and mass.shape[1] <= 128
 
-    Args:
-        order: (N,) int64 Morton order; sorted_weights: (N, K) float32; sorted_row_sums: (N,)
-            float64; mass: (N, C) pixel mass (caller's order); pixel_weight: lambda;
-            edge_floor: transition weights below it become 0.
-    Returns:
-        (P (N, K) float32 in sorted order, B (N, C) float32 in the caller's order), or None for a
-        mass this path does not take (not a 2-D numeric array, or more than 128 classes).
-    """
-    mass = np.asarray(mass)
-    if mass.ndim != 2 or mass.dtype.kind not in "fiu" or mass.shape[0] != order.shape[0] or mass.shape[1] > 128:
-        return None
-    n = order.shape[0]
-    lam = np.float32(pixel_weight)
-    parts = _parts(n)
-    pixsum = np.empty(n, np.float32)
-    _pixsum_par(mass, lam, pixsum, parts)
-    Ps = np.empty_like(sorted_weights)
-    inv = np.empty(n, np.float32)
+
+def normalise_rows(rows, order, weights, row_sums, mass, pixel_weight: float, gamma: float, edge_floor: float,
+                   P: np.ndarray, B: np.ndarray) -> None:
+    """Eqs. 14-15 in one parallel pass, bit for bit :func:`diffuser_lab.backends.normalise.normalise_rows_numpy`
+    (see there for the arguments); ``mass`` as :func:`takes` allows."""
+    m = weights.shape[0] if rows is None else rows.shape[0]
+    empty = np.zeros(0, np.int64)
     # numpy compares float32 arrays with Python floats in float32
-    _scale_rows_par(order, sorted_row_sums, pixsum, sorted_weights, np.float32(edge_floor), np.float32(1e-30), Ps,
-                    inv, parts)
-    B = np.empty(mass.shape, np.float32)
-    _pix_scaled_par(mass, lam, inv, B, parts)
-    return Ps, B
+    _rows_par(empty if rows is None else rows, rows is not None, empty if order is None else order,
+              order is not None, weights, row_sums, mass, np.float32(pixel_weight), np.float32(gamma),
+              np.float32(edge_floor), np.float32(1e-30), P, B, _parts(m))

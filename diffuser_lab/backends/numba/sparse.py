@@ -276,18 +276,22 @@ class NumbaSparseJacobi(SparseClassesBase):
 
     name = "numba-sparse"
 
-    def __init__(self, inputs, tol: float, per_point: int, rel: float = 0.0, refresh: int = 4):
-        super().__init__(inputs, tol, per_point, rel)
+    def __init__(self, inputs, tol: float, per_point: int, rel: float = 0.0, refresh: int = 4, rows_hint: int = 0):
+        self.refresh = max(1, int(refresh))
+        self.done = 0
+        self.runner = StepRunner(max(inputs.shape[0], int(rows_hint)))
+        super().__init__(inputs, tol, per_point, rel, rows_hint)
+
+    def setup(self, inputs) -> None:
+        super().setup(inputs)
         n, M = inputs.shape[0], self.per_point
         self.nbr, self.wts = fixed_rows(inputs.indptr, inputs.indices, inputs.data)
         self.other = SparseState(n, M)
-        self.refresh = max(1, int(refresh))
         k = self.nbr.shape[1] if self.refresh > 1 else 0
         self.idx = np.zeros((n, k, M), np.uint8 if M < 255 else np.uint16)
         self.bsel = np.zeros((n, M if k else 0), np.float32)
         self.bout = np.zeros(n if k else 0, np.float32)
-        self.done = 0
-        self.runner = StepRunner(n)
+        self.done = 0  # the next step re-selects the class sets (the fixed-set steps' index is stale)
 
     def details(self) -> dict:
         return {**super().details(), "sparse_refresh": self.refresh}
@@ -299,14 +303,14 @@ class NumbaSparseJacobi(SparseClassesBase):
         return first_compile(sparse_steps)
 
     def steps(self, count: int) -> np.ndarray:
-        a, b = self.state, self.other
+        a, b = self.state_, self.other
         args = (self.nbr, self.wts, a.cls, a.val, a.cnt, a.err, a.rs, b.cls, b.val, b.cnt, b.err, b.rs, self.bptr,
                 self.bcls, self.bval, self.idx, self.bsel, self.bout, int(self.inputs.shape[1]),
                 np.float32(self.inputs.floor), np.float32(self.rel), self.refresh, self.done, float(self.tol))
         res = self.runner.launch(sparse_steps, args, count, RES, tickets=2)
         self.done += len(res)
         if len(res) % 2:
-            self.state, self.other = b, a
+            self.state_, self.other = b, a
         self.dropped += float(res[:, :, 2].sum(dtype=np.float64))
         self.kept += float(res[:, :, 3].sum(dtype=np.float64))
         return np.ascontiguousarray(res[:, :, :2].max(axis=1))
