@@ -100,6 +100,53 @@ def test_numpy_path_agrees_with_the_compiled_one(demo):
         assert np.abs(za - zb).max() <= 1e-3 * np.abs(za).max(), solver
 
 
+def _many_class_frames(frames, classes: int, seed: int = 0):
+    """The frames with 2D labels spread over ``classes`` classes (each true class split at random
+    into look-alikes), so that more than one 32-class block of Z is active."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for f in frames:
+        split = rng.integers(0, classes // 20, size=f.labels.shape)
+        lab = np.where(f.labels >= 0, (f.labels.astype(np.int64) * (classes // 20) + split) % classes, -1)
+        out.append(dataclasses.replace(f, labels=lab.astype(np.int16)))
+    return out
+
+
+def test_every_backend_runs_the_online_system(demo):
+    """The online Diffuser is a user of the one diffusion core: the compiled backend for more than
+    32 active classes (several class blocks), the sparse class set and torch (on the CPU) give the
+    numpy/scipy path's result."""
+    from diffuser_lab.data.taxonomy import Taxonomy
+
+    cfg, scene, frames, pts, nrm = demo
+    tax = Taxonomy(name="many", names=tuple(f"c{i}" for i in range(80)), colors=np.zeros((80, 3), np.uint8))
+    many = _many_class_frames(frames, 80)
+
+    def play(backend="auto", device=None, **solver):
+        c = dataclasses.replace(cfg, solver=dataclasses.replace(cfg.solver, **solver))
+        od = OnlineDiffuser(c, tax, points=pts, normals=nrm, backend=backend, device=device)
+        for f in many:
+            od.add_frame(f)
+        od.close()
+        return od
+
+    ref = play("scipy")
+    assert len(ref.system.active) > 32
+    runs = {"numba": play("numba"), "numba-sparse": play("numba", sparse_classes="on", classes_per_point=80),
+            "scipy-sparse": play("scipy", sparse_classes="on", classes_per_point=80)}
+    try:
+        import torch  # noqa: F401
+
+        runs["torch"] = play("torch", device="cpu")
+    except ImportError:
+        pass
+    zr = ref.scores()
+    for name, od in runs.items():
+        assert od.backend_name == name, (od.backend_name, name)
+        assert np.mean(od.labels == ref.labels) >= 0.999, name
+        assert np.abs(od.scores() - zr).max() <= 1e-3 * np.abs(zr).max(), name
+
+
 def test_final_labels_match_the_batch_diffuser(demo):
     cfg, scene, frames, pts, nrm = demo
     res = online(cfg, scene=scene)

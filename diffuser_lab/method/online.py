@@ -102,11 +102,13 @@ class OnlineDiffuser:
         points: (N, 3) float32 world metres, the given cloud (``online.map=given``); None for a
             growing map. normals: (N, 3) unit normals of the given cloud or None (estimated).
         backend: ``auto`` (``solver.backend``: compiled kernels when numba is available) or a
-            backend name (``scipy``: the numpy/scipy path).
+            backend name (``scipy``: the numpy/scipy path); device: the torch backend's device
+            (None: CUDA).
     """
 
     def __init__(self, cfg, taxonomy: Taxonomy, points: Optional[np.ndarray] = None,
-                 normals: Optional[np.ndarray] = None, backend: SolverBackend | str = "auto"):
+                 normals: Optional[np.ndarray] = None, backend: SolverBackend | str = "auto",
+                 device: Optional[str] = None):
         self.cfg = cfg
         self.taxonomy = taxonomy
         self.C = taxonomy.num_classes
@@ -152,7 +154,7 @@ class OnlineDiffuser:
                 raise ValueError("online.map=given needs the scene's points")
             self._init_given(np.asarray(points, np.float32), normals)
         name = cfg.solver.backend if backend in ("auto", SolverBackend.auto) else backend
-        self.system.start(backend=name, tol=self.tol, scale=self.lam, device=None,
+        self.system.start(backend=name, tol=self.tol, scale=self.lam, device=device,
                           sparse_classes=cfg.solver.sparse_classes, classes_per_point=cfg.solver.classes_per_point,
                           rows_hint=ROWS_HINT)
         self.backend_name = self.system.backend.name
