@@ -27,7 +27,7 @@ def pixel_kinds(gt: np.ndarray, depth: np.ndarray, K: np.ndarray, radius: int = 
     from scipy.ndimage import maximum_filter, minimum_filter, uniform_filter
 
     from diffuser_lab.data.scene import IGNORE
-    from diffuser_lab.data.sensor import normals_from_depth
+    from diffuser_lab.data.geometry import normals_from_depth
 
     valid = gt != IGNORE
     size = 2 * radius + 1

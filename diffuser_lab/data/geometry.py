@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.ndimage import uniform_filter
 from scipy.spatial import cKDTree
 
 
@@ -146,3 +147,67 @@ def spatial_order(points: np.ndarray) -> np.ndarray:
     other in every axis, keep their input order)."""
     q, _, _ = quantize(points)
     return np.argsort(morton_codes(q), kind="stable")
+
+
+def box_smoothed_depth(depth: np.ndarray, window: int) -> np.ndarray:
+    """(H, W) depth averaged over the valid (> 0) pixels of each ``window`` x ``window`` box, 0 where
+    the pixel itself has no depth (float64 for float64 input, else float32)."""
+    d = np.asarray(depth)
+    d = d if d.dtype == np.float64 else d.astype(np.float32)
+    ok = (d > 0).astype(d.dtype)
+    cnt = uniform_filter(ok, window, mode="constant")
+    return np.where(ok > 0, uniform_filter(d * ok, window, mode="constant") / np.maximum(cnt, 1e-12), 0.0)
+
+
+def normals_from_depth(depth: np.ndarray, K: np.ndarray, pix: np.ndarray | None = None,
+                       T_cw: np.ndarray | None = None, window: int = 1) -> np.ndarray:
+    """Unit surface normals of an organised depth image: the one depth-image normals function.
+
+    Central differences of the back-projected points along rows and columns (one-sided where a
+    neighbour has no depth; zero where a pixel has no valid neighbour on either axis), in float64.
+
+    Args:
+        depth: (H, W) metres, 0 = no depth; K: (3, 3) its intrinsics, pixels.
+        pix: (P, 2) int (row, col) pixels to compute the normals at; None: every pixel.
+        T_cw: (4, 4) world-to-camera; given, the normals are turned towards the camera (it looks
+            along +z) and into the world frame.
+        window: > 1: the depth is first box-averaged over ``window`` x ``window`` valid pixels
+            (:func:`box_smoothed_depth`; sensor noise is per pixel).
+    Returns:
+        (H, W, 3) (pix None) or (P, 3) float64 unit normals, camera frame (world frame with
+        ``T_cw``), zero where unknown.
+    """
+    d = box_smoothed_depth(depth, window) if window > 1 else depth
+    d = np.asarray(d, np.float64)
+    h, w = d.shape
+    if pix is None:
+        r, c = np.mgrid[0:h, 0:w]
+    else:
+        r, c = np.asarray(pix[:, 0], np.int64), np.asarray(pix[:, 1], np.int64)
+    K = np.asarray(K, np.float64)
+
+    def point(rr, cc):  # camera-frame point at (rr, cc) and whether it has depth (inside the image)
+        inside = (rr >= 0) & (rr < h) & (cc >= 0) & (cc < w)
+        rr, cc = np.clip(rr, 0, h - 1), np.clip(cc, 0, w - 1)
+        z = d[rr, cc]
+        P = np.stack([(cc - K[0, 2]) / K[0, 0] * z, (rr - K[1, 2]) / K[1, 1] * z, z], -1)
+        return P, inside & (z > 0)
+
+    P0, ok0 = point(r, c)
+
+    def diff(dr: int, dc: int) -> np.ndarray:
+        Pf, okf = point(r + dr, c + dc)
+        Pb, okb = point(r - dr, c - dc)
+        okf &= ok0
+        okb &= ok0
+        fwd, bwd = Pf - P0, P0 - Pb
+        g = np.where((okf & okb)[..., None], 0.5 * (fwd + bwd), np.where(okf[..., None], fwd, bwd))
+        return np.where((okf | okb)[..., None], g, 0.0)
+
+    n = np.cross(diff(0, 1), diff(1, 0))
+    norm = np.linalg.norm(n, axis=-1, keepdims=True)
+    n = np.where(norm > 0, n / np.maximum(norm, 1e-30), 0.0)
+    if T_cw is None:
+        return n
+    n *= np.where(n[..., 2:3] > 0, -1.0, 1.0)  # towards the camera
+    return n @ np.asarray(T_cw, np.float64)[:3, :3]  # (R_cw^T n)^T: into the world frame

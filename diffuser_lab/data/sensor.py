@@ -52,6 +52,8 @@ from typing import Iterable, Optional, Sequence
 import numpy as np
 from scipy import ndimage
 
+from .geometry import normals_from_depth
+
 __all__ = [
     "SensorModel",
     "axial_sigma",
@@ -112,47 +114,6 @@ def incidence_angles(normals: np.ndarray, K: np.ndarray) -> np.ndarray:
     den = np.linalg.norm(r, axis=-1) * np.linalg.norm(n, axis=-1)
     cos = np.where(den > 0, num / np.maximum(den, 1e-30), 0.0)
     return np.arccos(np.clip(cos, 0.0, 1.0))
-
-
-def box_smoothed_depth(depth: np.ndarray, window: int) -> np.ndarray:
-    """(H, W) depth averaged over the valid (> 0) pixels of each ``window`` x ``window`` box, 0 where
-    the pixel itself has no depth (float64 for float64 input, else float32)."""
-    from scipy.ndimage import uniform_filter
-
-    d = np.asarray(depth)
-    d = d if d.dtype == np.float64 else d.astype(np.float32)
-    ok = (d > 0).astype(d.dtype)
-    cnt = uniform_filter(ok, window, mode="constant")
-    return np.where(ok > 0, uniform_filter(d * ok, window, mode="constant") / np.maximum(cnt, 1e-12), 0.0)
-
-
-def normals_from_depth(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """(H, W, 3) float64 unit camera-frame normals of an organised depth image (zero where unknown).
-
-    Central differences of the back-projected points along rows and columns (one-sided where a
-    neighbour has no depth); a pixel with no valid neighbour on either axis gets a zero normal.
-    """
-    d = np.asarray(depth, np.float64)
-    P = _rays(K, d.shape) * d[..., None]
-    ok = d > 0
-
-    def diff(axis: int) -> np.ndarray:
-        fwd = np.roll(P, -1, axis) - P
-        bwd = P - np.roll(P, 1, axis)
-        okf = ok & np.roll(ok, -1, axis)
-        okb = ok & np.roll(ok, 1, axis)
-        last = [slice(None)] * 2
-        last[axis] = -1
-        okf[tuple(last)] = False  # no wrap-around at the image border
-        last[axis] = 0
-        okb[tuple(last)] = False
-        both = okf & okb
-        g = np.where(both[..., None], 0.5 * (fwd + bwd), np.where(okf[..., None], fwd, bwd))
-        return np.where((okf | okb)[..., None], g, 0.0)
-
-    n = np.cross(diff(1), diff(0))
-    norm = np.linalg.norm(n, axis=-1, keepdims=True)
-    return np.where(norm > 0, n / np.maximum(norm, 1e-30), 0.0)
 
 
 def depth_jumps(depth: np.ndarray, rel: float) -> np.ndarray:

@@ -41,9 +41,8 @@ from typing import Optional
 import numpy as np
 
 from diffuser_lab.config import BayesianMode, OnlineMap, OnlineSolver, SolverBackend
-from diffuser_lab.data.geometry import backproject, spatial_order
+from diffuser_lab.data.geometry import backproject, normals_from_depth, spatial_order
 from diffuser_lab.data.scene import IGNORE, Frame, Taxonomy
-from diffuser_lab.data.sensor import box_smoothed_depth
 from diffuser_lab.method import evidence as evidence_mod
 from diffuser_lab.method.diffusion import System, labels_from_scores
 from diffuser_lab.method.graph import make_graph
@@ -326,7 +325,9 @@ class OnlineDiffuser:
         pts, pix = pts[fresh], pix[fresh]
         nrm = None
         if pts.shape[0] and self.cfg.graph.use_normals:
-            nrm = frame_normals(small, K, frame.T_cw, pix, window=3 if st_px > 1 else 5)
+            nrm = normals_from_depth(small, K, pix, frame.T_cw, window=3 if st_px > 1 else 5)
+            nrm[~nrm.any(1)] = (0.0, 0.0, 1.0)  # no depth around the pixel: a normal of no direction
+            nrm = nrm.astype(np.float32)
         new_pts, new_nrm = self.voxels.insert(pts, nrm)
         m = new_pts.shape[0]
         st.new_points = m
@@ -401,42 +402,6 @@ class OnlineDiffuser:
         if self._final is None:
             self._final = self.system.scores()
         self.system.close()
-
-
-def frame_normals(depth: np.ndarray, K: np.ndarray, T_cw: np.ndarray, pix: np.ndarray, window: int = 5) -> np.ndarray:
-    """(P, 3) float32 unit world normals at the pixels ``pix`` (P, 2) (row, col) of a (H, W) depth
-    image (metres, 0 = none) with intrinsics K and world-to-camera T_cw: central differences (one-
-    sided where a neighbour has no depth) of the depth box-smoothed over ``window`` pixels, as
-    :func:`diffuser_lab.data.sensor.normals_from_depth` computes them, but only at ``pix``; turned
-    towards the camera."""
-    smooth = box_smoothed_depth(np.asarray(depth, np.float32), window)
-    h, w = smooth.shape
-    r, c = pix[:, 0].astype(np.int64), pix[:, 1].astype(np.int64)
-    K = np.asarray(K, np.float64)
-
-    def point(rr, cc):  # camera-frame point at (rr, cc) (clipped to the image) and whether it has depth
-        rr, cc = np.clip(rr, 0, h - 1), np.clip(cc, 0, w - 1)
-        z = smooth[rr, cc].astype(np.float64)
-        P = np.stack([(cc - K[0, 2]) / K[0, 0] * z, (rr - K[1, 2]) / K[1, 1] * z, z], 1)
-        return P, z > 0
-
-    P0, ok0 = point(r, c)
-
-    def diff(dr, dc, size):
-        pos = r + dr if dr else c + dc
-        Pf, okf = point(r + dr, c + dc)
-        Pb, okb = point(r - dr, c - dc)
-        okf &= ok0 & (pos < size)
-        okb &= ok0 & ((r - dr if dr else c - dc) >= 0)
-        g = np.where((okf & okb)[:, None], 0.5 * (Pf - Pb), np.where(okf[:, None], Pf - P0, P0 - Pb))
-        return np.where((okf | okb)[:, None], g, 0.0)
-
-    n_cam = np.cross(diff(0, 1, w), diff(1, 0, h))
-    n_cam *= np.where(n_cam[:, 2:3] > 0, -1.0, 1.0)  # towards the camera (it looks along +z)
-    R_wc = np.asarray(T_cw, np.float64)[:3, :3].T
-    out = n_cam @ R_wc.T
-    norm = np.linalg.norm(out, axis=1, keepdims=True)
-    return np.where(norm > 0, out / np.maximum(norm, 1e-30), np.array([0.0, 0.0, 1.0])).astype(np.float32)
 
 
 def _ro(a: np.ndarray) -> np.ndarray:

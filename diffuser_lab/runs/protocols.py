@@ -22,7 +22,7 @@ from scipy.ndimage import distance_transform_edt
 
 from diffuser_lab import progress
 from diffuser_lab.config import Config, FrameNormals
-from diffuser_lab.data.geometry import backproject, voxel_downsample
+from diffuser_lab.data.geometry import backproject, normals_from_depth, voxel_downsample
 from diffuser_lab.data.predictions import with_predictions
 from diffuser_lab.data.scene import IGNORE, Frame, Scene
 from diffuser_lab.method import calibration
@@ -73,16 +73,11 @@ def image_normals(f: Frame, pix: np.ndarray, to_work: np.ndarray, m: int, window
     """(m, 3) float32 unit world normals of a target frame's work points from its organised depth
     image: the depth box-averaged over ``window`` x ``window`` valid pixels (sensor noise is
     per pixel; PCA over a noisy cloud's kNN sees it in 3D), normals by central differences
-    (:func:`diffuser_lab.data.sensor.normals_from_depth`), turned towards the camera, averaged
+    (:func:`diffuser_lab.data.geometry.normals_from_depth`), turned towards the camera, averaged
     over each work point's pixels (``pix`` (P, 2) rows/cols -> ``to_work`` (P,) in 0..m-1)."""
-    from diffuser_lab.data.sensor import box_smoothed_depth, normals_from_depth
-
-    smooth = box_smoothed_depth(np.asarray(f.depth, np.float64), window)
-    n_cam = normals_from_depth(smooth, f.K)[pix[:, 0], pix[:, 1]]  # (P, 3) camera frame
-    n_cam *= np.where(n_cam[:, 2:3] > 0, -1.0, 1.0)  # towards the camera (it looks along +z)
-    R_wc = np.linalg.inv(f.T_cw)[:3, :3]
+    n = normals_from_depth(np.asarray(f.depth, np.float64), f.K, pix, T_cw=f.T_cw, window=window)
     acc = np.zeros((m, 3))
-    np.add.at(acc, to_work, n_cam @ R_wc.T)
+    np.add.at(acc, to_work, n)
     norm = np.linalg.norm(acc, axis=1, keepdims=True)
     out = np.where(norm > 0, acc / np.maximum(norm, 1e-30), np.array([0.0, 0.0, 1.0]))
     return out.astype(np.float32)
