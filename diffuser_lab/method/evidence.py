@@ -10,9 +10,13 @@ class c: Sum_k Z^{I_k->X} of Eq. 12 divided by lambda, which the diffusion appli
 (Eqs. 14-15). Frames are consumed one at a time, so memory does not grow with their number.
 
 Speed: hard labels with ``pixel_radius`` 0 (the paper's setting) go through one fused compiled
-pass per frame when numba is installed (:func:`diffuser_lab.backends.numba.evidence.evidence_hard`: projection
+pass per frame when numba is installed (:func:`diffuser_lab.backends.evidence.hard_votes`: projection
 in float64, bounds, depth check and the vote, no temporaries); everything else, and the pure
 numpy path (``DIFFUSER_LAB_NUMBA=0``), uses the vectorised code below.
+
+:class:`RunEvidence` is what a run accumulates frame by frame: the method's evidence and the
+Bayesian baseline's (one pixel; likelihoods or votes), shared when they are the same; the batch
+pipeline and the online mode add a frame to it through :meth:`RunEvidence.add`.
 """
 from __future__ import annotations
 
@@ -21,6 +25,8 @@ from typing import Iterable
 
 import numpy as np
 
+from diffuser_lab.backends.evidence import hard_votes
+from diffuser_lab.config import BayesianMode
 from diffuser_lab.data.geometry import project
 from diffuser_lab.data.scene import IGNORE, Frame
 
@@ -97,17 +103,9 @@ def add_frame(ev: Evidence, points: np.ndarray, frame: Frame, *, depth_tol: floa
     rows of ``ev`` may have changed; the others did not)."""
     n, num_classes = ev.mass.shape
     labels, probs = _class_vectors(frame, num_classes, hard)
-    if probs is None and pixel_radius == 0 and ev.mass.flags.c_contiguous:
-        from diffuser_lab.backends import numba as nb
-        from diffuser_lab.backends.numba import evidence as nb_evidence
-
-        if nb.available():
-            T = np.asarray(frame.T_cw, np.float64)
-            seen = nb_evidence.evidence_hard(np.ascontiguousarray(points, np.float32), T[:3, :3].copy(),
-                                         T[:3, 3].copy(), np.asarray(frame.K, np.float64),
-                                         np.ascontiguousarray(frame.depth, np.float32),
-                                         np.ascontiguousarray(labels), depth_tol, ev.mass, ev.links)
-            seen = np.flatnonzero(seen)
+    if probs is None and pixel_radius == 0:
+        seen = hard_votes(points, frame.T_cw, frame.K, frame.depth, labels, depth_tol, ev.mass, ev.links)
+        if seen is not None:
             ev.points_per_frame.append(int(seen.size))
             return seen
     idx, rows, cols = visible_projection(points, frame, depth_tol)
@@ -145,3 +143,80 @@ def accumulate(points: np.ndarray, frames: Iterable[Frame], num_classes: int, *,
     for frame in frames:
         add_frame(ev, points, frame, depth_tol=depth_tol, pixel_radius=pixel_radius, hard=hard)
     return ev
+
+
+class RunEvidence:
+    """A run's evidence, frame by frame: the method's (``pixel_radius``) and the Bayesian
+    baseline's (the standard single projected pixel; ``votes``: one-hot argmax votes instead of
+    likelihoods), one and the same when neither differs. The baseline is therefore the same in
+    every run on the same frames, whatever the method's pixel neighbourhood.
+
+    Rows are points; ``capacity`` > N leaves room for a growing map (:meth:`grow`).
+
+    Attributes:
+        method, baseline: :class:`Evidence` over the first N rows (baseline is method when shared).
+    """
+
+    def __init__(self, n: int, num_classes: int, *, depth_tol: float = 0.05, pixel_radius: int = 0,
+                 votes: bool = False, capacity: int = 0):
+        self.depth_tol, self.pixel_radius, self.votes = float(depth_tol), int(pixel_radius), bool(votes)
+        self.separate = self.votes or self.pixel_radius != 0
+        self.num_classes = int(num_classes)
+        self.n = 0
+        self._mass = np.zeros((0, num_classes), np.float32)
+        self._links = np.zeros(0, np.int32)
+        self._base_mass, self._base_links = self._mass, self._links
+        self._ppf: list[int] = []
+        self._base_ppf: list[int] = []
+        self.grow(n, max(n, capacity))
+
+    @classmethod
+    def of(cls, cfg, n: int, num_classes: int, capacity: int = 0) -> "RunEvidence":
+        """As a run's config says (``evidence.depth_tol``, ``evidence.pixel_radius``, ``method.bayesian_mode``)."""
+        return cls(n, num_classes, depth_tol=cfg.evidence.depth_tol, pixel_radius=cfg.evidence.pixel_radius,
+                   votes=cfg.method.bayesian_mode == BayesianMode.votes, capacity=capacity)
+
+    def grow(self, n: int, capacity: int = 0) -> None:
+        """``n`` rows (new ones without evidence); room for ``capacity`` (doubling when short)."""
+        if n > self._mass.shape[0] or capacity > self._mass.shape[0]:
+            cap = max(n, capacity, 2 * self._mass.shape[0])
+
+            def grown(a):
+                out = np.zeros((cap,) + a.shape[1:], a.dtype)
+                out[: self.n] = a[: self.n]
+                return out
+
+            self._mass, self._links = grown(self._mass), grown(self._links)
+            if self.separate:
+                self._base_mass, self._base_links = grown(self._base_mass), grown(self._base_links)
+            else:
+                self._base_mass, self._base_links = self._mass, self._links
+        self.n = int(n)
+
+    @property
+    def mass_store(self) -> np.ndarray:
+        """(capacity, C) float32 the method's mass with its room (a system reads it by row)."""
+        return self._mass
+
+    @property
+    def method(self) -> Evidence:
+        return Evidence(mass=self._mass[: self.n], links=self._links[: self.n], points_per_frame=self._ppf)
+
+    @property
+    def baseline(self) -> Evidence:
+        if not self.separate:
+            return self.method
+        return Evidence(mass=self._base_mass[: self.n], links=self._base_links[: self.n],
+                        points_per_frame=self._base_ppf)
+
+    def add(self, points: np.ndarray, frame: Frame, lo: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """Add ``frame``'s evidence for the points ``points`` (M, 3) world metres, rows lo..lo+M-1.
+        Returns the rows (sorted int64) that passed its visibility check for the method's and for
+        the baseline's evidence (the same array when shared)."""
+        hi = lo + points.shape[0]
+        ev = Evidence(mass=self._mass[lo:hi], links=self._links[lo:hi], points_per_frame=self._ppf)
+        seen = lo + add_frame(ev, points, frame, depth_tol=self.depth_tol, pixel_radius=self.pixel_radius)
+        if not self.separate:
+            return seen, seen
+        base = Evidence(mass=self._base_mass[lo:hi], links=self._base_links[lo:hi], points_per_frame=self._base_ppf)
+        return seen, lo + add_frame(base, points, frame, depth_tol=self.depth_tol, hard=self.votes)

@@ -40,11 +40,11 @@ from typing import Optional
 
 import numpy as np
 
-from diffuser_lab.config import BayesianMode, OnlineMap, OnlineSolver, SolverBackend
+from diffuser_lab.config import OnlineMap, OnlineSolver, SolverBackend
 from diffuser_lab.data.geometry import backproject, normals_from_depth, spatial_order
 from diffuser_lab.data.scene import IGNORE, Frame, Taxonomy
-from diffuser_lab.method import evidence as evidence_mod
 from diffuser_lab.method.diffusion import System, labels_from_scores
+from diffuser_lab.method.evidence import RunEvidence
 from diffuser_lab.method.graph import make_graph
 from diffuser_lab.method.growing import IncrementalKnnGraph, VoxelMap
 
@@ -118,10 +118,6 @@ class OnlineDiffuser:
         self.steps = int(oc.steps) if oc.steps is not None else (STEPS_GROWING if self.growing else STEPS_GIVEN)
         self.tol = float(cfg.solver.tol)
         self.lam = float(cfg.evidence.pixel_weight)
-        self.depth_tol = float(cfg.evidence.depth_tol)
-        self.radius = int(cfg.evidence.pixel_radius)
-        self.votes = cfg.method.bayesian_mode == BayesianMode.votes
-        self.separate_base = self.votes or self.radius != 0
         self.solver = OnlineSolver(oc.solver)
         self.frames_seen = 0
         self.history: list[FrameStats] = []
@@ -135,6 +131,7 @@ class OnlineDiffuser:
         self._labels = np.zeros(0, np.int16)
         self._pos = np.zeros(0, np.int64)
         self._final: Optional[np.ndarray] = None  # Z after close()
+        self.ev = RunEvidence.of(cfg, 0, self.C)  # the method's and the Bayesian baseline's evidence
         self._alloc(0)
         k = int(cfg.graph.k)
         if self.growing:
@@ -146,7 +143,8 @@ class OnlineDiffuser:
             self.map_index = None
             self.rho = self.sigma_d = 0.0
             # the system's rows: the map's points re-sorted along the Morton curve as the map grows
-            self.system = System(np.zeros((0, k), np.int32), np.zeros((0, k), np.float32), np.zeros(0), self.mass,
+            self.system = System(np.zeros((0, k), np.int32), np.zeros((0, k), np.float32), np.zeros(0),
+                                 self.ev.mass_store,
                                  self.lam, order=np.zeros(0, np.int64), gamma=self.gamma, normalised=False)
         else:
             if points is None:
@@ -173,16 +171,12 @@ class OnlineDiffuser:
             setattr(self, name, out)
 
         grow("_pts", (cap, 3), np.float32)
-        grow("mass", (cap, self.C), np.float32)
-        grow("links", (cap,), np.int32)
-        if self.separate_base:
-            grow("base_mass", (cap, self.C), np.float32)
-            grow("base_links", (cap,), np.int32)
+        self.ev.grow(self._n, cap)
         grow("_bayes", (cap,), np.int16, IGNORE)
         grow("_labels", (cap,), np.int16, IGNORE)
         grow("_pos", (cap,), np.int64)
         if hasattr(self, "system"):
-            self.system.mass = self.mass
+            self.system.mass = self.ev.mass_store
         self._cap = cap
 
     def _init_given(self, points: np.ndarray, normals: Optional[np.ndarray]) -> None:
@@ -193,11 +187,12 @@ class OnlineDiffuser:
         self.map_index[graph.order] = np.arange(n)  # work point i -> map row
         self._alloc(n)
         self._n = n
+        self.ev.grow(n)
         self._pts[:n] = points[graph.order]
         self._normals = None if nrm is None else np.asarray(nrm, np.float32)[graph.order]
         # the system's rows are the map's (the graph's Morton order)
-        self.system = System(graph.sorted_neighbors, graph.sorted_weights, graph.sorted_row_sums, self.mass, self.lam,
-                             gamma=self.gamma)
+        self.system = System(graph.sorted_neighbors, graph.sorted_weights, graph.sorted_row_sums, self.ev.mass_store,
+                             self.lam, gamma=self.gamma)
         self.rho, self.sigma_d = graph.rho, graph.sigma_d
 
     # -- public views ----------------------------------------------------------------------------
@@ -238,13 +233,24 @@ class OnlineDiffuser:
             return self._final.copy()
         return self.system.scores()
 
+    @property
+    def mass(self) -> np.ndarray:
+        """(capacity, C) float32 the method's running evidence sums (Eq. 12 before lambda), map
+        order; the first :attr:`n` rows are the map's."""
+        return self.ev.mass_store
+
+    @property
+    def links(self) -> np.ndarray:
+        """(n,) int32 each map point's pixel links so far."""
+        return self.ev.method.links
+
     def base_evidence(self) -> np.ndarray:
         """(n, C) float32 the Bayesian baseline's running evidence sums, map order."""
-        return _ro((self.base_mass if self.separate_base else self.mass)[: self._n])
+        return _ro(self.ev.baseline.mass)
 
     def evidence(self) -> np.ndarray:
         """(n, C) float32 the method's running evidence sums (Eq. 12 before lambda), map order."""
-        return _ro(self.mass[: self._n])
+        return _ro(self.ev.method.mass)
 
     # -- one frame -------------------------------------------------------------------------------
     def add_frame(self, frame: Frame, index: Optional[int] = None) -> np.ndarray:
@@ -295,17 +301,11 @@ class OnlineDiffuser:
     # -- the parts -------------------------------------------------------------------------------
     def _add_evidence(self, frame: Frame, lo: int, hi: int) -> np.ndarray:
         """The frame's evidence (the method's and the Bayesian baseline's) for map points lo..hi-1;
-        their Bayesian labels. Returns the map rows (lo-based) that passed the visibility check."""
-        pts = self._pts[lo:hi]
-        ev = evidence_mod.Evidence(mass=self.mass[lo:hi], links=self.links[lo:hi])
-        seen = evidence_mod.add_frame(ev, pts, frame, depth_tol=self.depth_tol, pixel_radius=self.radius)
-        if self.separate_base:
-            base = evidence_mod.Evidence(mass=self.base_mass[lo:hi], links=self.base_links[lo:hi])
-            seen_b = evidence_mod.add_frame(base, pts, frame, depth_tol=self.depth_tol, hard=self.votes)
-        else:
-            seen_b = seen
-        self._update_bayes(lo + seen_b)
-        return lo + seen
+        their Bayesian labels. Returns the map rows that passed the visibility check."""
+        seen, seen_base = self.ev.add(self._pts[lo:hi], frame, lo)
+        if seen_base.size:
+            self._bayes[seen_base] = labels_from_scores(self.ev.baseline.mass[seen_base])
+        return seen
 
     def _grow(self, frame: Frame, st: FrameStats) -> np.ndarray:
         """Back-project and merge the frame's depth; extend the graph. Returns the system rows
@@ -335,6 +335,7 @@ class OnlineDiffuser:
             return np.zeros(0, np.int64)
         n0 = self._n
         self._alloc(n0 + m)
+        self.ev.grow(n0 + m)
         new = np.arange(n0, n0 + m)
         self._pts[n0 : n0 + m] = new_pts  # new map rows n0.. go to system rows n0.. (the end)
         self._pos[n0 : n0 + m] = new
@@ -375,11 +376,6 @@ class OnlineDiffuser:
         depth lands in its voxel, but earlier frames may see it within ``evidence.depth_tol``."""
         for f in self._recent:
             self._add_evidence(f, n0, n0 + m)
-
-    def _update_bayes(self, rows: np.ndarray) -> None:
-        if rows.size == 0:
-            return
-        self._bayes[rows] = labels_from_scores((self.base_mass if self.separate_base else self.mass)[rows])
 
     def _diffuse(self) -> tuple[int, float, int]:
         """The frame's steps (``online.solver``) and labels. Returns (steps done, relative residual

@@ -18,6 +18,7 @@ import numpy as np
 from diffuser_lab import progress
 from diffuser_lab.config import BadFrame, Config, OnlineMap
 from diffuser_lab.data import validate
+from diffuser_lab.data.frame_loop import FrameLoop
 from diffuser_lab.data.predictions import describe as describe_predictions
 from diffuser_lab.data.predictions import with_predictions
 from diffuser_lab.data.scene import IGNORE, Frame, Scene
@@ -165,51 +166,44 @@ def online(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHoo
     history: list[dict] = []
     kept: list[int] = []
     t["frames"] = t["update"] = t["metrics"] = 0.0
+
+    def skipped(i: int, msg: str) -> None:
+        history.append(dataclasses.asdict(od.skip_frame(str(i), msg, index=i)))
+
+    loop = FrameLoop(frames, f"online ({cfg.online.map.value} map): {describe_predictions(cfg.predictions)}",
+                     check=check_online_frame, skip_bad=cfg.online.bad_frames == BadFrame.skip,
+                     warn_prefix="online: ", on_skip=skipped)
     try:
-        with progress.stage(f"online ({cfg.online.map.value} map): {describe_predictions(cfg.predictions)}",
-                            total=len(frames), unit="frame") as bar:
-            for i in range(len(frames)):
-                tf = time.perf_counter()
-                try:
-                    f = frames[i]
-                    check_online_frame(f)
-                except (ValueError, OSError) as exc:
-                    msg = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
-                    if cfg.online.bad_frames == BadFrame.stop:
-                        raise
-                    warnings.warn(f"online: frame {i} skipped: {msg}", stacklevel=2)
-                    st = od.skip_frame(str(i), msg, index=i)
-                    history.append(dataclasses.asdict(st))
-                    bar.update()
-                    continue
-                hooks.on_frame(i, f)
-                tu = time.perf_counter()
-                t["frames"] += tu - tf
-                od.add_frame(f, index=i)
-                t["update"] += time.perf_counter() - tu
-                kept.append(i)
-                st = od.history[-1]
-                tq = time.perf_counter()
-                if growing and gt_map is not None and st.new_points:
-                    gt_map = np.concatenate([gt_map, _map_gt(gt_tree, scene.gt_labels, od.points[-st.new_points:],
-                                                             gt_dist)])
-                if growing:
-                    gt_now, lab_now, bay_now = gt_map, od.labels, od.bayesian_labels
-                else:
-                    gt_now = gt_map
-                    lab_now, bay_now = (od.labels[rows], od.bayesian_labels[rows]) if gt_map is not None else (None, None)
-                m = frame_metrics(lab_now, bay_now, gt_now, names) if gt_now is not None else {}
-                t["metrics"] += time.perf_counter() - tq
-                rec = {**dataclasses.asdict(st), **m}
-                history.append(rec)
-                if bar.enabled:
-                    bar.note(f"{st.latency_ms:.0f} ms, {od.n:,} points" +
-                             (f", mIoU {m['diffuser_miou']:.1f}" if m else ""))
-                hooks.on_online_frame(f, OnlineUpdate(index=i, stats=st, points=od.points, labels=od.labels,
-                                                      bayesian=od.bayesian_labels,
-                                                      gt=gt_map if growing else None, metrics=m,
-                                                      scores=od.scores))
-                bar.update()
+        for i, f in loop:
+            tf = time.perf_counter()
+            hooks.on_frame(i, f)
+            tu = time.perf_counter()
+            t["frames"] += tu - tf
+            od.add_frame(f, index=i)
+            t["update"] += time.perf_counter() - tu
+            kept.append(i)
+            st = od.history[-1]
+            tq = time.perf_counter()
+            if growing and gt_map is not None and st.new_points:
+                gt_map = np.concatenate([gt_map, _map_gt(gt_tree, scene.gt_labels, od.points[-st.new_points:],
+                                                         gt_dist)])
+            if growing:
+                gt_now, lab_now, bay_now = gt_map, od.labels, od.bayesian_labels
+            else:
+                gt_now = gt_map
+                lab_now, bay_now = (od.labels[rows], od.bayesian_labels[rows]) if gt_map is not None else (None, None)
+            m = frame_metrics(lab_now, bay_now, gt_now, names) if gt_now is not None else {}
+            t["metrics"] += time.perf_counter() - tq
+            rec = {**dataclasses.asdict(st), **m}
+            history.append(rec)
+            if loop.bar.enabled:
+                loop.bar.note(f"{st.latency_ms:.0f} ms, {od.n:,} points" +
+                              (f", mIoU {m['diffuser_miou']:.1f}" if m else ""))
+            hooks.on_online_frame(f, OnlineUpdate(index=i, stats=st, points=od.points, labels=od.labels,
+                                                  bayesian=od.bayesian_labels,
+                                                  gt=gt_map if growing else None, metrics=m,
+                                                  scores=od.scores))
+        t["frames"] += loop.read_s
     finally:
         od.close()
     if not kept:

@@ -12,8 +12,9 @@ from typing import Optional, Sequence
 import numpy as np
 
 from diffuser_lab import progress
-from diffuser_lab.config import BayesianMode, Config, DepthNoiseConfig, SceneConfig, SceneSource
+from diffuser_lab.config import Config, DepthNoiseConfig, SceneConfig, SceneSource
 from diffuser_lab.data import validate
+from diffuser_lab.data.frame_loop import FrameLoop
 from diffuser_lab.data.geometry import VoxelGrid, nearest_transfer, voxel_downsample
 from diffuser_lab.data.predictions import describe as describe_predictions
 from diffuser_lab.data.predictions import with_predictions
@@ -21,6 +22,7 @@ from diffuser_lab.data.scene import IGNORE, SCANNET20, Frame, Scene, Taxonomy
 from diffuser_lab.hooks import RunHooks
 from diffuser_lab.method import calibration
 from diffuser_lab.method import evidence as evidence_mod
+from diffuser_lab.method.evidence import RunEvidence
 from diffuser_lab.method import fusion
 from diffuser_lab.method.diffusion import DiffusionResult, Observer, labels_from_scores, normalise
 from diffuser_lab.method.graph import KnnGraph, graph_stage, make_graph
@@ -198,38 +200,30 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
         raise ValueError(f"graph.k={cfg.graph.k} must be smaller than the number of points ({pts.shape[0]})")
     centres, inverted = [], []
     ev_kw = dict(depth_tol=cfg.evidence.depth_tol, pixel_radius=cfg.evidence.pixel_radius)
-    ev = evidence_mod.Evidence.empty(pts.shape[0], tax.num_classes)
-    # The Bayesian baseline is always the standard one (single projected pixel), so it is
-    # the same in every run on the same frames whatever the method's pixel neighbourhood.
-    votes = cfg.method.bayesian_mode == BayesianMode.votes
-    separate_base = votes or cfg.evidence.pixel_radius != 0
-    ev_base = evidence_mod.Evidence.empty(pts.shape[0], tax.num_classes) if separate_base else ev
+    evidence = RunEvidence.of(cfg, pts.shape[0], tax.num_classes)
     conf2d = None
     t["predictions"] = t["evidence"] = 0.0
-    with progress.stage(f"frames: {describe_predictions(cfg.predictions)} + evidence", total=len(frames),
-                        unit="frame") as bar:
-        for i in range(len(frames)):
-            tp = time.perf_counter()
-            f = frames[i]
-            if bar.enabled and "cached_frames" in getattr(frames, "stats", {}):  # a network's outputs
-                bar.note(f"{frames.stats['cached_frames']} from cache")
-            validate.check_frame(f)
-            if i == 0 and not getattr(scene.frames, "info", {}).get("depth_unit_checked"):
-                validate.check_depth_unit(f)
-            centres.append(validate.camera_centre(f))
-            inverted.append(np.asarray(f.T_cw, float)[:3, 3])  # the centre if T_cw were camera-to-world
-            if f.gt_labels is not None:
-                pred = f.labels if f.labels is not None else np.argmax(f.probs, axis=2)
-                c = confusion_matrix(pred, f.gt_labels, tax.num_classes)
-                conf2d = c if conf2d is None else conf2d + c
-            hooks.on_frame(i, f)
-            te = time.perf_counter()
-            evidence_mod.add_frame(ev, pts, f, **ev_kw)
-            if separate_base:
-                evidence_mod.add_frame(ev_base, pts, f, depth_tol=cfg.evidence.depth_tol, hard=votes)
-            t["predictions"] += te - tp
-            t["evidence"] += time.perf_counter() - te
-            bar.update()
+    loop = FrameLoop(frames, f"frames: {describe_predictions(cfg.predictions)} + evidence")
+    for i, f in loop:
+        tp = time.perf_counter()
+        if loop.bar.enabled and "cached_frames" in getattr(frames, "stats", {}):  # a network's outputs
+            loop.bar.note(f"{frames.stats['cached_frames']} from cache")
+        validate.check_frame(f)
+        if i == 0 and not getattr(scene.frames, "info", {}).get("depth_unit_checked"):
+            validate.check_depth_unit(f)
+        centres.append(validate.camera_centre(f))
+        inverted.append(np.asarray(f.T_cw, float)[:3, 3])  # the centre if T_cw were camera-to-world
+        if f.gt_labels is not None:
+            pred = f.labels if f.labels is not None else np.argmax(f.probs, axis=2)
+            c = confusion_matrix(pred, f.gt_labels, tax.num_classes)
+            conf2d = c if conf2d is None else conf2d + c
+        hooks.on_frame(i, f)
+        te = time.perf_counter()
+        evidence.add(pts, f)
+        t["predictions"] += te - tp
+        t["evidence"] += time.perf_counter() - te
+    t["predictions"] += loop.read_s
+    ev, ev_base = evidence.method, evidence.baseline
     pred2d = None if conf2d is None else scores_from_confusion(conf2d, tax.names)
     validate.check_pose_convention(pts, np.array(centres).reshape(-1, 3), np.array(inverted).reshape(-1, 3))
     if not ev.seen.any():

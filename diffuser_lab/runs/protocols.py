@@ -22,6 +22,7 @@ from scipy.ndimage import distance_transform_edt
 
 from diffuser_lab import progress
 from diffuser_lab.config import Config, FrameNormals
+from diffuser_lab.data.frame_loop import FrameLoop
 from diffuser_lab.data.geometry import backproject, normals_from_depth, voxel_downsample
 from diffuser_lab.data.predictions import with_predictions
 from diffuser_lab.data.scene import IGNORE, Frame, Scene
@@ -83,13 +84,6 @@ def image_normals(f: Frame, pix: np.ndarray, to_work: np.ndarray, m: int, window
     return out.astype(np.float32)
 
 
-def _window(i: int, n: int, w: int) -> list[int]:
-    """W frame indices around target i (kept at W near the ends of the sequence)."""
-    w = min(w, n)
-    start = min(max(i - w // 2, 0), n - w)
-    return list(range(start, start + w))
-
-
 def single_frame(cfg: Config, scene: Optional[Scene] = None, on_frame=None) -> SingleFrameResult:
     """The single RGB-D frame protocol (paper Table II). ``on_frame(frame, images)``, if given, sees
     each target frame and its rows' label images ({(method, views): (H, W) int16}) as scored; it
@@ -115,85 +109,76 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None, on_frame=None) -> S
     rows = {key: Row(*key, cal=calibration.Calibration(tax.num_classes, cfg.calibration.bins)) for key in order}
     temperature = cfg.calibration.temperature
     pred2d = Row("2d", 1)
-    cache: dict[int, Frame] = {}
     t = {"load": time.perf_counter() - t0, "frames": 0.0, "evidence": 0.0, "graph": 0.0, "diffusion": 0.0}
     n_points = []
     ev_kw = dict(depth_tol=cfg.evidence.depth_tol)
     lam, solver = cfg.evidence.pixel_weight, cfg.solver
     fill = cfg.protocol.fill_missing_depth
 
-    def frame(j: int) -> Frame:
-        if j not in cache:
-            cache[j] = frames[j]
-        return cache[j]
+    def need_gt(f: Frame) -> None:
+        if f.gt_labels is None:
+            raise ValueError(f"frame {f.name}: the single-frame protocol needs ground-truth label images")
 
-    with progress.stage(f"single-frame protocol: target frames (window {W})", total=len(targets),
-                        unit="frame") as bar:
-        for k, i in enumerate(targets):
-            bar.set(k)
-            ta = time.perf_counter()
-            win = _window(i, n, W)
-            for j in [j for j in cache if j not in win]:  # keep only the current window in memory
-                del cache[j]
-            f = frame(i)
-            if f.gt_labels is None:
-                raise ValueError(f"frame {f.name}: the single-frame protocol needs ground-truth label images")
-            pts, pix = backproject(f.depth, f.K, f.T_cw)
-            if pts.shape[0] <= cfg.graph.k:
-                continue  # almost no depth in this frame: nothing to label
-            if cfg.scene.voxel_size > 0:
-                grid = voxel_downsample(pts, cfg.scene.voxel_size)
-                work, to_work = grid.points, grid.inverse
-            else:
-                work, to_work = pts, np.arange(pts.shape[0])
-            n_points.append(work.shape[0])
-            pred = f.labels if f.labels is not None else np.argmax(f.probs, axis=2)
-            pred2d.add(pred, f.gt_labels, names)
-            win_frames = [frame(j) for j in win]
-            t["frames"] += time.perf_counter() - ta
+    loop = FrameLoop(frames, f"single-frame protocol: target frames (window {W})", targets=targets, window=W,
+                     check=need_gt)
+    for i, f in loop:
+        ta = time.perf_counter()
+        pts, pix = backproject(f.depth, f.K, f.T_cw)
+        if pts.shape[0] <= cfg.graph.k:
+            continue  # almost no depth in this frame: nothing to label
+        if cfg.scene.voxel_size > 0:
+            grid = voxel_downsample(pts, cfg.scene.voxel_size)
+            work, to_work = grid.points, grid.inverse
+        else:
+            work, to_work = pts, np.arange(pts.shape[0])
+        n_points.append(work.shape[0])
+        pred = f.labels if f.labels is not None else np.argmax(f.probs, axis=2)
+        pred2d.add(pred, f.gt_labels, names)
+        win_frames = loop.window_frames(i)
+        t["frames"] += time.perf_counter() - ta
 
-            # each method's settings (what it fixes applied to the run's config), its evidence and
-            # graph built once per target frame and shared between the rows that use them
-            evidence, graphs, work_labels, work_scores = {}, {}, {}, {}
-            for name, views in order:
-                m, mc, radius = settings[name]
-                ekey = (views, radius)
-                if ekey not in evidence:
-                    te = time.perf_counter()
-                    evidence[ekey] = evidence_mod.accumulate(work, win_frames if views > 1 else [f], tax.num_classes,
-                                                             pixel_radius=radius, **ev_kw)
-                    t["evidence"] += time.perf_counter() - te
-                system = None
-                if m.graph:
-                    if mc.graph.use_normals not in graphs:
-                        tg = time.perf_counter()
-                        nrm = None
-                        if mc.graph.use_normals and cfg.protocol.normals == FrameNormals.depth_image:
-                            nrm = image_normals(f, pix, to_work, work.shape[0], cfg.protocol.normal_window_px)
-                        with graph_stage(work.shape[0], mc.graph, mc.graph.use_normals):
-                            graphs[mc.graph.use_normals] = make_graph(work, nrm, mc.graph)[1]
-                        t["graph"] += time.perf_counter() - tg
-                    system = normalise(graphs[mc.graph.use_normals], evidence[ekey].mass, lam)
-                td = time.perf_counter()
-                work_labels[(name, views)], diff = m.label(evidence[ekey].mass, system=system, solver=solver)
-                work_scores[(name, views)] = diff.Z if diff is not None else evidence[ekey].mass
-                if m.graph:
-                    t["diffusion"] += time.perf_counter() - td
+        # each method's settings (what it fixes applied to the run's config), its evidence and
+        # graph built once per target frame and shared between the rows that use them
+        evidence, graphs, work_labels, work_scores = {}, {}, {}, {}
+        for name, views in order:
+            m, mc, radius = settings[name]
+            ekey = (views, radius)
+            if ekey not in evidence:
+                te = time.perf_counter()
+                evidence[ekey] = evidence_mod.accumulate(work, win_frames if views > 1 else [f], tax.num_classes,
+                                                         pixel_radius=radius, **ev_kw)
+                t["evidence"] += time.perf_counter() - te
+            system = None
+            if m.graph:
+                if mc.graph.use_normals not in graphs:
+                    tg = time.perf_counter()
+                    nrm = None
+                    if mc.graph.use_normals and cfg.protocol.normals == FrameNormals.depth_image:
+                        nrm = image_normals(f, pix, to_work, work.shape[0], cfg.protocol.normal_window_px)
+                    with graph_stage(work.shape[0], mc.graph, mc.graph.use_normals):
+                        graphs[mc.graph.use_normals] = make_graph(work, nrm, mc.graph)[1]
+                    t["graph"] += time.perf_counter() - tg
+                system = normalise(graphs[mc.graph.use_normals], evidence[ekey].mass, lam)
+            td = time.perf_counter()
+            work_labels[(name, views)], diff = m.label(evidence[ekey].mass, system=system, solver=solver)
+            work_scores[(name, views)] = diff.Z if diff is not None else evidence[ekey].mass
+            if m.graph:
+                t["diffusion"] += time.perf_counter() - td
 
-            at = np.full(f.shape, -1, np.int64)  # each pixel's work point (-1: no depth, uniform)
-            at[pix[:, 0], pix[:, 1]] = to_work
-            if fill:  # protocol.fill_missing_depth: a pixel without depth reads its nearest pixel with depth
-                near = distance_transform_edt(at < 0, return_distances=False, return_indices=True)
-                at = at[near[0], near[1]]
-            images = {}
-            for key, lab in work_labels.items():  # 3D labels back into the target frame
-                img = np.where(at >= 0, lab[np.maximum(at, 0)], IGNORE).astype(np.int16)
-                rows[key].add(img, f.gt_labels, names)
-                rows[key].cal.add(work_scores[key], f.gt_labels, at, temperature)
-                images[key] = img
-            if on_frame is not None:
-                on_frame(f, images)
-        bar.set(len(targets))
+        at = np.full(f.shape, -1, np.int64)  # each pixel's work point (-1: no depth, uniform)
+        at[pix[:, 0], pix[:, 1]] = to_work
+        if fill:  # protocol.fill_missing_depth: a pixel without depth reads its nearest pixel with depth
+            near = distance_transform_edt(at < 0, return_distances=False, return_indices=True)
+            at = at[near[0], near[1]]
+        images = {}
+        for key, lab in work_labels.items():  # 3D labels back into the target frame
+            img = np.where(at >= 0, lab[np.maximum(at, 0)], IGNORE).astype(np.int16)
+            rows[key].add(img, f.gt_labels, names)
+            rows[key].cal.add(work_scores[key], f.gt_labels, at, temperature)
+            images[key] = img
+        if on_frame is not None:
+            on_frame(f, images)
+    t["frames"] += loop.read_s
 
     t["total"] = time.perf_counter() - t0
     results = [rows[k].result(names) for k in order]
