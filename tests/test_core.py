@@ -1,0 +1,149 @@
+"""The one diffusion core (diffuser_lab.method.diffusion.System): what every user of the method gets
+from it. Renormalising a set of rows equals normalising anew; steps from Z = 0 with gamma = 1 are the
+batch diffusion; rows re-ordered or appended, classes activated and warm starts on every backend give
+the numbers a system built at once gives."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from diffuser_lab.backends import BACKENDS
+from diffuser_lab.method.diffusion import System, diffuse, normalise
+from diffuser_lab.method.graph import build_graph
+
+BACKEND_NAMES = [b for b in BACKENDS if b != "torch"]
+
+
+@pytest.fixture(scope="module")
+def cloud():
+    rng = np.random.default_rng(3)
+    pts = rng.random((3000, 3)).astype(np.float32)
+    nrm = rng.normal(size=(3000, 3)).astype(np.float32)
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    mass = np.zeros((3000, 12), np.float32)
+    seen = rng.random(3000) < 0.4
+    mass[seen, rng.integers(0, 12, seen.sum())] = rng.integers(1, 4, seen.sum())
+    return build_graph(pts, 12, nrm), mass
+
+
+def test_renormalising_rows_equals_normalising_anew(cloud):
+    g, mass = cloud
+    s = normalise(g, mass.copy(), 1e-3)
+    more = mass.copy()
+    rows = np.sort(np.random.default_rng(0).choice(len(more), 200, replace=False))
+    more[g.order[rows], 5] += 2.0  # new evidence on the points of system rows `rows`
+    s.mass = more
+    s.renormalise(rows)
+    fresh = normalise(g, more, 1e-3)
+    np.testing.assert_array_equal(s.sorted_P, fresh.sorted_P)
+    np.testing.assert_array_equal(s.B_rows, fresh.B_rows)
+    np.testing.assert_array_equal(s.active, fresh.active)
+
+
+@pytest.mark.parametrize("backend", BACKEND_NAMES)
+def test_steps_from_zero_are_the_batch_diffusion(cloud, backend):
+    g, mass = cloud
+    batch = diffuse(normalise(g, mass, 1e-3), max_iter=30, tol=0.0, backend=backend)
+    s = normalise(g, mass, 1e-3)
+    s.start(backend=backend, tol=0.0)
+    done = sum(len(s.steps(10)) for _ in range(3))  # three calls: Z is kept between them
+    assert done == 30
+    np.testing.assert_array_equal(s.scores(), batch.Z)
+    s.close()
+
+
+@pytest.mark.parametrize("backend", BACKEND_NAMES)
+def test_rows_moved_appended_and_classes_activated_keep_the_numbers(cloud, backend):
+    """A system that grows (rows appended, classes named late) and is re-ordered while it runs
+    gives bit for bit what the same system, set up with its final rows, gives for the same steps."""
+    g, mass = cloud
+    n, k = g.n, g.k
+    lam, gamma = 1e-3, 0.99
+    nbr, w, ws, order = g.sorted_neighbors, g.sorted_weights, g.sorted_row_sums, g.order
+    # the reference: every row and all the evidence at once, 8 + 8 steps
+    ref = System(nbr, w, ws, mass, lam, order=order, gamma=gamma)
+    ref.start(backend=backend, tol=0.0, scale=lam)
+    ref.steps(16)
+    # the same rows, the first half first (their edges into the second half weighted 0 meanwhile)
+    half = n // 2
+    w0 = np.where(nbr[:half] < half, w[:half], 0).astype(np.float32)
+    s = System(nbr[:half], w0, w0.sum(1, dtype=np.float64), mass, lam, order=order[:half], gamma=gamma)
+    s.start(backend=backend, tol=0.0, scale=lam, rows_hint=n)
+    s.steps(3)
+    s.resize(n)
+    s.set_order(np.arange(n), order)
+    s.sorted_neighbors[:] = nbr
+    s.edge_weights[:] = w
+    s.edge_sums[:] = ws
+    s.renormalise(np.arange(n))
+    s.start(backend=backend, tol=0.0, scale=lam, rows_hint=n)  # Z = 0 again: the two now hold the same system
+    s.steps(8)
+    ref2 = System(nbr, w, ws, mass, lam, order=order, gamma=gamma)
+    ref2.start(backend=backend, tol=0.0, scale=lam)
+    ref2.steps(8)
+    perm = np.random.default_rng(1).permutation(n)
+    s.move(perm)
+    np.testing.assert_array_equal(s.scores(), ref2.scores())  # caller's order: the move is invisible
+    s.steps(8)
+    np.testing.assert_array_equal(s.scores(), ref.scores())
+    lab_s, lab_r = np.zeros(n, np.int16), np.zeros(n, np.int16)
+    s.labels(lab_s)
+    ref.labels(lab_r)
+    np.testing.assert_array_equal(lab_s[np.argsort(perm)], lab_r)  # row order follows the move
+    for x in (s, ref, ref2):
+        x.close()
+
+
+@pytest.mark.parametrize("backend", BACKEND_NAMES)
+def test_warm_start_takes_new_evidence(cloud, backend):
+    """Evidence arriving between calls (rows renormalised, a class named for the first time): the
+    iteration goes on from its Z, equal on every backend."""
+    g, mass = cloud
+    first = mass.copy()
+    first[:, 7] = 0  # class 7 is named only later
+    s = normalise(g, first, 1e-3)
+    s.start(backend=backend, tol=0.0, scale=1e-3)
+    s.steps(5)
+    s.mass = mass
+    rows = np.flatnonzero((mass[g.order] != first[g.order]).any(1))
+    s.renormalise(rows)
+    assert 7 in s.active
+    s.steps(5)
+    out = s.scores()
+    s.close()
+    ref = normalise(g, first, 1e-3)
+    ref.start(backend="scipy", tol=0.0, scale=1e-3)
+    ref.steps(5)
+    ref.mass = mass
+    ref.renormalise(rows)
+    ref.steps(5)
+    np.testing.assert_allclose(out, ref.scores(), rtol=1e-5, atol=1e-7 * float(np.abs(out).max()))
+    ref.close()
+
+
+def _grow_while_running(g, mass, backend):
+    """Half the rows for 4 steps, then every row (appended: they start at 0) for 4 more."""
+    n, half = g.n, g.n // 2
+    nbr, w, order = g.sorted_neighbors, g.sorted_weights, g.order
+    w0 = np.where(nbr[:half] < half, w[:half], 0).astype(np.float32)
+    s = System(nbr[:half], w0, w0.sum(1, dtype=np.float64), mass, 1e-3, order=order[:half], gamma=0.99)
+    s.start(backend=backend, tol=0.0, scale=1e-3, rows_hint=n)
+    s.steps(4)
+    s.resize(n)
+    s.set_order(np.arange(half, n), order[half:])
+    s.sorted_neighbors[:] = nbr
+    s.edge_weights[:] = w
+    s.edge_sums[:] = g.sorted_row_sums
+    s.renormalise(np.arange(n))
+    s.steps(4)
+    out = s.scores()
+    s.close()
+    return out
+
+
+@pytest.mark.parametrize("backend", [b for b in BACKEND_NAMES if b != "scipy"])
+def test_rows_appended_while_running_agree_with_scipy(cloud, backend):
+    g, mass = cloud
+    a, b = _grow_while_running(g, mass, backend), _grow_while_running(g, mass, "scipy")
+    np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7 * float(np.abs(b).max()))
+    assert (a[g.order[: g.n // 2]] > 0).any() and (a[g.order[g.n // 2:]] > 0).any()
