@@ -8,13 +8,18 @@ Per frame (:meth:`OnlineDiffuser.add_frame`):
    frames before (those that see them within the depth check), and the kNN graph (Eqs. 3-4) is
    extended for them and for the old rows they enter
    (:class:`~diffuser_lab.method.growing.IncrementalKnnGraph`), never rebuilt;
-2. the frame's pixel-to-point evidence is added (Eqs. 1-2, 11-13) for the points it sees, and
-   only those rows (and the rows whose edges changed) of Eqs. 14-15 are renormalised;
+2. the frame's pixel-to-point evidence is added (Eqs. 1-2, 11-13) for the points it sees
+   (:class:`~diffuser_lab.method.evidence.RunEvidence`, as in batch runs), and only those rows
+   (and the rows whose edges changed) of Eqs. 14-15 are renormalised;
 3. ``online.steps`` steps warm-started from the previous Z: Jacobi steps of Z <- gamma P Z + B
-   (default; on the batch Jacobi's compiled row kernels and threads; they stop early once a step
-   changes Z by <= ``solver.tol`` of its largest entry) or GMRES(steps) on (I - gamma P) Z = B
-   (``online.solver=gmres``); a frame that adds no evidence and no point changes nothing;
+   (default; they stop early once a step changes Z by <= ``solver.tol`` of its largest entry) or
+   GMRES(steps) on (I - gamma P) Z = B (``online.solver=gmres``); a frame that adds no evidence
+   and no point changes nothing;
 4. labels = argmax (Eq. 16), IGNORE where nothing reached a point.
+
+Steps 2-4 are the one diffusion core's (:class:`~diffuser_lab.method.diffusion.System`, the
+discount folded into P) on the backend ``solver.backend`` names, as a batch run's: compiled for
+any number of classes, ``solver.sparse_classes``, torch.
 
 Why the discount gamma: the batch method stops early (T = ``solver.max_iter`` steps from Z = 0,
 Z_T = Sum_{t<T} P^t B), and that early stop is part of it: P is nearly stochastic, so the
@@ -28,9 +33,10 @@ of the points; docs/online.md).
 
 The map's order: for a given cloud the graph's Morton order (the map's points are the work cloud
 re-ordered; :attr:`OnlineDiffuser.map_index` maps the work cloud's rows to them), for a growing
-map the order its points were added in. A growing map's state is stored apart from that order,
-re-sorted along the Morton curve as the map grows (memory locality: :meth:`OnlineDiffuser._resort`);
-everything public is in the map's order. Z is held divided by lambda.
+map the order its points were added in (points and evidence are kept in it). A growing map's
+system rows are re-sorted along the Morton curve as the map grows (memory locality:
+:meth:`OnlineDiffuser._resort`, :meth:`~diffuser_lab.method.diffusion.System.move`); everything
+public is in the map's order. The iteration runs on Z / lambda.
 """
 from __future__ import annotations
 
