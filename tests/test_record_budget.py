@@ -36,14 +36,13 @@ def test_schedule():
 @pytest.mark.parametrize("compiled", [True, False])
 def test_shares_round_trip_within_the_stated_error(compiled, monkeypatch):
     from diffuser_lab.backends import numba as nb
-    from diffuser_lab.backends.numba import float16
     from diffuser_lab.recording import schema
     from diffuser_lab.recording.mcap_encode import decode_z, z_precision_text, z_state_bytes
 
     if compiled and not nb.available():
         pytest.skip("numba not importable")
     if not compiled:
-        monkeypatch.setattr(float16, "available", lambda: False)
+        monkeypatch.setattr(nb, "available", lambda: False)
     rng = np.random.default_rng(1)
     # scores over many magnitudes, some rows all zero (points nothing reached)
     Z = (rng.random((5000, 20)) ** 4 * 10.0 ** rng.uniform(-8, 0, (5000, 1))).astype(np.float32)
