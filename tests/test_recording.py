@@ -419,10 +419,10 @@ def test_iterations_are_recorded_while_the_recorders_are_still_opening(small_dem
     open still gets every configured iteration recorded (they are queued, not skipped)."""
     import time
 
-    from diffuser_lab.recording import RecordingHooks
+    from diffuser_lab.recording.recorders import Recorders
 
-    slow_open = RecordingHooks._open_mcap
-    monkeypatch.setattr(RecordingHooks, "_open_mcap", lambda self, ov: (time.sleep(1.0), slow_open(self, ov)))
+    slow_open = Recorders._open_mcap
+    monkeypatch.setattr(Recorders, "_open_mcap", lambda self, ov: (time.sleep(1.0), slow_open(self, ov)))
     cfg = default_config(**{"solver.max_iter": 30, "record.interval": 10, "record.mode": "mcap"})
     res, hooks = recorded(cfg, small_demo_scene, tmp_path)
     assert hooks.recorded == [1, 10, 20, 30]

@@ -26,6 +26,8 @@ TOPIC_CAMERA_LABELS = "/cameras/labels"
 TOPIC_ONLINE_FRAME = "/diffuser_lab/online/frame"
 TOPIC_ONLINE_LABELS = "/online/labels"
 FRAME_ID = "world"
+FRAME_STEP_NS = 100_000_000
+"""run.mcap's timeline of an online run: frame i at the run's start + (i + 1) x 100 ms."""
 UNLABELED_INDEX = 255
 """Palette index of unlabeled pixels (IGNORE) in the label PNGs; class c is index c."""
 MAGIC = b"\x89MCAP0\r\n"
