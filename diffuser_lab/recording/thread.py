@@ -86,10 +86,11 @@ class ThreadLane:
     def recorded(self) -> list[int]:
         return self.side.recorded
 
-    def close(self) -> None:
+    def close(self) -> Optional[str]:
         if self._worker is not None:
             self._worker.close()  # what is queued is written first
         self.side.close()
+        return None  # the side is this process's: its report is files()
 
     def files(self) -> dict:
         return self.side.files()
