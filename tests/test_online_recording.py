@@ -211,7 +211,7 @@ def test_process_recorder_in_a_library_call(thread_run, tmp_path):
     if not process.available():
         pytest.skip("no fork")
     res, hooks, cap = recorded_online(thread_run.cfg, tmp_path, process=True)
-    assert isinstance(hooks, process.ProcessHooks) and hooks.files() == {"rrd": "run.rrd", "mcap": "run.mcap"}
+    assert isinstance(hooks.lane, process.ProcessLane) and hooks.files() == {"rrd": "run.rrd", "mcap": "run.mcap"}
     log = read_run(tmp_path / "run.mcap", z="last")
     np.testing.assert_array_equal(log.z[log.z_iterations[-1]], cap.Z)
     assert hooks.recorded == log.z_iterations

@@ -36,14 +36,13 @@ def test_schedule():
 @pytest.mark.parametrize("compiled", [True, False])
 def test_shares_round_trip_within_the_stated_error(compiled, monkeypatch):
     from diffuser_lab.backends import numba as nb
-    from diffuser_lab.backends.numba import float16
     from diffuser_lab.recording import schema
     from diffuser_lab.recording.mcap_encode import decode_z, z_precision_text, z_state_bytes
 
     if compiled and not nb.available():
         pytest.skip("numba not importable")
     if not compiled:
-        monkeypatch.setattr(float16, "available", lambda: False)
+        monkeypatch.setattr(nb, "available", lambda: False)
     rng = np.random.default_rng(1)
     # scores over many magnitudes, some rows all zero (points nothing reached)
     Z = (rng.random((5000, 20)) ** 4 * 10.0 ** rng.uniform(-8, 0, (5000, 1))).astype(np.float32)
@@ -149,14 +148,14 @@ def _with_hooks(cfg, scene, run_dir, **kw):
 
 
 def test_the_recording_process_writes_what_the_thread_writes(small_demo_scene, tmp_path):
-    from diffuser_lab.recording.process import ProcessHooks, available
+    from diffuser_lab.recording.process import ProcessLane, available
 
     if not available():
         pytest.skip("no fork on this platform: the thread records")
     cfg = default_config(**{"solver.max_iter": 40})
     res_t, thread = _with_hooks(cfg, small_demo_scene, tmp_path / "thread")
     res_p, proc = _with_hooks(cfg, small_demo_scene, tmp_path / "process", process=True)
-    assert isinstance(proc, ProcessHooks) and proc.files() == thread.files() == {"rrd": "run.rrd", "mcap": "run.mcap"}
+    assert isinstance(proc.lane, ProcessLane) and proc.files() == thread.files() == {"rrd": "run.rrd", "mcap": "run.mcap"}
     np.testing.assert_array_equal(res_t.labels, res_p.labels)
     assert proc.recorded == thread.recorded == [1, 2, 5, 10, 20, 40]
     a, b = read_run(tmp_path / "thread" / "run.mcap", z="all"), read_run(tmp_path / "process" / "run.mcap", z="all")
@@ -173,8 +172,8 @@ def test_a_dead_recording_process_costs_the_records_not_the_run(small_demo_scene
         pytest.skip("no fork on this platform: the thread records")
     cfg = default_config(**{"solver.max_iter": 40})
     hooks = make_hooks(cfg, tmp_path, process=True)
-    hooks._proc.kill()  # the recorder dies (OOM killer, a crash) before the run starts
-    hooks._proc.join()
+    hooks.lane._proc.kill()  # the recorder dies (OOM killer, a crash) before the run starts
+    hooks.lane._proc.join()
     try:
         res = run(cfg, scene=small_demo_scene, hooks=hooks)
     finally:

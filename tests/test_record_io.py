@@ -128,8 +128,7 @@ def test_float16_conversion_is_numpys_bit_for_bit(compiled, monkeypatch):
     normals, subnormals, ties (to even) at every float16 subnormal step, the largest values,
     zero (and, compiled, signs and overflow)."""
     from diffuser_lab.backends import numba as nb
-    from diffuser_lab.backends.numba import float16
-    from diffuser_lab.recording.mcap_encode import to_float16
+    from diffuser_lab.backends.records import to_float16
 
     rng = np.random.default_rng(0)
     a = np.concatenate([rng.random(20000), 10 ** rng.uniform(-12, 0, 80000), np.arange(2049) * 2.0**-25,
@@ -139,7 +138,7 @@ def test_float16_conversion_is_numpys_bit_for_bit(compiled, monkeypatch):
             pytest.skip("numba not importable or DIFFUSER_LAB_NUMBA=0")
         a = np.concatenate([a, -a[:1000], np.float32([65519, 65520, 1e6, np.inf, -np.inf, -0.0])])
     else:
-        monkeypatch.setattr(float16, "NB", None)
+        monkeypatch.setattr(nb, "available", lambda: False)
     with np.errstate(over="ignore"):
         want = a.astype("<f2")
     got = to_float16(a)

@@ -152,10 +152,11 @@ def test_compiled_step_statistics_equal_numpy(small_demo_scene, voxels):
     """StepTracker's one compiled pass gives numpy's labels, changes, mIoU, accuracy, wrong
     points and coverage (confidence up to float32 summation order), with and without a voxel
     grid between the diffused and the original points, and without ground truth."""
-    from diffuser_lab.backends.numba import available
+    from diffuser_lab.backends import numba as nb
+    from diffuser_lab.backends import records
     from diffuser_lab.recording import steps
 
-    if not available():
+    if not nb.available():
         pytest.skip("numba not importable or DIFFUSER_LAB_NUMBA=0")
     cfg = default_config(**{"solver.max_iter": 30, "scene.voxel_size": 0.1 if voxels else 0.0})
     zs = {}
@@ -167,12 +168,10 @@ def test_compiled_step_statistics_equal_numpy(small_demo_scene, voxels):
         plain = steps.StepTracker(len(res.work_points), sc.taxonomy.names, gt, to_work)
         for it in (1, 2, 10, 30):
             a = fused.step(it, zs[it], 0.5)
-            assert steps._FUSED
-            steps._FUSED = False
-            try:
+            assert records.compiled()
+            with pytest.MonkeyPatch.context() as mp:  # the numpy twin
+                mp.setattr(nb, "available", lambda: False)
                 b = plain.step(it, zs[it], 0.5)
-            finally:
-                steps._FUSED = None
             np.testing.assert_array_equal(a.labels, b.labels)
             np.testing.assert_allclose(a.confidence, b.confidence, atol=1e-6)
             assert (a.n_changed, a.miou, a.accuracy, a.coverage) == (b.n_changed, b.miou, b.accuracy, b.coverage)
@@ -420,10 +419,10 @@ def test_iterations_are_recorded_while_the_recorders_are_still_opening(small_dem
     open still gets every configured iteration recorded (they are queued, not skipped)."""
     import time
 
-    from diffuser_lab.recording import RecordingHooks
+    from diffuser_lab.recording.recorders import Recorders
 
-    slow_open = RecordingHooks._open_mcap
-    monkeypatch.setattr(RecordingHooks, "_open_mcap", lambda self, ov: (time.sleep(1.0), slow_open(self, ov)))
+    slow_open = Recorders._open_mcap
+    monkeypatch.setattr(Recorders, "_open_mcap", lambda self, ov: (time.sleep(1.0), slow_open(self, ov)))
     cfg = default_config(**{"solver.max_iter": 30, "record.interval": 10, "record.mode": "mcap"})
     res, hooks = recorded(cfg, small_demo_scene, tmp_path)
     assert hooks.recorded == [1, 10, 20, 30]

@@ -9,6 +9,9 @@ from typing import Any, Optional
 
 import numpy as np
 
+from diffuser_lab.backends.records import shares, to_float16, transpose_into
+from diffuser_lab.data.scene import IGNORE
+
 from . import schema
 
 TOPIC_SCENE = "/scene/points"
@@ -23,6 +26,8 @@ TOPIC_CAMERA_LABELS = "/cameras/labels"
 TOPIC_ONLINE_FRAME = "/diffuser_lab/online/frame"
 TOPIC_ONLINE_LABELS = "/online/labels"
 FRAME_ID = "world"
+FRAME_STEP_NS = 100_000_000
+"""run.mcap's timeline of an online run: frame i at the run's start + (i + 1) x 100 ms."""
 UNLABELED_INDEX = 255
 """Palette index of unlabeled pixels (IGNORE) in the label PNGs; class c is index c."""
 MAGIC = b"\x89MCAP0\r\n"
@@ -133,8 +138,6 @@ def z_state_bytes(iteration: int, Z: np.ndarray, dtype: str, out: Optional[bytea
     float16 (Z / max Z), q8 / q16 (row sums + shares, always class-major). ``labels`` (M,) int:
     the exact Z's labels, stored with an inexact state (field 9) so readers keep the run's own."""
     lab = b"" if labels is None or dtype == "float32" else np.asarray(labels, "<i2").tobytes()
-    from diffuser_lab.backends.numba.float16 import shares, transpose_into  # numba: only where Z is written
-
     if dtype in Z_BITS:
         sums, q = shares(np.ascontiguousarray(Z, np.float32), Z_BITS[dtype])
         head = schema.ZState(iteration=int(iteration), n_points=Z.shape[0], n_classes=Z.shape[1],
@@ -178,27 +181,6 @@ def z_precision_text(dtype: str) -> str:
     if dtype == "float16":
         return "float16: Z / max Z as float16 (relative error <= 2^-11 above 6e-5 max Z)"
     return "float32: exact"
-
-
-_F16_MIN_NORMAL = np.float32(2.0**-14)
-
-
-def to_float16(a: np.ndarray) -> np.ndarray:
-    """``a.astype("<f2")`` for finite float32 ``a`` >= 0, bit for bit, fast: numpy converts
-    values that become float16 subnormals (below 2^-14; Z has many) in a slow path (~50 ms on a
-    1M-value Z state). Compiled where numba is; otherwise those values are rounded here as the
-    multiple of 2^-24 nearest (ties to even), which is their float16 bit pattern."""
-    from diffuser_lab.backends.numba.float16 import to_float16 as compiled
-
-    out = compiled(a)
-    if out is not None:
-        return out
-    sub = a < _F16_MIN_NORMAL
-    with np.errstate(over="ignore"):  # beyond 65504: inf, as numpy
-        out = np.where(sub, np.float32(0.0), a).astype("<f2")
-    bits = out.view(np.uint16)
-    bits[sub] = np.rint(a[sub] * np.float32(2.0**24)).astype(np.uint16)
-    return out
 
 
 class _RawMessage:
@@ -304,8 +286,6 @@ def decode_label_png(data: bytes, colors: np.ndarray) -> np.ndarray:
     import io
 
     from PIL import Image
-
-    from diffuser_lab.data.scene import IGNORE
 
     im = Image.open(io.BytesIO(data))
     if im.mode == "P":

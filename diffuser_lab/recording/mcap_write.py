@@ -53,9 +53,12 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 
+from diffuser_lab import __version__
+
 from . import schema
 from .direct_file import open_direct
 from .mcap_encode import (
+    FRAME_STEP_NS,
     TOPIC_CALIBRATION,
     TOPIC_CAMERA_LABELS,
     TOPIC_EVIDENCE,
@@ -74,6 +77,7 @@ from .mcap_encode import (
     point_cloud_bytes,
     z_state_bytes,
 )
+from .schedule import with_cloud
 from .serial import SerialThread
 from .steps import Step
 
@@ -151,8 +155,6 @@ class McapRecorder:
                  compression: str = COMPRESSION, writer_thread: bool | None = None, clouds: str = "decades",
                  max_image_side: int = 320):
         from mcap.writer import CompressionType, Writer
-
-        from diffuser_lab import __version__
 
         self.path = Path(path)
         self.z_dtype = z_dtype
@@ -309,8 +311,6 @@ class McapRecorder:
         """One recorded iteration: metrics, Z (``final``: float32, exact; else ``z_dtype`` with
         the exact labels beside it) and, on :func:`.schedule.with_cloud` iterations, the
         labelled cloud."""
-        from .schedule import with_cloud
-
         nan = float("nan")
         self._write(TOPIC_METRICS, schema.IterationMetrics(
             iteration=step.iteration, residual=step.residual, n_changed=step.n_changed,
@@ -366,8 +366,6 @@ class McapRecorder:
         self._submit(start)  # on the writer thread, before the frames' messages
 
     def _frame_time(self, index: int) -> int:
-        from .online import FRAME_STEP_NS
-
         return self._start + (int(index) + 1) * FRAME_STEP_NS
 
     def log_online_frame(self, rec: Any, points: np.ndarray) -> None:

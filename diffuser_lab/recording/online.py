@@ -1,4 +1,6 @@
-"""Records of an online run (protocol=online): what each frame hands the recorders.
+"""Records of an online run (protocol=online): :class:`OnlineHooks` is the run's side (the hooks
+the online runner calls), :class:`OnlineRecorder` the writing side (in
+:class:`~.recorders.Recorders`, on the recording thread or in the recording process).
 
 The run calls ``on_online_frame(frame, update)`` after every frame it takes
 (:class:`~diffuser_lab.runs.online.OnlineUpdate`: views valid during the call only and a
@@ -12,21 +14,24 @@ frame always, exact). :class:`MapMirror` rebuilds the map on the recorders' side
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 from dataclasses import dataclass
 from typing import Any, Optional
 
 import numpy as np
 
+from diffuser_lab.config import OnlineMap, Protocol
 from diffuser_lab.data.scene import IGNORE
+from diffuser_lab.runs.online import summary as online_summary
 
-from .mcap_encode import strided
+from .hooks import RecordingHooks
+from .mcap_encode import FRAME_STEP_NS, strided
 from .schedule import recorded, with_cloud
+from .steps import original_to_work
 
 log = logging.getLogger("diffuser_lab.recording")
 
-FRAME_STEP_NS = 100_000_000
-"""run.mcap's timeline of an online run: frame i at the run's start + (i + 1) x 100 ms."""
 TIMELINE = "frame"
 """run.rrd's timeline of an online run: sequence = the frame's index."""
 
@@ -119,15 +124,14 @@ def frame_record(frame: Any, update: Any, sched: FrameSchedule, max_image_side: 
 
 
 class OnlineFrames:
-    """The run's side of recording an online run, one for both recorders (the thread one and the
-    recording process): the frame schedule, the map points already handed on, the last frame taken
+    """The run's side of recording an online run (:class:`OnlineHooks`' state, whichever lane
+    carries the records): the frame schedule, the map points already handed on, the last frame taken
     and its Z callable (for the final exact Z), and why recording stopped (``off``: the files keep
     what came before and close; ``files()`` reports it)."""
 
     def __init__(self, conf: Any, n_frames: int):
-        v = lambda x: getattr(x, "value", x)  # noqa: E731
         rc = conf.record
-        self.sched = FrameSchedule(None if rc.interval is None else int(rc.interval), str(v(rc.clouds)), n_frames)
+        self.sched = FrameSchedule(None if rc.interval is None else int(rc.interval), rc.clouds.value, n_frames)
         self.max_image_side = int(rc.max_image_side)
         self.n_sent = 0  # map points already handed to the recorders
         self.last: Optional[tuple] = None  # (frame index, Z kept exactly, cloud) of the last frame taken
@@ -165,8 +169,6 @@ class OnlineFrames:
     def finish(self, result: Any, final, summary) -> None:
         """Hand on the final exact Z (``final(index, Z, labels, cloud)``, where needed) and the run's
         summary (``summary(dict)``)."""
-        from diffuser_lab.runs.online import summary as online_summary
-
         if self.off is not None:
             return
         try:
@@ -180,6 +182,88 @@ class OnlineFrames:
     def errors(self, wanted) -> dict:
         """{recorder: why} for ``files()["errors"]`` once recording failed."""
         return {w: self.off for w in wanted} if self.off is not None else {}
+
+
+class OnlineHooks(RecordingHooks):
+    """An online run's hooks (protocol=online): per frame taken a :class:`FrameRecord` (made in
+    the run's thread by :class:`OnlineFrames`), at the end the last frame's exact Z and the
+    run's summary. A frame's ``on_frame`` call is not recorded: it comes again with its update."""
+
+    def __init__(self, conf: Any, lane: Any):
+        super().__init__(conf, lane)
+        self.frames: Optional[OnlineFrames] = None
+
+    def on_scene(self, scene: Any) -> None:
+        super().on_scene(scene)
+        self.start(scene)
+
+    def start(self, scene: Any) -> None:
+        """The per-frame records begin (the scene's frames give the schedule's length)."""
+        self.frames = OnlineFrames(self.conf, len(scene.frames))
+        self.lane.send("online.start")
+
+    def on_online_frame(self, frame: Any, update: Any) -> None:
+        if not self.recording():
+            return
+        rec = self.frames.record(frame, update, want_z=self.lane.live("mcap"))
+        if rec is not None:
+            self.lane.send("online.frame", rec)
+
+    def on_result(self, result: Any) -> None:
+        if self.lane.dead is None and self.frames is not None:
+            self.frames.finish(result, lambda *fin: self.lane.send("online.final", *fin),
+                               lambda summary: self.lane.send("online.result", summary))
+
+    def files(self) -> dict:
+        out = self.lane.files()
+        # the writing side's errors, and this side's when it stopped sending (an online frame failed)
+        errors = {**(self.frames.errors(self.lane.wanted) if self.frames is not None else {}), **out.pop("errors", {})}
+        if errors:
+            out["errors"] = errors
+        return out
+
+
+class OnlineRecorder:
+    """The writing side of an online run's records, on the recorders ``recs``
+    (:class:`~.recorders.Recorders`): the map rebuilt from the frame records
+    (:class:`MapMirror`) and each frame to both recorders."""
+
+    def __init__(self, recs: Any):
+        self.recs = recs
+        self.mirror: Optional[MapMirror] = None
+
+    def start(self) -> None:
+        r = self.recs
+        scene = r.scene
+        growing = r.conf.online.map == OnlineMap.growing
+        meta = online_meta(r.conf, scene)
+        self.mirror = MapMirror(growing, scene.points, scene.gt_labels)
+        r.each(lambda: r.rerun.log_online_start(scene.gt_labels is not None, growing),
+               lambda: r.mcap.log_online_start(meta))
+
+    def frame(self, rec: FrameRecord) -> None:
+        r = self.recs
+        changed = self.mirror.update(rec)
+        pts = self.mirror.points
+        r.each(lambda: r.rerun.log_online_frame(rec, self.mirror, changed), lambda: r.mcap.log_online_frame(rec, pts))
+        if rec.Z is not None:
+            r.recorded.append(rec.index)
+
+    def final(self, index: int, Z: np.ndarray, labels: np.ndarray, cloud: bool) -> None:
+        """The last frame taken was not the sequence's last: keep its Z exactly."""
+        r = self.recs
+        if r.mcap is not None:
+            pts = self.mirror.points
+            r.guard("mcap", lambda: r.mcap.log_online_final(index, Z, labels, pts, cloud))
+        if not r.recorded or r.recorded[-1] != index:
+            r.recorded.append(index)
+
+    def result(self, summary: dict) -> None:
+        """The run's summary (:func:`diffuser_lab.runs.online.summary`) into run.mcap."""
+        r = self.recs
+        if r.mcap is not None:
+            s = {**summary, "records": r.files(), "recorded_frames": list(r.recorded)}
+            r.guard("mcap", lambda: r.mcap.log_summary(s))
 
 
 def _stride(h: int, w: int, max_side: int) -> int:
@@ -210,8 +294,6 @@ class MapMirror:
         if rec.new_gt is not None:
             self.gt = rec.new_gt if self.gt is None else np.concatenate([self.gt, rec.new_gt])
         if not self.growing and self.scene_gt is not None and self.scene_points is not None:
-            from .steps import original_to_work
-
             self.to_map = original_to_work(self.points, self.scene_points)
         return True
 
@@ -232,19 +314,15 @@ class MapMirror:
 
 def online_meta(conf: Any, scene: Any) -> dict:
     """What run.mcap's ``diffuser_lab.online`` metadata record says (strings)."""
-    import json
-
-    v = lambda x: getattr(x, "value", x)  # noqa: E731
     rc = conf.record
-    return {"map": str(v(conf.online.map)), "n_frames": str(len(scene.frames)),
-            "interval": json.dumps(rc.interval), "z_dtype": str(v(rc.z_precision)), "clouds": str(v(rc.clouds)),
+    return {"map": conf.online.map.value, "n_frames": str(len(scene.frames)),
+            "interval": json.dumps(rc.interval), "z_dtype": rc.z_precision.value, "clouds": rc.clouds.value,
             "has_gt": json.dumps(scene.gt_labels is not None), "frame_step_ns": str(FRAME_STEP_NS)}
 
 
 def is_online(conf: Any) -> bool:
-    p = getattr(getattr(conf, "protocol", None), "name", None)
-    return str(getattr(p, "value", p)) == "online"
+    return conf.protocol.name == Protocol.online
 
 
-__all__ = ["FrameRecord", "FrameSchedule", "OnlineFrames", "MapMirror", "frame_record", "online_meta", "is_online",
-           "FRAME_STEP_NS", "TIMELINE"]
+__all__ = ["OnlineHooks", "OnlineRecorder", "FrameRecord", "FrameSchedule", "OnlineFrames", "MapMirror", "frame_record",
+           "online_meta", "is_online", "FRAME_STEP_NS", "TIMELINE"]

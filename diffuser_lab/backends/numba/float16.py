@@ -1,17 +1,19 @@
-"""Z states encoded for run.mcap: a compiled transpose (class-major storage) and a float32 ->
-float16 conversion bit for bit as numpy's (whose own conversion of values that become float16
-subnormals takes a slow path)."""
+"""The recorders' compiled kernels (called through :mod:`diffuser_lab.backends.records`, which
+holds their numpy twins and picks one): Z states encoded for run.mcap (a transpose to class-major
+storage, a float32 -> float16 conversion bit for bit as numpy's, whose own conversion of values
+that become float16 subnormals takes a slow path, and the q8/q16 shares) and the statistics of a
+recorded diffusion step (labels, confidence, changes, confusion counts in one pass)."""
 from __future__ import annotations
 
 import numpy as np
 
-from . import NB, available
+from . import NB
 
 if NB is not None:
     from numba import njit
 
     @njit(cache=True, nogil=True, boundscheck=False)
-    def _transpose_f32(a, out):
+    def transpose_f32(a, out):
         """out[c, i] = a[i, c]: reads row by row, C sequential write streams."""
         m, c = a.shape
         for i in range(m):
@@ -19,7 +21,7 @@ if NB is not None:
                 out[j, i] = a[i, j]
 
     @njit(cache=True, nogil=True, boundscheck=False)
-    def _f32_to_f16_bits(a, out):
+    def f32_to_f16_bits(a, out):
         """IEEE float32 bits -> float16 bits, rounding to nearest, ties to even (as numpy)."""
         for i in range(a.shape[0]):
             x = np.uint32(a[i])
@@ -49,30 +51,8 @@ if NB is not None:
                     r += np.uint32(1)  # a carry into the exponent is right (up to inf)
             out[i] = np.uint16(sign | r)
 
-
-def transpose_into(a: np.ndarray, out: np.ndarray) -> None:
-    """out[...] = a.T for a 2-D ``a`` (M, C) and a C-contiguous ``out`` (C, M) of the same dtype:
-    compiled for float32 (4x numpy's strided copy at 51k x 20), numpy otherwise."""
-    if available() and a.dtype == np.float32 and out.dtype == np.float32 and a.flags.c_contiguous:
-        _transpose_f32(a, out)
-    else:
-        np.copyto(out, a.T)
-
-
-def to_float16(a: np.ndarray) -> np.ndarray | None:
-    """``a.astype("<f2")`` for C-contiguous float32 ``a``, bit for bit, compiled (numpy takes a
-    slow path for values that become float16 subnormals: ~50 ms on a 1M-value Z state); None
-    without numba."""
-    if not available() or a.dtype != np.float32 or not a.flags.c_contiguous:
-        return None
-    out = np.empty(a.shape, "<f2")
-    _f32_to_f16_bits(a.reshape(-1).view(np.uint32), out.reshape(-1).view(np.uint16))
-    return out
-
-
-if NB is not None:
     @njit(cache=True, nogil=True, boundscheck=False)
-    def _shares_into(a, levels, out, sums, tmp):
+    def shares_into(a, levels, out, sums, tmp):
         """sums[i] = float32(sum_c a[i, c]); out[c, i] = round(a[i, c] / sums[i] * levels).
         Rows go through ``tmp`` (B, C) in blocks, then out block-transposed: writing the
         class-major output directly, a byte at a time into C streams, is 5x slower. Float32
@@ -97,20 +77,42 @@ if NB is not None:
                 for i in range(i0, i1):
                     out[j, i] = tmp[i - i0, j]
 
-
-def shares(a: np.ndarray, bits: int) -> tuple[np.ndarray, np.ndarray]:
-    """(M, C) float32 Z >= 0 -> (row sums (M,) float32, shares (C, M) uint8 or uint16): share
-    q[c, i] = round(Z[i, c] / sum_c Z[i, c] * (2^bits - 1)), class-major. Compiled where numba is
-    (one pass, ~1 ms on the 51k x 20 demo, ~11 ms at 566k), numpy otherwise; the two agree up to float rounding."""
-    levels = (1 << bits) - 1
-    dt = np.uint8 if bits <= 8 else np.uint16
-    m, c = a.shape
-    out = np.empty((c, m), dt)
-    sums = np.empty(m, np.float32)
-    if available() and a.dtype == np.float32 and a.flags.c_contiguous:
-        _shares_into(a, levels, out, sums, np.empty((256, c), dt))
-        return sums, out
-    sums[:] = a.sum(1, dtype=np.float64)
-    inv = np.divide(float(levels), sums.astype(np.float64), out=np.zeros(m), where=sums > 0)
-    np.clip(np.floor(a.T * inv + 0.5), 0, levels, out=out, casting="unsafe")
-    return sums, out
+    @njit(cache=True, nogil=True, boundscheck=False)
+    def step_stats(Z, ignore, prev, labels, conf, gt, to_work, wrong, counts):
+        """One recorded step in one pass over Z and one over the original points: labels (first
+        maximum, ``ignore`` where the row's maximum is not > 0), confidence, labels changed since
+        ``prev``, and with ground truth ``gt`` (empty: none) the confusion counts and the wrong
+        points. Returns (changed, labelled, sum of the labelled rows' confidence)."""
+        m, c = Z.shape
+        changed = 0
+        n_lab = 0
+        conf_sum = 0.0
+        for i in range(m):
+            best = Z[i, 0]
+            arg = 0
+            tot = np.float32(0.0)
+            for j in range(c):
+                v = Z[i, j]
+                tot += v
+                if v > best:  # first maximum, as np.argmax
+                    best = v
+                    arg = j
+            if best > 0:
+                labels[i] = arg
+                conf[i] = best / tot if tot > 0 else np.float32(0.0)
+                n_lab += 1
+                conf_sum += conf[i]
+            else:
+                labels[i] = ignore
+                conf[i] = 0.0
+            if labels[i] != prev[i]:
+                changed += 1
+        for i in range(gt.shape[0]):  # (N,) original points; empty without ground truth
+            lab = labels[to_work[i]] if to_work.shape[0] else labels[i]
+            g = gt[i]
+            if g < 0 or g >= c:  # IGNORE (or no class of Z: never indexes out of range)
+                wrong[i] = False
+                continue
+            wrong[i] = lab != g
+            counts[g, c if lab == ignore else lab] += 1
+        return changed, n_lab, conf_sum
