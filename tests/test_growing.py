@@ -1,16 +1,19 @@
-"""VoxelMap and IncrementalKnnGraph (diffuser_lab.method.growing): the incrementally grown graph
-equals build_graph on the same points, the changed-row sets are complete, the voxel map is fixed in
-the world. Both paths: compiled (numba) and numpy/scipy."""
+"""VoxelMap (diffuser_lab.data.voxel_map) and IncrementalKnnGraph (diffuser_lab.method.growing): the
+incrementally grown graph equals build_graph on the same points, the changed-row sets are complete,
+the voxel map is fixed in the world. Both paths: compiled (numba) and numpy/scipy."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
 from diffuser_lab.backends import numba as nb
+from diffuser_lab.backends.voxel_map import voxel_keys
+from diffuser_lab.data import voxel_map
 from diffuser_lab.data.geometry import backproject
+from diffuser_lab.data.voxel_map import VoxelMap
 from diffuser_lab.method import growing
 from diffuser_lab.method.graph import build_graph
-from diffuser_lab.method.growing import IncrementalKnnGraph, VoxelMap, voxel_keys
+from diffuser_lab.method.growing import IncrementalKnnGraph
 
 K = 24
 
@@ -192,7 +195,7 @@ def test_voxel_map_deterministic(frames, monkeypatch):
 
 def test_module_switch(monkeypatch):
     monkeypatch.setattr(nb, "available", lambda: False)
-    assert not growing.VoxelMap(0.02)._nb and not growing.IncrementalKnnGraph()._nb
+    assert not voxel_map.VoxelMap(0.02)._nb and not growing.IncrementalKnnGraph()._nb
     with pytest.raises(ValueError):
         VoxelMap(0.0)
     g = IncrementalKnnGraph(K)

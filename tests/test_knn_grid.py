@@ -1,10 +1,11 @@
-"""The compiled graph pieces (diffuser_lab.backends.numba.knn) against plain references: the grid kNN gives the
-brute-force neighbour sets (float64 distances, ties by sorted index), the Morton order is
-numpy's, and the fused normalisation is bit for bit the numpy one."""
+"""The compiled graph pieces (diffuser_lab.backends.numba: morton, grid_knn, weights) against plain
+references: the grid kNN gives the brute-force neighbour sets (float64 distances, ties by sorted
+index), the Morton order is numpy's, and the fused normalisation is bit for bit the numpy one."""
 import numpy as np
 import pytest
 
 from diffuser_lab.backends import numba as nb
+from diffuser_lab.backends.numba import grid_knn
 from diffuser_lab.data.geometry import morton_codes, quantize
 from diffuser_lab.method.diffusion import EDGE_FLOOR, normalise
 from diffuser_lab.method.graph import build_graph
@@ -41,10 +42,8 @@ def clouds():
 
 @pytest.mark.parametrize("name,pts,k", list(clouds()), ids=[c[0] for c in clouds()])
 def test_grid_knn_is_brute_force(name, pts, k):
-    from diffuser_lab.backends.numba import knn
-
     pts = pts.astype(np.float32)
-    order, P4, _, res = knn.sorted_knn(pts, None, k)
+    order, P4, _, res = grid_knn.sorted_knn(pts, None, k)
     np.testing.assert_array_equal(order, np.argsort(morton_codes(quantize(pts)[0]), kind="stable"))
     assert res is not None  # the grid, not the KD-tree fallback
     idx, d0 = res

@@ -142,7 +142,8 @@ class OnlineDiffuser:
         self._sorted_at = 0
         self._recent: list[Frame] = []  # growing: the last `revisit` frames (new points get their evidence)
         if self.growing:
-            from diffuser_lab.method.growing import IncrementalKnnGraph, VoxelMap
+            from diffuser_lab.data.voxel_map import VoxelMap
+            from diffuser_lab.method.growing import IncrementalKnnGraph
 
             g = cfg.graph
             self.voxels = VoxelMap(oc.voxel_size)
