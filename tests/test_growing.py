@@ -114,6 +114,20 @@ def test_paths_agree(frames, monkeypatch):
     assert g_fixed.sigma_d == 0.05
 
 
+def test_ring_search_alone_gives_the_rows(frames):
+    """Every row of a grown graph recomputed by the ring search alone (cell_search.ring_knn, which
+    the batch grid kNN shares) is the row the compiled path holds."""
+    if not nb.available():
+        pytest.skip("numba not available")
+    vm, g = VoxelMap(0.02), IncrementalKnnGraph(K)
+    for f in frames[:3]:
+        g.add(*vm.insert(f, None))
+    nbr, d2 = g.neighbors.copy(), g.dist2.copy()
+    g._rows._rings(g._arrays(), np.arange(g.n, dtype=np.int64))
+    np.testing.assert_array_equal(g.neighbors, nbr)
+    np.testing.assert_array_equal(g.dist2, d2)
+
+
 def test_small_start_and_duplicates(path):
     """From an empty graph: at most K points give padded rows (own index, weight 0); duplicates
     (distance 0) are neighbours and rho skips them, as in build_graph."""

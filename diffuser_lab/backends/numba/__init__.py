@@ -1,7 +1,8 @@
 """Compiled CPU kernels (numba), grouped by what they compute: ``morton.py`` (Morton order),
-``grid_knn.py`` (the batch grid kNN), ``growing.py`` (the growing map's grid kNN), ``weights.py``
-(Eq. 4), ``hashing.py`` and ``voxel_map.py`` (hash tables, the growing map's voxel merge),
-``normalise.py`` (the rows of Eqs. 14-15), ``jacobi.py`` (the Jacobi steps of Eq. 10 on threads
+``grid_knn.py`` (the batch grid kNN), ``growing.py`` (the growing map's grid kNN),
+``cell_search.py`` (the ring search both grids share), ``weights.py`` (Eq. 4), ``hashing.py``
+and ``voxel_map.py`` (hash tables, the growing map's voxel merge), ``normalise.py`` (the rows of
+Eqs. 14-15), ``jacobi.py`` (the Jacobi steps of Eq. 10 on threads
 meeting at a barrier, ``_sync.py``; generated row kernels in ``_unrolled.py``), ``evidence.py``
 (the fused evidence of one frame, Eqs. 1-2) and ``float16.py`` (Z states encoded for run.mcap).
 

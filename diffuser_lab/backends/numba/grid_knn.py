@@ -13,8 +13,9 @@ from the previous point's threshold and interpolating the counts), and those K a
 index. The result is exact when the K-th distance is below the point's guaranteed radius (one
 cell plus its distance to its own cell's faces); the few other points are searched again in
 their 5x5x5 block, then (very rarely) with rings of cells growing until no closer point can
-remain. Distances are computed in float64 from the float32 coordinates exactly as in the KD-tree
-path, so the neighbour sets are those of a KD-tree (ties by index).
+remain (:func:`~.cell_search.ring_knn`, the search the growing map's grid uses too). Distances
+are computed in float64 from the float32 coordinates exactly as in the KD-tree path, so the
+neighbour sets are those of a KD-tree (ties by index).
 """
 from __future__ import annotations
 
@@ -32,6 +33,7 @@ SAMPLE = 1024
 if NB is not None:
     from numba import njit, prange
 
+    from .cell_search import ring_knn
     from .morton import lattice
 
     try:
@@ -305,8 +307,8 @@ if NB is not None:
         dy_, dz_ = dims[1], dims[2]
         buf = _new_buf(256)
         far = _new_buf(1024)
-        hd = np.empty(k)
-        hj = np.empty(k, np.int64)
+        bd = np.empty(k)
+        bj = np.empty(k, np.int64)
         for oc in range(c_lo, c_hi):
             lin = occ[oc]
             buf, nc, ncp, own = _gather(X, Y, Z, J, start, dims, lin // (dy_ * dz_), (lin // dz_) % dy_, lin % dz_,
@@ -327,7 +329,7 @@ if NB is not None:
                 # estimate for the first of a cell), within the block's guaranteed radius
                 t, c = _threshold(D, ncp, k, guess, B2[p])
                 if c < k:  # the k-th neighbour may lie outside the block
-                    far = _far_point(i, px, py, pz, X, Y, Z, J, start, dims, origin, step, L, k, t_est, far, hd, hj,
+                    far = _far_point(i, px, py, pz, X, Y, Z, J, start, dims, origin, step, L, k, t_est, far, bd, bj,
                                      out_i, d0)
                     continue
                 d0[i] = _select(buf, ncp, k, t, c, out_i, i)
@@ -340,9 +342,10 @@ if NB is not None:
                        d0)
 
     @njit(cache=True, boundscheck=False)
-    def _far_point(i, px, py, pz, X, Y, Z, J, start, dims, origin, step, L, k, t_est, buf, hd, hj, out_i, d0):
+    def _far_point(i, px, py, pz, X, Y, Z, J, start, dims, origin, step, L, k, t_est, buf, bd, bj, out_i, d0):
         """Row i (at px, py, pz) from the 5x5x5 cells around its own, or, where the k-th neighbour
-        may lie outside those too, from rings of cells (:func:`_knn_ring`). Returns the buffers."""
+        may lie outside those too, from rings of cells (:func:`~.cell_search.ring_knn`; bd/bj: its
+        (k,) buffers). Returns the buffers."""
         qx = lattice(px, origin[0], step)
         qy = lattice(py, origin[1], step)
         qz = lattice(pz, origin[2], step)
@@ -365,112 +368,22 @@ if NB is not None:
         t, c = _threshold(D, ncp, k, t_est, b2)
         if c >= k:
             d0[i] = _select(buf, ncp, k, t, c, out_i, i)
-        else:
-            _knn_ring(i, px, py, pz, origin, step, L, X, Y, Z, J, start, dims, k, hd, hj, out_i, d0)
-        return buf
-
-    @njit(cache=True, boundscheck=False, inline="always")
-    def _worse(d1, j1, d2, j2):
-        return d1 > d2 or (d1 == d2 and j1 > j2)
-
-    @njit(cache=True, boundscheck=False, inline="always")
-    def _sift_down(hd, hj, size, d2, j):
-        """Put (d2, j) at the top of the max-heap hd/hj[:size] and sift it down."""
-        pos = 0
-        while True:
-            c = 2 * pos + 1
-            if c >= size:
-                break
-            if c + 1 < size and _worse(hd[c + 1], hj[c + 1], hd[c], hj[c]):
-                c += 1
-            if not _worse(hd[c], hj[c], d2, j):
-                break
-            hd[pos] = hd[c]
-            hj[pos] = hj[c]
-            pos = c
-        hd[pos] = d2
-        hj[pos] = j
-
-    @njit(cache=True, boundscheck=False, inline="always")
-    def _push(hd, hj, m, k, d2, j):
-        """Max-heap (by (d2, j)) of the k best candidates; returns the new size."""
-        if m < k:  # sift up
-            pos = m
-            m += 1
-            while pos > 0:
-                par = (pos - 1) >> 1
-                if not _worse(d2, j, hd[par], hj[par]):
-                    break
-                hd[pos] = hd[par]
-                hj[pos] = hj[par]
-                pos = par
-            hd[pos] = d2
-            hj[pos] = j
-            return m
-        if not _worse(hd[0], hj[0], d2, j):
-            return m
-        _sift_down(hd, hj, k, d2, j)
-        return m
-
-    @njit(cache=True, boundscheck=False)
-    def _knn_ring(i, px, py, pz, origin, step, L, X, Y, Z, J, start, dims, k, hd, hj, out_i, d0):
-        """Row i (at px, py, pz) from rings of cells around its own until no closer point can
-        remain (a max-heap hd/hj of the k best)."""
-        h = L * step
-        rmax = max(dims[0], max(dims[1], dims[2]))
-        qx = lattice(px, origin[0], step)
-        qy = lattice(py, origin[1], step)
-        qz = lattice(pz, origin[2], step)
+            return buf
+        # the point's distances to its cell's faces, one lattice step less (its position within
+        # its lattice step is unknown)
         cx, cy, cz = qx // L, qy // L, qz // L
-        f = L
-        for qa in (qx, qy, qz):
-            c0 = (qa // L) * L
-            f = min(f, min(qa - c0, c0 + L - qa))
-        face = (f - 1) * step
-        m = 0
-        r = 0
-        while True:
-            for ix in range(max(cx - r, 0), min(cx + r, dims[0] - 1) + 1):
-                ax = abs(ix - cx)
-                gx = max(max(ix * L - qx, qx - (ix + 1) * L), 0)
-                for iy in range(max(cy - r, 0), min(cy + r, dims[1] - 1) + 1):
-                    ay = max(ax, abs(iy - cy))
-                    gy = max(max(iy * L - qy, qy - (iy + 1) * L), 0)
-                    base = (ix * dims[1] + iy) * dims[2]
-                    for iz in range(max(cz - r, 0), min(cz + r, dims[2] - 1) + 1):
-                        if max(ay, abs(iz - cz)) != r:
-                            continue
-                        lin = base + iz
-                        s = start[lin]
-                        e = start[lin + 1]
-                        if s == e:
-                            continue
-                        if m == k:  # skip cells entirely beyond the current k-th distance
-                            gz = max(max(iz * L - qz, qz - (iz + 1) * L), 0)
-                            g2 = (max(gx - 1, 0) ** 2 + max(gy - 1, 0) ** 2 + max(gz - 1, 0) ** 2) * step * step
-                            if g2 > hd[0]:
-                                continue
-                        for a in range(s, e):
-                            j = J[a]
-                            if j == i:
-                                continue
-                            ex = X[a] - px
-                            ey = Y[a] - py
-                            ez = Z[a] - pz
-                            d2 = ex * ex + ey * ey + ez * ez
-                            if m < k or d2 <= hd[0]:
-                                m = _push(hd, hj, m, k, d2, j)
-            bound = r * h + face
-            if (m == k and bound > 0 and hd[0] < bound * bound) or r > rmax:
-                break
-            r += 1
+        flo = ((qx - cx * L - 1) * step, (qy - cy * L - 1) * step, (qz - cz * L - 1) * step)
+        fhi = ((cx * L + L - qx - 1) * step, (cy * L + L - qy - 1) * step, (cz * L + L - qz - 1) * step)
+        no_table = np.empty(0, np.int64)
+        ring_knn(i, px, py, pz, (cx, cy, cz), flo, fhi, L * step, np.zeros(3, np.int64), dims - 1, dims, no_table,
+                 no_table, 0, start, start[1:], X, Y, Z, J, k, bd, bj)
         dmin = np.inf
-        for e in range(k - 1, -1, -1):
-            out_i[i, e] = hj[0]
-            if hd[0] > 0:
-                dmin = hd[0]
-            _sift_down(hd, hj, e, hd[e], hj[e])
+        for e in range(k):
+            out_i[i, e] = bj[e]
+            if bd[e] > 0 and bd[e] < dmin:
+                dmin = bd[e]
         d0[i] = dmin
+        return buf
 
 
 def sorted_knn(points: np.ndarray, normals: np.ndarray | None, k: int):

@@ -9,8 +9,9 @@ room to grow; a full run moves to the pool's end with twice the room (amortised 
 add). A query scans its cell's 3x3x3 block keeping the K best by (squared distance, index) under a
 threshold guessed from the previous row, and is exact when the K-th distance is within the
 block's guaranteed radius (``h`` + the point's distance to its cell's faces); the other points are
-searched again ring by ring (:func:`query_rings`) until no closer point can remain. Squared
-distances are float64 from the float32 coordinates, as in :func:`~diffuser_lab.method.graph.build_graph`.
+searched again ring by ring (:func:`~.cell_search.ring_knn`, the batch grid kNN's search) until no
+closer point can remain. Squared distances are float64 from the float32 coordinates, as in
+:func:`~diffuser_lab.method.graph.build_graph`.
 """
 from __future__ import annotations
 
@@ -24,6 +25,7 @@ from .weights import row_weights
 if NB is not None:
     from numba import njit, prange
 
+    from .cell_search import push, ring_knn
     from .hashing import cell_key, coord, find
 
     @njit(cache=True, boundscheck=False)
@@ -122,24 +124,6 @@ if NB is not None:
         kth2[i] = bd[k - 1]
 
     @njit(cache=True, boundscheck=False, inline="always")
-    def _push(bd, bj, cnt, k, d, j):
-        """Insert (d, j) into the ascending K-buffer bd/bj holding cnt entries; returns the new cnt."""
-        if cnt == k:
-            if d > bd[k - 1] or (d == bd[k - 1] and j > bj[k - 1]):
-                return cnt
-            p = k - 1
-        else:
-            p = cnt
-            cnt += 1
-        while p > 0 and (bd[p - 1] > d or (bd[p - 1] == d and bj[p - 1] > j)):
-            bd[p] = bd[p - 1]
-            bj[p] = bj[p - 1]
-            p -= 1
-        bd[p] = d
-        bj[p] = j
-        return cnt
-
-    @njit(cache=True, boundscheck=False, inline="always")
     def _face(v, c, h):
         """Distance of coordinate v to the faces of its cell c (offset coordinate)."""
         lo = np.float64(c - OFF) * h
@@ -184,7 +168,7 @@ if NB is not None:
                             if mk and d < h2 and j < n_old and d < kth2[j]:
                                 aff[j] = 1
                             if d <= lim and j != i:
-                                cnt = _push(bd, bj, cnt, k, d, j)
+                                cnt = push(bd, bj, cnt, k, d, j)
                                 if cnt == k:
                                     lim = min(lim, bd[k - 1])
                     if cnt == k or thr == np.inf:
@@ -229,14 +213,15 @@ if NB is not None:
                         ez = Z[p] - pz
                         d = ex * ex + ey * ey + ez * ez
                         if d <= bd[k - 1]:
-                            cnt = _push(bd, bj, cnt, k, d, J[p])
+                            cnt = push(bd, bj, cnt, k, d, J[p])
                 _store_row(i, bd, bj, k, nbr, d2, d0, kth2)
 
     @njit(cache=True, parallel=True, boundscheck=False)
     def query_rings(rows, P, h, hk, hv, bits, cstart, cend, X, Y, Z, J, cmin, cmax, k, nbr, d2, d0, kth2):
-        """Exact rows of the given points by rings of cells around each point's cell, stopping
-        when the K-th distance is within the rings' guaranteed radius or the rings cover every
-        cell (cmin/cmax: (3,) the cells' coordinate bounds). Needs more than K points."""
+        """Exact rows of the given points by rings of cells around each point's cell
+        (:func:`~.cell_search.ring_knn`; cmin/cmax: (3,) the cells' coordinate bounds). Needs more
+        than K points."""
+        no_dims = np.ones(3, np.int64)
         for t in prange(rows.shape[0]):
             i = rows[t]
             bd = np.empty(k)
@@ -247,35 +232,13 @@ if NB is not None:
             cx = coord(P[i, 0], h)
             cy = coord(P[i, 1], h)
             cz = coord(P[i, 2], h)
-            fd = min(_face(px, cx, h), _face(py, cy, h), _face(pz, cz, h))
-            rmax = max(max(cx - cmin[0], cmax[0] - cx), max(cy - cmin[1], cmax[1] - cy),
-                       max(cz - cmin[2], cmax[2] - cz))
-            cnt = 0
-            r = 0
-            while True:
-                for ax in range(-r, r + 1):
-                    for ay in range(-r, r + 1):
-                        edge = abs(ax) == r or abs(ay) == r
-                        az = -r
-                        while az <= r:
-                            s = find(hk, bits, cell_key(cx + ax, cy + ay, cz + az))
-                            if hk[s] != -1:
-                                cc = hv[s]
-                                for p in range(cstart[cc], cend[cc]):
-                                    j = J[p]
-                                    if j == i:
-                                        continue
-                                    ex = X[p] - px
-                                    ey = Y[p] - py
-                                    ez = Z[p] - pz
-                                    cnt = _push(bd, bj, cnt, k, ex * ex + ey * ey + ez * ez, j)
-                            az = az + 1 if (edge or az == r) else r  # only the shell of ring r
-                        # (az jumps from -r to r inside the shell's interior columns)
-                g = r * h + fd
-                if (cnt == k and bd[k - 1] <= g * g) or r >= rmax:
-                    break
-                r += 1
+            lx = np.float64(cx - OFF) * h
+            ly = np.float64(cy - OFF) * h
+            lz = np.float64(cz - OFF) * h
+            ring_knn(i, px, py, pz, (cx, cy, cz), (px - lx, py - ly, pz - lz), (lx + h - px, ly + h - py, lz + h - pz),
+                     h, cmin, cmax, no_dims, hk, hv, bits, cstart, cend, X, Y, Z, J, k, bd, bj)
             _store_row(i, bd, bj, k, nbr, d2, d0, kth2)
+
 
 class GridRows:
     """The rows of :class:`~diffuser_lab.method.growing.IncrementalKnnGraph` from the hash grid of
