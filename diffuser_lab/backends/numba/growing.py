@@ -61,6 +61,21 @@ if NB is not None:
             cell_of[i] = cid
         return ncells
 
+    @njit(cache=True, boundscheck=False, inline="always")
+    def _move_run(c, pend, cap, cstart, cend, climit, fresh, X, Y, Z, J, nX, nY, nZ, nJ):
+        """Cell c's run copied from the pool X/Y/Z/J to position pend of the pool nX/nY/nZ/nJ (the
+        same or a new one) with room for cap points."""
+        ln = cend[c] - cstart[c]
+        for e in range(ln):
+            nX[pend + e] = X[cstart[c] + e]
+            nY[pend + e] = Y[cstart[c] + e]
+            nZ[pend + e] = Z[cstart[c] + e]
+            nJ[pend + e] = J[cstart[c] + e]
+        fresh[c] = pend + fresh[c] - cstart[c]
+        cstart[c] = pend
+        cend[c] = pend + ln
+        climit[c] = pend + cap
+
     @njit(cache=True, boundscheck=False)
     def grid_append(lo, hi, P, cell_of, cstart, cend, climit, fresh, X, Y, Z, J, pend):
         """Append points lo..hi-1 to their cells' runs in the pool X/Y/Z (float64 coordinates), J
@@ -70,19 +85,10 @@ if NB is not None:
         for i in range(lo, hi):
             c = cell_of[i]
             if cend[c] == climit[c]:
-                ln = cend[c] - cstart[c]
-                cap = max(4, 2 * ln)
+                cap = max(4, 2 * (cend[c] - cstart[c]))
                 if pend + cap > X.shape[0]:
                     return i, pend
-                for e in range(ln):
-                    X[pend + e] = X[cstart[c] + e]
-                    Y[pend + e] = Y[cstart[c] + e]
-                    Z[pend + e] = Z[cstart[c] + e]
-                    J[pend + e] = J[cstart[c] + e]
-                fresh[c] = pend + fresh[c] - cstart[c]
-                cstart[c] = pend
-                cend[c] = pend + ln
-                climit[c] = pend + cap
+                _move_run(c, pend, cap, cstart, cend, climit, fresh, X, Y, Z, J, X, Y, Z, J)
                 pend += cap
             p = cend[c]
             X[p] = np.float64(P[i, 0])
@@ -97,16 +103,8 @@ if NB is not None:
         """Copy every run into the new pool nX/nY/nZ/nJ with room for twice its length; returns pend."""
         pend = 0
         for c in range(ncells):
-            ln = cend[c] - cstart[c]
-            for e in range(ln):
-                nX[pend + e] = X[cstart[c] + e]
-                nY[pend + e] = Y[cstart[c] + e]
-                nZ[pend + e] = Z[cstart[c] + e]
-                nJ[pend + e] = J[cstart[c] + e]
-            fresh[c] = pend + fresh[c] - cstart[c]
-            cstart[c] = pend
-            cend[c] = pend + ln
-            climit[c] = pend + max(4, 2 * ln)
+            _move_run(c, pend, max(4, 2 * (cend[c] - cstart[c])), cstart, cend, climit, fresh, X, Y, Z, J, nX, nY, nZ,
+                      nJ)
             pend = climit[c]
         return pend
 
