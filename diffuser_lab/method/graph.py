@@ -9,9 +9,10 @@ Speed: :func:`build_graph` sorts the points along a Morton (Z-order) curve first
 that order throughout (kNN, weights, and later the normalised system and the diffusion), so that
 a point's neighbours are near it in memory. With numba (the ``fast`` extra) the Morton order, an
 exact kNN on a uniform grid (cells about the K-th neighbour distance, processed cell by cell) and
-the weights are compiled, else scipy's cKDTree is queried in that order
-(:mod:`diffuser_lab.backends.knn` holds both). The graph it returns exposes ``neighbors``/``weights`` in the caller's point order (built
-on first access); results never depend on the input order except through exact distance ties.
+the weights are compiled, else scipy's cKDTree is queried in that order (both in
+:mod:`diffuser_lab.backends.knn`). The graph it returns exposes ``neighbors``/``weights`` in the
+caller's point order (built on first access); results never depend on the input order except
+through exact distance ties.
 """
 from __future__ import annotations
 
