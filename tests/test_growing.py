@@ -1,16 +1,19 @@
-"""VoxelMap and IncrementalKnnGraph (diffuser_lab.method.growing): the incrementally grown graph
-equals build_graph on the same points, the changed-row sets are complete, the voxel map is fixed in
-the world. Both paths: compiled (numba) and numpy/scipy."""
+"""VoxelMap (diffuser_lab.data.voxel_map) and IncrementalKnnGraph (diffuser_lab.method.growing): the
+incrementally grown graph equals build_graph on the same points, the changed-row sets are complete,
+the voxel map is fixed in the world. Both paths: compiled (numba) and numpy/scipy."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
 from diffuser_lab.backends import numba as nb
+from diffuser_lab.backends.voxel_map import voxel_keys
+from diffuser_lab.data import voxel_map
 from diffuser_lab.data.geometry import backproject
+from diffuser_lab.data.voxel_map import VoxelMap
 from diffuser_lab.method import growing
 from diffuser_lab.method.graph import build_graph
-from diffuser_lab.method.growing import IncrementalKnnGraph, VoxelMap, voxel_keys
+from diffuser_lab.method.growing import IncrementalKnnGraph
 
 K = 24
 
@@ -111,6 +114,20 @@ def test_paths_agree(frames, monkeypatch):
     assert g_fixed.sigma_d == 0.05
 
 
+def test_ring_search_alone_gives_the_rows(frames):
+    """Every row of a grown graph recomputed by the ring search alone (cell_search.ring_knn, which
+    the batch grid kNN shares) is the row the compiled path holds."""
+    if not nb.available():
+        pytest.skip("numba not available")
+    vm, g = VoxelMap(0.02), IncrementalKnnGraph(K)
+    for f in frames[:3]:
+        g.add(*vm.insert(f, None))
+    nbr, d2 = g.neighbors.copy(), g.dist2.copy()
+    g._rows._rings(g._arrays(), np.arange(g.n, dtype=np.int64))
+    np.testing.assert_array_equal(g.neighbors, nbr)
+    np.testing.assert_array_equal(g.dist2, d2)
+
+
 def test_small_start_and_duplicates(path):
     """From an empty graph: at most K points give padded rows (own index, weight 0); duplicates
     (distance 0) are neighbours and rho skips them, as in build_graph."""
@@ -192,7 +209,7 @@ def test_voxel_map_deterministic(frames, monkeypatch):
 
 def test_module_switch(monkeypatch):
     monkeypatch.setattr(nb, "available", lambda: False)
-    assert not growing.VoxelMap(0.02)._nb and not growing.IncrementalKnnGraph()._nb
+    assert not voxel_map.VoxelMap(0.02)._nb and not growing.IncrementalKnnGraph()._nb
     with pytest.raises(ValueError):
         VoxelMap(0.0)
     g = IncrementalKnnGraph(K)

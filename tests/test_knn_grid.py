@@ -1,10 +1,11 @@
-"""The compiled graph pieces (diffuser_lab.backends.numba.knn) against plain references: the grid kNN gives the
-brute-force neighbour sets (float64 distances, ties by sorted index), the Morton order is
-numpy's, and the fused normalisation is bit for bit the numpy one."""
+"""The compiled graph pieces (diffuser_lab.backends.numba: morton, grid_knn, weights) against plain
+references: the grid kNN gives the brute-force neighbour sets (float64 distances, ties by sorted
+index), the Morton order is numpy's, and the fused normalisation is bit for bit the numpy one."""
 import numpy as np
 import pytest
 
 from diffuser_lab.backends import numba as nb
+from diffuser_lab.backends.numba import cell_search, grid_knn
 from diffuser_lab.data.geometry import morton_codes, quantize
 from diffuser_lab.method.diffusion import EDGE_FLOOR, normalise
 from diffuser_lab.method.graph import build_graph
@@ -41,10 +42,8 @@ def clouds():
 
 @pytest.mark.parametrize("name,pts,k", list(clouds()), ids=[c[0] for c in clouds()])
 def test_grid_knn_is_brute_force(name, pts, k):
-    from diffuser_lab.backends.numba import knn
-
     pts = pts.astype(np.float32)
-    order, P4, _, res = knn.sorted_knn(pts, None, k)
+    order, P4, _, res = grid_knn.sorted_knn(pts, None, k)
     np.testing.assert_array_equal(order, np.argsort(morton_codes(quantize(pts)[0]), kind="stable"))
     assert res is not None  # the grid, not the KD-tree fallback
     idx, d0 = res
@@ -81,3 +80,37 @@ def test_weights_and_normalisation_match_the_numpy_path():
     P[P < EDGE_FLOOR] = 0.0
     np.testing.assert_array_equal(sys_.sorted_P, P)
     np.testing.assert_array_equal(sys_.B, pix * inv[:, None])
+
+
+@pytest.mark.parametrize("name,pts,k", list(clouds()), ids=[c[0] for c in clouds()])
+def test_ring_search_is_brute_force(name, pts, k):
+    """The ring search alone (cell_search.ring_knn: the grid kNN's last resort, shared with the
+    growing map's hash grid), run for every point of a dense grid of about 10 cells a side, gives
+    the brute-force rows."""
+    p = pts.astype(np.float32).astype(np.float64)
+    h = 0.1 * np.ptp(p, 0).max()
+    lo = p.min(0)
+    c = np.floor((p - lo) / h).astype(np.int64)
+    dims = c.max(0) + 1
+    lin = (c[:, 0] * dims[1] + c[:, 1]) * dims[2] + c[:, 2]
+    o = np.argsort(lin, kind="stable")
+    start = np.searchsorted(lin[o], np.arange(np.prod(dims) + 1))
+    X, Y, Z = (np.ascontiguousarray(p[o, a]) for a in range(3))
+    eps = 1e-9 * h  # the faces' distances a little short: cell of a point at a face by rounding
+    flo, fhi = p - (lo + c * h) - eps, lo + (c + 1) * h - p - eps
+
+    @nb.NB.njit
+    def rows(flo, fhi, c, h, dims, start, X, Y, Z, J, k):
+        out = np.empty((J.shape[0], k), np.int64)
+        bd = np.empty(k)
+        no_table = np.empty(0, np.int64)
+        for a in range(J.shape[0]):
+            cell_search.ring_knn(J[a], X[a], Y[a], Z[a], (c[a, 0], c[a, 1], c[a, 2]), (flo[a, 0], flo[a, 1], flo[a, 2]),
+                                 (fhi[a, 0], fhi[a, 1], fhi[a, 2]), h, np.zeros(3, np.int64), dims - 1, dims,
+                                 no_table, no_table, 0, start, start[1:], X, Y, Z, J, k, bd, out[a])
+        return out
+
+    # the grid holds the points in cell order, J their indices
+    idx = np.empty((len(o), k), np.int64)
+    idx[o] = rows(flo[o], fhi[o], c[o], h, dims, start, X, Y, Z, o, k)
+    np.testing.assert_array_equal(np.sort(idx, 1), brute(pts.astype(np.float32), k))

@@ -1,5 +1,11 @@
-"""The hot loops behind one small interface (:class:`~diffuser_lab.backends.base.JacobiBackend`):
-a registry of Jacobi backends (``solver.backend``), each with its dense and, where it has one,
+"""The hot loops, below the method: numba kernels (numba/) with their numpy/scipy twins, and torch
+for CUDA (torch.py). Without numba (or with DIFFUSER_LAB_NUMBA=0) everything runs on numpy/scipy;
+the modules here choose, once per operation: normalise.py (Eqs. 14-15), knn.py (the kNN graph),
+growing.py and voxel_map.py (a growing map's graph and voxels), evidence.py (the fused evidence
+pass), records.py (the Z states a run records), krylov.py (GMRES on a backend's products).
+
+The Jacobi steps of Eq. 10 sit behind one small interface (:class:`~diffuser_lab.backends.base.JacobiBackend`):
+:data:`BACKENDS` is their registry (``solver.backend``), each with its dense and, where it has one,
 its sparse-class-set variant (``solver.sparse_classes``). A new backend is one module and one
 entry of :data:`BACKENDS`."""
 from __future__ import annotations

@@ -9,9 +9,10 @@ Speed: :func:`build_graph` sorts the points along a Morton (Z-order) curve first
 that order throughout (kNN, weights, and later the normalised system and the diffusion), so that
 a point's neighbours are near it in memory. With numba (the ``fast`` extra) the Morton order, an
 exact kNN on a uniform grid (cells about the K-th neighbour distance, processed cell by cell) and
-the weights are compiled (:mod:`diffuser_lab.backends.numba.knn`), else scipy's cKDTree is queried in that
-order. The graph it returns exposes ``neighbors``/``weights`` in the caller's point order (built
-on first access); results never depend on the input order except through exact distance ties.
+the weights are compiled, else scipy's cKDTree is queried in that order (both in
+:mod:`diffuser_lab.backends.knn`). The graph it returns exposes ``neighbors``/``weights`` in the
+caller's point order (built on first access); results never depend on the input order except
+through exact distance ties.
 """
 from __future__ import annotations
 
@@ -19,11 +20,15 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.spatial import cKDTree
 
 from diffuser_lab import progress
+from diffuser_lab.backends import knn as knn_backend
+from diffuser_lab.backends.knn import normal_distance2
 from diffuser_lab.config import GraphConfig, NormalSign
 from diffuser_lab.data.geometry import estimate_normals
+
+__all__ = ["KnnGraph", "SortedKnnGraph", "build_graph", "graph_stage", "knn", "make_graph", "mean_spacing",
+           "normal_distance2"]
 
 
 @dataclass
@@ -113,14 +118,8 @@ def knn(points: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     n = points.shape[0]
     if k >= n:
         raise ValueError(f"graph.k={k} must be smaller than the number of points ({n})")
-    dist, idx = cKDTree(points).query(points, k=k + 1, workers=-1)
-    # Drop the point itself; with exact duplicates it need not come first, and if it is not
-    # among the k+1 at all (more than k duplicates) drop the farthest instead.
-    is_self = idx == np.arange(n)[:, None]
-    is_self[~is_self.any(1), -1] = True
-    first = is_self.cumsum(1) == 1
-    keep = ~(is_self & first)
-    return dist[keep].reshape(n, k).astype(np.float32), idx[keep].reshape(n, k).astype(np.int32)
+    dist, idx = knn_backend.kdtree_knn(points, k)
+    return dist.astype(np.float32), idx.astype(np.int32)
 
 
 def mean_spacing(dist: np.ndarray) -> float:
@@ -130,24 +129,6 @@ def mean_spacing(dist: np.ndarray) -> float:
     if pos.size == 0:
         raise ValueError("all points coincide: the mean point spacing rho is 0")
     return float(pos.mean())
-
-
-def normal_distance2(ni: np.ndarray, nj: np.ndarray, invariant: bool) -> np.ndarray:
-    """|n_i - n_j|^2 for unit normals; ``invariant`` takes min over the sign of n_j (= 2 - 2|n_i.n_j|)."""
-    dot = np.einsum("...d,...d->...", ni, nj)
-    if invariant:
-        dot = np.abs(dot)
-    return np.maximum(2.0 - 2.0 * dot, 0.0)
-
-
-def _knn_kdtree(points: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`knn` with float64 squared distances (the scipy path of :func:`build_graph`)."""
-    n = points.shape[0]
-    dist, idx = cKDTree(points).query(points, k=k + 1, workers=-1)
-    is_self = idx == np.arange(n)[:, None]
-    is_self[~is_self.any(1), -1] = True
-    keep = ~(is_self & (is_self.cumsum(1) == 1))
-    return idx[keep].reshape(n, k).astype(np.int32), np.square(dist[keep].reshape(n, k))
 
 
 def build_graph(points: np.ndarray, k: int = 24, normals: np.ndarray | None = None, *,
@@ -164,8 +145,6 @@ def build_graph(points: np.ndarray, k: int = 24, normals: np.ndarray | None = No
     Returns:
         a :class:`SortedKnnGraph` (see module doc).
     """
-    from diffuser_lab.backends import numba as nb
-
     points = np.ascontiguousarray(points, np.float32)
     n = points.shape[0]
     if points.ndim != 2 or points.shape[1] != 3:
@@ -174,45 +153,16 @@ def build_graph(points: np.ndarray, k: int = 24, normals: np.ndarray | None = No
         raise ValueError(f"normals must be (N, 3) like the points, got {np.shape(normals)}")
     if k >= n:
         raise ValueError(f"graph.k={k} must be smaller than the number of points ({n})")
-    if backend == "numba" and not nb.available():
-        raise RuntimeError("graph backend numba: numba is not importable (it is a dependency: pip install numba) or DIFFUSER_LAB_NUMBA=0 is set")
-    use_nb = backend != "scipy" and nb.available()
-    if use_nb:
-        from diffuser_lab.backends.numba import knn as _knn
-
-        # P4/N4: sorted points and normals as float64 rows of 4 (what the weights read);
-        # d0: per point the smallest positive squared distance of its row
-        order, P4, N4, res = _knn.sorted_knn(points, normals, k)
-        if res is not None:
-            idx, d0 = res
-        else:  # too sparse for a dense grid
-            idx, d2 = _knn_kdtree(P4[:, :3], k)
-            d0 = np.where(d2 > 0, d2, np.inf).min(1)
-    else:
-        from diffuser_lab.data.geometry import morton_codes, quantize
-
-        order = np.argsort(morton_codes(quantize(points)[0]), kind="stable")
-        ps = points[order]
-        nrm = None if normals is None else np.asarray(normals, np.float32)[order]
-        idx, d2 = _knn_kdtree(ps, k)
-        d0 = np.where(d2 > 0, d2, np.inf).min(1)
+    nbrs = knn_backend.sorted_knn(points, normals, k, backend)
     # rho: per point the nearest *distinct* neighbour (duplicates at distance 0 skipped)
-    d0 = np.sqrt(d0)
+    d0 = np.sqrt(nbrs.d0)
     pos = d0[np.isfinite(d0)]
     if pos.size == 0:
         raise ValueError("all points coincide: the mean point spacing rho is 0")
     rho = float(pos.mean())
     sd = float(sigma_d) if sigma_d is not None else sigma_d_factor * rho
-    if use_nb:
-        w, wsum = _knn.edge_weights(P4, idx, N4, invariant_normals, sd, sigma_s)
-    else:
-        expo = d2 * (-0.5 / sd**2)
-        if nrm is not None:
-            expo -= normal_distance2(nrm[:, None, :].astype(np.float64), nrm[idx].astype(np.float64),
-                                     invariant_normals) * (0.5 / sigma_s**2)
-        w = np.exp(expo).astype(np.float32)
-        wsum = w.sum(1, dtype=np.float64)
-    return SortedKnnGraph(order=order, sorted_neighbors=idx, sorted_weights=w, sorted_row_sums=wsum,
+    w, wsum = knn_backend.edge_weights(nbrs, invariant_normals, sd, sigma_s)
+    return SortedKnnGraph(order=nbrs.order, sorted_neighbors=nbrs.idx, sorted_weights=w, sorted_row_sums=wsum,
                           rho=rho, sigma_d=sd)
 
 
@@ -220,12 +170,8 @@ def graph_stage(n_points: int, g: GraphConfig, estimating_normals: bool):
     """The progress stage of :func:`make_graph` (+ :func:`~diffuser_lab.method.diffusion.normalise`) on
     ``n_points`` points, noting a first run's kernel compilation."""
     name = f"kNN graph (k={g.k}, {n_points:,} points{', estimating normals' if estimating_normals else ''})"
-    if progress.enabled():
-        from diffuser_lab.backends import numba as nb
-        from diffuser_lab.backends.numba import knn
-
-        if nb.first_compile(knn):
-            name += progress.COMPILING
+    if progress.enabled() and knn_backend.compiles():
+        name += progress.COMPILING
     return progress.stage(name)
 
 

@@ -3,7 +3,7 @@
 Per frame (:meth:`OnlineDiffuser.add_frame`):
 
 1. growing map only: the frame's depth is back-projected (every ``online.depth_stride``-th pixel)
-   and merged on a world-anchored voxel grid (:class:`~diffuser_lab.method.growing.VoxelMap`);
+   and merged on a world-anchored voxel grid (:class:`~diffuser_lab.data.voxel_map.VoxelMap`);
    the new points get normals from the depth image, the evidence of the ``online.revisit``
    frames before (those that see them within the depth check), and the kNN graph (Eqs. 3-4) is
    extended for them and for the old rows they enter
@@ -52,7 +52,8 @@ from diffuser_lab.data.scene import IGNORE, Frame, Taxonomy
 from diffuser_lab.method.diffusion import System, labels_from_scores
 from diffuser_lab.method.evidence import RunEvidence
 from diffuser_lab.method.graph import make_graph
-from diffuser_lab.method.growing import IncrementalKnnGraph, VoxelMap
+from diffuser_lab.data.voxel_map import VoxelMap
+from diffuser_lab.method.growing import IncrementalKnnGraph
 
 STEPS_GIVEN = 10
 """Default steps per frame on a given map (``online.steps=null``)."""

@@ -18,7 +18,8 @@ import pytest
 
 from diffuser_lab.backends import numba as nb
 from diffuser_lab.data.geometry import backproject
-from diffuser_lab.method.growing import IncrementalKnnGraph, VoxelMap
+from diffuser_lab.data.voxel_map import VoxelMap
+from diffuser_lab.method.growing import IncrementalKnnGraph
 
 
 @pytest.fixture(scope="module")

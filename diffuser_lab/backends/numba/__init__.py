@@ -1,5 +1,8 @@
-"""Compiled CPU kernels (numba), grouped by what they compute: ``knn.py`` (Morton order, grid
-kNN, Eq. 4 weights), ``normalise.py`` (the rows of Eqs. 14-15), ``jacobi.py`` (the Jacobi steps of Eq. 10 on threads
+"""Compiled CPU kernels (numba), grouped by what they compute: ``morton.py`` (Morton order),
+``grid_knn.py`` (the batch grid kNN), ``growing.py`` (the growing map's grid kNN),
+``cell_search.py`` (the ring search both grids share), ``weights.py`` (Eq. 4), ``hashing.py``
+and ``voxel_map.py`` (hash tables, the growing map's voxel merge), ``normalise.py`` (the rows of
+Eqs. 14-15), ``jacobi.py`` (the Jacobi steps of Eq. 10 on threads
 meeting at a barrier, ``_sync.py``; generated row kernels in ``_unrolled.py``), ``evidence.py``
 (the fused evidence of one frame, Eqs. 1-2) and ``float16.py`` (Z states encoded for run.mcap).
 
@@ -64,17 +67,15 @@ def cold() -> bool:
     and the evidence kernels), i.e. the next run would compile them (~25 s)."""
     if NB is None:
         return False
-    from . import evidence, knn
+    from . import evidence, grid_knn, morton, weights
 
-    return first_compile(knn, evidence)
+    return first_compile(morton, grid_knn, weights, evidence)
 
 
 def _lock_path():
     from pathlib import Path
 
-    from . import knn
-
-    base = Path(NB.config.CACHE_DIR) if NB.config.CACHE_DIR else Path(knn.__file__).with_name("__pycache__")
+    base = Path(NB.config.CACHE_DIR) if NB.config.CACHE_DIR else Path(__file__).with_name("__pycache__")
     return base / "diffuser_lab_warm.lock"
 
 

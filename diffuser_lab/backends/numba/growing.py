@@ -1,128 +1,32 @@
-"""Compiled (numba) pieces of :mod:`diffuser_lab.method.growing`: the voxel map's hash insert and
-the incremental kNN graph's hash grid and queries.
+"""Compiled (numba) kNN rows of the growing map's graph (:class:`~diffuser_lab.method.growing.IncrementalKnnGraph`):
+a hash grid extended add by add (:class:`GridRows`).
 
-Hash tables: open addressing with linear probing on non-negative int64 keys (-1 = empty slot),
-Fibonacci hashing, at most half full (the caller grows them first, :func:`rehash`).
-
-Graph grid: cubic cells of ``h`` metres (a high quantile of the rows' K-th neighbour distance),
-numbered once in a hash table of their packed coordinates and linked to their 26 neighbours
-(``cell_nb``), so a query reads no table. Each cell's points are one run of a pool (float64
-coordinates and indices, in index order, so an add's points are each run's tail) with room to
-grow; a full run moves to the pool's end with twice the room (amortised O(new points) per add).
-A query scans its cell's 3x3x3 block keeping the K best by (squared distance, index) under a
+Grid: cubic cells of ``h`` metres (a high quantile of the rows' K-th neighbour distance),
+numbered once in a hash table of their packed coordinates (:mod:`.hashing`) and linked to their
+26 neighbours (``cell_nb``), so a query reads no table. Each cell's points are one run of a pool
+(float64 coordinates and indices, in index order, so an add's points are each run's tail) with
+room to grow; a full run moves to the pool's end with twice the room (amortised O(new points) per
+add). A query scans its cell's 3x3x3 block keeping the K best by (squared distance, index) under a
 threshold guessed from the previous row, and is exact when the K-th distance is within the
 block's guaranteed radius (``h`` + the point's distance to its cell's faces); the other points are
-searched again ring by ring (:func:`query_rings`) until no closer point can remain. Squared
-distances are float64 from the float32 coordinates, as in :func:`~diffuser_lab.method.graph.build_graph`.
+searched again ring by ring (:func:`~.cell_search.ring_knn`, the batch grid kNN's search) until no
+closer point can remain. Squared distances are float64 from the float32 coordinates, as in
+:func:`~diffuser_lab.method.graph.build_graph`.
 """
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
 
-from . import NB
-
-OFF = 1 << 20
-"""Offset of signed cell / voxel coordinates into 21 unsigned bits."""
+from . import NB, n_threads
+from .hashing import OFF, HashTable
+from .weights import row_weights
 
 if NB is not None:
     from numba import njit, prange
 
-    from diffuser_lab.data.geometry import _spread_bits
-    from .knn import exp_split  # Eq. 4 weights bit for bit as the batch graph
-
-    _spread = njit(cache=True, boundscheck=False, inline="always")(_spread_bits)
-
-    @njit(cache=True, boundscheck=False, inline="always")
-    def _slot(key, bits):
-        return np.int64((np.uint64(key) * np.uint64(0x9E3779B97F4A7C15)) >> np.uint64(64 - bits))
-
-    @njit(cache=True, boundscheck=False, inline="always")
-    def _find(hk, bits, key):
-        """Slot of ``key`` or of the empty slot where it would go."""
-        mask = (np.int64(1) << bits) - 1
-        s = _slot(key, bits)
-        while hk[s] != key and hk[s] != -1:
-            s = (s + 1) & mask
-        return s
-
-    @njit(cache=True, boundscheck=False)
-    def rehash(hk, hv, nk, nv, bits):
-        """Copy the entries of table (hk, hv) into the empty table (nk, nv) of 2**bits slots."""
-        for s in range(hk.shape[0]):
-            if hk[s] != -1:
-                t = _find(nk, bits, hk[s])
-                nk[t] = hk[s]
-                nv[t] = hv[s]
-
-    @njit(cache=True, boundscheck=False, inline="always")
-    def _coord(v, size):
-        a = np.floor(np.float64(v) / size)
-        a = min(max(a, -float(OFF)), float(OFF - 1))  # NaN -> -OFF (np.clip's NaN stays; never here)
-        return np.int64(a) + OFF
-
-    @njit(cache=True, boundscheck=False)
-    def voxel_insert(points, normals, use_n, size, hk, hv, bits, n_map, keys, slots, sums, nsums, counts, first):
-        """One frame into the voxel map: points in occupied voxels (value < n_map) are dropped;
-        the others are summed per new voxel, numbered n_map + t in order of first appearance.
-
-        Returns t, the number of new voxels: keys[:t] their Morton keys, slots[:t] their table
-        slots, sums/nsums[:t] (float64) sums of points / normals, counts[:t], first[:t] the
-        index of their first point."""
-        t = 0
-        last = np.int64(-1)
-        s = 0
-        for i in range(points.shape[0]):
-            x = _coord(points[i, 0], size)
-            y = _coord(points[i, 1], size)
-            z = _coord(points[i, 2], size)
-            key = np.int64(_spread(np.uint64(x)) | (_spread(np.uint64(y)) << np.uint64(1))
-                           | (_spread(np.uint64(z)) << np.uint64(2)))
-            if key != last:  # neighbouring pixels mostly share a voxel: no probe
-                s = _find(hk, bits, key)
-                last = key
-            if hk[s] == -1:
-                hk[s] = key
-                hv[s] = n_map + t
-                keys[t] = key
-                slots[t] = s
-                first[t] = i
-                counts[t] = 0
-                for a in range(3):
-                    sums[t, a] = 0.0
-                    nsums[t, a] = 0.0
-                t += 1
-            v = hv[s] - n_map
-            if v < 0:
-                continue
-            counts[v] += 1
-            for a in range(3):
-                sums[v, a] += np.float64(points[i, a])
-            if use_n:
-                for a in range(3):
-                    nsums[v, a] += np.float64(normals[i, a])
-        return t
-
-    @njit(cache=True, boundscheck=False)
-    def voxel_occupied(points, size, hk, bits, out):
-        """out[i]: point i's voxel is in the table (a map point holds it)."""
-        last = np.int64(-1)
-        hit = False
-        for i in range(points.shape[0]):
-            x = _coord(points[i, 0], size)
-            y = _coord(points[i, 1], size)
-            z = _coord(points[i, 2], size)
-            key = np.int64(_spread(np.uint64(x)) | (_spread(np.uint64(y)) << np.uint64(1))
-                           | (_spread(np.uint64(z)) << np.uint64(2)))
-            if key != last:
-                hit = hk[_find(hk, bits, key)] == key
-                last = key
-            out[i] = hit
-
-    # --- graph grid ---
-
-    @njit(cache=True, boundscheck=False, inline="always")
-    def _ckey(cx, cy, cz):
-        return (cx << 42) | (cy << 21) | cz
+    from .cell_search import push, ring_knn
+    from .hashing import cell_key, coord, find
 
     @njit(cache=True, boundscheck=False)
     def grid_assign(P, lo, hi, h, hk, hv, bits, cell_c, cell_nb, ncells, cell_of):
@@ -132,13 +36,13 @@ if NB is not None:
         last = np.int64(-1)
         cid = 0
         for i in range(lo, hi):
-            cx = _coord(P[i, 0], h)
-            cy = _coord(P[i, 1], h)
-            cz = _coord(P[i, 2], h)
-            key = _ckey(cx, cy, cz)
+            cx = coord(P[i, 0], h)
+            cy = coord(P[i, 1], h)
+            cz = coord(P[i, 2], h)
+            key = cell_key(cx, cy, cz)
             if key != last:
                 last = key
-                s = _find(hk, bits, key)
+                s = find(hk, bits, key)
                 if hk[s] == -1:
                     hk[s] = key
                     hv[s] = ncells
@@ -147,7 +51,7 @@ if NB is not None:
                     cell_c[ncells, 2] = cz
                     for o in range(27):
                         ax, ay, az = o // 9 - 1, (o // 3) % 3 - 1, o % 3 - 1
-                        t = _find(hk, bits, _ckey(cx + ax, cy + ay, cz + az))
+                        t = find(hk, bits, cell_key(cx + ax, cy + ay, cz + az))
                         d = hv[t] if hk[t] != -1 else -1
                         cell_nb[ncells, o] = d
                         if d >= 0:
@@ -156,6 +60,21 @@ if NB is not None:
                 cid = hv[s]
             cell_of[i] = cid
         return ncells
+
+    @njit(cache=True, boundscheck=False, inline="always")
+    def _move_run(c, pend, cap, cstart, cend, climit, fresh, X, Y, Z, J, nX, nY, nZ, nJ):
+        """Cell c's run copied from the pool X/Y/Z/J to position pend of the pool nX/nY/nZ/nJ (the
+        same or a new one) with room for cap points."""
+        ln = cend[c] - cstart[c]
+        for e in range(ln):
+            nX[pend + e] = X[cstart[c] + e]
+            nY[pend + e] = Y[cstart[c] + e]
+            nZ[pend + e] = Z[cstart[c] + e]
+            nJ[pend + e] = J[cstart[c] + e]
+        fresh[c] = pend + fresh[c] - cstart[c]
+        cstart[c] = pend
+        cend[c] = pend + ln
+        climit[c] = pend + cap
 
     @njit(cache=True, boundscheck=False)
     def grid_append(lo, hi, P, cell_of, cstart, cend, climit, fresh, X, Y, Z, J, pend):
@@ -166,19 +85,10 @@ if NB is not None:
         for i in range(lo, hi):
             c = cell_of[i]
             if cend[c] == climit[c]:
-                ln = cend[c] - cstart[c]
-                cap = max(4, 2 * ln)
+                cap = max(4, 2 * (cend[c] - cstart[c]))
                 if pend + cap > X.shape[0]:
                     return i, pend
-                for e in range(ln):
-                    X[pend + e] = X[cstart[c] + e]
-                    Y[pend + e] = Y[cstart[c] + e]
-                    Z[pend + e] = Z[cstart[c] + e]
-                    J[pend + e] = J[cstart[c] + e]
-                fresh[c] = pend + fresh[c] - cstart[c]
-                cstart[c] = pend
-                cend[c] = pend + ln
-                climit[c] = pend + cap
+                _move_run(c, pend, cap, cstart, cend, climit, fresh, X, Y, Z, J, X, Y, Z, J)
                 pend += cap
             p = cend[c]
             X[p] = np.float64(P[i, 0])
@@ -193,16 +103,8 @@ if NB is not None:
         """Copy every run into the new pool nX/nY/nZ/nJ with room for twice its length; returns pend."""
         pend = 0
         for c in range(ncells):
-            ln = cend[c] - cstart[c]
-            for e in range(ln):
-                nX[pend + e] = X[cstart[c] + e]
-                nY[pend + e] = Y[cstart[c] + e]
-                nZ[pend + e] = Z[cstart[c] + e]
-                nJ[pend + e] = J[cstart[c] + e]
-            fresh[c] = pend + fresh[c] - cstart[c]
-            cstart[c] = pend
-            cend[c] = pend + ln
-            climit[c] = pend + max(4, 2 * ln)
+            _move_run(c, pend, max(4, 2 * (cend[c] - cstart[c])), cstart, cend, climit, fresh, X, Y, Z, J, nX, nY, nZ,
+                      nJ)
             pend = climit[c]
         return pend
 
@@ -218,24 +120,6 @@ if NB is not None:
                 dz0 = bd[e]
         d0[i] = dz0
         kth2[i] = bd[k - 1]
-
-    @njit(cache=True, boundscheck=False, inline="always")
-    def _push(bd, bj, cnt, k, d, j):
-        """Insert (d, j) into the ascending K-buffer bd/bj holding cnt entries; returns the new cnt."""
-        if cnt == k:
-            if d > bd[k - 1] or (d == bd[k - 1] and j > bj[k - 1]):
-                return cnt
-            p = k - 1
-        else:
-            p = cnt
-            cnt += 1
-        while p > 0 and (bd[p - 1] > d or (bd[p - 1] == d and bj[p - 1] > j)):
-            bd[p] = bd[p - 1]
-            bj[p] = bj[p - 1]
-            p -= 1
-        bd[p] = d
-        bj[p] = j
-        return cnt
 
     @njit(cache=True, boundscheck=False, inline="always")
     def _face(v, c, h):
@@ -282,7 +166,7 @@ if NB is not None:
                             if mk and d < h2 and j < n_old and d < kth2[j]:
                                 aff[j] = 1
                             if d <= lim and j != i:
-                                cnt = _push(bd, bj, cnt, k, d, j)
+                                cnt = push(bd, bj, cnt, k, d, j)
                                 if cnt == k:
                                     lim = min(lim, bd[k - 1])
                     if cnt == k or thr == np.inf:
@@ -327,14 +211,15 @@ if NB is not None:
                         ez = Z[p] - pz
                         d = ex * ex + ey * ey + ez * ez
                         if d <= bd[k - 1]:
-                            cnt = _push(bd, bj, cnt, k, d, J[p])
+                            cnt = push(bd, bj, cnt, k, d, J[p])
                 _store_row(i, bd, bj, k, nbr, d2, d0, kth2)
 
     @njit(cache=True, parallel=True, boundscheck=False)
     def query_rings(rows, P, h, hk, hv, bits, cstart, cend, X, Y, Z, J, cmin, cmax, k, nbr, d2, d0, kth2):
-        """Exact rows of the given points by rings of cells around each point's cell, stopping
-        when the K-th distance is within the rings' guaranteed radius or the rings cover every
-        cell (cmin/cmax: (3,) the cells' coordinate bounds). Needs more than K points."""
+        """Exact rows of the given points by rings of cells around each point's cell
+        (:func:`~.cell_search.ring_knn`; cmin/cmax: (3,) the cells' coordinate bounds). Needs more
+        than K points."""
+        no_dims = np.ones(3, np.int64)
         for t in prange(rows.shape[0]):
             i = rows[t]
             bd = np.empty(k)
@@ -342,70 +227,169 @@ if NB is not None:
             px = np.float64(P[i, 0])
             py = np.float64(P[i, 1])
             pz = np.float64(P[i, 2])
-            cx = _coord(P[i, 0], h)
-            cy = _coord(P[i, 1], h)
-            cz = _coord(P[i, 2], h)
-            fd = min(_face(px, cx, h), _face(py, cy, h), _face(pz, cz, h))
-            rmax = max(max(cx - cmin[0], cmax[0] - cx), max(cy - cmin[1], cmax[1] - cy),
-                       max(cz - cmin[2], cmax[2] - cz))
-            cnt = 0
-            r = 0
-            while True:
-                for ax in range(-r, r + 1):
-                    for ay in range(-r, r + 1):
-                        edge = abs(ax) == r or abs(ay) == r
-                        az = -r
-                        while az <= r:
-                            s = _find(hk, bits, _ckey(cx + ax, cy + ay, cz + az))
-                            if hk[s] != -1:
-                                cc = hv[s]
-                                for p in range(cstart[cc], cend[cc]):
-                                    j = J[p]
-                                    if j == i:
-                                        continue
-                                    ex = X[p] - px
-                                    ey = Y[p] - py
-                                    ez = Z[p] - pz
-                                    cnt = _push(bd, bj, cnt, k, ex * ex + ey * ey + ez * ez, j)
-                            az = az + 1 if (edge or az == r) else r  # only the shell of ring r
-                        # (az jumps from -r to r inside the shell's interior columns)
-                g = r * h + fd
-                if (cnt == k and bd[k - 1] <= g * g) or r >= rmax:
-                    break
-                r += 1
+            cx = coord(P[i, 0], h)
+            cy = coord(P[i, 1], h)
+            cz = coord(P[i, 2], h)
+            lx = np.float64(cx - OFF) * h
+            ly = np.float64(cy - OFF) * h
+            lz = np.float64(cz - OFF) * h
+            ring_knn(i, px, py, pz, (cx, cy, cz), (px - lx, py - ly, pz - lz), (lx + h - px, ly + h - py, lz + h - pz),
+                     h, cmin, cmax, no_dims, hk, hv, bits, cstart, cend, X, Y, Z, J, k, bd, bj)
             _store_row(i, bd, bj, k, nbr, d2, d0, kth2)
 
-    @njit(cache=True, parallel=True, boundscheck=False)
-    def row_weights(rows, nbr, d2, N, use_n, invariant, a_d, a_s, w, wsum, nparts):
-        """Eq. 4 for the given rows (in nparts parallel chunks): w = exp(-d2 a_d - |n_i - n_j|^2 a_s)
-        (float64, stored float32; padded entries have d2 = inf, so weight 0), wsum the float64 row sums."""
-        k = nbr.shape[1]
-        nr = rows.shape[0]
-        for t in prange(nparts):
-            ex = np.empty(k)
-            pw = np.empty(k, np.int64)
-            pwf = pw.view(np.float64)
-            for q in range(t * nr // nparts, (t + 1) * nr // nparts):
-                i = rows[q]
-                if use_n:
-                    n0 = np.float64(N[i, 0])
-                    n1 = np.float64(N[i, 1])
-                    n2 = np.float64(N[i, 2])
-                    for e in range(k):
-                        j = nbr[i, e]
-                        dot = n0 * np.float64(N[j, 0]) + n1 * np.float64(N[j, 1]) + n2 * np.float64(N[j, 2])
-                        if invariant:
-                            dot = abs(dot)
-                        tt = 2.0 - 2.0 * dot
-                        ex[e] = -d2[i, e] * a_d - (tt if tt > 0.0 else 0.0) * a_s
-                else:
-                    for e in range(k):
-                        ex[e] = -d2[i, e] * a_d
-                for e in range(k):
-                    ex[e], pw[e] = exp_split(ex[e])
-                acc = 0.0
-                for e in range(k):
-                    v = np.float32(ex[e] * pwf[e])
-                    w[i, e] = v
-                    acc += np.float64(v)
-                wsum[i] = acc
+
+class GridRows:
+    """The rows of :class:`~diffuser_lab.method.growing.IncrementalKnnGraph` from the hash grid of
+    this module (see module doc), and their Eq. 4 weights (:func:`~.weights.row_weights`).
+
+    ``arrays`` below: the graph's (points, nbr, d2, d0, kth) of its capacity's rows: (cap, 3)
+    float32 points; (cap, K) int32 neighbours and float64 squared distances, each row ascending by
+    (d2, index); (cap,) float64 the smallest positive d2 (inf if none) and the K-th d2.
+    """
+
+    compiled = True
+    CELL_QUANTILE = 0.97
+    """Grid cell side: this quantile of the rows' K-th neighbour distances."""
+
+    def __init__(self, k: int):
+        self.k = k
+        self._grid: dict | None = None
+
+    def build(self, arrays: tuple, n: int) -> None:
+        """Every row of the first n points (more than K), from a new grid."""
+        self._grid_build(arrays, n)
+        self._query(arrays, n, np.arange(n, dtype=np.int64), n_old=0, mark=False)
+
+    def extend(self, arrays: tuple, n_old: int, n: int) -> np.ndarray:
+        """Points n_old..n-1 into the grid and their rows; returns (r,) int64 the old rows (< n_old)
+        a new point is closer to than their K-th neighbour (:meth:`update` recomputes them)."""
+        P, _, _, _, kth = arrays
+        h2 = self._grid["h"] ** 2
+        kth2 = kth[:n_old]
+        # old rows reaching beyond the block around a new point: checked against the new points directly
+        wide = np.flatnonzero(kth2 > h2)
+        q = self.CELL_QUANTILE
+        if wide.size > 2 * (1 - q) * n_old or np.count_nonzero(kth2 > h2 / 2) < (1 - q) * n_old:
+            self._grid_build(arrays, n_old)  # cell side off the rows' K-th distances: a new grid of the old points
+            h2 = self._grid["h"] ** 2
+            wide = np.flatnonzero(kth2 > h2)
+        self._grid_add(P, n_old, n)
+        aff = self._query(arrays, n, np.arange(n_old, n, dtype=np.int64), n_old, mark=True)
+        if wide.size:
+            # their nearest new point, searched no farther than their own reach (bounds the
+            # KD-tree's work for the many far from this add); the few near ones are recomputed
+            # by rings, exactly (one at a tie of its K-th distance is reported though unchanged)
+            tree = cKDTree(P[n_old:n])
+            reach = np.sqrt(kth2[wide]) * (1 + 1e-9)
+            short = reach <= 2 * self._grid["h"]
+            dn = np.full(wide.size, np.inf)
+            if short.any():
+                dn[short] = tree.query(P[wide[short]], k=1, distance_upper_bound=float(reach[short].max()))[0]
+            if (~short).any():
+                dn[~short] = tree.query(P[wide[~short]], k=1)[0]
+            aff[wide[dn < reach]] = 1
+        return np.flatnonzero(aff).astype(np.int64)
+
+    def update(self, arrays: tuple, rows: np.ndarray) -> None:
+        """Recompute the old ``rows`` :meth:`extend` returned with the points it added."""
+        P, nbr, d2, d0, kth = arrays
+        g = self._grid
+        far = kth[rows] > g["h"] ** 2
+        self._rings(arrays, rows[far])  # wide rows: new points may lie beyond the block
+        near = rows[~far]
+        if near.size:
+            Q, parts = self._by_cell(near)
+            merge_rows(Q, P, g["cell_of"], g["cell_nb"], g["cend"], g["fresh"], *g["pool"], self.k, nbr, d2, d0, kth,
+                       parts)
+
+    def weights(self, rows: np.ndarray, nbr: np.ndarray, d2: np.ndarray, normals: np.ndarray | None, invariant: bool,
+                sigma_d: float, sigma_s: float, w: np.ndarray, wsum: np.ndarray) -> None:
+        """Eq. 4 for ``rows``, in place (:func:`~.weights.row_weights`)."""
+        row_weights(rows, nbr, d2, normals, invariant, sigma_d, sigma_s, w, wsum)
+
+    def _grid_build(self, arrays: tuple, n: int) -> None:
+        """Hash grid over the first n points, cell side from their rows (or, before any, a KD-tree sample)."""
+        P, _, _, _, kth = arrays
+        kth2 = kth[:n]
+        if self._grid is not None and np.isfinite(kth2).all():
+            r = float(np.sqrt(np.quantile(kth2, self.CELL_QUANTILE)))
+        else:
+            s = P[np.linspace(0, n - 1, min(n, 2048)).astype(np.int64)]
+            d, _ = cKDTree(P[:n]).query(s, k=self.k + 1)
+            r = float(np.quantile(d[:, -1], self.CELL_QUANTILE))
+        if not r > 0:
+            r = 1.0
+        c0 = 1024
+        self._grid = dict(h=r, table=HashTable(), ncells=0, cell_c=np.empty((c0, 3), np.int64),
+                          cell_nb=np.empty((c0, 27), np.int64), cstart=np.zeros(c0, np.int64),
+                          cend=np.zeros(c0, np.int64), climit=np.zeros(c0, np.int64), fresh=np.zeros(c0, np.int64),
+                          pool=tuple(np.empty(2 * n + 4096) for _ in range(3)) + (np.empty(2 * n + 4096, np.int64),),
+                          pend=0, cell_of=np.empty(P.shape[0], np.int64), cmin=None, cmax=None)
+        self._grid_add(P, 0, n)
+
+    def _grid_add(self, P: np.ndarray, lo: int, hi: int) -> None:
+        """Points lo..hi-1 into their cells (new cells linked to their neighbours) and the pool."""
+        g = self._grid
+        if g["cell_of"].shape[0] < P.shape[0]:  # the graph's capacity grew
+            cell_of = np.empty(P.shape[0], np.int64)
+            cell_of[:lo] = g["cell_of"][:lo]
+            g["cell_of"] = cell_of
+        tb = g["table"]
+        tb.reserve(hi - lo)
+        nc0 = g["ncells"]
+        if g["cell_c"].shape[0] < nc0 + hi - lo:
+            cap = max(2 * g["cell_c"].shape[0], nc0 + hi - lo)
+            for name in ("cell_c", "cell_nb", "cstart", "cend", "climit", "fresh"):
+                a = np.zeros((cap,) + g[name].shape[1:], g[name].dtype)
+                a[:nc0] = g[name][:nc0]
+                g[name] = a
+        nc = grid_assign(P, lo, hi, g["h"], tb.keys, tb.vals, tb.bits, g["cell_c"], g["cell_nb"], nc0, g["cell_of"])
+        g["ncells"] = tb.used = nc
+        newc = g["cell_c"][nc0:nc]
+        if newc.shape[0]:
+            g["cstart"][nc0:nc] = g["cend"][nc0:nc] = g["climit"][nc0:nc] = 0
+            lo_c, hi_c = newc.min(0), newc.max(0)
+            g["cmin"] = lo_c if g["cmin"] is None else np.minimum(g["cmin"], lo_c)
+            g["cmax"] = hi_c if g["cmax"] is None else np.maximum(g["cmax"], hi_c)
+        g["fresh"][:nc] = g["cend"][:nc]  # this add's points start at each run's current end
+        i = lo
+        while True:
+            X, Y, Z, J = g["pool"]
+            i, g["pend"] = grid_append(i, hi, P, g["cell_of"], g["cstart"], g["cend"], g["climit"], g["fresh"],
+                                       X, Y, Z, J, g["pend"])
+            if i >= hi:
+                break
+            # pool full: a compacted pool with room for the rest
+            ln = g["cend"][:nc] - g["cstart"][:nc]
+            size = 2 * int(np.maximum(4, 2 * ln).sum()) + 4 * (hi - i) + 4096
+            new = tuple(np.empty(size) for _ in range(3)) + (np.empty(size, np.int64),)
+            g["pend"] = pool_compact(nc, g["cstart"], g["cend"], g["climit"], g["fresh"], X, Y, Z, J, *new)
+            g["pool"] = new
+
+    def _by_cell(self, rows: np.ndarray) -> tuple[np.ndarray, int]:
+        """``rows`` sorted by cell (neighbouring rows read the same cells) and a parallel part count."""
+        Q = rows[np.argsort(self._grid["cell_of"][rows], kind="stable")]
+        return Q, max(1, min(n_threads() * 8, rows.size // 64 + 1))
+
+    def _query(self, arrays: tuple, n: int, rows: np.ndarray, n_old: int, mark: bool) -> np.ndarray:
+        """Recompute ``rows`` from the grid; with ``mark``, returns the flags (n_old,) of the old
+        rows a new point (index >= n_old) is closer to than their K-th neighbour."""
+        P, nbr, d2, d0, kth = arrays
+        g = self._grid
+        aff = np.zeros(n_old if mark else 1, np.uint8)
+        if rows.size == 0:
+            return aff
+        Q, parts = self._by_cell(rows)
+        fail = np.zeros(n, np.uint8)
+        query_rows(Q, P, g["h"], g["cell_c"], g["cell_of"], g["cell_nb"], g["cstart"], g["cend"], *g["pool"], kth,
+                   n_old, mark, self.k, nbr, d2, d0, fail, aff, parts)
+        self._rings(arrays, rows[fail[rows] != 0])
+        return aff
+
+    def _rings(self, arrays: tuple, rows: np.ndarray) -> None:
+        if rows.size:
+            P, nbr, d2, d0, kth = arrays
+            g = self._grid
+            tb = g["table"]
+            query_rings(rows, P, g["h"], tb.keys, tb.vals, tb.bits, g["cstart"], g["cend"], *g["pool"], g["cmin"],
+                        g["cmax"], self.k, nbr, d2, d0, kth)

@@ -1,8 +1,8 @@
-"""Compiled (numba) pieces of :func:`diffuser_lab.method.graph.build_graph` and of the normalisation of
-its graph: Morton order, an exact kNN on a uniform grid processed cell by cell and the Eq. 4 edge
-weights (the rows of Eqs. 14-15 are in ``normalise.py``).
+"""Compiled (numba) exact K nearest neighbours of a cloud in Morton order (``morton.py``) on a
+uniform grid processed cell by cell: the kNN of :func:`diffuser_lab.method.graph.build_graph` (its
+Eq. 4 weights are in ``weights.py``).
 
-kNN: the points (in Morton order) are binned into cubic cells of ``L`` lattice steps, a little
+The points (in Morton order) are binned into cubic cells of ``L`` lattice steps, a little
 more than the K-th neighbour distance estimated on a sample, by a stable counting sort; cells
 are numbered x-major, so the 3 cells of a z-column of a 3x3x3 block are contiguous. Each occupied
 cell copies the candidates of its block once into small float64 arrays (9 contiguous runs) shared
@@ -13,17 +13,17 @@ from the previous point's threshold and interpolating the counts), and those K a
 index. The result is exact when the K-th distance is below the point's guaranteed radius (one
 cell plus its distance to its own cell's faces); the few other points are searched again in
 their 5x5x5 block, then (very rarely) with rings of cells growing until no closer point can
-remain. Distances are computed in float64 from the float32 coordinates exactly as in the KD-tree
-path, so the neighbour sets are those of a KD-tree (ties by index).
+remain (:func:`~.cell_search.ring_knn`, the search the growing map's grid uses too). Distances
+are computed in float64 from the float32 coordinates exactly as in the KD-tree path, so the
+neighbour sets are those of a KD-tree (ties by index).
 """
 from __future__ import annotations
 
 import numpy as np
 
-from diffuser_lab.data.geometry import MORTON_BITS, _spread_bits
-
 from . import NB, n_threads
 from . import parts as _parts
+from .morton import morton_order
 
 CELL_FACTOR = 1.1
 """Cell side in units of the estimated K-th neighbour distance."""
@@ -32,6 +32,9 @@ SAMPLE = 1024
 
 if NB is not None:
     from numba import njit, prange
+
+    from .cell_search import ring_knn
+    from .morton import lattice
 
     try:
         from numba.cpython.unsafe.numbers import trailing_zeros  # LLVM's cttz
@@ -44,65 +47,6 @@ if NB is not None:
                 x >>= np.uint64(1)
                 c += 1
             return c
-
-    _QMAX = 2**MORTON_BITS - 1
-
-    # the numpy function compiles as is for one uint64
-    _spread = njit(cache=True, boundscheck=False, inline="always")(_spread_bits)
-
-    @njit(cache=True, boundscheck=False, inline="always")
-    def _lat(v, o, step):
-        """Lattice coordinate of one coordinate, as :func:`geometry.quantize` computes it."""
-        a = np.floor((np.float64(v) - o) / step)
-        if not a > 0.0:  # NaN too: never an index out of the grid
-            a = 0.0
-        return np.int64(min(a, np.float64(_QMAX)))
-
-    @njit(cache=True, boundscheck=False)
-    def _bbox(points):
-        """(3,) float64 lower and upper corners of the (N, 3) points."""
-        lo = np.full(3, np.inf)
-        hi = np.full(3, -np.inf)
-        for i in range(points.shape[0]):
-            for a in range(3):
-                v = np.float64(points[i, a])
-                lo[a] = min(lo[a], v)
-                hi[a] = max(hi[a], v)
-        return lo, hi
-
-    @njit(cache=True, parallel=True, boundscheck=False)
-    def _bbox_par(points, nparts):
-        """:func:`_bbox` in nparts parallel chunks."""
-        n = points.shape[0]
-        lo = np.full((nparts, 3), np.inf)
-        hi = np.full((nparts, 3), -np.inf)
-        for t in prange(nparts):
-            for i in range(t * n // nparts, (t + 1) * n // nparts):
-                for a in range(3):
-                    v = np.float64(points[i, a])
-                    lo[t, a] = min(lo[t, a], v)
-                    hi[t, a] = max(hi[t, a], v)
-        out_lo = np.empty(3)
-        out_hi = np.empty(3)
-        for a in range(3):
-            out_lo[a] = lo[:, a].min()
-            out_hi[a] = hi[:, a].max()
-        return out_lo, out_hi
-
-    @njit(cache=True, parallel=True, boundscheck=False)
-    def _morton_par(points, origin, step, q, out, nparts):
-        """Lattice coordinates q (N, 3) int32 and Morton codes (N,) uint64 of the points."""
-        n = points.shape[0]
-        for t in prange(nparts):
-            for i in range(t * n // nparts, (t + 1) * n // nparts):
-                qx = _lat(points[i, 0], origin[0], step)
-                qy = _lat(points[i, 1], origin[1], step)
-                qz = _lat(points[i, 2], origin[2], step)
-                q[i, 0] = qx
-                q[i, 1] = qy
-                q[i, 2] = qz
-                out[i] = (_spread(np.uint64(qx)) | (_spread(np.uint64(qy)) << np.uint64(1))
-                          | (_spread(np.uint64(qz)) << np.uint64(2)))
 
     @njit(cache=True, parallel=True, boundscheck=False)
     def _prep_par(points, normals, use_n, order, q, step, L, dims, P4, N4, cellof, b2, cnt, counting):
@@ -363,8 +307,8 @@ if NB is not None:
         dy_, dz_ = dims[1], dims[2]
         buf = _new_buf(256)
         far = _new_buf(1024)
-        hd = np.empty(k)
-        hj = np.empty(k, np.int64)
+        bd = np.empty(k)
+        bj = np.empty(k, np.int64)
         for oc in range(c_lo, c_hi):
             lin = occ[oc]
             buf, nc, ncp, own = _gather(X, Y, Z, J, start, dims, lin // (dy_ * dz_), (lin // dz_) % dy_, lin % dz_,
@@ -385,7 +329,7 @@ if NB is not None:
                 # estimate for the first of a cell), within the block's guaranteed radius
                 t, c = _threshold(D, ncp, k, guess, B2[p])
                 if c < k:  # the k-th neighbour may lie outside the block
-                    far = _far_point(i, px, py, pz, X, Y, Z, J, start, dims, origin, step, L, k, t_est, far, hd, hj,
+                    far = _far_point(i, px, py, pz, X, Y, Z, J, start, dims, origin, step, L, k, t_est, far, bd, bj,
                                      out_i, d0)
                     continue
                 d0[i] = _select(buf, ncp, k, t, c, out_i, i)
@@ -398,12 +342,13 @@ if NB is not None:
                        d0)
 
     @njit(cache=True, boundscheck=False)
-    def _far_point(i, px, py, pz, X, Y, Z, J, start, dims, origin, step, L, k, t_est, buf, hd, hj, out_i, d0):
+    def _far_point(i, px, py, pz, X, Y, Z, J, start, dims, origin, step, L, k, t_est, buf, bd, bj, out_i, d0):
         """Row i (at px, py, pz) from the 5x5x5 cells around its own, or, where the k-th neighbour
-        may lie outside those too, from rings of cells (:func:`_knn_ring`). Returns the buffers."""
-        qx = _lat(px, origin[0], step)
-        qy = _lat(py, origin[1], step)
-        qz = _lat(pz, origin[2], step)
+        may lie outside those too, from rings of cells (:func:`~.cell_search.ring_knn`; bd/bj: its
+        (k,) buffers). Returns the buffers."""
+        qx = lattice(px, origin[0], step)
+        qy = lattice(py, origin[1], step)
+        qz = lattice(pz, origin[2], step)
         f = L
         for qa in (qx, qy, qz):
             c0 = (qa // L) * L
@@ -423,217 +368,22 @@ if NB is not None:
         t, c = _threshold(D, ncp, k, t_est, b2)
         if c >= k:
             d0[i] = _select(buf, ncp, k, t, c, out_i, i)
-        else:
-            _knn_ring(i, px, py, pz, origin, step, L, X, Y, Z, J, start, dims, k, hd, hj, out_i, d0)
-        return buf
-
-    @njit(cache=True, boundscheck=False, inline="always")
-    def _worse(d1, j1, d2, j2):
-        return d1 > d2 or (d1 == d2 and j1 > j2)
-
-    @njit(cache=True, boundscheck=False, inline="always")
-    def _sift_down(hd, hj, size, d2, j):
-        """Put (d2, j) at the top of the max-heap hd/hj[:size] and sift it down."""
-        pos = 0
-        while True:
-            c = 2 * pos + 1
-            if c >= size:
-                break
-            if c + 1 < size and _worse(hd[c + 1], hj[c + 1], hd[c], hj[c]):
-                c += 1
-            if not _worse(hd[c], hj[c], d2, j):
-                break
-            hd[pos] = hd[c]
-            hj[pos] = hj[c]
-            pos = c
-        hd[pos] = d2
-        hj[pos] = j
-
-    @njit(cache=True, boundscheck=False, inline="always")
-    def _push(hd, hj, m, k, d2, j):
-        """Max-heap (by (d2, j)) of the k best candidates; returns the new size."""
-        if m < k:  # sift up
-            pos = m
-            m += 1
-            while pos > 0:
-                par = (pos - 1) >> 1
-                if not _worse(d2, j, hd[par], hj[par]):
-                    break
-                hd[pos] = hd[par]
-                hj[pos] = hj[par]
-                pos = par
-            hd[pos] = d2
-            hj[pos] = j
-            return m
-        if not _worse(hd[0], hj[0], d2, j):
-            return m
-        _sift_down(hd, hj, k, d2, j)
-        return m
-
-    @njit(cache=True, boundscheck=False)
-    def _knn_ring(i, px, py, pz, origin, step, L, X, Y, Z, J, start, dims, k, hd, hj, out_i, d0):
-        """Row i (at px, py, pz) from rings of cells around its own until no closer point can
-        remain (a max-heap hd/hj of the k best)."""
-        h = L * step
-        rmax = max(dims[0], max(dims[1], dims[2]))
-        qx = _lat(px, origin[0], step)
-        qy = _lat(py, origin[1], step)
-        qz = _lat(pz, origin[2], step)
+            return buf
+        # the point's distances to its cell's faces, one lattice step less (its position within
+        # its lattice step is unknown)
         cx, cy, cz = qx // L, qy // L, qz // L
-        f = L
-        for qa in (qx, qy, qz):
-            c0 = (qa // L) * L
-            f = min(f, min(qa - c0, c0 + L - qa))
-        face = (f - 1) * step
-        m = 0
-        r = 0
-        while True:
-            for ix in range(max(cx - r, 0), min(cx + r, dims[0] - 1) + 1):
-                ax = abs(ix - cx)
-                gx = max(max(ix * L - qx, qx - (ix + 1) * L), 0)
-                for iy in range(max(cy - r, 0), min(cy + r, dims[1] - 1) + 1):
-                    ay = max(ax, abs(iy - cy))
-                    gy = max(max(iy * L - qy, qy - (iy + 1) * L), 0)
-                    base = (ix * dims[1] + iy) * dims[2]
-                    for iz in range(max(cz - r, 0), min(cz + r, dims[2] - 1) + 1):
-                        if max(ay, abs(iz - cz)) != r:
-                            continue
-                        lin = base + iz
-                        s = start[lin]
-                        e = start[lin + 1]
-                        if s == e:
-                            continue
-                        if m == k:  # skip cells entirely beyond the current k-th distance
-                            gz = max(max(iz * L - qz, qz - (iz + 1) * L), 0)
-                            g2 = (max(gx - 1, 0) ** 2 + max(gy - 1, 0) ** 2 + max(gz - 1, 0) ** 2) * step * step
-                            if g2 > hd[0]:
-                                continue
-                        for a in range(s, e):
-                            j = J[a]
-                            if j == i:
-                                continue
-                            ex = X[a] - px
-                            ey = Y[a] - py
-                            ez = Z[a] - pz
-                            d2 = ex * ex + ey * ey + ez * ez
-                            if m < k or d2 <= hd[0]:
-                                m = _push(hd, hj, m, k, d2, j)
-            bound = r * h + face
-            if (m == k and bound > 0 and hd[0] < bound * bound) or r > rmax:
-                break
-            r += 1
+        flo = ((qx - cx * L - 1) * step, (qy - cy * L - 1) * step, (qz - cz * L - 1) * step)
+        fhi = ((cx * L + L - qx - 1) * step, (cy * L + L - qy - 1) * step, (cz * L + L - qz - 1) * step)
+        no_table = np.empty(0, np.int64)
+        ring_knn(i, px, py, pz, (cx, cy, cz), flo, fhi, L * step, np.zeros(3, np.int64), dims - 1, dims, no_table,
+                 no_table, 0, start, start[1:], X, Y, Z, J, k, bd, bj)
         dmin = np.inf
-        for e in range(k - 1, -1, -1):
-            out_i[i, e] = hj[0]
-            if hd[0] > 0:
-                dmin = hd[0]
-            _sift_down(hd, hj, e, hd[e], hj[e])
+        for e in range(k):
+            out_i[i, e] = bj[e]
+            if bd[e] > 0 and bd[e] < dmin:
+                dmin = bd[e]
         d0[i] = dmin
-
-    # exp(x) for x <= 0 to ~1e-14 relative, written without branches or calls so that it
-    # vectorises (numba's np.exp is a scalar libm call; no SVML here): x = n ln2 + r with
-    # |r| <= ln2/2, a degree-12 Taylor polynomial for exp(r), 2^n from its bits (a table would
-    # need gathers, which LLVM does not vectorise for this CPU).
-    _LN2_HI = 0.6931471803691238
-    _LN2_LO = 1.9082149292705877e-10
-    _INV_LN2 = 1.4426950408889634
-
-    @njit(cache=True, boundscheck=False, inline="always")
-    def exp_split(x):
-        """exp(max(x, -150)) for x <= 0 as (m, bits): m in [0.7, 1.5] and the int64 bits of the
-        float64 2^n, exp = m * 2^n (exp(-150) is 0 in float32). Kept apart so that a loop of them
-        vectorises: callers store the bits in an int64 array viewed as float64."""
-        x = max(x, -150.0)
-        nf = np.rint(x * _INV_LN2)
-        r = (x - nf * _LN2_HI) - nf * _LN2_LO
-        p = 1.0 / 479001600.0
-        p = p * r + 1.0 / 39916800.0
-        p = p * r + 1.0 / 3628800.0
-        p = p * r + 1.0 / 362880.0
-        p = p * r + 1.0 / 40320.0
-        p = p * r + 1.0 / 5040.0
-        p = p * r + 1.0 / 720.0
-        p = p * r + 1.0 / 120.0
-        p = p * r + 1.0 / 24.0
-        p = p * r + 1.0 / 6.0
-        p = p * r + 0.5
-        p = p * r + 1.0
-        return p * r + 1.0, (np.int64(nf) + 1023) << 52
-
-    @njit(cache=True, boundscheck=False)
-    def _weights_rows(P4, idx, N4, use_n, invariant, a_d, a_s, out_w, out_sum, lo, hi):
-        """Eq. 4 for rows lo..hi-1: out_w = exp(-d2 a_d - |n_i - n_j|^2 a_s) (float32; d2 and the
-        normal term in float64, as the numpy path), out_sum their float64 sums."""
-        k = idx.shape[1]
-        rows = 64  # exponents of 64 rows at a time: long vectorised loops for exp
-        ex = np.empty(rows * k)
-        pw = np.empty(rows * k, np.int64)
-        pwf = pw.view(np.float64)
-        wf = out_w.reshape(-1)
-        for r0 in range(lo, hi, rows):
-            r1 = min(r0 + rows, hi)
-            for i in range(r0, r1):
-                e0 = (i - r0) * k
-                px, py, pz = P4[i, 0], P4[i, 1], P4[i, 2]
-                if use_n:
-                    n0, n1, n2 = N4[i, 0], N4[i, 1], N4[i, 2]
-                    for s in range(k):
-                        j = idx[i, s]
-                        dx = P4[j, 0] - px
-                        dy = P4[j, 1] - py
-                        dz = P4[j, 2] - pz
-                        dot = n0 * N4[j, 0] + n1 * N4[j, 1] + n2 * N4[j, 2]
-                        if invariant:
-                            dot = abs(dot)
-                        t = 2.0 - 2.0 * dot
-                        t = t if t > 0.0 else 0.0
-                        ex[e0 + s] = -(dx * dx + dy * dy + dz * dz) * a_d - t * a_s
-                else:
-                    for s in range(k):
-                        j = idx[i, s]
-                        dx = P4[j, 0] - px
-                        dy = P4[j, 1] - py
-                        dz = P4[j, 2] - pz
-                        ex[e0 + s] = -(dx * dx + dy * dy + dz * dz) * a_d
-            ne = (r1 - r0) * k
-            for e in range(ne):
-                ex[e], pw[e] = exp_split(ex[e])
-            base = r0 * k
-            for e in range(ne):
-                wf[base + e] = np.float32(ex[e] * pwf[e])
-            for i in range(r0, r1):
-                acc = 0.0
-                for s in range(k):
-                    acc += np.float64(out_w[i, s])
-                out_sum[i] = acc
-
-    @njit(cache=True, parallel=True, boundscheck=False)
-    def _weights_par(P4, idx, N4, use_n, invariant, a_d, a_s, out_w, out_sum, nparts):
-        n = idx.shape[0]
-        for t in prange(nparts):
-            _weights_rows(P4, idx, N4, use_n, invariant, a_d, a_s, out_w, out_sum,
-                          t * n // nparts, (t + 1) * n // nparts)
-
-
-def morton_order(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, np.ndarray]:
-    """:func:`~diffuser_lab.data.geometry.quantize` + Morton codes + stable argsort, compiled.
-
-    Args:
-        points: (N, 3) float32 world points, metres (C-contiguous).
-    Returns:
-        order (N,) int64, equal to ``argsort(morton_codes(quantize(points)[0]), kind="stable")``;
-        the lattice origin (3,) float64 and step (metres); qmax (3,) int64 the largest lattice
-        coordinate per axis; q (N, 3) int32 the lattice coordinates (``quantize(points)[0]``).
-    """
-    n = points.shape[0]
-    lo, hi = _bbox_par(points, _parts(n)) if n > 100_000 else _bbox(points)  # a launch costs ~0.2 ms
-    extent = float((hi - lo).max()) if n else 0.0
-    step = extent / (2**MORTON_BITS - 1) if extent > 0 else 1.0
-    codes = np.empty(n, np.uint64)
-    q = np.empty((n, 3), np.int32)
-    _morton_par(points, lo, step, q, codes, _parts(n))
-    qmax = np.clip(np.floor((hi - lo) / step), 0, 2**MORTON_BITS - 1).astype(np.int64)
-    return np.argsort(codes, kind="stable"), lo, step, qmax, q
+        return buf
 
 
 def sorted_knn(points: np.ndarray, normals: np.ndarray | None, k: int):
@@ -687,23 +437,3 @@ def sorted_knn(points: np.ndarray, normals: np.ndarray | None, k: int):
     bounds[-1] = len(occ)
     _knn_cells_par(X, Y, Z, J, B2, start, occ, dims, origin, step, L, k, r_k * r_k, out_i, d0, bounds)
     return order, P4, N4, (out_i, d0)
-
-
-def edge_weights(P4: np.ndarray, idx: np.ndarray, N4: np.ndarray | None, invariant: bool,
-                 sigma_d: float, sigma_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """Eq. 4 weights (N, K) float32 and their row sums (N,) float64.
-
-    Args:
-        P4: (N, 4) float64 points (x, y, z, 0), metres; idx: (N, K) int32 neighbours (rows of
-            P4); N4: (N, 4) float64 unit normals likewise, or None; sigma_d: metres; sigma_s.
-    """
-    n, k = idx.shape
-    out_w = np.empty((n, k), np.float32)
-    out_sum = np.empty(n, np.float64)
-    use_n = N4 is not None
-    nrm = N4 if use_n else np.zeros((1, 4))
-    # unsigned indices: no wrap-around handling of negative ones in the gathers
-    _weights_par(P4, idx.view(np.uint32), nrm, use_n, invariant, 0.5 / sigma_d**2, 0.5 / sigma_s**2, out_w,
-                 out_sum, _parts(n))
-    return out_w, out_sum
-
