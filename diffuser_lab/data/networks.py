@@ -45,6 +45,7 @@ import numpy as np
 from diffuser_lab import progress
 from diffuser_lab.config import ChannelOrder, OnnxConfig, OnnxOutput, TensorLayout
 
+from .frames import LazyFrames
 from .mapping import ClassMapping
 from .prediction_files import resize_nearest
 from .scene import IGNORE, Taxonomy
@@ -422,7 +423,7 @@ def _atomic(path: Path, write: Callable) -> None:
 
 class NetworkPredictor:
     """``fn(i, frame) -> frame`` with the network's predictions attached, for
-    :class:`~diffuser_lab.data.predictions.MappedFrames`; builds the network at the first frame
+    :meth:`~diffuser_lab.data.frames.LazyFrames.mapped`; builds the network at the first frame
     not in the cache. ``stats`` counts each frame once however often it is visited:
     ``model_calls``, ``cached_frames``, ``label_frames``, ``probability_frames``, ``unmapped_pixels``."""
 
@@ -488,7 +489,6 @@ def network_predictions(frames, cfg, taxonomy: Taxonomy, scene_name: str):
     from omegaconf import OmegaConf
 
     from .mapping import load_mapping
-    from .predictions import MappedFrames
 
     if cfg.source == PredictionSource.model:
         spec = cfg.model if isinstance(cfg.model, dict) else OmegaConf.to_container(cfg.model, resolve=True)
@@ -510,4 +510,4 @@ def network_predictions(frames, cfg, taxonomy: Taxonomy, scene_name: str):
     mapping = load_mapping(cfg.mapping, taxonomy) if cfg.mapping else None
     pred = NetworkPredictor(build, key, ident, label, cache_dir=cfg.cache_dir, scene_name=scene_name,
                             pass_depth=pass_depth, mapping=mapping, taxonomy=taxonomy)
-    return MappedFrames(frames, pred, pred.stats)
+    return LazyFrames.mapped(frames, pred, stats=pred.stats)

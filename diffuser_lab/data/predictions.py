@@ -8,31 +8,15 @@ depend on the order in which frames are visited.
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable, Sequence
+from typing import Sequence
 
 import numpy as np
 
 from diffuser_lab.config import MistakeCorrelation, PredictionsConfig, PredictionSource
 
+from .frames import LazyFrames
+from .networks import network_predictions
 from .scene import Frame, Taxonomy
-
-
-class MappedFrames(Sequence[Frame]):
-    """A read-only sequence whose item i is ``fn(i, frames[i])``, computed on access."""
-
-    def __init__(self, frames: Sequence[Frame], fn: Callable[[int, Frame], Frame], stats: dict | None = None):
-        self._frames, self._fn = frames, fn
-        self.stats = stats if stats is not None else {}  # e.g. unmapped pixel counts, filled on access
-
-    def __len__(self) -> int:
-        return len(self._frames)
-
-    def __getitem__(self, i):  # type: ignore[override]
-        if isinstance(i, slice):
-            return [self[j] for j in range(*i.indices(len(self)))]
-        if i < 0:
-            i += len(self)
-        return self._fn(i, self._frames[i])
 
 
 def describe(cfg: PredictionsConfig) -> str:
@@ -79,15 +63,13 @@ def with_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy: 
     elif cfg.source == PredictionSource.files:
         return _file_predictions(frames, cfg, taxonomy)
     elif cfg.source in (PredictionSource.model, PredictionSource.onnx):
-        from .networks import network_predictions
-
         return network_predictions(frames, cfg, taxonomy, scene_name)
     else:  # pragma: no cover - the config enum forbids it
         raise ValueError(f"predictions.source={cfg.source}: unknown")
-    return MappedFrames(frames, fn)
+    return LazyFrames.mapped(frames, fn)
 
 
-def _file_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy: Taxonomy) -> MappedFrames:
+def _file_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy: Taxonomy) -> LazyFrames:
     """A 2D network's outputs, one file per frame named after it: label images (mapped to the
     taxonomy; unmapped ids become IGNORE and are counted) or class probabilities (soft evidence)."""
     from pathlib import Path
@@ -119,7 +101,7 @@ def _file_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy:
             seen.add(i)
         return dataclasses.replace(f, labels=labels, probs=None)
 
-    return MappedFrames(frames, fn, stats)
+    return LazyFrames.mapped(frames, fn, stats=stats)
 
 
 def _need_gt(f: Frame) -> None:

@@ -46,11 +46,13 @@ pixels with pixel centres at integer coordinates; camera x right, y down, z forw
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Iterable, Optional, Sequence
 
 import numpy as np
 from scipy import ndimage
+
+from .frames import LazyFrames
 
 __all__ = [
     "SensorModel",
@@ -310,14 +312,9 @@ class SensorModel:
 def noisy_frames(frames: Sequence, model: SensorModel):
     """``frames`` with every frame's depth replaced by ``model.apply`` (normals estimated from the depth),
     computed on access (a lazy sequence; frame i is seeded by its index i)."""
-    from dataclasses import replace
-
-    from .predictions import MappedFrames
-
-    out = MappedFrames(frames, lambda i, f: replace(f, depth=model.apply(f.depth, f.K, i)))
-    if hasattr(frames, "info"):  # the loader's statistics (depth unit checked, skipped frames) still hold
-        out.info = frames.info
-    return out
+    # the loader's statistics (depth unit checked, skipped frames) still hold
+    return LazyFrames.mapped(frames, lambda i, f: replace(f, depth=model.apply(f.depth, f.K, i)),
+                             info=getattr(frames, "info", None))
 
 
 def depth_error_report(perfect: np.ndarray | Iterable[np.ndarray], noisy: np.ndarray | Iterable[np.ndarray],

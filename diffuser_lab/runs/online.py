@@ -18,6 +18,7 @@ import numpy as np
 from diffuser_lab import progress
 from diffuser_lab.config import BadFrame, Config, OnlineMap
 from diffuser_lab.data import validate
+from diffuser_lab.data.frames import LazyFrames
 from diffuser_lab.data.predictions import describe as describe_predictions
 from diffuser_lab.data.predictions import with_predictions
 from diffuser_lab.data.scene import IGNORE, Frame, Scene
@@ -69,19 +70,6 @@ class OnlineResult:
     latency_ms: dict = field(default_factory=dict)  # median, p95, max, mean over the frames taken
     timings_s: dict = field(default_factory=dict)
     scene_labels: Optional[np.ndarray] = None  # (N,) int16 labels of the scene's points (given map)
-
-
-class _Subset(Sequence):
-    """Frames ``keep`` of a frame sequence (lazy)."""
-
-    def __init__(self, frames: Sequence[Frame], keep: list[int]):
-        self.frames, self.keep = frames, keep
-
-    def __len__(self) -> int:
-        return len(self.keep)
-
-    def __getitem__(self, i):
-        return self.frames[self.keep[i]]
 
 
 def check_online_frame(f: Frame) -> None:
@@ -249,7 +237,7 @@ def compare_with_batch(cfg: Config, scene: Scene, kept: list[int], od: OnlineDif
     from diffuser_lab.runs.pipeline import run
 
     bc = dataclasses.replace(cfg, method=dataclasses.replace(cfg.method, name="diffuser"))
-    frames = _Subset(scene.frames, kept) if len(kept) != len(scene.frames) else scene.frames
+    frames = LazyFrames.subset(scene.frames, kept) if len(kept) != len(scene.frames) else scene.frames
     if res.mode == "growing":
         bc = dataclasses.replace(bc, scene=dataclasses.replace(cfg.scene, voxel_size=0.0))
         bscene = Scene(name=scene.name, points=res.points.copy(), taxonomy=scene.taxonomy, frames=frames,

@@ -25,11 +25,11 @@ import re
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
 from diffuser_lab import progress
+from diffuser_lab.data.frames import LazyFrames
 from diffuser_lab.data.geometry import backproject, voxel_downsample
 from diffuser_lab.data.mapping import ClassMapping, load_mapping, native_mapping
 from diffuser_lab.data.prediction_files import open_image, read_label_png, resize_nearest
@@ -38,7 +38,6 @@ from diffuser_lab.data.validate import check_depth_unit
 
 __all__ = [
     "load_rgbd_folder",
-    "LazyFrames",
     "read_pose_c2w",
     "pose_to_world_to_camera",
     "fuse_depth",
@@ -50,34 +49,6 @@ __all__ = [
 ]
 
 CAMERA_TO_WORLD, WORLD_TO_CAMERA = "camera_to_world", "world_to_camera"  # pose file conventions
-
-
-class LazyFrames(Sequence):
-    """Read-on-access sequence of :class:`Frame`: ``frames[i]`` calls ``loader(i)``.
-
-    Only the per-frame metadata (names, poses) lives in memory; images are read each
-    time a frame is indexed, so iterating once over thousands of frames stays small.
-    """
-
-    def __init__(self, names: Sequence[str], loader: Callable[[int], Frame], info: dict | None = None):
-        self.names = list(names)
-        self._loader = loader
-        self.info = dict(info or {})  # loader statistics (e.g. skipped frames), for reports
-
-    def __len__(self) -> int:
-        return len(self.names)
-
-    def __getitem__(self, i):
-        if isinstance(i, slice):
-            idx = range(len(self.names))[i]
-            return LazyFrames([self.names[k] for k in idx], lambda k: self._loader(idx[k]), self.info)
-        n = len(self.names)
-        if not -n <= i < n:
-            raise IndexError(f"frame index {i} out of range for {n} frames")
-        return self._loader(i % n)
-
-    def __repr__(self) -> str:
-        return f"LazyFrames({len(self)} frames)"
 
 
 def rigid_inverse(T: np.ndarray) -> np.ndarray:
@@ -351,7 +322,7 @@ def load_rgbd_folder(
                 gt = _taxonomy_ids(resize_nearest(read_label_png(lp), depth.shape), mapping, taxonomy, str(lp))
         return Frame(name=name, K=K.copy(), T_cw=poses[i], depth=depth, gt_labels=gt, rgb=rgb)
 
-    frames = LazyFrames(kept, load, {"n_frames_found": len(depth_stems)})
+    frames = LazyFrames(kept, load, info={"n_frames_found": len(depth_stems)})
     # checked here, before a wrong unit scales the back-projected cloud; the pipeline skips it then
     check_depth_unit(frames[0], hint=f"depth_scale={depth_scale} (units per metre) / depth_bit_shift="
                                      f"{depth_bit_shift} / depth_shift_kind={depth_shift_kind}")

@@ -38,11 +38,12 @@ from pathlib import Path
 import numpy as np
 
 from diffuser_lab import progress
+from diffuser_lab.data.frames import LazyFrames
 from diffuser_lab.data.mapping import ClassMapping, identity_mapping, load_mapping, native_mapping
 from diffuser_lab.data.prediction_files import read_label_png, resize_nearest
 from diffuser_lab.data.scene import SCANNET20, Frame, Scene, Taxonomy
 
-from .rgbd_folder import LazyFrames, read_depth_png, read_intrinsics, read_pose_c2w, read_rgb, rigid_inverse
+from .rgbd_folder import read_depth_png, read_intrinsics, read_pose_c2w, read_rgb, rigid_inverse
 
 __all__ = ["load_scannet", "read_labelled_mesh", "scaled_intrinsics", "ScannetLayout"]
 
@@ -263,5 +264,5 @@ def _scannet_frames(root: Path, frame_step: int, max_frames: int | None, mapping
                 raise ValueError(f"{lp}: {e}") from None
         return Frame(name=fid, K=K.copy(), T_cw=poses[i], depth=depth, gt_labels=gt, rgb=rgb)
 
-    return LazyFrames(kept, load, {"n_invalid_pose": n_invalid, "n_frames_found": len(ids),
+    return LazyFrames(kept, load, info={"n_invalid_pose": n_invalid, "n_frames_found": len(ids),
                                    "has_color": has_color, "has_labels": has_labels})

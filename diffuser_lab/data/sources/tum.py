@@ -25,10 +25,11 @@ from pathlib import Path
 
 import numpy as np
 
+from diffuser_lab.data.frames import LazyFrames
 from diffuser_lab.data.scene import SCANNET20, Frame, Scene, Taxonomy
 from diffuser_lab.data.validate import check_depth_unit
 
-from .rgbd_folder import LazyFrames, fuse_depth, read_depth_png, read_rgb
+from .rgbd_folder import fuse_depth, read_depth_png, read_rgb
 
 __all__ = ["load_tum", "read_tum_list", "read_tum_trajectory", "associate", "TUM_CAMERAS"]
 
@@ -205,7 +206,7 @@ def load_tum(
 
     info = {"n_frames_found": len(t_d), "n_no_pose": n_no_pose, "n_no_rgb": n_no_rgb,
             "timestamps": t_d[sel].tolist()}
-    frames = LazyFrames(names, load, info)
+    frames = LazyFrames(names, load, info=info)
     check_depth_unit(frames[0], hint=f"scene.tum.depth_scale={depth_scale} (units per metre)")
     frames.info["depth_unit_checked"] = True
     points, colors = fuse_depth(frames, voxel_size, cloud_stride, max_depth)
