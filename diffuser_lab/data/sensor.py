@@ -52,10 +52,13 @@ from typing import Iterable, Optional, Sequence
 import numpy as np
 from scipy import ndimage
 
+from diffuser_lab.config import DepthModel, DepthNoiseConfig
+
 from .frames import LazyFrames
 
 __all__ = [
     "SensorModel",
+    "sensor_model",
     "axial_sigma",
     "lateral_sigma_px",
     "incidence_angles",
@@ -307,6 +310,18 @@ class SensorModel:
         out = np.where((out >= self.min_range) & (out <= self.max_range), out, 0.0)
         out = self.quantize(out)
         return out.astype(np.float32)
+
+
+def sensor_model(cfg: DepthNoiseConfig) -> Optional[SensorModel]:
+    """The :class:`SensorModel` of the ``depth`` keys, or None for ``depth.model=perfect``."""
+    if cfg.model == DepthModel.perfect:
+        return None
+    return SensorModel(seed=cfg.seed, axial_scale=cfg.axial_scale, lateral_scale=cfg.lateral_scale,
+                       projector_baseline=cfg.projector_baseline, edge_jump=cfg.edge_jump,
+                       edge_hole_px=cfg.edge_hole_px, max_incidence_deg=cfg.max_incidence_deg,
+                       min_range=cfg.min_range, max_range=cfg.max_range,
+                       quantization=cfg.quantization.value, disparity_focal_px=cfg.disparity_focal_px,
+                       disparity_baseline=cfg.disparity_baseline, disparity_subpixel=cfg.disparity_subpixel)
 
 
 def noisy_frames(frames: Sequence, model: SensorModel):

@@ -8,8 +8,9 @@ A method turns the frames' pixel evidence into point labels. Each entry says in 
 - the rows it has in the single-frame protocol (1 view, W views; paper Table II),
 
 and :meth:`FusionMethod.label` does the labelling. ``runs/pipeline.py`` and
-``runs/protocols.py`` both ask :data:`METHODS`; the config accepts exactly its names. Adding a
-method is one entry here plus ``conf/method/<name>.yaml``.
+``runs/protocols.py`` both ask :data:`METHODS`; the resolve step (:mod:`diffuser_lab.runs.resolve`)
+accepts exactly its names and applies what the chosen method fixes. Adding a method is one entry
+here plus ``conf/method/<name>.yaml``.
 """
 from __future__ import annotations
 
@@ -17,6 +18,10 @@ from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
+
+from diffuser_lab.config import check_name
+
+from .diffusion import labels_from_scores, solve
 
 EVIDENCE = "evidence"  # the frames' evidence with the method's pixel window (Eqs. 11-13)
 BASELINE = "baseline"  # the Bayesian baseline's: single pixel, likelihoods or votes (method.bayesian_mode)
@@ -38,7 +43,8 @@ class FusionMethod:
 
     def apply(self, cfg) -> None:
         """Set what the method fixes in ``cfg`` (a :class:`~diffuser_lab.config.Config`), so the
-        config a run records is the one that ran."""
+        config a run records is the one that ran; the resolve step calls it
+        (:func:`diffuser_lab.runs.resolve.with_method`)."""
         if self.normals is not None:
             cfg.graph.use_normals = self.normals
         if self.pixel_radius is not None:
@@ -48,8 +54,6 @@ class FusionMethod:
         """(M,) int16 labels (IGNORE where no evidence reaches a point) and the DiffusionResult
         (None for methods without a graph). ``mass``: (M, C) the evidence the method reads;
         ``system``: the normalised graph system of Eqs. 14-15 for graph methods."""
-        from .diffusion import labels_from_scores, solve
-
         if not self.graph:
             return labels_from_scores(mass), None
         diff = solve(system, solver, observer=observer)
@@ -72,8 +76,7 @@ METHODS: dict[str, FusionMethod] = {m.name: m for m in [  # the order of the pap
 
 
 def get(name: str) -> FusionMethod:
-    if name not in METHODS:
-        from diffuser_lab.config import ConfigError
-
-        raise ConfigError(f"method.name={name!r}: expected one of {', '.join(sorted(METHODS))}")
+    """The entry named ``name``; :class:`~diffuser_lab.config.ConfigError` naming ``method.name`` and the
+    registered names otherwise."""
+    check_name("method.name", name, sorted(METHODS))
     return METHODS[name]

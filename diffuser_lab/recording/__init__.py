@@ -103,7 +103,7 @@ class RecordingHooks(RunHooks):
         self._files["rrd"] = RRD_NAME
 
     def _open_mcap(self, overrides: Sequence[str]) -> None:
-        from diffuser_lab.config import config_yaml
+        from diffuser_lab.runs.records import config_yaml
 
         from .mcap_write import McapRecorder
 
