@@ -406,7 +406,7 @@ class SceneConfig(Section):
     built-in sources their own ``scene.<source>`` keys, a source registered by a user ``options``."""
 
     KEY = "scene"
-    source: str = named("demo", "scene sources")
+    source: str = named("demo", "scene sources")  # the scene source's name (registry: diffuser_lab/data/sources)
     name: Optional[str] = None  # display name; null = derived from the source
     # one dataclass per built-in source; a source's own settings are set (by its conf/scene/*.yaml)
     # only when it is the selected one, so its required keys (MISSING) are asked for only then
@@ -475,7 +475,7 @@ class PredictionsConfig(Section):
     knob in :func:`diffuser_lab.data.simulate.simulate_predictions` (defaults: 2D mIoU ~58 on the demo)."""
 
     KEY = "predictions"
-    source: str = named("simulated", "prediction sources")
+    source: str = named("simulated", "prediction sources")  # the prediction source's name (registry: diffuser_lab/data/predictions.py)
     folder: Optional[str] = None  # files: the folder of per-frame predictions (named after the frames)
     mapping: Optional[str] = None  # files: network label ids -> taxonomy (e.g. nyu40_to_scannet20)
     # files: a frame's file name(s), {name} = the frame's name; a string or a list searched in order
@@ -561,7 +561,7 @@ class MethodConfig(Section):
     """The fusion method: a name of the registry in :mod:`diffuser_lab.method.fusion`."""
 
     KEY = "method"
-    name: str = named("diffuser", "fusion methods")  # diffuser | bayesian | direct | ldls
+    name: str = named("diffuser", "fusion methods")  # the fusion method's name (registry: diffuser_lab/method/fusion.py)
     view: int = 0  # frame index used by `direct` (negative counts from the end)
     bayesian_mode: BayesianMode = BayesianMode.likelihood
 
@@ -582,7 +582,7 @@ class ProtocolConfig(Section):
     (:mod:`diffuser_lab.runs.protocol_registry`)."""
 
     KEY = "protocol"
-    name: str = named("global_3d", "protocols")
+    name: str = named("global_3d", "protocols")  # the protocol's name (registry: diffuser_lab/runs/protocol_registry.py)
     window: int = key(5, at_least(1))  # single_frame: views fused per target frame in the multi-view rows (paper: 5)
     target_step: int = key(1, at_least(1))  # single_frame: evaluate every n-th frame of the sequence
     max_targets: Optional[int] = None  # single_frame: at most this many target frames
@@ -715,6 +715,8 @@ class RecordConfig(Section):
 
 @dataclass
 class OutputConfig(Section):
+    """What a run writes besides summary.json and its records."""
+
     KEY = "output"
     labels_ply: bool = True  # write labels.ply (points coloured by label)
     quiet: bool = False  # do not print the result table
