@@ -43,12 +43,16 @@ class LazyFrames(Sequence[Frame]):
         self._load = load
         self.info = info if info is not None else {}
         self.stats = stats if stats is not None else {}
+        self.fn: Optional[Callable[[int, Frame], Frame]] = None  # mapped(): the per-frame function
 
     @classmethod
     def mapped(cls, frames: Sequence[Frame], fn: Callable[[int, Frame], Frame], *, stats: Optional[dict] = None,
                info: Optional[dict] = None) -> "LazyFrames":
-        """Item i is ``fn(i, frames[i])`` (predictions attached, depth corrupted, ...)."""
-        return cls(len(frames), lambda i: fn(i, frames[i]), info=info, stats=stats)
+        """Item i is ``fn(i, frames[i])`` (predictions attached, depth corrupted, ...); ``fn`` is kept
+        as the sequence's ``fn`` (e.g. a network predictor, with its model once built)."""
+        out = cls(len(frames), lambda i: fn(i, frames[i]), info=info, stats=stats)
+        out.fn = fn
+        return out
 
     @classmethod
     def subset(cls, frames: Sequence[Frame], keep: Sequence[int], *, info: Optional[dict] = None) -> "LazyFrames":

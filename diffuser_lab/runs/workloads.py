@@ -32,7 +32,11 @@ import numpy as np
 from diffuser_lab import progress
 from diffuser_lab.data.frames import LazyFrames
 from diffuser_lab.data.geometry import voxel_downsample
+from diffuser_lab.data.render import MeshRenderer, camera_trajectory, intrinsics, sample_surface
 from diffuser_lab.data.scene import SCANNET20, Frame, Scene, Taxonomy
+from diffuser_lab.data.simulate import simulate_predictions
+from diffuser_lab.data.sources.demo import demo_mesh
+from diffuser_lab.method.evidence import Evidence, add_frame
 
 ROOM_AREA_M2 = 82.0  # visible surface of the default demo room (calibrated: N ~ area / voxel^2)
 
@@ -111,8 +115,6 @@ def tiled_frames(base: Sequence[Frame], offsets: np.ndarray) -> LazyFrames:
 
 
 def _room_cloud(n_points: int, rng: np.random.Generator, verts, tris, labs, renderer):
-    from diffuser_lab.data.render import sample_surface
-
     vs = math.sqrt(ROOM_AREA_M2 / n_points)
     for _ in range(3):  # secant on the voxel size: a couple of tries land within ~1 %
         pts, nrm, lab = sample_surface(verts, tris, labs, vs / 2.0, rng, noise=0.002, renderer=renderer)
@@ -132,11 +134,6 @@ def room_workload(n_points: int, *, seed: int = 0, n_views: int = 30, width: int
                   num_classes: int = 21, with_mass: bool = True, noise_votes: float = 0.01,
                   tile_points: int = 400_000) -> Workload:
     """A benchmark cloud of about ``n_points`` points with rendered evidence (see module doc)."""
-    from diffuser_lab.data.render import MeshRenderer, camera_trajectory, intrinsics
-    from diffuser_lab.data.simulate import simulate_predictions
-    from diffuser_lab.data.sources.demo import demo_mesh
-    from diffuser_lab.method.evidence import Evidence, add_frame
-
     if num_classes not in (20, 21) and not 21 < num_classes <= 32767:
         raise ValueError(f"num_classes={num_classes}: expected 20, 21 or 22..32767")
     many = num_classes > 21

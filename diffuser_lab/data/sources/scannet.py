@@ -41,6 +41,7 @@ import numpy as np
 from diffuser_lab import progress
 from diffuser_lab.config import SceneConfig
 from diffuser_lab.data.frames import LazyFrames
+from diffuser_lab.data.geometry import estimate_normals
 from diffuser_lab.data.mapping import ClassMapping, identity_mapping, load_mapping, native_mapping
 from diffuser_lab.data.prediction_files import label_ids_in, read_label_png, resize_nearest
 from diffuser_lab.data.scene import SCANNET20, Frame, Scene, Taxonomy
@@ -124,7 +125,6 @@ def _vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     n = np.asarray(mesh.vertex_normals, dtype=np.float32)
     bad = ~(np.abs(np.linalg.norm(n, axis=1) - 1.0) < 1e-3)
     if bad.any():  # isolated or only-degenerate-face vertices
-        from diffuser_lab.data.geometry import estimate_normals
         n[bad] = estimate_normals(vertices)[bad]
     return n
 
