@@ -115,9 +115,7 @@ def validate(section: Any) -> None:
         check = f.metadata.get("check")
         if check is not None:
             value = getattr(section, f.name)
-            if not check.ok(value):
-                raise ConfigError(f"{section.KEY + '.' if section.KEY else ''}{f.name}={value!r}: "
-                                  f"expected {check.expected}")
+            _check(check.ok(value), f"{section.KEY}.{f.name}" if section.KEY else f.name, value, check.expected)
 
 
 class Section:

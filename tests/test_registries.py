@@ -70,11 +70,11 @@ def test_a_source_registered_at_run_time_runs_every_protocol(tiny, tmp_path):
 
 
 def test_registry_names_are_checked_in_one_line(tiny):
-    with pytest.raises(ConfigError, match=r"^scene\.source='nope': expected one of demo, mesh_views, rgbd_folder, "
-                                          r"scannet, tiny, tum$"):
+    with pytest.raises(ConfigError, match=r"^scene\.source='nope': expected one of demo, mesh_views, scannet, "
+                                          r"rgbd_folder, tum, tiny$"):
         default_config(**{"scene.source": "nope"})
-    with pytest.raises(ConfigError, match=r"^predictions\.source='nope': expected one of files, gt, model, onnx, "
-                                          r"oracle, simulated$"):
+    with pytest.raises(ConfigError, match=r"^predictions\.source='nope': expected one of simulated, gt, files, "
+                                          r"model, onnx, oracle$"):
         default_config(**{"predictions.source": "nope"})
     with pytest.raises(ValueError, match="already registered"):
         sources.register(sources.SceneSource("demo", "another demo", sources.SOURCES["demo"].load))

@@ -169,5 +169,5 @@ def register(source: PredictionSource) -> PredictionSource:
 def get(name: str) -> PredictionSource:
     """The entry named ``name``; :class:`~diffuser_lab.config.ConfigError` naming ``predictions.source``
     and the registered names otherwise."""
-    check_name("predictions.source", name, sorted(SOURCES))
+    check_name("predictions.source", name, list(SOURCES))
     return SOURCES[name]

@@ -108,5 +108,5 @@ def register(protocol: Protocol) -> Protocol:
 def get(name: str) -> Protocol:
     """The entry named ``name``; :class:`~diffuser_lab.config.ConfigError` naming ``protocol.name`` and
     the registered names otherwise."""
-    check_name("protocol.name", name, sorted(PROTOCOLS))
+    check_name("protocol.name", name, list(PROTOCOLS))
     return PROTOCOLS[name]

@@ -33,11 +33,13 @@ __all__ = ["resolve", "with_method", "names", "default_config"]
 
 def names(protocols: Optional[Mapping[str, Any]] = None) -> dict[str, list[str]]:
     """Each key that names a registry entry -> the names it takes now (what :func:`resolve`
-    accepts, in the order its error line lists them); ``protocol.name`` when ``protocols`` is given."""
-    out = {"scene.source": sorted(sources.SOURCES), "taxonomy.name": taxonomy_names(),
-           "predictions.source": sorted(predictions.SOURCES), "method.name": sorted(fusion.METHODS)}
+    accepts, in the order its error line lists them: a registry's own order, the fusion methods
+    sorted, the shipped taxonomies sorted then ``file``, ``ids``); ``protocol.name`` when
+    ``protocols`` is given."""
+    out = {"scene.source": list(sources.SOURCES), "taxonomy.name": taxonomy_names(),
+           "predictions.source": list(predictions.SOURCES), "method.name": sorted(fusion.METHODS)}
     if protocols is not None:
-        out["protocol.name"] = sorted(protocols)
+        out["protocol.name"] = list(protocols)
     return out
 
 

@@ -75,5 +75,5 @@ def register(source: SceneSource) -> SceneSource:
 def get(name: str) -> SceneSource:
     """The entry named ``name``; :class:`~diffuser_lab.config.ConfigError` naming ``scene.source`` and the
     registered names otherwise."""
-    check_name("scene.source", name, sorted(SOURCES))
+    check_name("scene.source", name, list(SOURCES))
     return SOURCES[name]
