@@ -27,7 +27,7 @@ __version__ = "0.1.0"
 __all__ = ["run", "default_config", "Scene", "Frame", "RunResult", "Config"]
 
 _FACE = {"run": "diffuser_lab.runs.pipeline", "RunResult": "diffuser_lab.runs.pipeline",
-         "default_config": "diffuser_lab.config", "Config": "diffuser_lab.config",
+         "default_config": "diffuser_lab.runs.resolve", "Config": "diffuser_lab.config",
          "Scene": "diffuser_lab.data.scene", "Frame": "diffuser_lab.data.scene"}
 
 

@@ -2,8 +2,15 @@
 
 The dataclasses are registered in Hydra's ConfigStore as ``base_config``; the YAML files
 under ``conf/`` fill them. A key that is not declared here, or a value of the wrong type,
-fails when Hydra composes the config; ranges are checked in ``__post_init__``, which runs
-when :func:`to_object` turns the composed config into these dataclasses.
+fails when Hydra composes the config; each key's range or choices are declared once, as the
+metadata of its field (:func:`key`), and checked by one validator (:func:`validate`) when
+:func:`to_object` turns the composed config into these dataclasses (their ``__post_init__``),
+with the few checks that involve several keys beside it (``_check_keys``).
+
+Names that a registry defines (``method.name``, ``scene.source``, ``predictions.source``,
+``protocol.name``, ``taxonomy.name``) are plain strings here (:func:`named`): the resolve step
+after validation (:mod:`diffuser_lab.runs.resolve`) checks them against the registries and
+applies what a fusion method fixes. This module imports nothing from ``diffuser_lab``.
 """
 from __future__ import annotations
 
@@ -11,7 +18,7 @@ import dataclasses
 import re
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import Any, Dict, List, Optional
+from typing import Any, Callable, ClassVar, Dict, List, Optional
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, OmegaConf
@@ -26,33 +33,112 @@ def _check(ok: bool, key: str, value: Any, expected: str) -> None:
         raise ConfigError(f"{key}={value!r}: expected {expected}")
 
 
-class SceneSource(Enum):
-    demo = "demo"  # embedded procedural room
-    mesh_views = "mesh_views"  # labelled mesh (PLY with per-vertex label) + rendered views
-    scannet = "scannet"  # ScanNet export layout (color/ depth/ pose/ intrinsic/ label-filt/ + PLYs)
-    rgbd_folder = "rgbd_folder"  # frame-XXXXXX.{color,depth,pose} + camera-intrinsics.txt
-    tum = "tum"  # TUM RGB-D: rgb.txt depth.txt groundtruth.txt, associated by timestamp
+def check_name(key: str, value: Any, names: List[str]) -> None:
+    """A registry name: :class:`ConfigError` ``key='value': expected one of a, b, c`` unless
+    ``value`` is one of ``names`` (in the order given)."""
+    _check(value in names, key, value, f"one of {', '.join(names)}")
 
 
-class Protocol(Enum):
-    global_3d = "global_3d"  # label the scene's points, score 3D mIoU (paper Table I)
-    single_frame = "single_frame"  # label each frame's back-projected depth, score 2D mIoU (Table II)
-    online = "online"  # frames one at a time in sequence order; the map labels itself as they come (online.*)
+# --------------------------------------------------------------------------- declared constraints
 
+@dataclass(frozen=True)
+class Check:
+    """A key's declared constraint: the values it takes (``test``; None passes when ``null``) and
+    the text after "expected" in the one-line error and in docs/config.md."""
+
+    expected: str
+    test: Callable[[Any], bool]
+    null: bool = False
+
+    def ok(self, value: Any) -> bool:
+        if value is None:
+            return self.null
+        return bool(self.test(value))
+
+
+def _num(x: float) -> str:
+    return f"{x:g}"
+
+
+def _text(base: str, unit: str, null: bool, note: str) -> str:
+    return base + (f" {unit}" if unit else "") + (" or null" if null else "") + (f" {note}" if note else "")
+
+
+def at_least(lo: float, unit: str = "", *, null: bool = False, note: str = "") -> Check:
+    """``>= lo``."""
+    return Check(_text(f">= {_num(lo)}", unit, null, note), lambda v: v >= lo, null)
+
+
+def above(lo: float, unit: str = "", *, null: bool = False, note: str = "") -> Check:
+    """``> lo``."""
+    return Check(_text(f"> {_num(lo)}", unit, null, note), lambda v: v > lo, null)
+
+
+def within(lo: float, hi: float, unit: str = "", *, open_lo: bool = False, open_hi: bool = False,
+           steps: bool = False, null: bool = False, note: str = "") -> Check:
+    """``lo <= v <= hi`` (``open_lo``/``open_hi``: strict); written ``in [lo, hi]``, or ``in lo..hi``
+    with ``steps`` (integer keys)."""
+    if steps:
+        base = f"in {_num(lo)}..{_num(hi)}"
+    else:
+        base = f"in {'(' if open_lo else '['}{_num(lo)}, {_num(hi)}{')' if open_hi else ']'}"
+
+    def test(v: Any) -> bool:
+        return (v > lo if open_lo else v >= lo) and (v < hi if open_hi else v <= hi)
+
+    return Check(_text(base, unit, null, note), test, null)
+
+
+def rule(expected: str, test: Callable[[Any], bool], *, null: bool = False) -> Check:
+    """Any other constraint: ``test`` and its text."""
+    return Check(expected, test, null)
+
+
+def key(default: Any = MISSING, check: Optional[Check] = None, *, factory: Optional[Callable[[], Any]] = None) -> Any:
+    """A schema field with its constraint (``check``) declared as the field's metadata."""
+    meta = {"check": check} if check is not None else {}
+    if factory is not None:
+        return field(default_factory=factory, metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+def named(default: str, registry: str) -> Any:
+    """A schema field whose value is a name in ``registry`` (checked by the resolve step)."""
+    return field(default=default, metadata={"registry": registry})
+
+
+def validate(section: Any) -> None:
+    """The one validator: every field of the dataclass ``section`` with a declared :class:`Check`
+    against its value; :class:`ConfigError` naming the first key out of range. Nested sections
+    are checked when they are built (their own ``__post_init__``)."""
+    for f in dataclasses.fields(section):
+        check = f.metadata.get("check")
+        if check is not None:
+            value = getattr(section, f.name)
+            _check(check.ok(value), f"{section.KEY}.{f.name}" if section.KEY else f.name, value, check.expected)
+
+
+class Section:
+    """Base of the schema's dataclasses: building one validates it (:func:`validate`, then
+    :meth:`_check_keys`). ``KEY`` is its dotted key path (``scene.demo``; ``""`` at the top)."""
+
+    KEY: ClassVar[str] = ""
+
+    def __post_init__(self) -> None:
+        validate(self)
+        self._check_keys()
+
+    def _check_keys(self) -> None:
+        """Checks that involve several keys (``min <= max``, one of two keys set, ...)."""
+
+
+# --------------------------------------------------------------------------- enums
 
 class FrameNormals(Enum):
     """single_frame: where a target frame's cloud gets its normals (Eq. 4's normal term)."""
 
     knn = "knn"  # open3d PCA over graph.normal_knn neighbours of the back-projected cloud (the paper's)
     depth_image = "depth_image"  # the organised depth image, smoothed over protocol.normal_window_px
-
-
-class PredictionSource(Enum):
-    simulated = "simulated"  # simulated 2D-network mistakes on ground-truth label images
-    gt = "gt"  # ground-truth label images (perfect 2D labels)
-    files = "files"  # a 2D network's label images (mapped) or class probabilities (.npy/.npz)
-    model = "model"  # a Python callable (Hydra _target_) run on each frame's RGB
-    onnx = "onnx"  # an exported ONNX segmentation network run with onnxruntime on the CPU
 
 
 class MistakeCorrelation(Enum):
@@ -105,92 +191,80 @@ class BayesianMode(Enum):
     votes = "votes"  # sum of one-hot argmax votes
 
 
+# --------------------------------------------------------------------------- scene
+
 @dataclass
-class DemoSceneConfig:
+class DemoSceneConfig(Section):
     """Procedural room (diffuser_lab.data.sources.demo)."""
 
+    KEY = "scene.demo"
     seed: int = 0
-    room_size: List[float] = field(default_factory=lambda: [5.0, 4.0, 2.6])  # x, y, z metres
-    n_views: int = 30
+    room_size: List[float] = key(check=rule("three sizes > 1 m", lambda v: len(v) == 3 and min(v) > 1.0),
+                                 factory=lambda: [5.0, 4.0, 2.6])  # x, y, z metres
+    n_views: int = key(30, at_least(1))
     image_width: int = 160
     image_height: int = 120
-    fov_deg: float = 70.0  # horizontal field of view
-    point_spacing: float = 0.04  # metres between sampled surface points
-    point_noise: float = 0.002  # std of gaussian position noise, metres
+    fov_deg: float = key(70.0, within(10, 150))  # horizontal field of view
+    point_spacing: float = key(0.04, within(0.005, 0.5, "metres"))  # metres between sampled surface points
+    point_noise: float = key(0.002, at_least(0))  # std of gaussian position noise, metres
 
-    def __post_init__(self) -> None:
-        _check(len(self.room_size) == 3 and min(self.room_size) > 1.0, "scene.demo.room_size",
-               self.room_size, "three sizes > 1 m")
-        _check(self.n_views >= 1, "scene.demo.n_views", self.n_views, ">= 1")
+    def _check_keys(self) -> None:
         _check(self.image_width >= 16 and self.image_height >= 16, "scene.demo.image_width/height",
                (self.image_width, self.image_height), ">= 16 pixels")
-        _check(10.0 <= self.fov_deg <= 150.0, "scene.demo.fov_deg", self.fov_deg, "in [10, 150]")
-        _check(0.005 <= self.point_spacing <= 0.5, "scene.demo.point_spacing", self.point_spacing,
-               "in [0.005, 0.5] metres")
-        _check(self.point_noise >= 0.0, "scene.demo.point_noise", self.point_noise, ">= 0")
 
 
 @dataclass
-class MeshViewsConfig:
+class MeshViewsConfig(Section):
     """Views rendered from a labelled mesh (diffuser_lab.data.sources.mesh_views)."""
 
+    KEY = "scene.mesh_views"
     path: str = MISSING  # PLY mesh with a per-vertex `label` (e.g. ScanNet's *_vh_clean_2.labels.ply)
     mapping: Optional[str] = "nyu40_to_scannet20"  # mesh label ids -> taxonomy (shipped table or CSV); null = taxonomy ids
-    n_views: int = 40
+    n_views: int = key(40, at_least(1))
     seed: int = 0
     image_width: int = 320
     image_height: int = 240
-    fov_deg: float = 58.0  # horizontal; ScanNet's depth camera: fx = 577.9 at 640 px
-    min_coverage: float = 0.3  # reject views whose valid-depth share is below this
+    fov_deg: float = key(58.0, within(10, 150))  # horizontal; ScanNet's depth camera: fx = 577.9 at 640 px
+    min_coverage: float = key(0.3, within(0, 1, open_hi=True))  # reject views whose valid-depth share is below this
     eye_height_min: float = 1.2  # metres above the floor
     eye_height_max: float = 1.8
 
-    def __post_init__(self) -> None:
-        _check(self.n_views >= 1, "scene.mesh_views.n_views", self.n_views, ">= 1")
+    def _check_keys(self) -> None:
         _check(self.image_width >= 16 and self.image_height >= 16, "scene.mesh_views.image_width/height",
                (self.image_width, self.image_height), ">= 16 pixels")
-        _check(10.0 <= self.fov_deg <= 150.0, "scene.mesh_views.fov_deg", self.fov_deg, "in [10, 150]")
-        _check(0.0 <= self.min_coverage < 1.0, "scene.mesh_views.min_coverage", self.min_coverage, "in [0, 1)")
         _check(0.0 < self.eye_height_min <= self.eye_height_max, "scene.mesh_views.eye_height_min/max",
                (self.eye_height_min, self.eye_height_max), "0 < min <= max")
 
 
-def _check_pattern(value: str, key: str, placeholder: str) -> None:
-    _check(isinstance(value, str) and value.count("{" + placeholder + "}") == 1 and
-           value.replace("{" + placeholder + "}", "").count("{") == 0, key, value,
-           f"a relative file name with one {{{placeholder}}} and no other {{...}}")
+def _pattern(placeholder: str) -> Check:
+    """A relative file name with one ``{placeholder}`` and no other ``{...}``."""
+    ph = "{" + placeholder + "}"
+    return rule(f"a relative file name with one {ph} and no other {{...}}",
+                lambda v: isinstance(v, str) and v.count(ph) == 1 and v.replace(ph, "").count("{") == 0)
+
+
+_SCENE_FILE = rule("a file name, optionally with {scene}", lambda v: v.replace("{scene}", "").count("{") == 0)
 
 
 @dataclass
-class ScannetConfig:
+class ScannetConfig(Section):
     """A scene in ScanNet's export layout (diffuser_lab.data.sources.scannet). File names are
     relative to ``root``; ``{scene}`` = the root folder's name, ``{frame}`` = the frame number."""
 
+    KEY = "scene.scannet"
     root: str = MISSING  # folder holding color/ depth/ pose/ intrinsic/ label-filt/ and the PLYs
-    frame_step: int = 10  # paper: every 10th frame
-    max_frames: Optional[int] = None
+    frame_step: int = key(10, at_least(1))  # paper: every 10th frame
+    max_frames: Optional[int] = key(None, at_least(1, null=True))
     mapping: Optional[str] = "nyu40_to_scannet20"  # label ids -> taxonomy; null = the taxonomy's own ids
-    mesh: str = "{scene}_vh_clean_2.ply"  # the points to label (mesh vertices)
-    labels_mesh: str = "{scene}_vh_clean_2.labels.ply"  # per-vertex ground truth; optional file
-    depth: str = "depth/{frame}.png"  # 16-bit, depth_scale units per metre; frames are found by this
-    color: str = "color/{frame}.jpg"  # optional: without it frames carry no RGB
-    pose: str = "pose/{frame}.txt"  # 4x4 camera-to-world
-    labels: str = "label-filt/{frame}.png"  # optional ground-truth label images (mapping's source ids)
+    mesh: str = key("{scene}_vh_clean_2.ply", _SCENE_FILE)  # the points to label (mesh vertices)
+    labels_mesh: str = key("{scene}_vh_clean_2.labels.ply", _SCENE_FILE)  # per-vertex ground truth; optional file
+    depth: str = key("depth/{frame}.png", _pattern("frame"))  # 16-bit, depth_scale units per metre; frames are found by this
+    color: str = key("color/{frame}.jpg", _pattern("frame"))  # optional: without it frames carry no RGB
+    pose: str = key("pose/{frame}.txt", _pattern("frame"))  # 4x4 camera-to-world
+    labels: str = key("label-filt/{frame}.png", _pattern("frame"))  # optional ground-truth label images (mapping's source ids)
     intrinsic_depth: str = "intrinsic/intrinsic_depth.txt"
     intrinsic_color: str = "intrinsic/intrinsic_color.txt"  # optional, only checked against intrinsic_depth
-    depth_scale: float = 1000.0  # raw depth units per metre
-
-    def __post_init__(self) -> None:
-        _check(self.frame_step >= 1, "scene.scannet.frame_step", self.frame_step, ">= 1")
-        _check(self.max_frames is None or self.max_frames >= 1, "scene.scannet.max_frames", self.max_frames,
-               ">= 1 or null")
-        _check(self.depth_scale > 0, "scene.scannet.depth_scale", self.depth_scale, "> 0")
-        for key in ("depth", "color", "pose", "labels"):
-            _check_pattern(getattr(self, key), f"scene.scannet.{key}", "frame")
-        for key in ("mesh", "labels_mesh"):
-            v = getattr(self, key)
-            _check(v.replace("{scene}", "").count("{") == 0, f"scene.scannet.{key}", v,
-                   "a file name, optionally with {scene}")
+    depth_scale: float = key(1000.0, above(0))  # raw depth units per metre
 
 
 class DepthShiftKind(Enum):
@@ -203,46 +277,40 @@ class PoseConvention(Enum):
     world_to_camera = "world_to_camera"  # the pose maps world coordinates to camera (extrinsics)
 
 
+_SUFFIX = "a non-empty file name suffix, without / or *"
+
+
+def _suffix(null: bool = False) -> Check:
+    return rule(_SUFFIX, lambda v: bool(v) and "/" not in v and "*" not in v, null=null)
+
+
 @dataclass
-class RgbdFolderConfig:
+class RgbdFolderConfig(Section):
     """A posed RGB-D folder: frame-XXXXXX.{color.*,depth.png,pose.txt} + camera-intrinsics.txt.
     A frame's files are ``<frame_prefix><digits>.<suffix>``; docs/layouts.md describes each key."""
 
+    KEY = "scene.rgbd_folder"
     root: str = MISSING  # the folder
-    intrinsics_file: str = "camera-intrinsics.txt"  # 3x3 K of the depth image, relative to root
-    frame_prefix: str = "frame-"  # a frame's name = prefix + digits (frame-000000)
-    depth_suffix: str = "depth.png"
-    pose_suffix: str = "pose.txt"
+    intrinsics_file: str = key("camera-intrinsics.txt", rule("a file name relative to root",
+                                                             lambda v: bool(v) and "*" not in v))  # 3x3 K of the depth image, relative to root
+    frame_prefix: str = key("frame-", rule("a file name prefix without / or *",
+                                           lambda v: "/" not in v and "*" not in v))  # a frame's name = prefix + digits (frame-000000)
+    depth_suffix: str = key("depth.png", _suffix())
+    pose_suffix: str = key("pose.txt", _suffix())
     pose_convention: PoseConvention = PoseConvention.camera_to_world
-    depth_scale: float = 1000.0  # metres = (raw, shifted) / depth_scale (1000 = millimetres)
-    depth_bit_shift: int = 0  # right shift of the raw 16-bit depth before scaling (SUN3D: 3)
+    depth_scale: float = key(1000.0, above(0))  # metres = (raw, shifted) / depth_scale (1000 = millimetres)
+    depth_bit_shift: int = key(0, within(0, 15))  # right shift of the raw 16-bit depth before scaling (SUN3D: 3)
     depth_shift_kind: DepthShiftKind = DepthShiftKind.circular  # circular (SUN3D) | plain (raw >> shift)
     invalid_depth: List[int] = field(default_factory=lambda: [0, 65535])  # raw values, before the shift
-    color_suffix: Optional[str] = "color.jpg"  # null = no colour; no such file at all = no colour (warning)
-    label_suffix: Optional[str] = None  # ground-truth label images frame-XXXXXX.<suffix>, if any
+    color_suffix: Optional[str] = key("color.jpg", _suffix(null=True))  # null = no colour; no such file at all = no colour (warning)
+    label_suffix: Optional[str] = key(None, _suffix(null=True))  # ground-truth label images frame-XXXXXX.<suffix>, if any
     mapping: Optional[str] = None  # label ids -> taxonomy; null = ids are taxonomy ids
     cloud: Optional[str] = None  # PLY point cloud; null = back-project and voxel-merge the depth frames
-    cloud_voxel: float = 0.02  # metres, for the back-projected cloud
-    cloud_stride: int = 4  # every n-th pixel of each depth frame for the back-projected cloud
+    cloud_voxel: float = key(0.02, above(0, "metres"))  # metres, for the back-projected cloud
+    cloud_stride: int = key(4, at_least(1))  # every n-th pixel of each depth frame for the back-projected cloud
     max_depth: Optional[float] = None  # metres; ignore depth beyond it
-    frame_step: int = 1
+    frame_step: int = key(1, at_least(1))
     max_frames: Optional[int] = None
-
-    def __post_init__(self) -> None:
-        _check(self.depth_scale > 0, "scene.rgbd_folder.depth_scale", self.depth_scale, "> 0")
-        _check(0 <= self.depth_bit_shift < 16, "scene.rgbd_folder.depth_bit_shift", self.depth_bit_shift,
-               "in [0, 15]")
-        _check(self.cloud_voxel > 0, "scene.rgbd_folder.cloud_voxel", self.cloud_voxel, "> 0 metres")
-        _check(self.cloud_stride >= 1, "scene.rgbd_folder.cloud_stride", self.cloud_stride, ">= 1")
-        _check(self.frame_step >= 1, "scene.rgbd_folder.frame_step", self.frame_step, ">= 1")
-        for key in ("depth_suffix", "pose_suffix", "color_suffix", "label_suffix"):
-            v = getattr(self, key)
-            _check(v is None or (v and "/" not in v and "*" not in v), f"scene.rgbd_folder.{key}", v,
-                   "a non-empty file name suffix, without / or *")
-        _check(bool(self.intrinsics_file) and "*" not in self.intrinsics_file, "scene.rgbd_folder.intrinsics_file",
-               self.intrinsics_file, "a file name relative to root")
-        _check("/" not in self.frame_prefix and "*" not in self.frame_prefix, "scene.rgbd_folder.frame_prefix",
-               self.frame_prefix, "a file name prefix without / or *")
 
 
 class TumCamera(Enum):
@@ -257,39 +325,33 @@ class TumCamera(Enum):
 
 
 @dataclass
-class TumConfig:
+class TumConfig(Section):
     """A TUM RGB-D sequence (diffuser_lab.data.sources.tum): rgb.txt, depth.txt, groundtruth.txt with
     timestamps, associated by nearest timestamp; frames named after their RGB image's stem."""
 
+    KEY = "scene.tum"
     root: str = MISSING  # the sequence folder (rgbd_dataset_freiburg1_xyz)
     rgb_list: Optional[str] = "rgb.txt"  # 'timestamp file' lines; null = no colour
     depth_list: str = "depth.txt"  # 'timestamp file' lines; the frames
     groundtruth: str = "groundtruth.txt"  # 'timestamp tx ty tz qx qy qz qw', camera-to-world
-    max_time_diff: float = 0.02  # seconds: nearest RGB / pose farther than this drops the frame (associate.py)
-    depth_scale: float = 5000.0  # raw units per metre (TUM: 5000)
+    max_time_diff: float = key(0.02, above(0, "seconds"))  # seconds: nearest RGB / pose farther than this drops the frame (associate.py)
+    depth_scale: float = key(5000.0, above(0))  # raw units per metre (TUM: 5000)
     camera: TumCamera = TumCamera.auto
     fx: Optional[float] = None  # pixels; set all four to override the camera preset
     fy: Optional[float] = None
     cx: Optional[float] = None
     cy: Optional[float] = None
-    cloud_voxel: float = 0.02  # metres, for the back-projected cloud
-    cloud_stride: int = 4
+    cloud_voxel: float = key(0.02, above(0, "metres"))  # metres, for the back-projected cloud
+    cloud_stride: int = key(4, at_least(1))
     max_depth: Optional[float] = None  # metres; ignore depth beyond it in the cloud
-    frame_step: int = 1
-    max_frames: Optional[int] = None
+    frame_step: int = key(1, at_least(1))
+    max_frames: Optional[int] = key(None, at_least(1, null=True))
 
-    def __post_init__(self) -> None:
-        _check(self.max_time_diff > 0, "scene.tum.max_time_diff", self.max_time_diff, "> 0 seconds")
-        _check(self.depth_scale > 0, "scene.tum.depth_scale", self.depth_scale, "> 0")
+    def _check_keys(self) -> None:
         given = [v is not None for v in (self.fx, self.fy, self.cx, self.cy)]
         _check(all(given) or not any(given), "scene.tum.fx/fy/cx/cy", (self.fx, self.fy, self.cx, self.cy),
                "all four set (pixels) or all null (= scene.tum.camera's preset)")
         _check(not any(given) or (self.fx > 0 and self.fy > 0), "scene.tum.fx/fy", (self.fx, self.fy), "> 0 pixels")
-        _check(self.cloud_voxel > 0, "scene.tum.cloud_voxel", self.cloud_voxel, "> 0 metres")
-        _check(self.cloud_stride >= 1, "scene.tum.cloud_stride", self.cloud_stride, ">= 1")
-        _check(self.frame_step >= 1, "scene.tum.frame_step", self.frame_step, ">= 1")
-        _check(self.max_frames is None or self.max_frames >= 1, "scene.tum.max_frames", self.max_frames,
-               ">= 1 or null")
 
 
 class DepthModel(Enum):
@@ -304,149 +366,135 @@ class DepthQuantization(Enum):
 
 
 @dataclass
-class DepthNoiseConfig:
+class DepthNoiseConfig(Section):
     """What the frames' depth is (diffuser_lab/data/sensor.py; docs/sensor.md): applied to rendered
-    depth (scene=demo, mesh_views) and, with ``apply_to_real``, to the depth images of real sources."""
+    depth (scene=demo, mesh_views) and, with ``apply_to_real``, to the depth images of real sources.
+    :func:`diffuser_lab.data.sensor.sensor_model` makes the sensor model of these keys."""
 
+    KEY = "depth"
     model: DepthModel = DepthModel.perfect
     seed: int = 0  # with the frame's index, seeds its noise (conf/depth/sensor.yaml: ${seed})
     apply_to_real: bool = False  # also corrupt the depth of scannet / rgbd_folder / tum frames
-    axial_scale: float = 1.0  # x Nguyen et al. 2012 sigma_z = 0.0012 + 0.0019 (z - 0.4)^2 m (+ angle term > 60 deg)
-    lateral_scale: float = 1.0  # x Nguyen's sigma_L = 0.8 + 0.035 theta / (pi/2 - theta) px (640-px image) at edges
-    projector_baseline: float = 0.075  # metres, IR camera -> projector (+x): shadows left of objects; 0 = none
-    edge_jump: float = 0.05  # a 4-neighbour jump larger than this share of the nearer depth is a discontinuity
-    edge_hole_px: int = 1  # hole band along discontinuities: the two pixels of the jump dilated by this - 1; 0 = none
-    max_incidence_deg: float = 75.0  # no depth beyond this angle between ray and surface normal; 90 = never
+    axial_scale: float = key(1.0, at_least(0, note="(0 = off)"))  # x Nguyen et al. 2012 sigma_z = 0.0012 + 0.0019 (z - 0.4)^2 m (+ angle term > 60 deg)
+    lateral_scale: float = key(1.0, at_least(0, note="(0 = off)"))  # x Nguyen's sigma_L = 0.8 + 0.035 theta / (pi/2 - theta) px (640-px image) at edges
+    projector_baseline: float = key(0.075, at_least(0, note="(0 = off)"))  # metres, IR camera -> projector (+x): shadows left of objects; 0 = none
+    edge_jump: float = key(0.05, above(0, note="(a share of the depth)"))  # a 4-neighbour jump larger than this share of the nearer depth is a discontinuity
+    edge_hole_px: int = key(1, within(0, 20, "pixels", steps=True))  # hole band along discontinuities: the two pixels of the jump dilated by this - 1; 0 = none
+    max_incidence_deg: float = key(75.0, within(0, 90, "degrees", open_lo=True))  # no depth beyond this angle between ray and surface normal; 90 = never
     min_range: float = 0.5  # metres; sensor depth outside [min_range, max_range] is no return (Kinect: 0.5-4.5)
     max_range: float = 4.5
     quantization: DepthQuantization = DepthQuantization.mm
-    disparity_focal_px: float = 580.0  # quantization=disparity: the IR camera's focal length (640 px)
-    disparity_baseline: float = 0.075  # metres
-    disparity_subpixel: float = 0.125  # disparity step, pixels (Kinect v1: 1/8)
+    disparity_focal_px: float = key(580.0, above(0))  # quantization=disparity: the IR camera's focal length (640 px)
+    disparity_baseline: float = key(0.075, above(0))  # metres
+    disparity_subpixel: float = key(0.125, above(0))  # disparity step, pixels (Kinect v1: 1/8)
 
-    def __post_init__(self) -> None:
-        for key in ("axial_scale", "lateral_scale", "projector_baseline"):
-            _check(getattr(self, key) >= 0.0, f"depth.{key}", getattr(self, key), ">= 0 (0 = off)")
-        _check(self.edge_jump > 0.0, "depth.edge_jump", self.edge_jump, "> 0 (a share of the depth)")
-        _check(0 <= self.edge_hole_px <= 20, "depth.edge_hole_px", self.edge_hole_px, "in 0..20 pixels")
-        _check(0.0 < self.max_incidence_deg <= 90.0, "depth.max_incidence_deg", self.max_incidence_deg,
-               "in (0, 90] degrees")
+    def _check_keys(self) -> None:
         _check(0.0 <= self.min_range < self.max_range, "depth.min_range/max_range",
                (self.min_range, self.max_range), "0 <= min_range < max_range metres")
-        for key in ("disparity_focal_px", "disparity_baseline", "disparity_subpixel"):
-            _check(getattr(self, key) > 0.0, f"depth.{key}", getattr(self, key), "> 0")
-
-    def sensor_model(self):
-        """The :class:`~diffuser_lab.data.sensor.SensorModel` of these keys, or None for ``perfect``."""
-        if self.model == DepthModel.perfect:
-            return None
-        from diffuser_lab.data.sensor import SensorModel
-
-        return SensorModel(seed=self.seed, axial_scale=self.axial_scale, lateral_scale=self.lateral_scale,
-                           projector_baseline=self.projector_baseline, edge_jump=self.edge_jump,
-                           edge_hole_px=self.edge_hole_px, max_incidence_deg=self.max_incidence_deg,
-                           min_range=self.min_range, max_range=self.max_range,
-                           quantization=self.quantization.value, disparity_focal_px=self.disparity_focal_px,
-                           disparity_baseline=self.disparity_baseline, disparity_subpixel=self.disparity_subpixel)
 
 
 REQUIRED = {"mesh_views": "path", "scannet": "root", "rgbd_folder": "root", "tum": "root"}
-"""Each scene source's required key (MISSING in its dataclass)."""
+"""Each built-in scene source's required key (MISSING in its dataclass)."""
 
 
 @dataclass
-class SceneConfig:
-    source: SceneSource = SceneSource.demo
+class SceneConfig(Section):
+    """What the run labels. ``source`` names an entry of the scene sources' registry
+    (:mod:`diffuser_lab.data.sources`), which loads the scene from the keys it reads: the
+    built-in sources their own ``scene.<source>`` keys, a source registered by a user ``options``."""
+
+    KEY = "scene"
+    source: str = named("demo", "scene sources")  # the scene source's name (registry: diffuser_lab/data/sources)
     name: Optional[str] = None  # display name; null = derived from the source
-    # one dataclass per source; a source's own settings are set (by its conf/scene/*.yaml) only
-    # when it is the selected one, so its required keys (MISSING) are asked for only then
+    # one dataclass per built-in source; a source's own settings are set (by its conf/scene/*.yaml)
+    # only when it is the selected one, so its required keys (MISSING) are asked for only then
     demo: DemoSceneConfig = field(default_factory=DemoSceneConfig)
     mesh_views: Optional[MeshViewsConfig] = None
     scannet: Optional[ScannetConfig] = None
     rgbd_folder: Optional[RgbdFolderConfig] = None
     tum: Optional[TumConfig] = None
-    voxel_size: float = 0.0  # metres; > 0: voxel-downsample before diffusion, labels transferred back
+    voxel_size: float = key(0.0, at_least(0, "metres", note="(0 = off)"))  # metres; > 0: voxel-downsample before diffusion, labels transferred back
+    # the keys of a source registered at run time (free-form: its loader reads and checks them)
+    options: Dict[str, Any] = field(default_factory=dict)
 
-    def __post_init__(self) -> None:
-        _check(self.voxel_size >= 0.0, "scene.voxel_size", self.voxel_size, ">= 0 metres (0 = off)")
-        # a source selected by scene.source alone (its settings never set): its required key
-        own = getattr(self, self.source.value)
-        if own is None:
-            key = REQUIRED[self.source.value]
-            raise ConfigError(f"scene.{self.source.value}.{key} is required for scene={self.source.value}")
+    def _check_keys(self) -> None:
+        # a built-in source selected by scene.source alone (its settings never set): its required key
+        if self.source in REQUIRED and getattr(self, self.source) is None:
+            raise ConfigError(f"scene.{self.source}.{REQUIRED[self.source]} is required for scene={self.source}")
 
 
 SPECIAL_TAXONOMIES = ("file", "ids")
+"""The taxonomy names besides the shipped ones: a file (taxonomy.path), the ids found in the data."""
 
 
 @dataclass
-class TaxonomyConfig:
+class TaxonomyConfig(Section):
     """The run's class set (diffuser_lab.data.taxonomy): evaluation, records, plots follow it."""
 
-    name: str = "scannet20"  # a shipped taxonomy | file (taxonomy.path) | ids (the label ids found in the data)
+    KEY = "taxonomy"
+    name: str = named("scannet20", "taxonomies")  # a shipped taxonomy | file (taxonomy.path) | ids (the label ids found in the data)
     path: Optional[str] = None  # name=file: a CSV (id,name[,r,g,b]) or YAML taxonomy file
-    scan_frames: int = 10  # name=ids: label images of the first n frames are scanned for ids
+    scan_frames: int = key(10, at_least(1))  # name=ids: label images of the first n frames are scanned for ids
 
-    def __post_init__(self) -> None:
-        from diffuser_lab.data.taxonomy import shipped_taxonomies
-
-        valid = shipped_taxonomies() + list(SPECIAL_TAXONOMIES)
-        _check(self.name in valid, "taxonomy.name", self.name, f"one of {', '.join(valid)}")
+    def _check_keys(self) -> None:
         _check(self.name != "file" or bool(self.path), "taxonomy.path", self.path,
                "a CSV or YAML file for taxonomy=file")
-        _check(self.scan_frames >= 1, "taxonomy.scan_frames", self.scan_frames, ">= 1")
 
+
+# --------------------------------------------------------------------------- predictions, method
 
 @dataclass
-class OnnxConfig:
+class OnnxConfig(Section):
     """predictions=onnx: an exported segmentation network (diffuser_lab/data/networks.py)."""
 
+    KEY = "predictions.onnx"
     path: str = MISSING  # the .onnx file
-    input_size: Optional[List[int]] = None  # [H, W] the network takes; null = its fixed size, else the frame's
-    mean: List[float] = field(default_factory=lambda: [0.485, 0.456, 0.406])  # per input channel (network's order), pixel / 255
-    std: List[float] = field(default_factory=lambda: [0.229, 0.224, 0.225])  # (ImageNet); [1,1,1] and 0 = raw
+    input_size: Optional[List[int]] = key(None, rule("[H, W] >= 1 or null", lambda v: len(v) == 2 and min(v) >= 1,
+                                                     null=True))  # [H, W] the network takes; null = its fixed size, else the frame's
+    mean: List[float] = key(check=rule("3 values (one per channel)", lambda v: len(v) == 3),
+                            factory=lambda: [0.485, 0.456, 0.406])  # per input channel (network's order), pixel / 255
+    std: List[float] = key(check=rule("3 values > 0", lambda v: len(v) == 3 and min(v) > 0),
+                           factory=lambda: [0.229, 0.224, 0.225])  # (ImageNet); [1,1,1] and 0 = raw
     channels: ChannelOrder = ChannelOrder.rgb  # channel order the network expects
     layout: TensorLayout = TensorLayout.nchw  # input tensor layout
     output: OnnxOutput = OnnxOutput.logits  # what the (first, or output_name) output holds
     output_layout: TensorLayout = TensorLayout.nchw  # layout of logits / probs outputs
     output_name: Optional[str] = None  # null = the graph's first output
-    threads: int = 0  # onnxruntime intra-op threads; 0 = its default (all cores)
+    threads: int = key(0, at_least(0, note="(0 = onnxruntime's default)"))  # onnxruntime intra-op threads; 0 = its default (all cores)
 
-    def __post_init__(self) -> None:
-        _check(self.input_size is None or (len(self.input_size) == 2 and min(self.input_size) >= 1),
-               "predictions.onnx.input_size", self.input_size, "[H, W] >= 1 or null")
-        _check(len(self.mean) == 3, "predictions.onnx.mean", self.mean, "3 values (one per channel)")
-        _check(len(self.std) == 3 and min(self.std) > 0, "predictions.onnx.std", self.std, "3 values > 0")
-        _check(self.threads >= 0, "predictions.onnx.threads", self.threads, ">= 0 (0 = onnxruntime's default)")
+
+_FILE_NAME = _pattern("name")
 
 
 @dataclass
-class PredictionsConfig:
-    """What the frames' 2D labels are. The simulated mistakes are documented knob by knob in
-    :func:`diffuser_lab.data.simulate.simulate_predictions` (defaults: 2D mIoU ~58 on the demo)."""
+class PredictionsConfig(Section):
+    """What the frames' 2D labels are. ``source`` names an entry of the prediction sources'
+    registry (:mod:`diffuser_lab.data.predictions`). The simulated mistakes are documented knob by
+    knob in :func:`diffuser_lab.data.simulate.simulate_predictions` (defaults: 2D mIoU ~58 on the demo)."""
 
-    source: PredictionSource = PredictionSource.simulated
+    KEY = "predictions"
+    source: str = named("simulated", "prediction sources")  # the prediction source's name (registry: diffuser_lab/data/predictions.py)
     folder: Optional[str] = None  # files: the folder of per-frame predictions (named after the frames)
     mapping: Optional[str] = None  # files: network label ids -> taxonomy (e.g. nyu40_to_scannet20)
     # files: a frame's file name(s), {name} = the frame's name; a string or a list searched in order
     pattern: Any = field(default_factory=lambda: ["{name}.png", "{name}.label.png", "{name}.npy", "{name}.npz"])
     seed: int = 0
-    strength: float = 1.0  # scales every simulated mistake; 0 = perfect labels
-    jitter_px: float = 3.0  # std of the smooth boundary displacement field, pixels
-    jitter_scale_px: float = 16.0  # its correlation length, pixels
-    confuse_prob: float = 0.2  # probability that a connected region gets a wrong class
-    confuse_max_frac: float = 0.3  # regions larger than this share of the image are never confused
-    blob_count: float = 2.0  # mean number of wrong-class blobs per image (Poisson)
-    blob_radius: float = 0.1  # mean blob radius, fraction of the image width
-    blob_roughness: float = 0.35  # irregularity of blob outlines, 0 = discs
+    strength: float = key(1.0, at_least(0))  # scales every simulated mistake; 0 = perfect labels
+    jitter_px: float = key(3.0, at_least(0))  # std of the smooth boundary displacement field, pixels
+    jitter_scale_px: float = key(16.0, above(0))  # its correlation length, pixels
+    confuse_prob: float = key(0.2, within(0, 1))  # probability that a connected region gets a wrong class
+    confuse_max_frac: float = key(0.3, within(0, 1))  # regions larger than this share of the image are never confused
+    blob_count: float = key(2.0, at_least(0))  # mean number of wrong-class blobs per image (Poisson)
+    blob_radius: float = key(0.1, above(0))  # mean blob radius, fraction of the image width
+    blob_roughness: float = key(0.35, at_least(0))  # irregularity of blob outlines, 0 = discs
     # view-correlated mistakes and low-resolution output (docs/simulated-network.md)
     correlation: MistakeCorrelation = MistakeCorrelation.independent
-    region_size: float = 0.5  # regions: world voxel edge cutting gt segments into 3D regions, metres
-    persistence: float = 1.0  # regions: probability that a view shows a region's persistent decision
-    confuse_region_frac: float = 1.0  # share of a confused region that is wrong (1 = all of it)
-    view_gain: float = 0.0  # regions: confusion probability x (1 + view_gain * far/grazing in [0, 1])
-    view_range_m: float = 4.0  # regions: range at which the "far" term saturates, metres
-    output_stride: int = 1  # labels decided on stride x stride pixel cells, upsampled; 1 = off
+    region_size: float = key(0.5, above(0, "metres"))  # regions: world voxel edge cutting gt segments into 3D regions, metres
+    persistence: float = key(1.0, within(0, 1))  # regions: probability that a view shows a region's persistent decision
+    confuse_region_frac: float = key(1.0, within(0, 1, open_lo=True))  # share of a confused region that is wrong (1 = all of it)
+    view_gain: float = key(0.0, at_least(0))  # regions: confusion probability x (1 + view_gain * far/grazing in [0, 1])
+    view_range_m: float = key(4.0, above(0, "metres"))  # regions: range at which the "far" term saturates, metres
+    output_stride: int = key(1, within(1, 64, steps=True))  # labels decided on stride x stride pixel cells, upsampled; 1 = off
     # model / onnx: a network run on each frame's RGB, its outputs (ids or probabilities in its own
     # label space) translated by ``mapping`` and cached on disk (docs/networks.md)
     model: Optional[Dict[str, Any]] = None  # model: {_target_: pkg.mod.callable, **kwargs}
@@ -454,134 +502,93 @@ class PredictionsConfig:
     onnx: Optional[OnnxConfig] = None  # onnx: set by conf/predictions/onnx.yaml
     cache_dir: Optional[str] = "~/.cache/diffuser-lab/predictions"  # model / onnx outputs; null = no cache
 
-    def __post_init__(self) -> None:
+    def _check_keys(self) -> None:
         if isinstance(self.pattern, str):
             self.pattern = [self.pattern]
         self.pattern = list(self.pattern)
         for p in self.pattern:
-            _check_pattern(p, "predictions.pattern", "name")
+            _check(_FILE_NAME.ok(p), "predictions.pattern", p, _FILE_NAME.expected)
         _check(len(self.pattern) >= 1, "predictions.pattern", self.pattern, "at least one file name")
-        if self.source == PredictionSource.model:
+        if self.source == "model":
             target = (self.model or {}).get("_target_")
             _check(isinstance(target, str) and bool(target.strip()), "predictions.model._target_", target,
                    "a Python callable's import path (pkg.module.name) for predictions=model")
-        if self.source == PredictionSource.onnx and self.onnx is None:
+        if self.source == "onnx" and self.onnx is None:
             raise ConfigError("predictions.onnx.path is required for predictions=onnx (pass predictions.onnx.path=...)")
-        _check(self.strength >= 0.0, "predictions.strength", self.strength, ">= 0")
-        _check(self.jitter_px >= 0.0, "predictions.jitter_px", self.jitter_px, ">= 0")
-        _check(self.jitter_scale_px > 0.0, "predictions.jitter_scale_px", self.jitter_scale_px, "> 0")
-        _check(0.0 <= self.confuse_prob <= 1.0, "predictions.confuse_prob", self.confuse_prob, "in [0, 1]")
-        _check(0.0 <= self.confuse_max_frac <= 1.0, "predictions.confuse_max_frac", self.confuse_max_frac,
-               "in [0, 1]")
-        _check(self.blob_count >= 0.0, "predictions.blob_count", self.blob_count, ">= 0")
-        _check(self.blob_radius > 0.0, "predictions.blob_radius", self.blob_radius, "> 0")
-        _check(self.blob_roughness >= 0.0, "predictions.blob_roughness", self.blob_roughness, ">= 0")
-        _check(self.region_size > 0.0, "predictions.region_size", self.region_size, "> 0 metres")
-        _check(0.0 <= self.persistence <= 1.0, "predictions.persistence", self.persistence, "in [0, 1]")
-        _check(0.0 < self.confuse_region_frac <= 1.0, "predictions.confuse_region_frac",
-               self.confuse_region_frac, "in (0, 1]")
-        _check(self.view_gain >= 0.0, "predictions.view_gain", self.view_gain, ">= 0")
-        _check(self.view_range_m > 0.0, "predictions.view_range_m", self.view_range_m, "> 0 metres")
-        _check(1 <= self.output_stride <= 64, "predictions.output_stride", self.output_stride, "in 1..64")
 
 
 @dataclass
-class EvidenceConfig:
+class EvidenceConfig(Section):
     """Pixel-to-point edges (Eqs. 1-2, 11-13)."""
 
-    pixel_weight: float = 1e-4  # the paper's lambda
-    depth_tol: float = 0.05  # metres: |z_point - depth(pixel)| <= depth_tol passes the occlusion check
-    pixel_radius: int = 0  # link to the (2r+1)^2 pixels around the projection; 0 = paper's choice
-
-    def __post_init__(self) -> None:
-        _check(self.pixel_weight > 0.0, "evidence.pixel_weight", self.pixel_weight, "> 0 (paper: 1e-4)")
-        _check(self.depth_tol > 0.0, "evidence.depth_tol", self.depth_tol, "> 0 metres")
-        _check(0 <= self.pixel_radius <= 10, "evidence.pixel_radius", self.pixel_radius, "in [0, 10]")
+    KEY = "evidence"
+    pixel_weight: float = key(1e-4, above(0, note="(paper: 1e-4)"))  # the paper's lambda
+    depth_tol: float = key(0.05, above(0, "metres"))  # metres: |z_point - depth(pixel)| <= depth_tol passes the occlusion check
+    pixel_radius: int = key(0, within(0, 10))  # link to the (2r+1)^2 pixels around the projection; 0 = paper's choice
 
 
 @dataclass
-class GraphConfig:
+class GraphConfig(Section):
     """Point-to-point edges (Eqs. 3-4)."""
 
-    k: int = 24
+    KEY = "graph"
+    k: int = key(24, at_least(1, note="(paper: 24)"))
     use_normals: bool = True  # the normal term of Eq. 4; off = LDLS-like distance-only graph
-    sigma_s: float = 0.2
-    sigma_d: Optional[float] = None  # metres; None = sigma_d_factor * rho (rho: mean NN spacing)
-    sigma_d_factor: float = 2.0
+    sigma_s: float = key(0.2, above(0, note="(paper: 0.2)"))
+    sigma_d: Optional[float] = key(None, above(0, "metres", null=True, note="(= sigma_d_factor * rho)"))  # metres; None = sigma_d_factor * rho (rho: mean NN spacing)
+    sigma_d_factor: float = key(2.0, above(0, note="(paper: 2)"))
     normal_sign: NormalSign = NormalSign.auto
-    normal_knn: int = 16  # neighbours for normal estimation when the input has none
-
-    def __post_init__(self) -> None:
-        _check(self.k >= 1, "graph.k", self.k, ">= 1 (paper: 24)")
-        _check(self.sigma_s > 0.0, "graph.sigma_s", self.sigma_s, "> 0 (paper: 0.2)")
-        _check(self.sigma_d is None or self.sigma_d > 0.0, "graph.sigma_d", self.sigma_d,
-               "> 0 metres or null (= sigma_d_factor * rho)")
-        _check(self.sigma_d_factor > 0.0, "graph.sigma_d_factor", self.sigma_d_factor, "> 0 (paper: 2)")
-        _check(self.normal_knn >= 3, "graph.normal_knn", self.normal_knn, ">= 3")
+    normal_knn: int = key(16, at_least(3))  # neighbours for normal estimation when the input has none
 
 
 @dataclass
-class SolverConfig:
+class SolverConfig(Section):
     """Diffusion (Eq. 10) stopping rule and implementation."""
 
+    KEY = "solver"
     name: SolverName = SolverName.jacobi
-    max_iter: int = 200
-    tol: float = 1e-4  # jacobi: stop when max|Z_t - Z_{t-1}| <= tol * max|Z_t|; exact: relative residual
+    max_iter: int = key(200, at_least(1))
+    tol: float = key(1e-4, at_least(0))  # jacobi: stop when max|Z_t - Z_{t-1}| <= tol * max|Z_t|; exact: relative residual
     backend: SolverBackend = SolverBackend.auto
     sparse_classes: SparseClasses = SparseClasses.auto  # jacobi: a sparse per-point class set (docs/many-classes.md)
-    classes_per_point: int = 16  # sparse_classes: the classes each point keeps (the M largest scores)
-
-    def __post_init__(self) -> None:
-        _check(self.max_iter >= 1, "solver.max_iter", self.max_iter, ">= 1")
-        _check(self.tol >= 0.0, "solver.tol", self.tol, ">= 0")
-        _check(1 <= self.classes_per_point <= 1024, "solver.classes_per_point", self.classes_per_point, "in 1..1024")
+    classes_per_point: int = key(16, within(1, 1024, steps=True))  # sparse_classes: the classes each point keeps (the M largest scores)
 
 
 @dataclass
-class MethodConfig:
+class MethodConfig(Section):
     """The fusion method: a name of the registry in :mod:`diffuser_lab.method.fusion`."""
 
-    name: str = "diffuser"  # diffuser | bayesian | direct | ldls
+    KEY = "method"
+    name: str = named("diffuser", "fusion methods")  # the fusion method's name (registry: diffuser_lab/method/fusion.py)
     view: int = 0  # frame index used by `direct` (negative counts from the end)
     bayesian_mode: BayesianMode = BayesianMode.likelihood
 
-    def __post_init__(self) -> None:
-        from diffuser_lab.method.fusion import get
-
-        get(self.name)  # one line naming method.name and the registry's names
-
 
 @dataclass
-class CalibrationConfig:
+class CalibrationConfig(Section):
     """How the methods' class distributions are scored (summary ``metrics.calibration``;
     :mod:`diffuser_lab.method.calibration`). Changes no label."""
 
-    temperature: float = 1.0  # p <- softmax(log p / T) on every method's normalised Z / mass; 1 = as is
-    bins: int = 15  # equal-width confidence bins of the ECE and the reliability diagram (Guo et al. 2017)
-
-    def __post_init__(self) -> None:
-        _check(self.temperature > 0, "calibration.temperature", self.temperature, "> 0")
-        _check(self.bins >= 1, "calibration.bins", self.bins, ">= 1")
+    KEY = "calibration"
+    temperature: float = key(1.0, above(0))  # p <- softmax(log p / T) on every method's normalised Z / mass; 1 = as is
+    bins: int = key(15, at_least(1))  # equal-width confidence bins of the ECE and the reliability diagram (Guo et al. 2017)
 
 
 @dataclass
-class ProtocolConfig:
-    """Evaluation protocol (paper Sec. IV-A)."""
+class ProtocolConfig(Section):
+    """Evaluation protocol (paper Sec. IV-A): ``name`` names an entry of the protocols' registry
+    (:mod:`diffuser_lab.runs.protocol_registry`)."""
 
-    name: Protocol = Protocol.global_3d
-    window: int = 5  # single_frame: views fused per target frame in the multi-view rows (paper: 5)
-    target_step: int = 1  # single_frame: evaluate every n-th frame of the sequence
+    KEY = "protocol"
+    name: str = named("global_3d", "protocols")  # the protocol's name (registry: diffuser_lab/runs/protocol_registry.py)
+    window: int = key(5, at_least(1))  # single_frame: views fused per target frame in the multi-view rows (paper: 5)
+    target_step: int = key(1, at_least(1))  # single_frame: evaluate every n-th frame of the sequence
     max_targets: Optional[int] = None  # single_frame: at most this many target frames
     # single_frame, a change to the paper's protocol (reported separately): a pixel without depth
     # takes the label (and distribution) of the nearest pixel with depth instead of counting as a miss
     fill_missing_depth: bool = False
     normals: FrameNormals = FrameNormals.knn  # single_frame: see FrameNormals
-    normal_window_px: int = 7  # single_frame, normals=depth_image: box window of the depth smoothing
-
-    def __post_init__(self) -> None:
-        _check(self.window >= 1, "protocol.window", self.window, ">= 1")
-        _check(self.target_step >= 1, "protocol.target_step", self.target_step, ">= 1")
-        _check(self.normal_window_px >= 1, "protocol.normal_window_px", self.normal_window_px, ">= 1 pixels")
+    normal_window_px: int = key(7, at_least(1, "pixels"))  # single_frame, normals=depth_image: box window of the depth smoothing
 
 
 class OnlineMap(Enum):
@@ -606,36 +613,26 @@ class OnlineSolver(Enum):
 
 
 @dataclass
-class OnlineConfig:
+class OnlineConfig(Section):
     """protocol=online (diffuser_lab/method/online.py, docs/online.md): per frame the evidence it
     adds, the graph extended for new points, ``steps`` warm-started steps of Z <- gamma P Z + B."""
 
+    KEY = "online"
     map: OnlineMap = OnlineMap.given
     solver: OnlineSolver = OnlineSolver.jacobi
-    steps: Optional[int] = None  # per frame: Jacobi steps or GMRES's Krylov steps; null = 10 (given map), 16 (growing)
+    steps: Optional[int] = key(None, within(1, 1000, steps=True, null=True))  # per frame: Jacobi steps or GMRES's Krylov steps; null = 10 (given map), 16 (growing)
     # the batch iteration count the online result stands for; null = solver.max_iter. The steps
     # iterate Z <- gamma P Z + B with gamma = 2^(-2 / horizon): its fixed point weights P^t B by
     # gamma^t, half of the weight on t < horizon / 2 as the batch's T = horizon steps from Z = 0
     # do, so the result stays where the early-stopped batch is as frames accumulate
-    horizon: Optional[int] = None
-    discount: Optional[float] = None  # gamma itself; null = from horizon; 1 = the undiscounted iteration
-    voxel_size: float = 0.03  # growing: map voxel edge, metres (online mappers use 2-10 cm; the paper 2 cm)
-    depth_stride: int = 2  # growing: every n-th depth pixel in both directions is back-projected
-    max_depth: Optional[float] = None  # growing: metres; depth beyond it adds no points (it still gives evidence)
-    revisit: int = 5  # growing: a new point also gets the evidence of this many frames before the one that added it
+    horizon: Optional[int] = key(None, at_least(1, null=True))
+    discount: Optional[float] = key(None, within(0, 1, open_lo=True, null=True, note="(= 2^(-2/horizon))"))  # gamma itself; null = from horizon; 1 = the undiscounted iteration
+    voxel_size: float = key(0.03, above(0, "metres"))  # growing: map voxel edge, metres (online mappers use 2-10 cm; the paper 2 cm)
+    depth_stride: int = key(2, at_least(1))  # growing: every n-th depth pixel in both directions is back-projected
+    max_depth: Optional[float] = key(None, above(0, "metres", null=True))  # growing: metres; depth beyond it adds no points (it still gives evidence)
+    revisit: int = key(5, within(0, 1000, steps=True, note="(0 = none)"))  # growing: a new point also gets the evidence of this many frames before the one that added it
     bad_frames: BadFrame = BadFrame.skip
     compare_batch: bool = True  # after the last frame, run the batch Diffuser on the same frames (and final cloud)
-
-    def __post_init__(self) -> None:
-        _check(self.steps is None or 1 <= self.steps <= 1000, "online.steps", self.steps, "in 1..1000 or null")
-        _check(self.horizon is None or self.horizon >= 1, "online.horizon", self.horizon, ">= 1 or null")
-        _check(self.discount is None or 0.0 < self.discount <= 1.0, "online.discount", self.discount,
-               "in (0, 1] or null (= 2^(-2/horizon))")
-        _check(self.voxel_size > 0.0, "online.voxel_size", self.voxel_size, "> 0 metres")
-        _check(self.depth_stride >= 1, "online.depth_stride", self.depth_stride, ">= 1")
-        _check(0 <= self.revisit <= 1000, "online.revisit", self.revisit, "in 0..1000 (0 = none)")
-        _check(self.max_depth is None or self.max_depth > 0, "online.max_depth", self.max_depth,
-               "> 0 metres or null")
 
 
 class RecordMode(Enum):
@@ -669,64 +666,68 @@ class CloudSchedule(Enum):
     all = "all"  # every recorded iteration
 
 
+LIVE_OFF = ("", "off", "none", "null", "false")
+"""``record.live`` values that mean no live stream (besides null)."""
+LIVE_URL = re.compile(r"(?:rerun|rerun\+https?)://(?:[^/\s:\[\]]+|\[[0-9A-Fa-f:.]+\])(?::(\d{1,5}))?/proxy")
+"""A Rerun viewer's gRPC URL as Rerun's GrpcSink takes it (scheme, host[:port], path /proxy)."""
+
+
+def live_is_off(value: Any) -> bool:
+    """``record.live`` asks for no live stream."""
+    return value is None or value is False or str(value).strip().lower() in LIVE_OFF
+
+
+def live_is_valid(value: Any) -> bool:
+    """``record.live``'s constraint: off, ``spawn``, or a gRPC URL (:data:`LIVE_URL`) with a port in 1..65535.
+    :func:`diffuser_lab.recording.live.live_target` turns a valid value into the recorder's target."""
+    if live_is_off(value) or str(value).strip() == "spawn":
+        return True
+    m = LIVE_URL.fullmatch(str(value).strip())
+    return bool(m) and (m.group(1) is None or 1 <= int(m.group(1)) <= 65535)
+
+
 @dataclass
-class RecordConfig:
+class RecordConfig(Section):
     """What the run records of the diffusion (diffuser_lab.recording); records never change results."""
 
+    KEY = "record"
     mode: RecordMode = RecordMode.both
     # recorded iterations: null = log-spaced 1, 2, 5, 10, 20, 50, 100, ... (1-2-5 steps); n = every
     # n-th; the first and the last always
-    interval: Optional[int] = None
+    interval: Optional[int] = key(None, at_least(1, null=True))
     z_precision: ZPrecision = ZPrecision.q8  # intermediate Z states in run.mcap (the last: float32, exact)
     clouds: CloudSchedule = CloudSchedule.decades  # labelled point clouds in run.mcap (Foxglove)
-    max_image_side: int = 320  # frames' label (and colour) images in the records are strided to at most this many pixels
-    max_depth_side: int = 160  # frames' depth images in run.rrd likewise (0: none); depth compresses ~5x worse than labels
+    max_image_side: int = key(320, at_least(16))  # frames' label (and colour) images in the records are strided to at most this many pixels
+    max_depth_side: int = key(160, rule("0 (no depth images) or >= 16", lambda v: v == 0 or v >= 16))  # frames' depth images in run.rrd likewise (0: none); depth compresses ~5x worse than labels
     compression: McapCompression = McapCompression.zstd  # run.mcap's chunks
-    retain_heap_mb: int = 256  # diffuser-lab (the CLI) has glibc keep this much freed memory for reuse (0: its defaults)
+    retain_heap_mb: int = key(256, within(0, 1024, steps=True))  # diffuser-lab (the CLI) has glibc keep this much freed memory for reuse (0: its defaults)
     # also stream run.rrd's content to a Rerun viewer as the run goes: null/off, spawn (start one),
     # or a viewer's gRPC URL (rerun+http://127.0.0.1:9876/proxy); run.rrd is written all the same
-    live: Optional[str] = None
+    live: Optional[str] = key(None, rule("null, off, spawn or a Rerun gRPC URL: rerun+http://HOST:PORT/proxy "
+                                         "(or rerun+https://, rerun://)", live_is_valid, null=True))
 
-    def __post_init__(self) -> None:
-        _check(self.interval is None or self.interval >= 1, "record.interval", self.interval, ">= 1 or null")
-        _check(self.max_image_side >= 16, "record.max_image_side", self.max_image_side, ">= 16")
-        _check(self.max_depth_side == 0 or self.max_depth_side >= 16, "record.max_depth_side", self.max_depth_side,
-               "0 (no depth images) or >= 16")
-        _check(0 <= self.retain_heap_mb <= 1024, "record.retain_heap_mb", self.retain_heap_mb, "in 0..1024")
-        live = live_target(self.live)
-        _check(live != "bad", "record.live", self.live,
-               "null, off, spawn or a Rerun gRPC URL: rerun+http://HOST:PORT/proxy (or rerun+https://, rerun://)")
-        _check(live is None or getattr(self.mode, "value", self.mode) in ("rerun", "both"), "record.live", self.live,
+    def _check_keys(self) -> None:
+        _check(live_is_off(self.live) or self.mode in (RecordMode.rerun, RecordMode.both), "record.live", self.live,
                "record=rerun or record=both (the live stream is run.rrd's content)")
 
 
-_LIVE_URL = re.compile(r"(?:rerun|rerun\+https?)://(?:[^/\s:\[\]]+|\[[0-9A-Fa-f:.]+\])(?::(\d{1,5}))?/proxy")
-
-
-def live_target(value: Any) -> Optional[str]:
-    """record.live -> None (off), "spawn", a gRPC URL as Rerun's GrpcSink takes it
-    (scheme rerun://, rerun+http:// or rerun+https://, host[:port], path /proxy), or "bad"."""
-    if value is None or value is False or str(value).strip().lower() in ("", "off", "none", "null", "false"):
-        return None
-    v = str(value).strip()
-    if v == "spawn":
-        return v
-    m = _LIVE_URL.fullmatch(v)
-    if m and (m.group(1) is None or 1 <= int(m.group(1)) <= 65535):
-        return v
-    return "bad"
-
-
 @dataclass
-class OutputConfig:
+class OutputConfig(Section):
+    """What a run writes besides summary.json and its records."""
+
+    KEY = "output"
     labels_ply: bool = True  # write labels.ply (points coloured by label)
     quiet: bool = False  # do not print the result table
 
 
 @dataclass
-class Config:
+class Config(Section):
     """A run. ``seed`` and ``n_views`` are shared keys the groups' YAML files refer to
-    (``${seed}``, ``${n_views}``), so one sweep works on every scene source."""
+    (``${seed}``, ``${n_views}``), so one sweep works on every scene source.
+
+    A validated config still names registry entries unchecked and holds the method's fixed keys
+    as given: :func:`diffuser_lab.runs.resolve.resolve` is the step that checks the names and
+    applies what the method fixes (``diffuser_lab.default_config`` returns resolved configs)."""
 
     seed: int = 0  # seeds the demo room, the rendered camera path and the simulated mistakes
     n_views: int = 30  # views rendered by the demo and mesh_views sources
@@ -745,34 +746,10 @@ class Config:
     record: RecordConfig = field(default_factory=RecordConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
 
-    def __post_init__(self) -> None:
-        from diffuser_lab.method.fusion import get
-
-        get(self.method.name).apply(self)  # what the method fixes (LDLS: no normals, 3x3 window)
-
 
 def register() -> None:
     """Register the schema as ``base_config`` (the first entry of conf/config.yaml's defaults)."""
     ConfigStore.instance().store(name="base_config", node=Config)
-
-
-def config_yaml(conf: Any) -> str:
-    """The config as YAML, the text ``OmegaConf.to_yaml`` writes (enums by name). A
-    :class:`Config` object is dumped from its plain fields: 5 ms instead of OmegaConf's 30 ms,
-    which re-validates the whole tree first."""
-    if dataclasses.is_dataclass(conf) and not isinstance(conf, type):
-        import yaml
-
-        def plain(o: Any) -> Any:
-            if isinstance(o, dict):
-                return {k: plain(v) for k, v in o.items()}
-            if isinstance(o, (list, tuple)):
-                return [plain(v) for v in o]
-            return o.name if isinstance(o, Enum) else o
-
-        return yaml.safe_dump(plain(dataclasses.asdict(conf)), default_flow_style=False, allow_unicode=True,
-                              sort_keys=False)
-    return OmegaConf.to_yaml(conf)
 
 
 def to_object(cfg: Any) -> Config:
@@ -788,9 +765,11 @@ def to_object(cfg: Any) -> Config:
 
 
 def default_config(**overrides: Any) -> Config:
-    """A validated default :class:`Config` for library use; ``overrides`` as dotted keys,
-    e.g. ``default_config(**{"graph.k": 8})``."""
+    """A validated default :class:`Config`; ``overrides`` as dotted keys, e.g.
+    ``default_config(**{"graph.k": 8})``. Not resolved: the library's entry points resolve what
+    they are given; ``diffuser_lab.default_config`` (:func:`diffuser_lab.runs.resolve.default_config`)
+    returns the resolved config."""
     cfg = OmegaConf.structured(Config)
-    for key, value in overrides.items():
-        OmegaConf.update(cfg, key, value, merge=False)
+    for key_, value in overrides.items():
+        OmegaConf.update(cfg, key_, value, merge=False)
     return to_object(cfg)

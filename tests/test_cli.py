@@ -110,7 +110,8 @@ def test_wheel_carries_the_configs(tmp_path):
 def test_config_yaml_is_omegaconfs_text(overrides):
     from omegaconf import OmegaConf
 
-    from diffuser_lab.config import config_yaml, default_config
+    from diffuser_lab.config import default_config
+    from diffuser_lab.runs.records import config_yaml
 
     conf = default_config(**overrides)
     assert config_yaml(conf) == OmegaConf.to_yaml(OmegaConf.structured(conf))

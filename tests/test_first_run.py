@@ -66,15 +66,16 @@ def test_forced_or_explicit_backend_compiles_in_the_foreground(tmp_path, monkeyp
     from types import SimpleNamespace
 
     from diffuser_lab.cli import main
+    from diffuser_lab.config import SolverBackend
 
-    conf = SimpleNamespace(solver=SimpleNamespace(backend="numba"))
+    conf = SimpleNamespace(solver=SimpleNamespace(backend=SolverBackend.numba))
     monkeypatch.setattr(nb, "cold", lambda: True)
     try:
         assert main._defer_compile(conf) is False  # an explicit backend
         monkeypatch.setenv("DIFFUSER_LAB_NUMBA", "1")
-        assert main._defer_compile(SimpleNamespace(solver=SimpleNamespace(backend="auto"))) is False
+        assert main._defer_compile(SimpleNamespace(solver=SimpleNamespace(backend=SolverBackend.auto))) is False
         monkeypatch.setenv("DIFFUSER_LAB_NUMBA", "auto")
-        assert main._defer_compile(SimpleNamespace(solver=SimpleNamespace(backend="auto"))) is True
+        assert main._defer_compile(SimpleNamespace(solver=SimpleNamespace(backend=SolverBackend.auto))) is True
         assert not nb.available()
     finally:
         nb.undefer()

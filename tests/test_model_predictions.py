@@ -324,7 +324,7 @@ def test_model_class_with_depth(scene, tmp_path):
                   "+predictions.model.near=1.2", "predictions.pass_depth=true", f"predictions.cache_dir={tmp_path}")
     fr = with_predictions(scene.frames, cfg.predictions, scene.taxonomy, scene_name=scene.name)
     f = fr[1]
-    model = fr._fn._model  # built at the first frame, kept for the next ones
+    model = fr.fn._model  # built at the first frame, kept for the next ones
     assert isinstance(model, GreyWithDepth) and model.near == 1.2
     np.testing.assert_array_equal(model.depths[0], scene.frames[1].depth)
     near = (f.depth > 0) & (f.depth < 1.2)

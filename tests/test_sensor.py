@@ -15,7 +15,6 @@ from diffuser_lab.config import (
     DepthNoiseConfig,
     RgbdFolderConfig,
     SceneConfig,
-    SceneSource,
     default_config,
 )
 from diffuser_lab.data.render import MeshRenderer, intrinsics, look_at
@@ -28,6 +27,7 @@ from diffuser_lab.data.sensor import (
     incidence_angles,
     noisy_frames,
     normals_from_depth,
+    sensor_model,
 )
 
 W, H = 320, 240
@@ -198,7 +198,7 @@ def test_perfect_is_the_default_and_changes_nothing(small_demo_scene):
     from diffuser_lab.runs.pipeline import load_scene
 
     cfg = default_config(**{"scene.demo.n_views": 12, "scene.demo.point_spacing": 0.07})
-    assert cfg.depth.model == DepthModel.perfect and cfg.depth.sensor_model() is None
+    assert cfg.depth.model == DepthModel.perfect and sensor_model(cfg.depth) is None
     same = load_scene(cfg.scene, depth=cfg.depth)
     for a, b in zip(small_demo_scene.frames, same.frames):
         np.testing.assert_array_equal(a.depth, b.depth)
@@ -219,7 +219,7 @@ def test_apply_to_real_depth(tmp_path):
     from diffuser_lab.runs.pipeline import load_scene
 
     root = write_rgbd(tmp_path, make_world())
-    scene = SceneConfig(source=SceneSource.rgbd_folder, rgbd_folder=RgbdFolderConfig(root=str(root)))
+    scene = SceneConfig(source="rgbd_folder", rgbd_folder=RgbdFolderConfig(root=str(root)))
     real = load_scene(scene, depth=DepthNoiseConfig(model=DepthModel.sensor))  # apply_to_real off
     plain = load_scene(scene)
     np.testing.assert_array_equal(real.frames[0].depth, plain.frames[0].depth)
@@ -266,7 +266,7 @@ def test_sensor_depth_on_the_real_scannet_mesh():
     from diffuser_lab.config import MeshViewsConfig
 
     cfg = default_config(**{"depth.model": "sensor"})
-    cfg.scene = SceneConfig(source=SceneSource.mesh_views, voxel_size=0.02,
+    cfg.scene = SceneConfig(source="mesh_views", voxel_size=0.02,
                             mesh_views=MeshViewsConfig(path=str(REAL_MESH), n_views=12))
     rep, n = report_for(cfg)
     assert n == 12 and 0.01 < rep["all"]["holes"] < 0.15

@@ -26,7 +26,8 @@ from plyfile import PlyData, PlyElement
 
 from diffuser_lab.data.geometry import backproject, project
 from diffuser_lab.data.scene import IGNORE, SCANNET20
-from diffuser_lab.data.sources.rgbd_folder import LazyFrames, load_rgbd_folder, read_depth_png
+from diffuser_lab.data.frames import LazyFrames
+from diffuser_lab.data.sources.rgbd_folder import load_rgbd_folder, read_depth_png
 from diffuser_lab.data.sources.scannet import load_scannet, read_labelled_mesh
 from diffuser_lab.method.evidence import visible_projection
 

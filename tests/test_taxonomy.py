@@ -9,7 +9,7 @@ from conftest import SMALL_DEMO, run_cli
 from datasets import make_world, write_scannet
 from PIL import Image
 
-from diffuser_lab.config import ConfigError, default_config
+from diffuser_lab.config import ConfigError
 from diffuser_lab.data.mapping import (
     load_mapping,
     mapping_header,
@@ -24,6 +24,7 @@ from diffuser_lab.data.taxonomy import (
     resolve_taxonomy,
     shipped_taxonomies,
 )
+from diffuser_lab.runs.resolve import default_config
 
 COUNTS = {"scannet20": 20, "nyu40": 40, "scannet200": 200, "cityscapes19": 19, "ade20k150": 150, "mseg194": 194}
 

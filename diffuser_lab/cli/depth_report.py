@@ -16,26 +16,29 @@ import json
 import sys
 from dataclasses import replace
 
+from diffuser_lab import progress
+from diffuser_lab.cli.main import config_dir, one_line
+from diffuser_lab.config import DepthModel, register, to_object
+from diffuser_lab.data import sources
+from diffuser_lab.data.sensor import depth_error_report, format_depth_report, noisy_frames, sensor_model
+from diffuser_lab.data.taxonomy import resolve_taxonomy
+from diffuser_lab.runs.pipeline import load_scene
+from diffuser_lab.runs.resolve import resolve
+
 PROG = "diffuser-lab-depth-report"
 
 
 def report_for(cfg) -> tuple[dict, int]:
     """(depth_error_report over every frame, number of frames) for a composed :class:`Config`."""
-    from diffuser_lab import progress
-    from diffuser_lab.config import DepthModel, SceneSource
-    from diffuser_lab.data.sensor import depth_error_report, noisy_frames
-    from diffuser_lab.data.taxonomy import resolve_taxonomy
-    from diffuser_lab.runs.pipeline import load_scene
-
     tax = resolve_taxonomy(cfg)
     depth_cfg = cfg.depth if cfg.depth.model != DepthModel.perfect else replace(cfg.depth, model=DepthModel.sensor)
-    rendered = cfg.scene.source in (SceneSource.demo, SceneSource.mesh_views)
+    rendered = sources.get(cfg.scene.source).rendered
     with progress.quiet():
         perfect = load_scene(cfg.scene, tax)
         if rendered:
             noisy = load_scene(cfg.scene, tax, depth_cfg).frames
         else:
-            noisy = noisy_frames(perfect.frames, depth_cfg.sensor_model())
+            noisy = noisy_frames(perfect.frames, sensor_model(depth_cfg))
         p = [f.depth for f in perfect.frames]
         q = [f.depth for f in noisy]
     return depth_error_report(p, q), len(p)
@@ -44,10 +47,6 @@ def report_for(cfg) -> tuple[dict, int]:
 def main(argv: list[str] | None = None) -> None:
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
-
-    from diffuser_lab.cli.main import config_dir, one_line
-    from diffuser_lab.config import register, to_object
-    from diffuser_lab.data.sensor import format_depth_report
 
     args = list(sys.argv[1:] if argv is None else argv)
     json_path = None
@@ -65,7 +64,7 @@ def main(argv: list[str] | None = None) -> None:
     register()
     try:
         with initialize_config_dir(config_dir=config_dir(), version_base="1.3", job_name="depth_report"):
-            cfg = to_object(compose(config_name="config", overrides=overrides))
+            cfg = resolve(to_object(compose(config_name="config", overrides=overrides)))
         rep, n_frames = report_for(cfg)
     except Exception as exc:  # noqa: BLE001 - one line, as diffuser-lab prints it
         print(f"{PROG}: error: {one_line(exc)}", file=sys.stderr)
@@ -73,7 +72,7 @@ def main(argv: list[str] | None = None) -> None:
     finally:
         GlobalHydra.instance().clear()
     a = rep["all"]
-    print(f"{PROG} | scene {cfg.scene.source.value} | {n_frames} frames | {a['pixels']:,} pixels with perfect depth | "
+    print(f"{PROG} | scene {cfg.scene.source} | {n_frames} frames | {a['pixels']:,} pixels with perfect depth | "
           f"holes {100 * a['holes']:.1f}% | RMSE {1000 * a['rmse']:.1f} mm")
     print(format_depth_report(rep))
     if json_path:

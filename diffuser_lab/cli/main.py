@@ -13,9 +13,14 @@ import warnings
 from pathlib import Path
 from typing import Any, Optional
 
-from diffuser_lab.config import register
-from diffuser_lab.runs import launchers
-from diffuser_lab.runs.sweep import job_line, job_tag, say
+from diffuser_lab.backends import numba as nb
+from diffuser_lab.config import RecordMode, SolverBackend, register, to_object
+from diffuser_lab.recording import make_hooks
+from diffuser_lab.recording.heap import retain_freed_memory
+from diffuser_lab.runs import launchers, report
+from diffuser_lab.runs.protocol_registry import PROTOCOLS
+from diffuser_lab.runs.resolve import resolve
+from diffuser_lab.runs.sweep import job_line, job_tag, print_table, say
 
 log = logging.getLogger("diffuser_lab")
 PROG = "diffuser-lab"
@@ -79,12 +84,10 @@ def _prevalidate(argv: list[str]) -> None:
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
-    from diffuser_lab.config import to_object
-
     try:
         with initialize_config_dir(config_dir=config_dir(), version_base="1.3", job_name="prevalidate"):
             cfg = compose(config_name="config", overrides=argv, return_hydra_config=False)
-            to_object(cfg)
+            resolve(to_object(cfg), PROTOCOLS)
     except Exception as exc:  # noqa: BLE001 - every start-up failure becomes one line
         if _verbose():
             raise
@@ -95,13 +98,10 @@ def _prevalidate(argv: list[str]) -> None:
 
 
 def _task(cfg: Any) -> Optional[float]:
-    """The Hydra job: run the pipeline and write the run folder."""
+    """The Hydra job: resolve the config, run its protocol (the protocols' registry entry) and
+    write the run folder."""
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
-
-    from diffuser_lab.config import to_object
-    from diffuser_lab.runs import report
-    from diffuser_lab.runs.records import write_labels
 
     t_start = time.perf_counter()
     hc = HydraConfig.get()
@@ -111,8 +111,6 @@ def _task(cfg: Any) -> Optional[float]:
         # jobs run side by side: say which one starts (the basic launcher's "#i :" line does)
         say(f"{job_tag(hc.job.num)} started {' '.join(hc.overrides.task)}")
         if hc.launcher.get("cpus_per_task"):  # submitit: the job's share of the CPUs
-            from diffuser_lab.backends import numba as nb
-
             nb.limit_threads(int(hc.launcher.cpus_per_task))
     summary: Optional[report.SummaryFile] = None
     show = warnings.showwarning
@@ -126,43 +124,21 @@ def _task(cfg: Any) -> Optional[float]:
     deferred = False
     try:
         summary = report.SummaryFile(run_dir, hc.overrides.task)
-        conf = to_object(cfg)
+        conf = resolve(to_object(cfg), PROTOCOLS)
         summary.update(method=conf.method.name)
         deferred = _defer_compile(conf)
-
-        from diffuser_lab.config import Protocol
-
-        if conf.protocol.name == Protocol.single_frame:
-            from diffuser_lab.runs.protocols import single_frame, table
-
-            sf = single_frame(conf)
-            done = summary.single_frame(sf)
-            if multirun:
-                say(job_line(hc.job.num, run_dir, done, time.perf_counter() - t_start))
-            elif not conf.output.quiet:
-                print(table(sf) + f"\nrun folder: {run_dir}")
-            return done["metrics"]["miou"]
-
-        from diffuser_lab.runs.pipeline import run
-
-        if conf.protocol.name == Protocol.online:
-            return _online(conf, run_dir, summary, hc, multirun, t_start)
-
-        hooks = _record_hooks(conf, run_dir, hc)
+        protocol = PROTOCOLS[conf.protocol.name]
+        hooks = _record_hooks(conf, run_dir, hc) if protocol.records else None
         try:
-            result = run(conf, hooks=hooks)
+            result = protocol.run(conf, hooks=hooks)
         finally:
             if hooks is not None:
                 hooks.close()
-        t_out = time.perf_counter()
-        files = write_labels(run_dir, result.scene.points, result.labels, result.scene.taxonomy,
-                             ply=conf.output.labels_ply)
-        result.timings_s["write"] = time.perf_counter() - t_out
-        done = summary.result(result, conf, records=hooks.files() if hooks is not None else {}, files=files)
+        done = protocol.finish(result, conf, run_dir, summary, hooks.files() if hooks is not None else {})
         if multirun:  # one line per job; the sweep's table comes at the end (sweep.print_table)
             say(job_line(hc.job.num, run_dir, done, time.perf_counter() - t_start))
         elif not conf.output.quiet:
-            print(report.table(result, run_dir))
+            print(protocol.table(result, run_dir))
         return (done.get("metrics") or {}).get("miou")
     except Exception as exc:  # noqa: BLE001 - recorded, then reported as one line
         error = f"{type(exc).__name__}: {one_line(exc)}"
@@ -176,61 +152,22 @@ def _task(cfg: Any) -> Optional[float]:
     finally:
         warnings.showwarning = show
         if deferred:  # after the run: the compile does not compete with it for the CPUs
-            from diffuser_lab.backends import numba as nb
-
             nb.compile_in_background()
 
 
 def _record_hooks(conf: Any, run_dir: Path, hc: Any):
     """The run's recorders (in a recording process), or None for record=off."""
-    from diffuser_lab.config import RecordMode
-
     if conf.record.mode == RecordMode.off:
         return None
-    from diffuser_lab.recording import make_hooks
-    from diffuser_lab.recording.heap import retain_freed_memory
-
     retain_freed_memory(conf.record.retain_heap_mb)  # process-wide: the command line's choice
     return make_hooks(conf, run_dir, overrides=list(hc.overrides.task), process=True)
-
-
-def _online(conf: Any, run_dir: Path, summary: Any, hc: Any, multirun: bool, t_start: float) -> Optional[float]:
-    """protocol=online: the frames one at a time (diffuser_lab/runs/online.py), recorded on a frame
-    timeline; labels.npy holds the final map's labels (map order), map.npy its points."""
-    import numpy as np
-
-    from diffuser_lab.runs import online as online_mod
-    from diffuser_lab.runs.records import write_labels
-
-    hooks = _record_hooks(conf, run_dir, hc)
-    try:
-        result = online_mod.online(conf, hooks=hooks)
-    finally:
-        if hooks is not None:
-            hooks.close()
-    pts = result.scene.points if result.scene_labels is not None else result.points
-    labels = result.scene_labels if result.scene_labels is not None else result.labels
-    files = write_labels(run_dir, pts, labels, result.scene.taxonomy, ply=conf.output.labels_ply)
-    if result.mode == "growing":
-        np.save(run_dir / "map.npy", result.points)
-        files["map"] = "map.npy"
-    summary.data.update(online_mod.summary(result))
-    summary.update(records=hooks.files() if hooks is not None else {}, files=files, status="ok")
-    done = summary.data
-    if multirun:
-        say(job_line(hc.job.num, run_dir, done, time.perf_counter() - t_start))
-    elif not conf.output.quiet:
-        print(online_mod.table(result) + f"\nrun folder: {run_dir}")
-    return (done.get("metrics") or {}).get("miou")
 
 
 def _defer_compile(conf: Any) -> bool:
     """On an empty numba cache, run this job on the numpy/scipy path (same labels) and say so in
     one line, rather than compile for ~25 s first; ``DIFFUSER_LAB_NUMBA=1`` or an explicit
     ``solver.backend`` compiles in the foreground."""
-    from diffuser_lab.backends import numba as nb
-
-    if not nb.available() or nb.forced() or str(getattr(conf.solver.backend, "value", conf.solver.backend)) != "auto":
+    if not nb.available() or nb.forced() or conf.solver.backend != SolverBackend.auto:
         return False
     if not nb.cold():
         return False
@@ -256,8 +193,6 @@ def main() -> None:
     try:
         app()
     finally:  # also when a job failed: Hydra raises after the batch, the table still shows
-        from diffuser_lab.runs.sweep import print_table
-
         print_table()
 
 

@@ -5,7 +5,8 @@ frame's prediction and the previous frame's prediction warped onto it by optical
 al., "Efficient Semantic Video Segmentation with Per-frame Inference", ECCV 2020). With depth and
 poses the warp is exact: :func:`reproject_labels` carries one view's labels onto another's pixels
 that see the same 3D points, and :func:`view_consistency` scores the agreement of neighbouring views
-(docs/simulated-network.md calibrates the simulated network's persistence with it).
+(docs/simulated-network.md calibrates the simulated network's persistence with it; the command
+``python -m diffuser_lab.cli.consistency`` prints them for a configured scene).
 """
 from __future__ import annotations
 
@@ -81,37 +82,3 @@ def view_consistency(frames: Sequence[Frame], num_classes: int, names: Sequence[
     pct = (lambda x: 100.0 * x / wrong_a) if wrong_a else (lambda x: float("nan"))
     return {"tc_miou": tc, "error_agreement": pct(same_wrong), "error_overlap": pct(wrong_both),
             "covisible_pixels": covis}
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m diffuser_lab.data.consistency [hydra overrides]``: the frames' 2D mIoU and the
-    view consistency of their predictions (what docs/simulated-network.md calibrates against)."""
-    import sys
-
-    from hydra import compose, initialize_config_dir
-
-    from diffuser_lab.cli.main import config_dir
-    from diffuser_lab.config import register, to_object
-    from diffuser_lab.data.predictions import with_predictions
-    from diffuser_lab.runs.pipeline import load_scene
-
-    args = list(sys.argv[1:] if argv is None else argv)
-    register()
-    with initialize_config_dir(config_dir=config_dir(), version_base="1.3", job_name="consistency"):
-        cfg = to_object(compose("config", overrides=args))
-    from diffuser_lab.data.taxonomy import resolve_taxonomy
-
-    scene = load_scene(cfg.scene, resolve_taxonomy(cfg), cfg.depth)  # depth=sensor applies too
-    tax = scene.taxonomy
-    frames = [f for f in with_predictions(scene.frames, cfg.predictions, tax, scene.name)]
-    conf = sum(confusion_matrix(f.labels, f.gt_labels, tax.num_classes) for f in frames)
-    m2d = scores_from_confusion(conf, tax.names)["miou"]
-    vc = view_consistency(frames, tax.num_classes, tax.names, depth_tol=cfg.evidence.depth_tol)
-    print(f"{scene.name} | {len(frames)} frames | 2D mIoU {m2d:.1f} | view consistency (neighbours): "
-          f"TC mIoU {vc['tc_miou']:.1f}, TC/2D {vc['tc_miou'] / m2d:.2f}, "
-          f"same wrong class {vc['error_agreement']:.1f}%, wrong again {vc['error_overlap']:.1f}%")
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

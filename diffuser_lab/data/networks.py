@@ -38,19 +38,21 @@ import re
 import tempfile
 import warnings
 from pathlib import Path
-from typing import Any, Callable, Optional
+from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
+from omegaconf import OmegaConf
 
 from diffuser_lab import progress
-from diffuser_lab.config import ChannelOrder, OnnxConfig, OnnxOutput, TensorLayout
+from diffuser_lab.config import ChannelOrder, OnnxConfig, OnnxOutput, PredictionsConfig, TensorLayout
 
-from .mapping import ClassMapping
+from .frames import LazyFrames
+from .mapping import ClassMapping, load_mapping
 from .prediction_files import resize_nearest
-from .scene import IGNORE, Taxonomy
+from .scene import IGNORE, Frame, Taxonomy
 
 __all__ = ["NetworkPredictor", "build_callable", "OnnxModel", "resize_bilinear", "translate", "model_key",
-           "onnx_key", "check_target"]
+           "onnx_key", "check_target", "model_predictions", "onnx_predictions"]
 
 CACHE_VERSION = 1  # bump when the cached file's content changes meaning
 
@@ -422,7 +424,7 @@ def _atomic(path: Path, write: Callable) -> None:
 
 class NetworkPredictor:
     """``fn(i, frame) -> frame`` with the network's predictions attached, for
-    :class:`~diffuser_lab.data.predictions.MappedFrames`; builds the network at the first frame
+    :meth:`~diffuser_lab.data.frames.LazyFrames.mapped`; builds the network at the first frame
     not in the cache. ``stats`` counts each frame once however often it is visited:
     ``model_calls``, ``cached_frames``, ``label_frames``, ``probability_frames``, ``unmapped_pixels``."""
 
@@ -481,33 +483,30 @@ class NetworkPredictor:
         return dataclasses.replace(f, labels=labels, probs=probs)
 
 
-def network_predictions(frames, cfg, taxonomy: Taxonomy, scene_name: str):
-    """``predictions=model`` / ``predictions=onnx``: frames whose labels or probabilities are the
-    network's (lazily, per frame; see the module doc)."""
-    from diffuser_lab.config import PredictionSource
-    from omegaconf import OmegaConf
+def model_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy: Taxonomy,
+                      scene_name: str = "") -> LazyFrames:
+    """``predictions=model``: frames whose labels or probabilities are the Python callable's
+    (lazily, per frame; see the module doc)."""
+    spec = cfg.model if isinstance(cfg.model, dict) else OmegaConf.to_container(cfg.model, resolve=True)
+    spec = dict(spec)
+    check_target(spec)  # a wrong import path stops here, before any frame
+    key, ident = model_key(spec, cfg.pass_depth)
+    return _predicted(frames, cfg, taxonomy, scene_name, lambda: build_callable(spec), key, ident,
+                      f"model {spec['_target_']}", cfg.pass_depth)
 
-    from .mapping import load_mapping
-    from .predictions import MappedFrames
 
-    if cfg.source == PredictionSource.model:
-        spec = cfg.model if isinstance(cfg.model, dict) else OmegaConf.to_container(cfg.model, resolve=True)
-        spec = dict(spec)
-        check_target(spec)  # a wrong import path stops here, before any frame
-        key, ident = model_key(spec, cfg.pass_depth)
-        label = f"model {spec['_target_']}"
+def onnx_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy: Taxonomy,
+                     scene_name: str = "") -> LazyFrames:
+    """``predictions=onnx``: frames whose labels or probabilities are the ONNX network's (lazily,
+    per frame; see the module doc)."""
+    key, ident = onnx_key(cfg.onnx)
+    return _predicted(frames, cfg, taxonomy, scene_name, lambda: OnnxModel(cfg.onnx), key, ident,
+                      f"ONNX network {Path(cfg.onnx.path).name}", False)
 
-        def build():
-            return build_callable(spec)
-        pass_depth = cfg.pass_depth
-    else:
-        key, ident = onnx_key(cfg.onnx)
-        label = f"ONNX network {Path(cfg.onnx.path).name}"
 
-        def build():
-            return OnnxModel(cfg.onnx)
-        pass_depth = False
+def _predicted(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy: Taxonomy, scene_name: str,
+               build: Callable[[], Callable], key: str, ident: dict, label: str, pass_depth: bool) -> LazyFrames:
     mapping = load_mapping(cfg.mapping, taxonomy) if cfg.mapping else None
     pred = NetworkPredictor(build, key, ident, label, cache_dir=cfg.cache_dir, scene_name=scene_name,
                             pass_depth=pass_depth, mapping=mapping, taxonomy=taxonomy)
-    return MappedFrames(frames, pred, pred.stats)
+    return LazyFrames.mapped(frames, pred, stats=pred.stats)

@@ -77,6 +77,16 @@ def read_label_png(path: str | Path) -> np.ndarray:
     return arr.astype(np.int64)
 
 
+def label_ids_in(files, n: int, what: str) -> list[tuple[np.ndarray, str]]:
+    """The label ids in the first ``n`` of ``files`` (label images, in name order), as
+    ``[(unique ids, "<k> <what> label images")]``; ``[]`` without files (``taxonomy=ids``)."""
+    files = sorted(files)[:n]
+    if not files:
+        return []
+    ids = np.unique(np.concatenate([np.unique(read_label_png(p)) for p in files]))  # <= n images
+    return [(ids, f"{len(files)} {what} label images")]
+
+
 def load_label_prediction(path: str | Path, mapping: ClassMapping | None,
                           shape: tuple[int, int]) -> tuple[np.ndarray, int]:
     """A predicted label image for a frame of depth resolution ``shape`` = (H, W).

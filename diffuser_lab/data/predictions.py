@@ -1,100 +1,106 @@
-"""The frames' 2D labels: ground truth, simulated 2D-network mistakes on it, a network's output
+"""The frames' 2D labels: the registry :data:`SOURCES` of prediction sources, named by
+``predictions.source``: ground truth, simulated 2D-network mistakes on it, a network's output
 files, or a network run in the loop (:mod:`diffuser_lab.data.networks`).
 
-Predictions are attached lazily, frame by frame, so a long sequence is never held in memory
-twice; each frame's simulation is seeded by (predictions.seed, frame index), so it does not
-depend on the order in which frames are visited.
+Predictions are attached lazily, frame by frame (:class:`~diffuser_lab.data.frames.LazyFrames`),
+so a long sequence is never held in memory twice; each frame's simulation is seeded by
+(predictions.seed, frame index), so it does not depend on the order in which frames are visited.
+
+Adding a prediction source is one function ``attach(frames, cfg, taxonomy, scene_name) -> frames``
+(usually ``LazyFrames.mapped(frames, fn)``), one ``conf/predictions/<name>.yaml`` with
+``source: <name>`` and one registry line (an entry in :data:`SOURCES`, or :func:`register`).
 """
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Optional, Sequence
 
 import numpy as np
 
-from diffuser_lab.config import MistakeCorrelation, PredictionsConfig, PredictionSource
+from diffuser_lab.config import MistakeCorrelation, PredictionsConfig, check_name
 
+from .frames import LazyFrames
+from .mapping import load_mapping, native_mapping
+from .networks import model_predictions, onnx_predictions
+from .prediction_files import find_prediction, label_ids_in, load_label_prediction, load_probability_prediction
 from .scene import Frame, Taxonomy
+from .simulate import simulate_predictions, surface_regions
+
+__all__ = ["PredictionSource", "SOURCES", "register", "get", "with_predictions", "describe"]
 
 
-class MappedFrames(Sequence[Frame]):
-    """A read-only sequence whose item i is ``fn(i, frames[i])``, computed on access."""
+@dataclass(frozen=True)
+class PredictionSource:
+    """One prediction source.
 
-    def __init__(self, frames: Sequence[Frame], fn: Callable[[int, Frame], Frame], stats: dict | None = None):
-        self._frames, self._fn = frames, fn
-        self.stats = stats if stats is not None else {}  # e.g. unmapped pixel counts, filled on access
+    Attributes:
+        name: the ``predictions.source`` value that selects it.
+        description: a few words (docs/config.md's choices).
+        attach: ``(frames, predictions config, taxonomy, scene name) -> frames`` whose ``labels``
+            (or ``probs``) are the predictions; lazily, frame by frame. ``stats`` on the result
+            (a dict) is reported in summary.json.
+        describe: ``predictions config -> str``: what the labels are, for progress lines.
+        label_ids: for ``taxonomy=ids``: ``(predictions config, n) -> [(unique label ids, where found)]``
+            from the first ``n`` label images it reads; None = none.
+    """
 
-    def __len__(self) -> int:
-        return len(self._frames)
-
-    def __getitem__(self, i):  # type: ignore[override]
-        if isinstance(i, slice):
-            return [self[j] for j in range(*i.indices(len(self)))]
-        if i < 0:
-            i += len(self)
-        return self._fn(i, self._frames[i])
+    name: str
+    description: str
+    attach: Callable[[Sequence[Frame], PredictionsConfig, Taxonomy, str], Sequence[Frame]]
+    describe: Callable[[PredictionsConfig], str]
+    label_ids: Optional[Callable[[PredictionsConfig, int], list[tuple[np.ndarray, str]]]] = None
 
 
 def describe(cfg: PredictionsConfig) -> str:
     """What the frames' 2D labels are, in a few words (progress lines name the frame stage with it)."""
-    if cfg.source == PredictionSource.gt:
-        return "ground-truth 2D labels"
-    if cfg.source == PredictionSource.simulated:
-        return "simulated 2D predictions"
-    if cfg.source == PredictionSource.model:
-        return f"2D predictions of {(cfg.model or {}).get('_target_')}"
-    if cfg.source == PredictionSource.onnx:
-        from pathlib import Path
-
-        return f"2D predictions of {Path(cfg.onnx.path).name} (onnx)"
-    return f"2D predictions from {cfg.folder}"
+    return get(cfg.source).describe(cfg)
 
 
 def with_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy: Taxonomy,
                      scene_name: str = "") -> Sequence[Frame]:
     """Frames whose ``labels`` (or ``probs``) are the configured predictions; ``scene_name`` is
     part of a network's cache entries (:mod:`diffuser_lab.data.networks`)."""
-    if cfg.source == PredictionSource.gt:
-        def fn(i: int, f: Frame) -> Frame:
-            _need_gt(f)
-            return dataclasses.replace(f, labels=f.gt_labels, probs=None)
-    elif cfg.source == PredictionSource.simulated:
-        from .simulate import simulate_predictions, surface_regions
-
-        correlated = cfg.correlation == MistakeCorrelation.regions
-
-        def fn(i: int, f: Frame) -> Frame:
-            _need_gt(f)
-            rng = np.random.default_rng([cfg.seed, i])
-            regions = (surface_regions(f.gt_labels, f.depth, f.K, f.T_cw, region_size=cfg.region_size,
-                                       view_range_m=cfg.view_range_m, seed=cfg.seed) if correlated else None)
-            pred = simulate_predictions(
-                f.gt_labels, taxonomy.num_classes, rng, strength=cfg.strength, jitter_px=cfg.jitter_px,
-                jitter_scale_px=cfg.jitter_scale_px, confuse_prob=cfg.confuse_prob,
-                confuse_max_frac=cfg.confuse_max_frac, blob_count=cfg.blob_count, blob_radius=cfg.blob_radius,
-                blob_roughness=cfg.blob_roughness, class_names=taxonomy.names, regions=regions,
-                region_seed=cfg.seed, persistence=cfg.persistence, confuse_region_frac=cfg.confuse_region_frac,
-                view_gain=cfg.view_gain, output_stride=cfg.output_stride)
-            return dataclasses.replace(f, labels=pred, probs=None)
-    elif cfg.source == PredictionSource.files:
-        return _file_predictions(frames, cfg, taxonomy)
-    elif cfg.source in (PredictionSource.model, PredictionSource.onnx):
-        from .networks import network_predictions
-
-        return network_predictions(frames, cfg, taxonomy, scene_name)
-    else:  # pragma: no cover - the config enum forbids it
-        raise ValueError(f"predictions.source={cfg.source}: unknown")
-    return MappedFrames(frames, fn)
+    return get(cfg.source).attach(frames, cfg, taxonomy, scene_name)
 
 
-def _file_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy: Taxonomy) -> MappedFrames:
+def gt_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy: Taxonomy,
+                   scene_name: str = "") -> LazyFrames:
+    """The ground-truth label images as the predictions (perfect 2D labels)."""
+    def fn(i: int, f: Frame) -> Frame:
+        _need_gt(f)
+        return dataclasses.replace(f, labels=f.gt_labels, probs=None)
+
+    return LazyFrames.mapped(frames, fn)
+
+
+def simulated_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy: Taxonomy,
+                          scene_name: str = "") -> LazyFrames:
+    """Simulated 2D-network mistakes on the ground-truth label images (:mod:`diffuser_lab.data.simulate`)."""
+    correlated = cfg.correlation == MistakeCorrelation.regions
+
+    def fn(i: int, f: Frame) -> Frame:
+        _need_gt(f)
+        rng = np.random.default_rng([cfg.seed, i])
+        regions = (surface_regions(f.gt_labels, f.depth, f.K, f.T_cw, region_size=cfg.region_size,
+                                   view_range_m=cfg.view_range_m, seed=cfg.seed) if correlated else None)
+        pred = simulate_predictions(
+            f.gt_labels, taxonomy.num_classes, rng, strength=cfg.strength, jitter_px=cfg.jitter_px,
+            jitter_scale_px=cfg.jitter_scale_px, confuse_prob=cfg.confuse_prob,
+            confuse_max_frac=cfg.confuse_max_frac, blob_count=cfg.blob_count, blob_radius=cfg.blob_radius,
+            blob_roughness=cfg.blob_roughness, class_names=taxonomy.names, regions=regions,
+            region_seed=cfg.seed, persistence=cfg.persistence, confuse_region_frac=cfg.confuse_region_frac,
+            view_gain=cfg.view_gain, output_stride=cfg.output_stride)
+        return dataclasses.replace(f, labels=pred, probs=None)
+
+    return LazyFrames.mapped(frames, fn)
+
+
+def file_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy: Taxonomy,
+                     scene_name: str = "") -> LazyFrames:
     """A 2D network's outputs, one file per frame named after it: label images (mapped to the
     taxonomy; unmapped ids become IGNORE and are counted) or class probabilities (soft evidence)."""
-    from pathlib import Path
-
-    from .mapping import load_mapping, native_mapping
-    from .prediction_files import find_prediction, load_label_prediction, load_probability_prediction
-
     if not cfg.folder:
         raise ValueError("predictions.folder is required for predictions.source=files")
     folder = Path(cfg.folder)
@@ -119,9 +125,49 @@ def _file_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy:
             seen.add(i)
         return dataclasses.replace(f, labels=labels, probs=None)
 
-    return MappedFrames(frames, fn, stats)
+    return LazyFrames.mapped(frames, fn, stats=stats)
+
+
+def file_label_ids(cfg: PredictionsConfig, n: int) -> list[tuple[np.ndarray, str]]:
+    """``taxonomy=ids``: the first ``n`` label images of ``predictions.folder`` (predictions.pattern's images)."""
+    if not cfg.folder:
+        return []
+    folder = Path(cfg.folder)
+    pngs = [p for p in cfg.pattern if p.lower().endswith(".png")]
+    files = {f for p in pngs for f in folder.glob(p.replace("{name}", "*")) if f.is_file()}
+    return label_ids_in(list(files), n, f"prediction ({folder})")
 
 
 def _need_gt(f: Frame) -> None:
     if f.gt_labels is None:
         raise ValueError(f"frame {f.name}: predictions need ground-truth label images, which this scene lacks")
+
+
+SOURCES: dict[str, PredictionSource] = {s.name: s for s in [
+    PredictionSource("simulated", "simulated 2D-network mistakes on ground-truth label images",
+                     simulated_predictions, lambda cfg: "simulated 2D predictions"),
+    PredictionSource("gt", "ground-truth label images (perfect 2D labels)", gt_predictions,
+                     lambda cfg: "ground-truth 2D labels"),
+    PredictionSource("files", "a 2D network's label images (mapped) or class probabilities (.npy/.npz)",
+                     file_predictions, lambda cfg: f"2D predictions from {cfg.folder}", label_ids=file_label_ids),
+    PredictionSource("model", "a Python callable (Hydra _target_) run on each frame's RGB", model_predictions,
+                     lambda cfg: f"2D predictions of {(cfg.model or {}).get('_target_')}"),
+    PredictionSource("onnx", "an exported ONNX segmentation network run with onnxruntime on the CPU",
+                     onnx_predictions, lambda cfg: f"2D predictions of {Path(cfg.onnx.path).name} (onnx)"),
+]}
+"""The prediction sources by name (``predictions.source``)."""
+
+
+def register(source: PredictionSource) -> PredictionSource:
+    """Add a prediction source (a run started after this may name it in ``predictions.source``)."""
+    if source.name in SOURCES:
+        raise ValueError(f"prediction source {source.name!r} is already registered")
+    SOURCES[source.name] = source
+    return source
+
+
+def get(name: str) -> PredictionSource:
+    """The entry named ``name``; :class:`~diffuser_lab.config.ConfigError` naming ``predictions.source``
+    and the registered names otherwise."""
+    check_name("predictions.source", name, list(SOURCES))
+    return SOURCES[name]

@@ -15,7 +15,6 @@ a pixel to match.
 from __future__ import annotations
 
 import numpy as np
-import open3d as o3d
 
 from diffuser_lab import progress
 
@@ -83,6 +82,13 @@ def triangle_normals(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.nd
     return n, 0.5 * norm
 
 
+def _open3d():
+    """open3d, imported on first use (~1 s: importing a scene source does not pay it)."""
+    import open3d
+
+    return open3d
+
+
 class MeshRenderer:
     """Ray caster for a labelled triangle mesh (Open3D Embree scene, built once).
 
@@ -100,13 +106,14 @@ class MeshRenderer:
             raise ValueError("triangle_labels must have one entry per triangle")
         self.normals, _ = triangle_normals(self.vertices, self.triangles)
         self.normals = self.normals.astype(np.float32)  # (T, 3) unit, winding order
+        o3d = _open3d()
         self.scene = o3d.t.geometry.RaycastingScene()
         self.scene.add_triangles(o3d.core.Tensor(self.vertices), o3d.core.Tensor(self.triangles))
         # Label lookup with a trailing IGNORE slot for "no hit" (INVALID_ID).
         self._label_lut = np.append(self.triangle_labels, np.int16(IGNORE))
 
     def _cast(self, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        ans = self.scene.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays, np.float32)))
+        ans = self.scene.cast_rays(_open3d().core.Tensor(np.ascontiguousarray(rays, np.float32)))
         t_hit = ans["t_hit"].numpy()
         prim = ans["primitive_ids"].numpy().astype(np.int64)
         prim[~np.isfinite(t_hit)] = len(self.triangles)
@@ -165,6 +172,7 @@ class MeshRenderer:
     def _render(self, K, T_cw, width, height):
         K_o3d = np.array(K, np.float64)
         K_o3d[:2, 2] += 0.5  # Open3D casts pixel (u, v) through (u + 0.5, v + 0.5)
+        o3d = _open3d()
         rays = o3d.t.geometry.RaycastingScene.create_rays_pinhole(
             o3d.core.Tensor(K_o3d), o3d.core.Tensor(np.asarray(T_cw, np.float64)),
             int(width), int(height))

@@ -46,16 +46,20 @@ pixels with pixel centres at integer coordinates; camera x right, y down, z forw
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Iterable, Optional, Sequence
 
 import numpy as np
 from scipy import ndimage
 
+from diffuser_lab.config import DepthModel, DepthNoiseConfig
+
+from .frames import LazyFrames
 from .geometry import normals_from_depth
 
 __all__ = [
     "SensorModel",
+    "sensor_model",
     "axial_sigma",
     "lateral_sigma_px",
     "incidence_angles",
@@ -268,17 +272,24 @@ class SensorModel:
         return out.astype(np.float32)
 
 
+def sensor_model(cfg: DepthNoiseConfig) -> Optional[SensorModel]:
+    """The :class:`SensorModel` of the ``depth`` keys, or None for ``depth.model=perfect``."""
+    if cfg.model == DepthModel.perfect:
+        return None
+    return SensorModel(seed=cfg.seed, axial_scale=cfg.axial_scale, lateral_scale=cfg.lateral_scale,
+                       projector_baseline=cfg.projector_baseline, edge_jump=cfg.edge_jump,
+                       edge_hole_px=cfg.edge_hole_px, max_incidence_deg=cfg.max_incidence_deg,
+                       min_range=cfg.min_range, max_range=cfg.max_range,
+                       quantization=cfg.quantization.value, disparity_focal_px=cfg.disparity_focal_px,
+                       disparity_baseline=cfg.disparity_baseline, disparity_subpixel=cfg.disparity_subpixel)
+
+
 def noisy_frames(frames: Sequence, model: SensorModel):
     """``frames`` with every frame's depth replaced by ``model.apply`` (normals estimated from the depth),
     computed on access (a lazy sequence; frame i is seeded by its index i)."""
-    from dataclasses import replace
-
-    from .predictions import MappedFrames
-
-    out = MappedFrames(frames, lambda i, f: replace(f, depth=model.apply(f.depth, f.K, i)))
-    if hasattr(frames, "info"):  # the loader's statistics (depth unit checked, skipped frames) still hold
-        out.info = frames.info
-    return out
+    # the loader's statistics (depth unit checked, skipped frames) still hold
+    return LazyFrames.mapped(frames, lambda i, f: replace(f, depth=model.apply(f.depth, f.K, i)),
+                             info=getattr(frames, "info", None))
 
 
 def depth_error_report(perfect: np.ndarray | Iterable[np.ndarray], noisy: np.ndarray | Iterable[np.ndarray],

@@ -27,9 +27,12 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
+from diffuser_lab.config import SPECIAL_TAXONOMIES
+
+from . import predictions, sources
 from .scene import Taxonomy
 
-__all__ = ["TAXONOMIES_DIR", "shipped_taxonomies", "load_taxonomy", "resolve_taxonomy", "generated_colors", "ids_taxonomy",
+__all__ = ["TAXONOMIES_DIR", "shipped_taxonomies", "taxonomy_names", "load_taxonomy", "resolve_taxonomy", "generated_colors", "ids_taxonomy",
            "taxonomy_from_rows"]
 
 TAXONOMIES_DIR = Path(__file__).resolve().parent / "taxonomies"
@@ -39,6 +42,11 @@ _CACHE: dict[str, Taxonomy] = {}
 def shipped_taxonomies() -> list[str]:
     """Names of the taxonomy CSVs shipped with the package (``taxonomy=<name>``)."""
     return sorted(p.stem for p in TAXONOMIES_DIR.glob("*.csv"))
+
+
+def taxonomy_names() -> list[str]:
+    """The names ``taxonomy.name`` takes: the shipped taxonomies, then ``file`` and ``ids``."""
+    return shipped_taxonomies() + list(SPECIAL_TAXONOMIES)
 
 
 def generated_colors(n: int) -> np.ndarray:
@@ -188,55 +196,21 @@ def ids_taxonomy(ids: np.ndarray, where: str) -> Taxonomy:
 
 def _scan_ids(cfg) -> tuple[np.ndarray, str]:
     """The label ids in the label images a run with ``cfg`` (a :class:`~diffuser_lab.config.Config`) reads:
-    predictions=files: the first ``taxonomy.scan_frames`` label images of predictions.folder (name order);
-    and the scene's ground truth: the first label images of rgbd_folder (label_suffix) / scannet
-    (label-filt/), the PLY labels of scannet / mesh_views. Returns (unique ids, where they were found)."""
-    from diffuser_lab.config import PredictionSource, SceneSource
-
-    from .prediction_files import read_label_png
-
+    those of its prediction source (predictions=files: the first ``taxonomy.scan_frames`` label images
+    of predictions.folder, name order), then those of its scene source's ground truth (the first label
+    images of rgbd_folder (label_suffix) / scannet (label-filt/), the PLY labels of scannet /
+    mesh_views): each registry entry's ``label_ids``. Returns (unique ids, where they were found)."""
     n = cfg.taxonomy.scan_frames
-    found: list[np.ndarray] = []
-    where: list[str] = []
-
-    def images(files: list[Path], what: str) -> None:
-        files = sorted(files)[:n]
-        if files:
-            found.extend(np.unique(read_label_png(p)) for p in files)  # loop over <= scan_frames images
-            where.append(f"{len(files)} {what} label images")
-
-    def mesh(path: Path) -> None:
-        from .sources.scannet import read_labelled_mesh
-
-        labels = read_labelled_mesh(path)[2]
-        if labels is not None:
-            found.append(np.unique(labels))
-            where.append(f"the labels of {path.name}")
-
-    if cfg.predictions.source == PredictionSource.files and cfg.predictions.folder:
-        folder = Path(cfg.predictions.folder)
-        pngs = [p for p in cfg.predictions.pattern if p.lower().endswith(".png")]  # predictions.pattern's images
-        files = {f for p in pngs for f in folder.glob(p.replace("{name}", "*")) if f.is_file()}
-        images(list(files), f"prediction ({folder})")
-    src, sc = cfg.scene.source, cfg.scene
-    if src == SceneSource.rgbd_folder and sc.rgbd_folder.label_suffix:
-        root = Path(sc.rgbd_folder.root)
-        images(list(root.glob(f"{sc.rgbd_folder.frame_prefix}*.{sc.rgbd_folder.label_suffix}")),
-               f"ground-truth ({root})")
-    elif src == SceneSource.scannet:
-        root = Path(sc.scannet.root)
-        labels = root / sc.scannet.labels.replace("{frame}", "*")
-        images(list(labels.parent.glob(labels.name)), f"ground-truth ({labels.parent})")
-        ply = root / sc.scannet.labels_mesh.format(scene=root.name)
-        if ply.is_file():
-            mesh(ply)
-    elif src == SceneSource.mesh_views:
-        mesh(Path(sc.mesh_views.path))
+    found: list[tuple[np.ndarray, str]] = []
+    for entry, keys in ((predictions.get(cfg.predictions.source), cfg.predictions),
+                        (sources.get(cfg.scene.source), cfg.scene)):
+        if entry.label_ids is not None:
+            found += entry.label_ids(keys, n)
     if not found:
         raise ValueError("taxonomy=ids: no label images to take the classes from (predictions=files with label "
                          "images in predictions.folder, or a scene source with ground-truth label images / "
                          "PLY labels); give taxonomy=<name> or taxonomy=file taxonomy.path=...")
-    return np.unique(np.concatenate(found)), " and ".join(where)
+    return np.unique(np.concatenate([ids for ids, _ in found])), " and ".join(where for _, where in found)
 
 
 def resolve_taxonomy(cfg) -> Taxonomy:

@@ -8,8 +8,9 @@ A method turns the frames' pixel evidence into point labels. Each entry says in 
 - the rows it has in the single-frame protocol (1 view, W views; paper Table II),
 
 and :meth:`FusionMethod.label` does the labelling. ``runs/pipeline.py`` and
-``runs/protocols.py`` both ask :data:`METHODS`; the config accepts exactly its names. Adding a
-method is one entry here plus ``conf/method/<name>.yaml``.
+``runs/protocols.py`` both ask :data:`METHODS`; the resolve step (:mod:`diffuser_lab.runs.resolve`)
+accepts exactly its names and applies what the chosen method fixes. Adding a method is one entry
+here plus ``conf/method/<name>.yaml``.
 """
 from __future__ import annotations
 
@@ -17,6 +18,8 @@ from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
+
+from diffuser_lab.config import check_name
 
 from .diffusion import labels_from_scores
 from .solvers import solve
@@ -41,7 +44,8 @@ class FusionMethod:
 
     def apply(self, cfg) -> None:
         """Set what the method fixes in ``cfg`` (a :class:`~diffuser_lab.config.Config`), so the
-        config a run records is the one that ran."""
+        config a run records is the one that ran; the resolve step calls it
+        (:func:`diffuser_lab.runs.resolve.with_method`)."""
         if self.normals is not None:
             cfg.graph.use_normals = self.normals
         if self.pixel_radius is not None:
@@ -73,8 +77,7 @@ METHODS: dict[str, FusionMethod] = {m.name: m for m in [  # the order of the pap
 
 
 def get(name: str) -> FusionMethod:
-    if name not in METHODS:
-        from diffuser_lab.config import ConfigError
-
-        raise ConfigError(f"method.name={name!r}: expected one of {', '.join(sorted(METHODS))}")
+    """The entry named ``name``; :class:`~diffuser_lab.config.ConfigError` naming ``method.name`` and the
+    registered names otherwise."""
+    check_name("method.name", name, sorted(METHODS))
     return METHODS[name]

@@ -18,7 +18,7 @@ import logging
 from pathlib import Path
 from typing import Any, Callable, Optional, Sequence
 
-from diffuser_lab.config import config_yaml
+from diffuser_lab.runs.records import config_yaml
 
 from .batch import BatchRecorder
 from .mcap_write import McapRecorder

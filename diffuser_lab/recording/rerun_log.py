@@ -273,7 +273,7 @@ class RerunRecorder:
                  score_classes: Sequence[tuple[str, int]] = (), online: bool = False):
         import rerun as rr
 
-        from diffuser_lab.config import live_target
+        from .live import live_target
 
         self.rr = rr
         self.path = Path(path)

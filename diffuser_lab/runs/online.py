@@ -19,15 +19,18 @@ from diffuser_lab import progress
 from diffuser_lab.config import BadFrame, Config, OnlineMap
 from diffuser_lab.data import validate
 from diffuser_lab.data.frame_loop import FrameLoop
+from diffuser_lab.data.frames import LazyFrames
 from diffuser_lab.data.predictions import describe as describe_predictions
 from diffuser_lab.data.predictions import with_predictions
 from diffuser_lab.data.scene import IGNORE, Frame, Scene
+from diffuser_lab.data.taxonomy import resolve_taxonomy
 from diffuser_lab.hooks import RunHooks
 from diffuser_lab.method.diffusion import labels_from_scores
 from diffuser_lab.method.metrics import confusion_matrix, score, scores_from_confusion
 from diffuser_lab.method.online import FrameStats, OnlineDiffuser
 
-from .pipeline import _to_original, _work_cloud, load_scene
+from .pipeline import _to_original, _work_cloud, load_scene, run
+from .resolve import resolve
 
 
 @dataclass
@@ -72,19 +75,6 @@ class OnlineResult:
     scene_labels: Optional[np.ndarray] = None  # (N,) int16 labels of the scene's points (given map)
 
 
-class _Subset(Sequence):
-    """Frames ``keep`` of a frame sequence (lazy)."""
-
-    def __init__(self, frames: Sequence[Frame], keep: list[int]):
-        self.frames, self.keep = frames, keep
-
-    def __len__(self) -> int:
-        return len(self.keep)
-
-    def __getitem__(self, i):
-        return self.frames[self.keep[i]]
-
-
 def check_online_frame(f: Frame) -> None:
     """The batch pipeline's frame checks plus: a frame without any valid depth is bad."""
     validate.check_frame(f)
@@ -127,13 +117,12 @@ def online(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHoo
            backend: str = "auto", predicted: Optional[Sequence[Frame]] = None) -> OnlineResult:
     """Run the online protocol (module doc) on ``scene`` (default: the configured source).
     ``predicted``: the scene's frames with their predictions already attached (else they are
-    made as configured, frame by frame)."""
+    made as configured, frame by frame). ``cfg`` is resolved first (:func:`~diffuser_lab.runs.resolve.resolve`)."""
+    cfg = resolve(cfg)
     hooks = hooks or RunHooks()
     t0 = time.perf_counter()
     t: dict = {}
     if scene is None:
-        from diffuser_lab.data.taxonomy import resolve_taxonomy
-
         scene = load_scene(cfg.scene, resolve_taxonomy(cfg), cfg.depth)
     tax = scene.taxonomy
     growing = cfg.online.map == OnlineMap.growing
@@ -240,10 +229,8 @@ def compare_with_batch(cfg: Config, scene: Scene, kept: list[int], od: OnlineDif
     """The batch Diffuser (with its Bayesian baseline) on the frames the online run took; for a
     growing map on its final cloud (points and normals as they are, no voxel grid). Returns
     their scores and the share of map points whose final online label equals the batch's."""
-    from diffuser_lab.runs.pipeline import run
-
     bc = dataclasses.replace(cfg, method=dataclasses.replace(cfg.method, name="diffuser"))
-    frames = _Subset(scene.frames, kept) if len(kept) != len(scene.frames) else scene.frames
+    frames = LazyFrames.subset(scene.frames, kept) if len(kept) != len(scene.frames) else scene.frames
     if res.mode == "growing":
         bc = dataclasses.replace(bc, scene=dataclasses.replace(cfg.scene, voxel_size=0.0))
         bscene = Scene(name=scene.name, points=res.points.copy(), taxonomy=scene.taxonomy, frames=frames,

@@ -12,88 +12,40 @@ from typing import Optional, Sequence
 import numpy as np
 
 from diffuser_lab import progress
-from diffuser_lab.config import Config, DepthNoiseConfig, SceneConfig, SceneSource
-from diffuser_lab.data import validate
+from diffuser_lab.backends import resolve_backend
+from diffuser_lab.config import Config, DepthNoiseConfig, SceneConfig, SolverName, SparseClasses
+from diffuser_lab.data import sources, validate
 from diffuser_lab.data.frame_loop import FrameLoop
 from diffuser_lab.data.geometry import VoxelGrid, nearest_transfer, voxel_downsample
 from diffuser_lab.data.predictions import describe as describe_predictions
 from diffuser_lab.data.predictions import with_predictions
 from diffuser_lab.data.scene import IGNORE, SCANNET20, Frame, Scene, Taxonomy
+from diffuser_lab.data.sensor import noisy_frames, sensor_model
+from diffuser_lab.data.taxonomy import resolve_taxonomy
 from diffuser_lab.hooks import RunHooks
 from diffuser_lab.method import calibration
 from diffuser_lab.method import evidence as evidence_mod
 from diffuser_lab.method.evidence import RunEvidence
 from diffuser_lab.method import fusion
-from diffuser_lab.method.diffusion import DiffusionResult, Observer, labels_from_scores, normalise
+from diffuser_lab.method.diffusion import DiffusionResult, Observer, labels_from_scores, normalise, sparse_by_size
 from diffuser_lab.method.graph import KnnGraph, graph_stage, make_graph
 from diffuser_lab.method.metrics import confusion_matrix, score, scores_from_confusion
 
+from .resolve import resolve
+
 
 def load_scene(cfg: SceneConfig, taxonomy: Taxonomy = SCANNET20, depth: Optional[DepthNoiseConfig] = None) -> Scene:
-    """The configured source -> :class:`Scene` in ``taxonomy`` (the run's: ``resolve_taxonomy(cfg)``)
-    whose frames carry ground-truth labels when known. Relative paths are taken from the current directory.
+    """The configured source (the scene sources' registry entry ``cfg.source``) -> :class:`Scene`
+    in ``taxonomy`` (the run's: ``resolve_taxonomy(cfg)``) whose frames carry ground-truth labels
+    when known. Relative paths are taken from the current directory.
 
     ``depth`` (the run's ``cfg.depth``; None = perfect): the sensor model applied to rendered depth
     (demo, mesh_views) and, with ``depth.apply_to_real``, to the real sources' depth frames."""
-    src = cfg.source
-    sensor = depth.sensor_model() if depth is not None else None
-    with progress.stage(f"loading scene ({src.value})"):  # its own steps show inside
-        if src == SceneSource.demo:
-            from diffuser_lab.data.sources.demo import make_demo_scene
-
-            d = cfg.demo
-            scene, _ = make_demo_scene(seed=d.seed, room_size=tuple(d.room_size), n_views=d.n_views,
-                                       image_width=d.image_width, image_height=d.image_height,
-                                       fov_deg=d.fov_deg, point_spacing=d.point_spacing, point_noise=d.point_noise,
-                                       sensor=sensor)
-            if taxonomy.name != scene.taxonomy.name:
-                from diffuser_lab.data.mapping import relabel_scene
-
-                scene = relabel_scene(scene, taxonomy)
-        elif src == SceneSource.mesh_views:
-            from diffuser_lab.data.sources.mesh_views import load_mesh_views
-
-            m = cfg.mesh_views
-            scene = load_mesh_views(m.path, taxonomy=taxonomy, mapping=m.mapping,
-                                    n_views=m.n_views, seed=m.seed, image_width=m.image_width,
-                                    image_height=m.image_height, fov_deg=m.fov_deg, min_coverage=m.min_coverage,
-                                    eye_height_range=(m.eye_height_min, m.eye_height_max), sensor=sensor)
-        elif src == SceneSource.scannet:
-            from diffuser_lab.data.sources.scannet import ScannetLayout, load_scannet
-
-            c = cfg.scannet
-            layout = ScannetLayout(mesh=c.mesh, labels_mesh=c.labels_mesh, depth=c.depth, color=c.color,
-                                   pose=c.pose, labels=c.labels, intrinsic_depth=c.intrinsic_depth,
-                                   intrinsic_color=c.intrinsic_color, depth_scale=c.depth_scale)
-            scene = load_scannet(c.root, frame_step=c.frame_step,
-                                 max_frames=c.max_frames, mapping=c.mapping, layout=layout,
-                                 taxonomy=taxonomy)
-        elif src == SceneSource.rgbd_folder:
-            from diffuser_lab.data.sources.rgbd_folder import load_rgbd_folder
-
-            r = cfg.rgbd_folder
-            scene = load_rgbd_folder(r.root, taxonomy=taxonomy, depth_scale=r.depth_scale, depth_bit_shift=r.depth_bit_shift,
-                                     depth_shift_kind=r.depth_shift_kind.value, invalid_depth=tuple(r.invalid_depth),
-                                     intrinsics_file=r.intrinsics_file, frame_prefix=r.frame_prefix,
-                                     depth_suffix=r.depth_suffix, pose_suffix=r.pose_suffix,
-                                     pose_convention=r.pose_convention.value,
-                                     color_suffix=r.color_suffix, label_suffix=r.label_suffix, mapping=r.mapping,
-                                     cloud=r.cloud, voxel_size=r.cloud_voxel, cloud_stride=r.cloud_stride,
-                                     frame_step=r.frame_step, max_frames=r.max_frames, max_depth=r.max_depth)
-        elif src == SceneSource.tum:
-            from diffuser_lab.data.sources.tum import load_tum
-
-            c = cfg.tum
-            scene = load_tum(c.root, taxonomy=taxonomy, rgb_list=c.rgb_list, depth_list=c.depth_list, groundtruth=c.groundtruth,
-                             max_time_diff=c.max_time_diff, depth_scale=c.depth_scale, camera=c.camera.value,
-                             intrinsics=None if c.fx is None else (c.fx, c.fy, c.cx, c.cy),
-                             voxel_size=c.cloud_voxel, cloud_stride=c.cloud_stride, max_depth=c.max_depth,
-                             frame_step=c.frame_step, max_frames=c.max_frames)
-        else:  # pragma: no cover - the enum forbids it
-            raise ValueError(f"scene.source={src}: unknown")
-    if sensor is not None and depth.apply_to_real and src not in (SceneSource.demo, SceneSource.mesh_views):
-        from diffuser_lab.data.sensor import noisy_frames
-
+    source = sources.get(cfg.source)
+    sensor = sensor_model(depth) if depth is not None else None
+    with progress.stage(f"loading scene ({cfg.source})"):  # its own steps show inside
+        scene = source.load(cfg, taxonomy, sensor)
+    if sensor is not None and depth.apply_to_real and not source.rendered:
         scene.frames = noisy_frames(scene.frames, sensor)  # the cloud stays the loader's
     if cfg.name:
         scene.name = cfg.name
@@ -160,14 +112,10 @@ class _Observe:
 def _sparse_classes(solver, n_work: int, num_classes: int) -> int:
     """The per-point class count the diffusion will use (0 = dense), for the memory check:
     ``solver.sparse_classes`` on / off, or auto's size rule (diffusion.sparse_by_size)."""
-    from diffuser_lab.backends import numba as nb
-    from diffuser_lab.method.diffusion import sparse_by_size
-
-    mode = getattr(solver.sparse_classes, "value", solver.sparse_classes)
-    jacobi = getattr(solver.name, "value", solver.name) == "jacobi"
-    if not jacobi or mode == "off":
+    if solver.name != SolverName.jacobi or solver.sparse_classes == SparseClasses.off:
         return 0
-    if mode == "on" or (nb.available() and sparse_by_size(n_work, num_classes)):
+    numba = resolve_backend(solver.backend) == "numba"
+    if solver.sparse_classes == SparseClasses.on or (numba and sparse_by_size(n_work, num_classes)):
         return int(solver.classes_per_point)
     return 0
 
@@ -176,13 +124,13 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
         hooks: Optional[RunHooks] = None) -> RunResult:
     """Label ``scene`` (default: the configured source) with ``cfg.method``; Bayesian fusion of
     the same evidence is always computed beside it. ``observer(iteration, Z, stats)`` and
-    ``hooks`` (see :mod:`diffuser_lab.hooks`) watch the run without changing it."""
+    ``hooks`` (see :mod:`diffuser_lab.hooks`) watch the run without changing it. ``cfg`` is
+    resolved first (:func:`~diffuser_lab.runs.resolve.resolve`: registry names, the method's fixed keys)."""
+    cfg = resolve(cfg)
     hooks = hooks or RunHooks()
     t = {}
     t0 = time.perf_counter()
     if scene is None:
-        from diffuser_lab.data.taxonomy import resolve_taxonomy
-
         scene = load_scene(cfg.scene, resolve_taxonomy(cfg), cfg.depth)
     tax = scene.taxonomy
     validate.check_points(scene)

@@ -14,7 +14,7 @@ Bayesian rows read the baseline's evidence (single pixel), as in global runs.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Optional
 
 import numpy as np
@@ -26,6 +26,7 @@ from diffuser_lab.data.frame_loop import FrameLoop
 from diffuser_lab.data.geometry import backproject, normals_from_depth, voxel_downsample
 from diffuser_lab.data.predictions import with_predictions
 from diffuser_lab.data.scene import IGNORE, Frame, Scene
+from diffuser_lab.data.taxonomy import resolve_taxonomy
 from diffuser_lab.method import calibration
 from diffuser_lab.method import evidence as evidence_mod
 from diffuser_lab.method import fusion
@@ -34,6 +35,7 @@ from diffuser_lab.method.graph import graph_stage, make_graph
 from diffuser_lab.method.metrics import confusion_matrix, scores_from_confusion
 
 from .pipeline import load_scene
+from .resolve import resolve, with_method
 
 
 @dataclass
@@ -87,11 +89,10 @@ def image_normals(f: Frame, pix: np.ndarray, to_work: np.ndarray, m: int, window
 def single_frame(cfg: Config, scene: Optional[Scene] = None, on_frame=None) -> SingleFrameResult:
     """The single RGB-D frame protocol (paper Table II). ``on_frame(frame, images)``, if given, sees
     each target frame and its rows' label images ({(method, views): (H, W) int16}) as scored; it
-    does not change the result."""
+    does not change the result. ``cfg`` is resolved first (:func:`~diffuser_lab.runs.resolve.resolve`)."""
+    cfg = resolve(cfg)
     t0 = time.perf_counter()
     if scene is None:
-        from diffuser_lab.data.taxonomy import resolve_taxonomy
-
         scene = load_scene(cfg.scene, resolve_taxonomy(cfg), cfg.depth)
     tax, names = scene.taxonomy, scene.taxonomy.names
     frames = with_predictions(scene.frames, cfg.predictions, tax, scene_name=scene.name)
@@ -103,8 +104,7 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None, on_frame=None) -> S
     order = [(m.name, v) for m in fusion.METHODS.values() for v in m.single_frame_rows(W)]
     settings = {}  # each method: (entry, the run's config with what it fixes applied, evidence pixel window)
     for m in fusion.METHODS.values():
-        mc = replace(cfg, graph=replace(cfg.graph), evidence=replace(cfg.evidence))
-        m.apply(mc)
+        mc = with_method(cfg, m.name)
         settings[m.name] = (m, mc, 0 if m.evidence == fusion.BASELINE else mc.evidence.pixel_radius)
     rows = {key: Row(*key, cal=calibration.Calibration(tax.num_classes, cfg.calibration.bins)) for key in order}
     temperature = cfg.calibration.temperature

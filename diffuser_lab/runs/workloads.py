@@ -30,8 +30,13 @@ from typing import Optional, Sequence
 import numpy as np
 
 from diffuser_lab import progress
+from diffuser_lab.data.frames import LazyFrames
 from diffuser_lab.data.geometry import voxel_downsample
+from diffuser_lab.data.render import MeshRenderer, camera_trajectory, intrinsics, sample_surface
 from diffuser_lab.data.scene import SCANNET20, Frame, Scene, Taxonomy
+from diffuser_lab.data.simulate import simulate_predictions
+from diffuser_lab.data.sources.demo import demo_mesh
+from diffuser_lab.method.evidence import Evidence, add_frame
 
 ROOM_AREA_M2 = 82.0  # visible surface of the default demo room (calibrated: N ~ area / voxel^2)
 
@@ -86,50 +91,30 @@ class Workload:
                      frames=self.frames, normals=self.normals, gt_labels=self.gt)
 
 
-class CycledFrames(Sequence[Frame]):
+def cycled_frames(base: Sequence[Frame], n: int) -> LazyFrames:
     """``n`` frames that cycle through ``base`` (renamed per index): many frames, constant memory."""
 
-    def __init__(self, base: Sequence[Frame], n: int):
-        self.base, self.n = base, n
-
-    def __len__(self) -> int:
-        return self.n
-
-    def __getitem__(self, i):  # type: ignore[override]
-        if isinstance(i, slice):
-            return [self[j] for j in range(*i.indices(self.n))]
-        if i < 0:
-            i += self.n
-        if not 0 <= i < self.n:
-            raise IndexError(i)
-        f = self.base[i % len(self.base)]
+    def load(i: int) -> Frame:
+        f = base[i % len(base)]
         return dataclasses.replace(f, name=f"{f.name}_{i:05d}")
 
+    return LazyFrames(n, load)
 
-class TiledFrames(Sequence[Frame]):
+
+def tiled_frames(base: Sequence[Frame], offsets: np.ndarray) -> LazyFrames:
     """The views of one room, repeated for each of the room's translated copies (lazy)."""
 
-    def __init__(self, base: Sequence[Frame], offsets: np.ndarray):
-        self.base, self.offsets = base, offsets
-
-    def __len__(self) -> int:
-        return len(self.base) * len(self.offsets)
-
-    def __getitem__(self, i):  # type: ignore[override]
-        if isinstance(i, slice):
-            return [self[j] for j in range(*i.indices(len(self)))]
-        if i < 0:
-            i += len(self)
-        t, j = divmod(i, len(self.base))
-        f = self.base[j]
+    def load(i: int) -> Frame:
+        t, j = divmod(i, len(base))
+        f = base[j]
         T = np.eye(4)
-        T[:3, 3] = -self.offsets[t]
+        T[:3, 3] = -offsets[t]
         return dataclasses.replace(f, name=f"tile{t:03d}_{f.name}", T_cw=f.T_cw @ T)
+
+    return LazyFrames(len(base) * len(offsets), load)
 
 
 def _room_cloud(n_points: int, rng: np.random.Generator, verts, tris, labs, renderer):
-    from diffuser_lab.data.render import sample_surface
-
     vs = math.sqrt(ROOM_AREA_M2 / n_points)
     for _ in range(3):  # secant on the voxel size: a couple of tries land within ~1 %
         pts, nrm, lab = sample_surface(verts, tris, labs, vs / 2.0, rng, noise=0.002, renderer=renderer)
@@ -149,11 +134,6 @@ def room_workload(n_points: int, *, seed: int = 0, n_views: int = 30, width: int
                   num_classes: int = 21, with_mass: bool = True, noise_votes: float = 0.01,
                   tile_points: int = 400_000) -> Workload:
     """A benchmark cloud of about ``n_points`` points with rendered evidence (see module doc)."""
-    from diffuser_lab.data.render import MeshRenderer, camera_trajectory, intrinsics
-    from diffuser_lab.data.simulate import simulate_predictions
-    from diffuser_lab.data.sources.demo import demo_mesh
-    from diffuser_lab.method.evidence import Evidence, add_frame
-
     if num_classes not in (20, 21) and not 21 < num_classes <= 32767:
         raise ValueError(f"num_classes={num_classes}: expected 20, 21 or 22..32767")
     many = num_classes > 21
@@ -199,6 +179,6 @@ def room_workload(n_points: int, *, seed: int = 0, n_views: int = 30, width: int
         pts = (pts[None] + offsets[:, None].astype(np.float32)).reshape(-1, 3)
         nrm, gt = np.tile(nrm, (tiles, 1)), np.tile(gt, tiles)
         mass = None if mass is None else np.tile(mass, (tiles, 1))
-        frames = TiledFrames(frames, offsets)
+        frames = tiled_frames(frames, offsets)
     return Workload(points=np.ascontiguousarray(pts, np.float32), normals=nrm, gt=gt, mass=mass,
                     frames=frames, taxonomy=tax, voxel_size=vs)

@@ -28,7 +28,7 @@ from diffuser_lab.method import reference as ref
 from diffuser_lab.method.diffusion import diffuse, labels_from_scores, normalise
 from diffuser_lab.method.evidence import Evidence, add_frame
 from diffuser_lab.method.graph import build_graph
-from diffuser_lab.runs.workloads import CycledFrames, room_workload
+from diffuser_lab.runs.workloads import cycled_frames, room_workload
 
 LARGE = os.environ.get("DIFFUSER_BENCH_LARGE", "") not in ("", "0")
 
@@ -120,7 +120,7 @@ def test_evidence_300_frames(benchmark, enabled, impl):
     """Row 3: evidence from 300 frames of 640x480 into 300k points (30 rendered views, cycled)."""
     w = workload(300_000, enabled, with_mass=False)
     n_frames = 300 if enabled else 12
-    frames = CycledFrames(w.frames, n_frames)
+    frames = cycled_frames(w.frames, n_frames)
     if impl == "reference-float64":
         mass = benchmark.pedantic(ref.reference_evidence, args=(w.points, frames, 21), rounds=1, iterations=1)
         assert mass.shape == (w.n, 21)
@@ -131,14 +131,14 @@ def test_evidence_300_frames(benchmark, enabled, impl):
     peaks = []
     for m in (n_frames // 10, n_frames):
         tracemalloc.start()
-        _evidence(w.points, CycledFrames(w.frames, m), 21)
+        _evidence(w.points, cycled_frames(w.frames, m), 21)
         peaks.append(tracemalloc.get_traced_memory()[1])
         tracemalloc.stop()
     _report(benchmark, "evidence", n_points=w.n, frames=n_frames, peak_bytes=peaks)
     assert peaks[1] <= peaks[0] * 1.05 + 1e6
     if enabled:  # same votes as the authors' dense one-hot path, up to projection round-off
-        ref_mass = ref.reference_evidence(w.points, CycledFrames(w.frames, 30), 21)
-        ours = _evidence(w.points, CycledFrames(w.frames, 30), 21).mass
+        ref_mass = ref.reference_evidence(w.points, cycled_frames(w.frames, 30), 21)
+        ours = _evidence(w.points, cycled_frames(w.frames, 30), 21).mass
         assert np.mean(np.all(ref_mass == ours, axis=1)) >= 0.999
 
 

@@ -14,7 +14,7 @@ Compiling the kernels takes ~25 s once per machine (numba caches them on disk). 
 does not make a user wait for that: on an empty cache (:func:`cold`) its run takes the numpy/scipy
 path (:func:`defer_compile`; same labels, 3-6x slower diffusion) and, once it has finished, fills
 the cache in a background process (:func:`compile_in_background`, ``python -m
-diffuser_lab.backends.numba.warm``). ``DIFFUSER_LAB_NUMBA=1`` compiles in the foreground instead.
+diffuser_lab.cli.warm``). ``DIFFUSER_LAB_NUMBA=1`` compiles in the foreground instead.
 """
 from __future__ import annotations
 
@@ -80,7 +80,7 @@ def _lock_path():
 
 
 def compile_in_background() -> bool:
-    """Start ``python -m diffuser_lab.backends.numba.warm`` detached (its output discarded) unless
+    """Start ``python -m diffuser_lab.cli.warm`` detached (its output discarded) unless
     one is already running; it fills numba's cache for the next runs. True if one was started."""
     import subprocess
     import sys
@@ -93,7 +93,7 @@ def compile_in_background() -> bool:
             return False
         lock.write_text(str(os.getpid()))
         env = {k: v for k, v in os.environ.items() if k != "DIFFUSER_LAB_NUMBA"}
-        subprocess.Popen([sys.executable, "-m", "diffuser_lab.backends.numba.warm", str(lock)],
+        subprocess.Popen([sys.executable, "-m", "diffuser_lab.cli.warm", str(lock)],
                          stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                          start_new_session=True, env=env, close_fds=True)
     except OSError:  # a read-only install: the next run compiles in the foreground

@@ -1,2 +1,79 @@
-"""Scene sources: the demo room (demo.py), views rendered from a labelled mesh (mesh_views.py), a
-ScanNet export (scannet.py), a posed RGB-D folder (rgbd_folder.py), a TUM RGB-D sequence (tum.py)."""
+"""Scene sources: the registry :data:`SOURCES`, one entry per source, named by ``scene.source``.
+
+Built in: the demo room (demo.py), views rendered from a labelled mesh (mesh_views.py), a ScanNet
+export (scannet.py), a posed RGB-D folder (rgbd_folder.py), a TUM RGB-D sequence (tum.py). Each
+module has a ``load(cfg, taxonomy, sensor) -> Scene`` that reads its own keys of the
+:class:`~diffuser_lab.config.SceneConfig` (``scene.demo.*``, ``scene.scannet.*``, ...).
+
+Adding a dataset format is one module with such a ``load``, one ``conf/scene/<name>.yaml`` that
+says ``source: <name>`` (and sets the keys the loader reads) and one registry line: an entry in
+:data:`SOURCES` below, or, from outside the package, ``register(SceneSource("<name>", ..., load))``
+before the run. A source registered at run time reads its keys from ``scene.options`` (a
+free-form dict: Hydra's schema is fixed when it is stored, a dict is what a YAML file or
+``+scene.options.KEY=VALUE`` can fill); its loader checks them.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Optional
+
+import numpy as np
+
+from diffuser_lab.config import SceneConfig, check_name
+from diffuser_lab.data.scene import Scene, Taxonomy
+from diffuser_lab.data.sensor import SensorModel
+
+from . import demo, mesh_views, rgbd_folder, scannet, tum
+
+__all__ = ["SceneSource", "SOURCES", "register", "get"]
+
+
+@dataclass(frozen=True)
+class SceneSource:
+    """One scene source.
+
+    Attributes:
+        name: the ``scene.source`` value that selects it.
+        description: a few words (docs/config.md's choices).
+        load: ``(scene config, taxonomy, sensor) -> Scene`` whose frames carry ground-truth labels
+            when known, in ``taxonomy``. ``sensor`` (a :class:`~diffuser_lab.data.sensor.SensorModel`
+            or None) is for sources that render their depth (``rendered``); the others may ignore it.
+        rendered: the source renders its frames' depth, applying ``sensor`` as it does; otherwise
+            the depth is real and ``depth.apply_to_real`` applies the sensor model to the loaded frames.
+        label_ids: for ``taxonomy=ids``: ``(scene config, n) -> [(unique label ids, where found)]``
+            from the first ``n`` ground-truth label images (or a labelled mesh); None = none.
+    """
+
+    name: str
+    description: str
+    load: Callable[[SceneConfig, Taxonomy, Optional[SensorModel]], Scene]
+    rendered: bool = False
+    label_ids: Optional[Callable[[SceneConfig, int], list[tuple[np.ndarray, str]]]] = None
+
+
+SOURCES: dict[str, SceneSource] = {s.name: s for s in [
+    SceneSource("demo", "embedded procedural room", demo.load, rendered=True),
+    SceneSource("mesh_views", "labelled mesh (PLY with per-vertex label) + rendered views", mesh_views.load,
+                rendered=True, label_ids=mesh_views.label_ids),
+    SceneSource("scannet", "ScanNet export layout (color/ depth/ pose/ intrinsic/ label-filt/ + PLYs)", scannet.load,
+                label_ids=scannet.label_ids),
+    SceneSource("rgbd_folder", "frame-XXXXXX.{color,depth,pose} + camera-intrinsics.txt", rgbd_folder.load,
+                label_ids=rgbd_folder.label_ids),
+    SceneSource("tum", "TUM RGB-D: rgb.txt depth.txt groundtruth.txt, associated by timestamp", tum.load),
+]}
+"""The scene sources by name (``scene.source``)."""
+
+
+def register(source: SceneSource) -> SceneSource:
+    """Add a scene source (a run started after this may name it in ``scene.source``)."""
+    if source.name in SOURCES:
+        raise ValueError(f"scene source {source.name!r} is already registered")
+    SOURCES[source.name] = source
+    return source
+
+
+def get(name: str) -> SceneSource:
+    """The entry named ``name``; :class:`~diffuser_lab.config.ConfigError` naming ``scene.source`` and the
+    registered names otherwise."""
+    check_name("scene.source", name, list(SOURCES))
+    return SOURCES[name]

@@ -9,12 +9,17 @@ covered surfaces (floor under a cabinet, wall behind a picture) and drops them.
 """
 from __future__ import annotations
 
+from typing import Optional
+
 import numpy as np
 
+from diffuser_lab.config import SceneConfig
+from diffuser_lab.data.mapping import relabel_scene
 from diffuser_lab.data.render import MeshRenderer, camera_trajectory, intrinsics, render_views, sample_surface
-from diffuser_lab.data.scene import SCANNET20, Frame, Scene
+from diffuser_lab.data.scene import SCANNET20, Frame, Scene, Taxonomy
+from diffuser_lab.data.sensor import SensorModel
 
-__all__ = ["make_demo_scene", "demo_mesh"]
+__all__ = ["make_demo_scene", "demo_mesh", "load"]
 
 _LIFT = 0.005  # m, furniture bottom above the floor plane
 _GAP = 0.005  # m, wall items / furniture backs off the wall plane
@@ -403,3 +408,15 @@ def make_demo_scene(
     scene = Scene(name=f"demo_room_seed{seed}", points=points, taxonomy=SCANNET20,
                   frames=frames, normals=normals, gt_labels=labels)
     return scene, renderer
+
+
+def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) -> Scene:
+    """``scene.source=demo``: the room of the ``scene.demo`` keys, relabelled to ``taxonomy``."""
+    d = cfg.demo
+    scene, _ = make_demo_scene(seed=d.seed, room_size=tuple(d.room_size), n_views=d.n_views,
+                               image_width=d.image_width, image_height=d.image_height,
+                               fov_deg=d.fov_deg, point_spacing=d.point_spacing, point_noise=d.point_noise,
+                               sensor=sensor)
+    if taxonomy.name != scene.taxonomy.name:
+        scene = relabel_scene(scene, taxonomy)
+    return scene

@@ -9,13 +9,18 @@ layer then corrupts or replaces.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
 from diffuser_lab import progress
+from diffuser_lab.config import SceneConfig
 from diffuser_lab.data.mapping import load_mapping, native_mapping
 from diffuser_lab.data.render import MeshRenderer, camera_trajectory, intrinsics, render_views
 from diffuser_lab.data.scene import IGNORE, SCANNET20, Frame, Scene, Taxonomy
+from diffuser_lab.data.sensor import SensorModel
+
+from .scannet import mesh_label_ids, read_labelled_mesh
 
 
 def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -52,8 +57,6 @@ def load_mesh_views(path: str | Path, *, taxonomy: Taxonomy = SCANNET20, mapping
         Scene with points = vertices (world metres), normals, colours, gt_labels (IGNORE where
         unannotated or unmapped) and frames carrying depth and gt label images.
     """
-    from .scannet import read_labelled_mesh
-
     path = Path(path)
     with progress.stage(f"reading mesh {path.name}"):
         vertices, triangles, raw_labels, colors = read_labelled_mesh(path)
@@ -81,3 +84,17 @@ def load_mesh_views(path: str | Path, *, taxonomy: Taxonomy = SCANNET20, mapping
     return Scene(name=name or f"{stem}_views{len(frames)}_seed{seed}", points=vertices.astype(np.float32),
                  taxonomy=taxonomy, frames=frames, normals=vertex_normals(vertices, triangles), colors=colors,
                  gt_labels=gt)
+
+
+def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) -> Scene:
+    """``scene.source=mesh_views``: the views the ``scene.mesh_views`` keys ask for."""
+    m = cfg.mesh_views
+    return load_mesh_views(m.path, taxonomy=taxonomy, mapping=m.mapping, n_views=m.n_views, seed=m.seed,
+                           image_width=m.image_width, image_height=m.image_height, fov_deg=m.fov_deg,
+                           min_coverage=m.min_coverage, eye_height_range=(m.eye_height_min, m.eye_height_max),
+                           sensor=sensor)
+
+
+def label_ids(cfg: SceneConfig, n: int) -> list[tuple[np.ndarray, str]]:
+    """``taxonomy=ids``: the mesh's vertex labels."""
+    return mesh_label_ids(Path(cfg.mesh_views.path))

@@ -25,20 +25,24 @@ import re
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Callable
+from typing import Optional
 
 import numpy as np
 
 from diffuser_lab import progress
+from diffuser_lab.config import SceneConfig
+from diffuser_lab.data.frames import LazyFrames
 from diffuser_lab.data.geometry import backproject, voxel_downsample
 from diffuser_lab.data.mapping import ClassMapping, load_mapping, native_mapping
-from diffuser_lab.data.prediction_files import open_image, read_label_png, resize_nearest
+from diffuser_lab.data.prediction_files import label_ids_in, open_image, read_label_png, resize_nearest
 from diffuser_lab.data.scene import IGNORE, SCANNET20, Frame, Scene, Taxonomy
+from diffuser_lab.data.sensor import SensorModel
 from diffuser_lab.data.validate import check_depth_unit
 
 __all__ = [
     "load_rgbd_folder",
-    "LazyFrames",
+    "load",
+    "label_ids",
     "read_pose_c2w",
     "pose_to_world_to_camera",
     "fuse_depth",
@@ -50,34 +54,6 @@ __all__ = [
 ]
 
 CAMERA_TO_WORLD, WORLD_TO_CAMERA = "camera_to_world", "world_to_camera"  # pose file conventions
-
-
-class LazyFrames(Sequence):
-    """Read-on-access sequence of :class:`Frame`: ``frames[i]`` calls ``loader(i)``.
-
-    Only the per-frame metadata (names, poses) lives in memory; images are read each
-    time a frame is indexed, so iterating once over thousands of frames stays small.
-    """
-
-    def __init__(self, names: Sequence[str], loader: Callable[[int], Frame], info: dict | None = None):
-        self.names = list(names)
-        self._loader = loader
-        self.info = dict(info or {})  # loader statistics (e.g. skipped frames), for reports
-
-    def __len__(self) -> int:
-        return len(self.names)
-
-    def __getitem__(self, i):
-        if isinstance(i, slice):
-            idx = range(len(self.names))[i]
-            return LazyFrames([self.names[k] for k in idx], lambda k: self._loader(idx[k]), self.info)
-        n = len(self.names)
-        if not -n <= i < n:
-            raise IndexError(f"frame index {i} out of range for {n} frames")
-        return self._loader(i % n)
-
-    def __repr__(self) -> str:
-        return f"LazyFrames({len(self)} frames)"
 
 
 def rigid_inverse(T: np.ndarray) -> np.ndarray:
@@ -351,7 +327,7 @@ def load_rgbd_folder(
                 gt = _taxonomy_ids(resize_nearest(read_label_png(lp), depth.shape), mapping, taxonomy, str(lp))
         return Frame(name=name, K=K.copy(), T_cw=poses[i], depth=depth, gt_labels=gt, rgb=rgb)
 
-    frames = LazyFrames(kept, load, {"n_frames_found": len(depth_stems)})
+    frames = LazyFrames(kept, load, info={"n_frames_found": len(depth_stems)})
     # checked here, before a wrong unit scales the back-projected cloud; the pipeline skips it then
     check_depth_unit(frames[0], hint=f"depth_scale={depth_scale} (units per metre) / depth_bit_shift="
                                      f"{depth_bit_shift} / depth_shift_kind={depth_shift_kind}")
@@ -423,3 +399,26 @@ def _fuse_depth_frames(frames: Sequence[Frame], voxel_size: float, stride: int, 
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
     p, c, _ = _merge(np.concatenate(acc_p), np.concatenate(acc_c), np.concatenate(acc_w), voxel_size)
     return p, np.clip(np.rint(c), 0, 255).astype(np.uint8)
+
+
+def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) -> Scene:
+    """``scene.source=rgbd_folder``: the folder of the ``scene.rgbd_folder`` keys (real depth: the
+    pipeline applies ``sensor`` with ``depth.apply_to_real``)."""
+    r = cfg.rgbd_folder
+    return load_rgbd_folder(r.root, taxonomy=taxonomy, depth_scale=r.depth_scale, depth_bit_shift=r.depth_bit_shift,
+                            depth_shift_kind=r.depth_shift_kind.value, invalid_depth=tuple(r.invalid_depth),
+                            intrinsics_file=r.intrinsics_file, frame_prefix=r.frame_prefix,
+                            depth_suffix=r.depth_suffix, pose_suffix=r.pose_suffix,
+                            pose_convention=r.pose_convention.value,
+                            color_suffix=r.color_suffix, label_suffix=r.label_suffix, mapping=r.mapping,
+                            cloud=r.cloud, voxel_size=r.cloud_voxel, cloud_stride=r.cloud_stride,
+                            frame_step=r.frame_step, max_frames=r.max_frames, max_depth=r.max_depth)
+
+
+def label_ids(cfg: SceneConfig, n: int) -> list[tuple[np.ndarray, str]]:
+    """``taxonomy=ids``: the first ``n`` ground-truth label images (``label_suffix``), if any."""
+    r = cfg.rgbd_folder
+    if not r.label_suffix:
+        return []
+    root = Path(r.root)
+    return label_ids_in(list(root.glob(f"{r.frame_prefix}*.{r.label_suffix}")), n, f"ground-truth ({root})")

@@ -34,17 +34,23 @@ import re
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
 from diffuser_lab import progress
+from diffuser_lab.config import SceneConfig
+from diffuser_lab.data.frames import LazyFrames
+from diffuser_lab.data.geometry import estimate_normals
 from diffuser_lab.data.mapping import ClassMapping, identity_mapping, load_mapping, native_mapping
-from diffuser_lab.data.prediction_files import read_label_png, resize_nearest
+from diffuser_lab.data.prediction_files import label_ids_in, read_label_png, resize_nearest
 from diffuser_lab.data.scene import SCANNET20, Frame, Scene, Taxonomy
+from diffuser_lab.data.sensor import SensorModel
 
-from .rgbd_folder import LazyFrames, read_depth_png, read_intrinsics, read_pose_c2w, read_rgb, rigid_inverse
+from .rgbd_folder import read_depth_png, read_intrinsics, read_pose_c2w, read_rgb, rigid_inverse
 
-__all__ = ["load_scannet", "read_labelled_mesh", "scaled_intrinsics", "ScannetLayout"]
+__all__ = ["load_scannet", "read_labelled_mesh", "scaled_intrinsics", "ScannetLayout", "load", "label_ids",
+           "mesh_label_ids"]
 
 
 @dataclass(frozen=True)
@@ -119,7 +125,6 @@ def _vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     n = np.asarray(mesh.vertex_normals, dtype=np.float32)
     bad = ~(np.abs(np.linalg.norm(n, axis=1) - 1.0) < 1e-3)
     if bad.any():  # isolated or only-degenerate-face vertices
-        from diffuser_lab.data.geometry import estimate_normals
         n[bad] = estimate_normals(vertices)[bad]
     return n
 
@@ -263,5 +268,31 @@ def _scannet_frames(root: Path, frame_step: int, max_frames: int | None, mapping
                 raise ValueError(f"{lp}: {e}") from None
         return Frame(name=fid, K=K.copy(), T_cw=poses[i], depth=depth, gt_labels=gt, rgb=rgb)
 
-    return LazyFrames(kept, load, {"n_invalid_pose": n_invalid, "n_frames_found": len(ids),
+    return LazyFrames(kept, load, info={"n_invalid_pose": n_invalid, "n_frames_found": len(ids),
                                    "has_color": has_color, "has_labels": has_labels})
+
+
+def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) -> Scene:
+    """``scene.source=scannet``: the scene of the ``scene.scannet`` keys (its depth is real: the
+    pipeline applies ``sensor`` with ``depth.apply_to_real``)."""
+    c = cfg.scannet
+    layout = ScannetLayout(mesh=c.mesh, labels_mesh=c.labels_mesh, depth=c.depth, color=c.color,
+                           pose=c.pose, labels=c.labels, intrinsic_depth=c.intrinsic_depth,
+                           intrinsic_color=c.intrinsic_color, depth_scale=c.depth_scale)
+    return load_scannet(c.root, frame_step=c.frame_step, max_frames=c.max_frames, mapping=c.mapping, layout=layout,
+                        taxonomy=taxonomy)
+
+
+def mesh_label_ids(path: Path) -> list[tuple[np.ndarray, str]]:
+    """``taxonomy=ids``: the vertex label ids of a labelled mesh, ``[]`` when it has none."""
+    labels = read_labelled_mesh(path)[2]
+    return [] if labels is None else [(np.unique(labels), f"the labels of {path.name}")]
+
+
+def label_ids(cfg: SceneConfig, n: int) -> list[tuple[np.ndarray, str]]:
+    """``taxonomy=ids``: the first ``n`` ground-truth label images and the labels mesh, if there."""
+    root = Path(cfg.scannet.root)
+    labels = root / cfg.scannet.labels.replace("{frame}", "*")
+    out = label_ids_in(list(labels.parent.glob(labels.name)), n, f"ground-truth ({labels.parent})")
+    ply = root / cfg.scannet.labels_mesh.format(scene=root.name)
+    return out + (mesh_label_ids(ply) if ply.is_file() else [])

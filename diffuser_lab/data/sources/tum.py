@@ -22,15 +22,19 @@ from __future__ import annotations
 import re
 import warnings
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
+from diffuser_lab.config import SceneConfig
+from diffuser_lab.data.frames import LazyFrames
 from diffuser_lab.data.scene import SCANNET20, Frame, Scene, Taxonomy
+from diffuser_lab.data.sensor import SensorModel
 from diffuser_lab.data.validate import check_depth_unit
 
-from .rgbd_folder import LazyFrames, fuse_depth, read_depth_png, read_rgb
+from .rgbd_folder import fuse_depth, read_depth_png, read_rgb
 
-__all__ = ["load_tum", "read_tum_list", "read_tum_trajectory", "associate", "TUM_CAMERAS"]
+__all__ = ["load_tum", "read_tum_list", "read_tum_trajectory", "associate", "TUM_CAMERAS", "load"]
 
 TUM_CAMERAS = {  # fx fy cx cy, pixels at 640x480 (TUM RGB-D "intrinsic calibration" page)
     "fr1": (517.3, 516.5, 318.6, 255.3),
@@ -205,10 +209,21 @@ def load_tum(
 
     info = {"n_frames_found": len(t_d), "n_no_pose": n_no_pose, "n_no_rgb": n_no_rgb,
             "timestamps": t_d[sel].tolist()}
-    frames = LazyFrames(names, load, info)
+    frames = LazyFrames(names, load, info=info)
     check_depth_unit(frames[0], hint=f"scene.tum.depth_scale={depth_scale} (units per metre)")
     frames.info["depth_unit_checked"] = True
     points, colors = fuse_depth(frames, voxel_size, cloud_stride, max_depth)
     if points.shape[0] == 0:
         raise ValueError(f"{root}: no valid depth to build a point cloud from (max_depth={max_depth})")
     return Scene(name=root.name, points=points, taxonomy=taxonomy, frames=frames, colors=colors)
+
+
+def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) -> Scene:
+    """``scene.source=tum``: the sequence of the ``scene.tum`` keys (real depth: the pipeline
+    applies ``sensor`` with ``depth.apply_to_real``)."""
+    c = cfg.tum
+    return load_tum(c.root, taxonomy=taxonomy, rgb_list=c.rgb_list, depth_list=c.depth_list, groundtruth=c.groundtruth,
+                    max_time_diff=c.max_time_diff, depth_scale=c.depth_scale, camera=c.camera.value,
+                    intrinsics=None if c.fx is None else (c.fx, c.fy, c.cx, c.cy),
+                    voxel_size=c.cloud_voxel, cloud_stride=c.cloud_stride, max_depth=c.max_depth,
+                    frame_step=c.frame_step, max_frames=c.max_frames)

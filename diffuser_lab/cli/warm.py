@@ -3,8 +3,9 @@ kernels a default run uses (kNN graph, evidence, Jacobi steps for the demo's cla
 recorders' per-iteration pass and the Z encodings of the default record) and those of
 protocol=online are compiled and cached on disk.
 
-``python -m diffuser_lab.backends.numba.warm [LOCK]`` (what :func:`compile_in_background` starts;
-``LOCK`` is removed at the end). Takes ~25 s on an empty cache, ~2 s on a warm one.
+``python -m diffuser_lab.cli.warm [LOCK]`` (what
+:func:`diffuser_lab.backends.numba.compile_in_background` starts; ``LOCK`` is removed at the
+end). Takes ~25 s on an empty cache, ~2 s on a warm one.
 """
 from __future__ import annotations
 
@@ -12,18 +13,18 @@ import sys
 import tempfile
 from pathlib import Path
 
+from diffuser_lab.backends import numba as nb
+from diffuser_lab.recording import make_hooks
+from diffuser_lab.runs.online import online
+from diffuser_lab.runs.pipeline import run
+from diffuser_lab.runs.resolve import default_config
+
 
 def warm() -> None:
     """Compile (or load) the kernels of a default run, writing nothing outside a temporary folder."""
-    from diffuser_lab.backends import numba as nb
-
     nb.undefer()
     if not nb.available():
         return
-    from diffuser_lab import default_config
-    from diffuser_lab.recording import make_hooks
-    from diffuser_lab.runs.pipeline import run
-
     # 12 iterations: 1, 2, 5, 10 in the default q8 shares, the last (12) float32, class-major
     cfg = default_config(**{"n_views": 4, "solver.max_iter": 12})
     with tempfile.TemporaryDirectory(prefix="diffuser-lab-warm-") as d:
@@ -33,8 +34,6 @@ def warm() -> None:
         finally:
             hooks.close()
     # protocol=online (its kernels; both map modes, without the batch comparison)
-    from diffuser_lab.runs.online import online
-
     for mode in ("given", "growing"):
         oc = default_config(**{"n_views": 3, "protocol.name": "online", "online.map": mode,
                                "online.compare_batch": False, "record.mode": "off"})

@@ -1,0 +1,112 @@
+"""The protocols a run follows: the registry :data:`PROTOCOLS`, one entry each, named by ``protocol.name``.
+
+An entry knows how to run (a library call: ``run(cfg, scene=None, hooks=None)``), what it writes
+into a run folder beside summary.json and what summary.json says (``finish``), and the table the
+command line prints (``table``). Built in: ``global_3d`` (:func:`diffuser_lab.runs.pipeline.run`,
+paper Table I), ``single_frame`` (:func:`diffuser_lab.runs.protocols.single_frame`, Table II) and
+``online`` (:func:`diffuser_lab.runs.online.online`).
+
+Adding a protocol is one function that runs it (resolving the config it is handed), one
+``conf/protocol/<name>.yaml`` with ``name: <name>`` and one registry line (an entry below, or
+:func:`register`). The command line (:mod:`diffuser_lab.cli.main`) asks this registry and nothing else.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Optional
+
+import numpy as np
+
+from diffuser_lab.config import Config, check_name
+from diffuser_lab.data.scene import Scene
+from diffuser_lab.hooks import RunHooks
+
+from . import online as online_mod
+from . import protocols, report
+from .pipeline import run
+from .records import write_labels
+
+__all__ = ["Protocol", "PROTOCOLS", "register", "get"]
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """One protocol.
+
+    Attributes:
+        name: the ``protocol.name`` value that selects it.
+        description: a few words (docs/config.md's choices).
+        run: ``(cfg, *, scene=None, hooks=None) -> result``: the library call (the scene: the
+            configured source when None; ``hooks`` watch it; a protocol that takes none ignores them).
+        finish: ``(result, cfg, run_dir, summary, records) -> dict``: write the result's files into
+            ``run_dir`` and finish ``summary`` (a :class:`~diffuser_lab.runs.report.SummaryFile`) with
+            it and ``records`` (the recorders' files); returns summary.json's content.
+        table: ``(result, run_dir) -> str``: what the command line prints.
+        records: whether the command line makes recorders (run.rrd, run.mcap) for it.
+    """
+
+    name: str
+    description: str
+    run: Callable[..., Any]
+    finish: Callable[[Any, Config, Path, report.SummaryFile, dict], dict]
+    table: Callable[[Any, Path], str]
+    records: bool = True
+
+
+def _finish_global(result, cfg: Config, run_dir: Path, summary: report.SummaryFile, records: dict) -> dict:
+    t = time.perf_counter()
+    files = write_labels(run_dir, result.scene.points, result.labels, result.scene.taxonomy, ply=cfg.output.labels_ply)
+    result.timings_s["write"] = time.perf_counter() - t
+    return summary.result(result, cfg, records=records, files=files)
+
+
+def _run_single_frame(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHooks] = None):
+    return protocols.single_frame(cfg, scene)
+
+
+def _finish_single_frame(result, cfg: Config, run_dir: Path, summary: report.SummaryFile, records: dict) -> dict:
+    return summary.single_frame(result)
+
+
+def _finish_online(result, cfg: Config, run_dir: Path, summary: report.SummaryFile, records: dict) -> dict:
+    """labels.npy holds the final map's labels (given map: of the scene's points; growing: map
+    order), map.npy a growing map's points."""
+    pts = result.scene.points if result.scene_labels is not None else result.points
+    labels = result.scene_labels if result.scene_labels is not None else result.labels
+    files = write_labels(run_dir, pts, labels, result.scene.taxonomy, ply=cfg.output.labels_ply)
+    if result.mode == "growing":
+        np.save(run_dir / "map.npy", result.points)
+        files["map"] = "map.npy"
+    summary.data.update(online_mod.summary(result))
+    summary.update(records=records, files=files, status="ok")
+    return summary.data
+
+
+PROTOCOLS: dict[str, Protocol] = {p.name: p for p in [
+    Protocol("global_3d", "label the scene's points, score 3D mIoU (paper Table I)", run, _finish_global,
+             lambda result, run_dir: report.table(result, run_dir)),
+    Protocol("single_frame", "label each frame's back-projected depth, score 2D mIoU (Table II)", _run_single_frame,
+             _finish_single_frame, lambda result, run_dir: protocols.table(result) + f"\nrun folder: {run_dir}",
+             records=False),
+    Protocol("online", "frames one at a time in sequence order; the map labels itself as they come (online.*)",
+             online_mod.online, _finish_online,
+             lambda result, run_dir: online_mod.table(result) + f"\nrun folder: {run_dir}"),
+]}
+"""The protocols by name (``protocol.name``)."""
+
+
+def register(protocol: Protocol) -> Protocol:
+    """Add a protocol (a run started after this may name it in ``protocol.name``)."""
+    if protocol.name in PROTOCOLS:
+        raise ValueError(f"protocol {protocol.name!r} is already registered")
+    PROTOCOLS[protocol.name] = protocol
+    return protocol
+
+
+def get(name: str) -> Protocol:
+    """The entry named ``name``; :class:`~diffuser_lab.config.ConfigError` naming ``protocol.name`` and
+    the registered names otherwise."""
+    check_name("protocol.name", name, list(PROTOCOLS))
+    return PROTOCOLS[name]

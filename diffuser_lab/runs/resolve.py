@@ -1,0 +1,68 @@
+"""The resolve step: a validated :class:`~diffuser_lab.config.Config` -> the config that runs.
+
+Validation (:mod:`diffuser_lab.config`) checks every key against its declared range; this step,
+after it, checks what only the registries know and applies what the fusion method fixes:
+
+- the names of registry entries: ``scene.source`` (:mod:`diffuser_lab.data.sources`),
+  ``taxonomy.name`` (the shipped taxonomies, ``file``, ``ids``), ``predictions.source``
+  (:mod:`diffuser_lab.data.predictions`), ``method.name`` (:mod:`diffuser_lab.method.fusion`) and,
+  when the caller hands in the protocols' registry, ``protocol.name``: one line naming the key and
+  the registered names;
+- the method's fixed keys (LDLS: ``graph.use_normals=false``, ``evidence.pixel_radius=1``), so the
+  config a run records is the one that ran.
+
+:func:`resolve` is idempotent and returns a new config (the sections it changes are copies). The
+command line resolves in its pre-validation and in the job; the library's entry points
+(:func:`diffuser_lab.runs.pipeline.run`, the single-frame and online protocols) resolve what
+they are handed, so a config from :func:`diffuser_lab.config.default_config` runs as it always
+did; :func:`default_config` here (``diffuser_lab.default_config``) returns it resolved.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Mapping, Optional
+
+from diffuser_lab import config
+from diffuser_lab.config import Config, check_name
+from diffuser_lab.data import predictions, sources
+from diffuser_lab.data.taxonomy import taxonomy_names
+from diffuser_lab.method import fusion
+
+__all__ = ["resolve", "with_method", "names", "default_config"]
+
+
+def names(protocols: Optional[Mapping[str, Any]] = None) -> dict[str, list[str]]:
+    """Each key that names a registry entry -> the names it takes now (what :func:`resolve`
+    accepts, in the order its error line lists them: a registry's own order, the fusion methods
+    sorted, the shipped taxonomies sorted then ``file``, ``ids``); ``protocol.name`` when
+    ``protocols`` is given."""
+    out = {"scene.source": list(sources.SOURCES), "taxonomy.name": taxonomy_names(),
+           "predictions.source": list(predictions.SOURCES), "method.name": sorted(fusion.METHODS)}
+    if protocols is not None:
+        out["protocol.name"] = list(protocols)
+    return out
+
+
+def with_method(cfg: Config, name: str) -> Config:
+    """``cfg`` running the fusion method ``name`` with what that method fixes applied (the
+    single-frame protocol's rows run every method on one config this way)."""
+    out = dataclasses.replace(cfg, method=dataclasses.replace(cfg.method, name=name),
+                              graph=dataclasses.replace(cfg.graph), evidence=dataclasses.replace(cfg.evidence))
+    fusion.get(name).apply(out)
+    return out
+
+
+def resolve(cfg: Config, protocols: Optional[Mapping[str, Any]] = None) -> Config:
+    """Check the registry names of ``cfg`` (:func:`names`; ``protocols``: the protocols' registry,
+    for ``protocol.name``) and apply the method's fixed keys. Raises
+    :class:`~diffuser_lab.config.ConfigError` naming the first unknown name."""
+    for key, valid in names(protocols).items():
+        section, attr = key.split(".")
+        check_name(key, getattr(getattr(cfg, section), attr), valid)
+    return with_method(cfg, cfg.method.name)
+
+
+def default_config(**overrides: Any) -> Config:
+    """A validated and resolved default :class:`~diffuser_lab.config.Config` for library use;
+    ``overrides`` as dotted keys, e.g. ``default_config(**{"graph.k": 8})``."""
+    return resolve(config.default_config(**overrides))
