@@ -21,7 +21,7 @@ from typing import Any, Optional
 
 import numpy as np
 
-from diffuser_lab.config import OnlineMap, Protocol
+from diffuser_lab.config import OnlineMap
 from diffuser_lab.data.scene import IGNORE
 from diffuser_lab.runs.online import summary as online_summary
 
@@ -321,7 +321,7 @@ def online_meta(conf: Any, scene: Any) -> dict:
 
 
 def is_online(conf: Any) -> bool:
-    return conf.protocol.name == Protocol.online
+    return conf.protocol.name == "online"
 
 
 __all__ = ["OnlineHooks", "OnlineRecorder", "FrameRecord", "FrameSchedule", "OnlineFrames", "MapMirror", "frame_record",
