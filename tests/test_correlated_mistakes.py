@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from diffuser_lab.config import ConfigError, default_config
-from diffuser_lab.data.consistency import reproject_labels, view_consistency
+from diffuser_lab.method.consistency import reproject_labels, view_consistency
 from diffuser_lab.data.predictions import with_predictions
 from diffuser_lab.data.scene import IGNORE, SCANNET20
 from diffuser_lab.data.simulate import simulate_predictions, surface_regions

@@ -6,7 +6,7 @@ import pytest
 
 from diffuser_lab.backends import numba as nb
 from diffuser_lab.backends.numba import cell_search, grid_knn
-from diffuser_lab.data.geometry import morton_codes, quantize
+from diffuser_lab.backends.morton import morton_codes, quantize
 from diffuser_lab.method.diffusion import EDGE_FLOOR, normalise
 from diffuser_lab.method.graph import build_graph
 

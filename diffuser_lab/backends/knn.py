@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from diffuser_lab.data.geometry import spatial_order
+from .morton import spatial_order
 
 from . import numba as nb
 from .numba import grid_knn, morton

@@ -11,20 +11,14 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
-from diffuser_lab.data.scene import IGNORE
+from . import numba as nb
+from .base import NONE as IGNORE  # the data layer's IGNORE: a point nothing reached
+from .numba import float16
 
 
 def _kernels():
-    """:mod:`diffuser_lab.backends.numba.float16` while the compiled kernels are on, else None.
-    Imported at the first call: numba's import (~0.3 s) is for writing records, not for the
-    tools that only read them."""
-    from diffuser_lab.backends import numba as nb  # defers numba (imported with the package)
-
-    if not nb.available():
-        return None
-    from diffuser_lab.backends.numba import float16
-
-    return float16
+    """:mod:`diffuser_lab.backends.numba.float16` while the compiled kernels are on, else None."""
+    return float16 if nb.available() else None
 
 
 def compiled() -> bool:

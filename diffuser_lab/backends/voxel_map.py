@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from diffuser_lab.data.geometry import _spread_bits
+from .morton import spread_bits
 
 from . import numba as nb
 from .numba.hashing import OFF
@@ -20,7 +20,7 @@ def voxel_keys(points: np.ndarray, voxel_size: float) -> np.ndarray:
     ``floor(x / voxel_size)`` (offset by 2^20, so +-2^20 voxels per axis around the world origin)."""
     q = np.floor(np.asarray(points, np.float64) / voxel_size)
     q = (np.clip(q, -OFF, OFF - 1) + OFF).astype(np.uint64)
-    code = _spread_bits(q[:, 0]) | (_spread_bits(q[:, 1]) << np.uint64(1)) | (_spread_bits(q[:, 2]) << np.uint64(2))
+    code = spread_bits(q[:, 0]) | (spread_bits(q[:, 1]) << np.uint64(1)) | (spread_bits(q[:, 2]) << np.uint64(2))
     return code.astype(np.int64)
 
 

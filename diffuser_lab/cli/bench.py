@@ -26,6 +26,13 @@ import time
 
 import numpy as np
 
+from diffuser_lab import progress
+from diffuser_lab.method import reference as ref
+from diffuser_lab.method.diffusion import diffuse, labels_from_scores, normalise
+from diffuser_lab.method.exact import solve_exact
+from diffuser_lab.method.graph import build_graph
+from diffuser_lab.runs.workloads import room_workload
+
 
 def _load(path: str):
     with np.load(path) as f:
@@ -47,8 +54,6 @@ def _load(path: str):
 def run_once(pts, nrm, ev, *, iters: int, k: int, solver: str, backend: str, pixel_weight: float,
              sigma_s: float, sigma_d_factor: float, sparse_classes: str = "auto", classes_per_point: int = 16):
     """One timed run: returns (labels, figures dict). No progress lines (they would be timed too)."""
-    from diffuser_lab import progress
-
     with progress.quiet():
         return _run_once(pts, nrm, ev, iters=iters, k=k, solver=solver, backend=backend, pixel_weight=pixel_weight,
                          sigma_s=sigma_s, sigma_d_factor=sigma_d_factor, sparse_classes=sparse_classes,
@@ -57,14 +62,8 @@ def run_once(pts, nrm, ev, *, iters: int, k: int, solver: str, backend: str, pix
 
 def _run_once(pts, nrm, ev, *, iters: int, k: int, solver: str, backend: str, pixel_weight: float,
               sigma_s: float, sigma_d_factor: float, sparse_classes: str = "auto", classes_per_point: int = 16):
-    from diffuser_lab.method.diffusion import diffuse, labels_from_scores, normalise
-    from diffuser_lab.method.exact import solve_exact
-    from diffuser_lab.method.graph import build_graph
-
     t0 = time.perf_counter()
     if solver == "reference":
-        from diffuser_lab.method import reference as ref
-
         G = ref.reference_graph(pts, k, nrm, sigma_s=sigma_s, sigma_d_factor=sigma_d_factor)
         P, B = ref.reference_system(G, ev, pixel_weight)
         t1 = time.perf_counter()
@@ -91,8 +90,6 @@ def _run_once(pts, nrm, ev, *, iters: int, k: int, solver: str, backend: str, pi
 
 
 def _write_demo_input(path: str, n_points: int, num_classes: int = 21) -> int:
-    from diffuser_lab.runs.workloads import room_workload
-
     if n_points < 1000:
         print(f"diffuser-lab-bench: error: --points {n_points}: expected >= 1000", file=sys.stderr)
         return 2

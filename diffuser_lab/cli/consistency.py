@@ -1,5 +1,5 @@
 """``python -m diffuser_lab.cli.consistency [hydra overrides]``: the frames' 2D mIoU and the view
-consistency of their predictions (:func:`diffuser_lab.data.consistency.view_consistency`; what
+consistency of their predictions (:func:`diffuser_lab.method.consistency.view_consistency`; what
 docs/simulated-network.md calibrates against)."""
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from hydra import compose, initialize_config_dir
 
 from diffuser_lab.cli.main import config_dir
 from diffuser_lab.config import register, to_object
-from diffuser_lab.data.consistency import view_consistency
+from diffuser_lab.method.consistency import view_consistency
 from diffuser_lab.data.predictions import with_predictions
 from diffuser_lab.data.taxonomy import resolve_taxonomy
 from diffuser_lab.method.metrics import confusion_matrix, scores_from_confusion

@@ -29,6 +29,28 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 
+from diffuser_lab.method.diffusion import labels_from_scores
+from diffuser_lab.recording import schema
+from diffuser_lab.recording.mcap_encode import (
+    TOPIC_CALIBRATION,
+    TOPIC_CAMERA_LABELS,
+    TOPIC_METRICS,
+    TOPIC_ONLINE_FRAME,
+    TOPIC_RUN,
+    TOPIC_SCENE,
+    TOPIC_Z,
+    camera_index,
+    decode_label_png,
+    decode_point_cloud,
+    decode_z,
+    z_precision_text,
+)
+from diffuser_lab.recording.mcap_read import RunLog, iter_run, metrics_dict, read_run, work_points
+from diffuser_lab.recording.mcap_write import FOXGLOVE_LAYOUT, online_foxglove_layout
+from diffuser_lab.recording.rerun_log import RerunRecorder
+from diffuser_lab.recording.schedule import describe
+from diffuser_lab.recording.steps import StepTracker
+
 PROG = "diffuser-lab-inspect"
 
 
@@ -86,8 +108,6 @@ def summary_text(log: Any) -> str:
     if not its:
         lines.append("recorded  0 iterations (no diffusion recorded: static records only)")
     elif info is not None:
-        from diffuser_lab.recording.schedule import describe
-
         dts = sorted(set(log.z_dtype.values()), key=lambda d: d == "float32")
         zinfo = f"Z {' / last '.join(dts) if len(dts) > 1 else (dts or ['float32'])[0]}, {int(info.n_work_points):,} x {len(names)}"
         lines.append(f"recorded  {len(its)} iterations: {_iters(its)} ({describe(int(info.interval))}, "
@@ -124,7 +144,6 @@ def online_text(log: Any) -> str:
         lat = np.array([f["latency_ms"] for f in fr], float)
         lines.append(f"latency   median {np.median(lat):.1f} ms, p95 {np.percentile(lat, 95):.1f} ms, "
                      f"max {lat.max():.1f} ms per frame (the update alone)")
-    from diffuser_lab.recording.schedule import describe
 
     its = log.z_iterations
     dts = sorted(set(log.z_dtype.values()), key=lambda d: d == "float32")
@@ -161,9 +180,6 @@ def online_table_text(frames: Sequence[dict], kept: Sequence[int]) -> str:
 
 def is_online_mcap(mcap_path: Path | str) -> bool:
     """Whether a run.mcap is an online run's (its first records only)."""
-    from diffuser_lab.recording.mcap_encode import TOPIC_ONLINE_FRAME, TOPIC_RUN, TOPIC_Z
-    from diffuser_lab.recording.mcap_read import RunLog, iter_run
-
     log = RunLog(path=Path(mcap_path))
     for topic, _ in iter_run(mcap_path, log):
         if topic in ("metadata:diffuser_lab.online", TOPIC_ONLINE_FRAME):
@@ -186,10 +202,6 @@ def table_text(metrics: Sequence[dict]) -> str:
 def run_classes(mcap_path: Path | str) -> tuple[list[str], str]:
     """(class names, taxonomy name) of a run.mcap, read from its first records only."""
     import json
-
-    from diffuser_lab.recording import schema
-    from diffuser_lab.recording.mcap_encode import TOPIC_RUN
-    from diffuser_lab.recording.mcap_read import RunLog, iter_run
 
     log = RunLog(path=Path(mcap_path))
     for topic, data in iter_run(mcap_path, log):
@@ -223,23 +235,6 @@ def mcap_to_rrd(mcap_path: Path | str, rrd_path: Path | str, *, max_image_side: 
     from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
     from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
     from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
-
-    from diffuser_lab.recording import schema
-    from diffuser_lab.recording.mcap_encode import (
-        TOPIC_CALIBRATION,
-        TOPIC_CAMERA_LABELS,
-        TOPIC_METRICS,
-        TOPIC_RUN,
-        TOPIC_SCENE,
-        TOPIC_Z,
-        camera_index,
-        decode_label_png,
-        decode_point_cloud,
-        decode_z,
-    )
-    from diffuser_lab.recording.mcap_read import RunLog, iter_run, metrics_dict, work_points
-    from diffuser_lab.recording.rerun_log import RerunRecorder
-    from diffuser_lab.recording.steps import StepTracker
 
     layers = score_classes(mcap_path, scores) if scores else []
     log = RunLog(path=Path(mcap_path))
@@ -346,8 +341,6 @@ def _warn_truncated(log: Any) -> None:
 
 
 def _main(args: argparse.Namespace) -> int:
-    from diffuser_lab.recording.mcap_read import read_run
-
     run = Path(args.run)
     if args.out and args.at is None:
         raise UsageError("--out needs --at ITER")
@@ -362,11 +355,7 @@ def _main(args: argparse.Namespace) -> int:
         return subprocess.call(_viewer() + [str(rrd)])
     mcap = _mcap_path(run)
     if args.foxglove_layout:
-        from diffuser_lab.recording.mcap_write import FOXGLOVE_LAYOUT
-
         if is_online_mcap(mcap):  # its topics and plot fields
-            from diffuser_lab.recording.mcap_write import online_foxglove_layout
-
             Path(args.foxglove_layout).write_text(online_foxglove_layout())
         else:
             shutil.copyfile(FOXGLOVE_LAYOUT, args.foxglove_layout)
@@ -398,8 +387,6 @@ def _main(args: argparse.Namespace) -> int:
         it = log.z_iterations[-1] if args.at == "last" else _int(args.at)
         if it not in log.z:
             raise UsageError(f"{what} {it} was not recorded; recorded: {_iters(log.z_iterations)}")
-        from diffuser_lab.recording.mcap_encode import z_precision_text
-
         Z = log.z[it]
         precision = z_precision_text(log.z_dtype.get(it, "float32"))
         if args.out:
@@ -407,8 +394,6 @@ def _main(args: argparse.Namespace) -> int:
             print(f"wrote {args.out}: Z at {what} {it}, {Z.shape[0]:,} x {Z.shape[1]} float32; "
                   f"stored as {precision}")
         else:
-            from diffuser_lab.method.diffusion import labels_from_scores
-
             lab = labels_from_scores(Z)
             print(f"Z at {what} {it}: {Z.shape[0]:,} x {Z.shape[1]} float32, max {Z.max():.3e}, "
                   f"{int((lab >= 0).sum()):,} labelled points; stored as {precision} (use --out z.npy to save it)")

@@ -47,7 +47,8 @@ from typing import Optional
 import numpy as np
 
 from diffuser_lab.config import OnlineMap, OnlineSolver, SolverBackend
-from diffuser_lab.data.geometry import backproject, normals_from_depth, spatial_order
+from diffuser_lab.backends.morton import spatial_order
+from diffuser_lab.data.geometry import backproject, normals_from_depth
 from diffuser_lab.data.scene import IGNORE, Frame, Taxonomy
 from diffuser_lab.method.diffusion import System, labels_from_scores
 from diffuser_lab.method.evidence import RunEvidence

@@ -53,6 +53,8 @@ import numpy as np
 
 from diffuser_lab.data.scene import IGNORE
 
+from .live import live_target
+from .online import TIMELINE as FRAME_TIMELINE
 from .steps import Step
 
 log = logging.getLogger("diffuser_lab.recording")
@@ -273,8 +275,6 @@ class RerunRecorder:
                  score_classes: Sequence[tuple[str, int]] = (), online: bool = False):
         import rerun as rr
 
-        from .live import live_target
-
         self.rr = rr
         self.path = Path(path)
         self.online = bool(online)
@@ -439,8 +439,6 @@ class RerunRecorder:
     def log_online_frame(self, rec, mirror, changed: bool) -> None:
         """One frame taken (:class:`.online.FrameRecord`) on the ``frame`` timeline; ``mirror``
         (:class:`.online.MapMirror`) holds the map after it, ``changed``: it has new points."""
-        from .online import TIMELINE as FRAME_TIMELINE
-
         rr, log = self.rr, self.rec.log
         self.rec.set_time(FRAME_TIMELINE, sequence=rec.index)
         ids, bids = class_ids(rec.labels), class_ids(rec.bayesian)

@@ -12,6 +12,8 @@ from diffuser_lab.config import Config
 from diffuser_lab.data.scene import IGNORE
 
 from .pipeline import RunResult
+from .records import write_json_atomic
+from .results import calibration_key
 
 STAGES = ("load", "predictions", "evidence", "graph", "diffusion", "labels", "metrics", "write", "total")
 
@@ -89,11 +91,6 @@ def table(res: RunResult, run_dir: Path | None = None) -> str:
     return "\n".join(lines)
 
 
-def calibration_key(method: str, views: int) -> str:
-    """The single-frame protocol's name of a Table II row in ``metrics.calibration``: ``diffuser_5v``."""
-    return f"{method}_{views}v"
-
-
 def single_frame_summary(sf) -> dict:
     """summary.json content of a single-frame protocol run; ``metrics`` is the Diffuser
     W-view row, ``baseline.bayesian`` the Bayesian W-view row, ``rows`` all of Table II;
@@ -140,8 +137,6 @@ class SummaryFile:
         self.write()
 
     def write(self) -> None:
-        from .records import write_json_atomic
-
         write_json_atomic(self.path, self.data)
 
     def update(self, **values: Any) -> None:

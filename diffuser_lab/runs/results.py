@@ -13,7 +13,15 @@ from typing import Iterable
 
 import numpy as np
 
+from diffuser_lab.method.fusion import METHODS
+
 SEED_KEYS = ("seed",)  # overrides that only repeat a configuration
+
+
+
+def calibration_key(method: str, views: int) -> str:
+    """The single-frame protocol's name of a Table II row in ``metrics.calibration``: ``diffuser_5v``."""
+    return f"{method}_{views}v"
 
 
 @dataclass
@@ -48,9 +56,6 @@ class Run:
         """``method``'s key in ``metrics.calibration``: the method itself (global protocol) or its
         W-view row, e.g. ``diffuser_5v``, in a single-frame run (whose ``metrics`` is that row)."""
         if self.summary.get("protocol") == "single_frame":
-            from diffuser_lab.method.fusion import METHODS
-            from diffuser_lab.runs.report import calibration_key
-
             if method in METHODS:  # its widest row, as the summary's metrics / baseline.bayesian
                 window = int(self.summary.get("window", 1))
                 return calibration_key(method, max(METHODS[method].single_frame_rows(window)))

@@ -22,6 +22,8 @@ from typing import Any, Optional
 
 from hydra.experimental.callback import Callback
 
+from .results import aggregate, find_runs, markdown
+
 JOBS_ENV = "DIFFUSER_LAB_SWEEP_JOBS"
 WATCHED_LAUNCHERS = ("ray_launcher", "submitit")  # whose jobs' stdout does not reach this terminal
 _started: dict[str, Any] = {}  # the sweep this process launched: {"dir": Path, "watcher": Watcher}
@@ -150,8 +152,6 @@ def print_table(file=sys.stdout) -> None:
     sweep_dir = _started.get("dir")
     if sweep_dir is None or not Path(sweep_dir).is_dir():
         return
-    from .results import aggregate, find_runs, markdown
-
     runs = find_runs([sweep_dir])
     if not runs:
         return

@@ -24,7 +24,7 @@ import numpy as np
 
 from ..base import IterationInputs, JacobiBackend, residual
 from ..krylov import gmres
-from . import NB, n_threads, slp
+from . import NB, _unrolled, first_compile, n_threads, slp
 from .krylov import NumbaKrylovOps
 
 WIDTHS = (8, 16, 24, 32)
@@ -119,17 +119,11 @@ change is <= ``tol``. Returns the number of steps done."""
 
 
 _GEN = Path(__file__).with_name("_unrolled.py")
-_STEPS = None
 
 
 def _step_kernels():
     """{W: steps_W} of the generated module (see :data:`_STEPS_TEMPLATE`)."""
-    global _STEPS
-    if _STEPS is None:
-        from . import _unrolled as g
-
-        _STEPS = {W: getattr(g, f"steps_{W}") for W in WIDTHS}
-    return _STEPS
+    return {W: getattr(_unrolled, f"steps_{W}") for W in WIDTHS}
 
 
 class StepRunner:
@@ -373,8 +367,6 @@ class NumbaJacobi(JacobiBackend):
 
     @property
     def compiling(self) -> bool:
-        from . import first_compile
-
         return bool(self.blocks) and first_compile(*{_step_kernels()[b.width] for b in self.blocks})
 
     def steps(self, count: int) -> np.ndarray:

@@ -1,13 +1,13 @@
 """Compiled (numba) Morton (Z-order) of a cloud: the lattice of
-:func:`~diffuser_lab.data.geometry.quantize` over the points' bounding box, the codes of
-:func:`~diffuser_lab.data.geometry.morton_codes` and their stable argsort, in parallel chunks.
+:func:`~diffuser_lab.backends.morton.quantize` over the points' bounding box, the codes of
+:func:`~diffuser_lab.backends.morton.morton_codes` and their stable argsort, in parallel chunks.
 :func:`lattice` and :func:`code3` serve the grid kNN (``grid_knn.py``) and the voxel keys
 (``voxel_map.py``) too."""
 from __future__ import annotations
 
 import numpy as np
 
-from diffuser_lab.data.geometry import MORTON_BITS, _spread_bits
+from ..morton import MORTON_BITS, spread_bits
 
 from . import NB
 from . import parts as _parts
@@ -18,7 +18,7 @@ if NB is not None:
     _QMAX = 2**MORTON_BITS - 1
 
     # the numpy function compiles as is for one uint64
-    _spread = njit(cache=True, boundscheck=False, inline="always")(_spread_bits)
+    _spread = njit(cache=True, boundscheck=False, inline="always")(spread_bits)
 
     @njit(cache=True, boundscheck=False, inline="always")
     def code3(x, y, z):
@@ -27,7 +27,7 @@ if NB is not None:
 
     @njit(cache=True, boundscheck=False, inline="always")
     def lattice(v, o, step):
-        """Lattice coordinate of one coordinate, as :func:`geometry.quantize` computes it."""
+        """Lattice coordinate of one coordinate, as :func:`~diffuser_lab.backends.morton.quantize` computes it."""
         a = np.floor((np.float64(v) - o) / step)
         if not a > 0.0:  # NaN too: never an index out of the grid
             a = 0.0
@@ -80,7 +80,7 @@ if NB is not None:
 
 
 def morton_order(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, np.ndarray]:
-    """:func:`~diffuser_lab.data.geometry.quantize` + Morton codes + stable argsort, compiled.
+    """:func:`~diffuser_lab.backends.morton.quantize` + Morton codes + stable argsort, compiled.
 
     Args:
         points: (N, 3) float32 world points, metres (C-contiguous).

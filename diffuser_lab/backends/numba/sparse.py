@@ -14,6 +14,7 @@ import numpy as np
 from numba import njit
 
 from ..sparse import SparseClassesBase, SparseState
+from . import first_compile
 from ._sync import all_converged, atomic_add, wait_until
 from .jacobi import StepRunner, fixed_rows
 
@@ -298,8 +299,6 @@ class NumbaSparseJacobi(SparseClassesBase):
 
     @property
     def compiling(self) -> bool:
-        from . import first_compile
-
         return first_compile(sparse_steps)
 
     def steps(self, count: int) -> np.ndarray:

@@ -14,10 +14,10 @@ from typing import Sequence
 
 import numpy as np
 
-from diffuser_lab.method.metrics import confusion_matrix, scores_from_confusion
+from diffuser_lab.data.geometry import backproject, project
+from diffuser_lab.data.scene import IGNORE, Frame
 
-from .geometry import backproject, project
-from .scene import IGNORE, Frame
+from .metrics import confusion_matrix, scores_from_confusion
 
 __all__ = ["reproject_labels", "view_consistency"]
 

@@ -1,0 +1,113 @@
+"""The package's import graph, drawn from the code with ``ast``: no import cycle, ``config.py`` at
+the bottom importing nothing of the package, imports pointing down the layers (backends -> data ->
+method -> runs -> recording -> cli), the package's own imports at the top of files, and one
+diffusion core: no numba/numpy choice outside ``backends/``."""
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+PKG = Path(__file__).resolve().parent.parent / "diffuser_lab"
+LAYERS = ["config", "progress", "hooks", "backends", "data", "method", "runs", "recording", "cli"]
+"""Bottom to top: a module imports only its own layer and those below (the package face, the
+package's ``__init__``, may import anything)."""
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for f in PKG.rglob("*.py"):
+        name = ".".join(f.relative_to(PKG.parent).with_suffix("").parts)
+        out[name[: -len(".__init__")] if name.endswith(".__init__") else name] = f
+    return out
+
+
+def _imports(mods: dict[str, Path]):
+    """(module, imported module, inside a function?) for every import of the package's own modules."""
+    for m, f in mods.items():
+        tree = ast.parse(f.read_text())
+        inner = set()
+        for fn in ast.walk(tree):
+            if isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                inner |= {id(x) for x in ast.walk(fn) if isinstance(x, (ast.Import, ast.ImportFrom))}
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                targets = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = m.split(".") if f.name == "__init__.py" else m.split(".")[:-1]
+                base = base[: len(base) - node.level + 1] if node.level else []
+                root = ".".join(base + ([node.module] if node.module else []))
+                targets = [root] + [f"{root}.{a.name}" for a in node.names]
+            else:
+                continue
+            for t in targets:
+                if t in mods and t != m and not m.startswith(t + "."):
+                    yield m, t, id(node) in inner
+
+
+def _layer(module: str) -> int:
+    part = module.split(".")[1] if "." in module else ""
+    return LAYERS.index(part) if part in LAYERS else -1
+
+
+def test_no_import_cycle():
+    mods = _modules()
+    faces = {m for m, f in mods.items() if f.name == "__init__.py" and m.count(".") <= 1}  # package faces
+    edges: dict[str, set] = {m: set() for m in mods}
+    for a, b, _ in _imports(mods):
+        edges[a].add(b)
+    cycles, color = [], {}
+
+    def dfs(u, stack):
+        color[u] = 1
+        stack.append(u)
+        for v in edges[u]:
+            if v in faces and v.count(".") == 0:
+                continue
+            if color.get(v) == 1:
+                cycles.append(stack[stack.index(v):] + [v])
+            elif not color.get(v):
+                dfs(v, stack)
+        stack.pop()
+        color[u] = 2
+
+    for m in mods:
+        if not color.get(m):
+            dfs(m, [])
+    assert not cycles, "import cycles:\n" + "\n".join(" -> ".join(c) for c in cycles)
+
+
+def test_config_imports_nothing_of_the_package():
+    mods = _modules()
+    assert not [t for a, t, _ in _imports(mods) if a == "diffuser_lab.config"]
+
+
+def test_imports_point_down_the_layers():
+    mods = _modules()
+    up = [(a, t) for a, t, _ in _imports(mods) if a != "diffuser_lab" and _layer(a) >= 0 and _layer(t) > _layer(a)]
+    assert not up, "upward imports:\n" + "\n".join(f"{a} -> {t}" for a, t in up)
+
+
+def test_package_imports_at_the_top_of_files():
+    """Inside a function only to break what would be a cycle or defer a heavy optional dependency:
+    at most 25 in all (the issue's bound)."""
+    local = [(a, t) for a, t, inner in _imports(_modules()) if inner]
+    assert len(local) <= 25, local
+
+
+def test_no_compiled_or_numpy_choice_outside_backends():
+    """Only backends/ imports numba or the compiled kernels (and the command line, which decides
+    whether they compile now): everything else calls one function per operation."""
+    asks = []
+    for f in PKG.rglob("*.py"):
+        rel = f.relative_to(PKG).as_posix()
+        if rel.startswith(("backends/", "cli/")):
+            continue
+        for node in ast.walk(ast.parse(f.read_text())):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith(("numba", "diffuser_lab.backends.numba")):
+                asks.append(rel)
+            elif isinstance(node, ast.ImportFrom) and node.module == "diffuser_lab.backends" and \
+                    any(a.name == "numba" for a in node.names):
+                asks.append(rel)
+            elif isinstance(node, ast.Import) and any(a.name.split(".")[0] == "numba" for a in node.names):
+                asks.append(rel)
+    assert not asks, asks
