@@ -9,7 +9,7 @@ ROOT = Path(__file__).resolve().parent.parent
 SHARED = ROOT.parent / "shared"
 
 # The suite compiles numba's kernels in the foreground: a CLI run in a subprocess would otherwise
-# take the numpy/scipy path while the cache is cold (tests/test_first_run.py covers that path).
+# take the numpy/scipy path while the cache is cold (tests/cli/test_first_run.py covers that path).
 os.environ.setdefault("DIFFUSER_LAB_NUMBA", "1")
 
 # Small demo settings for tests that only need the mechanics (seconds, not tens of seconds).
@@ -32,3 +32,16 @@ def small_demo_scene():
 
     cfg = default_config(**{"scene.demo.n_views": 12, "scene.demo.point_spacing": 0.07})
     return load_scene(cfg.scene)
+
+
+def compose(*overrides):
+    """The validated config of ``diffuser-lab`` with these overrides (Hydra composes it from conf/)."""
+    from hydra import compose as hcompose
+    from hydra import initialize_config_dir
+
+    from diffuser_lab.cli.main import config_dir
+    from diffuser_lab.config import register, to_object
+
+    register()
+    with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
+        return to_object(hcompose("config", overrides=list(overrides)))

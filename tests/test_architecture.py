@@ -111,3 +111,15 @@ def test_no_compiled_or_numpy_choice_outside_backends():
             elif isinstance(node, ast.Import) and any(a.name.split(".")[0] == "numba" for a in node.names):
                 asks.append(rel)
     assert not asks, asks
+
+
+def test_tests_mirror_the_package():
+    """A test is found where its code is: tests/<folder>/ for diffuser_lab/<folder>/ (and analysis/,
+    benchmarks/); no test module name twice (pytest imports them by their file names)."""
+    tests = Path(__file__).resolve().parent
+    folders = {p.relative_to(PKG).as_posix() for p in PKG.rglob("*") if p.is_dir() and not p.name.startswith("__")}
+    for d in (p for p in tests.rglob("*") if p.is_dir() and not p.name.startswith("__")):
+        rel = d.relative_to(tests).as_posix()
+        assert rel in folders or rel.split("/")[0] in ("analysis", "benchmarks"), rel
+    names = [p.name for p in tests.rglob("test_*.py")]
+    assert len(names) == len(set(names)), sorted(n for n in names if names.count(n) > 1)

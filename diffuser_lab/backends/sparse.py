@@ -112,7 +112,6 @@ class SparseClassesBase(JacobiBackend):
     def load(self, Z: np.ndarray) -> None:
         """The M largest scores of each row of ``Z`` (N, A) (error bound 0)."""
         st, M = self.state_, self.per_point
-        n = Z.shape[0]
         st.cls[:] = 0
         st.val[:] = 0
         st.err[:] = 0

@@ -20,7 +20,6 @@ from typing import Optional
 import numpy as np
 from scipy.ndimage import distance_transform_edt
 
-from diffuser_lab import progress
 from diffuser_lab.config import Config, FrameNormals
 from diffuser_lab.data.frame_loop import FrameLoop
 from diffuser_lab.data.geometry import backproject, normals_from_depth, voxel_downsample

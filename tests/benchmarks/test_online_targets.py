@@ -8,7 +8,7 @@ the batch Diffuser, on three sequences:
     demo room, growing map (30 frames)                     median <= 40 ms, p95 <= 120 ms, >= 97% equal,
                                                            mIoU within 1.0 of the batch run on the final cloud
     (growing maps at the default online.voxel_size=0.03; the 7-Scenes frames labelled by the tests'
-    toy network tests.test_model_predictions.grey_levels: the sample has no ground truth)
+    toy network tests.toy_networks.grey_levels: the sample has no ground truth)
 
 Measure with
 
@@ -17,7 +17,7 @@ Measure with
 Each case plays its sequence through :class:`~diffuser_lab.method.online.OnlineDiffuser` once to
 load the compiled kernels, then three timed passes (latency: the medians of the three passes'
 median, p95, max); the last pass is compared with the batch Diffuser; the figures are printed. With benchmarks disabled (the default test run) the cases are skipped: the default run
-checks the accuracy targets in tests/test_online.py and tests/test_growing_online.py.
+checks the accuracy targets in tests/method/test_online.py (its growing-map tests too).
 """
 from __future__ import annotations
 
@@ -31,7 +31,7 @@ ROUNDS = 3  # timed passes; the figures are the medians of theirs (a 2-core mach
 CASES = {
     "scannet0470-given": (["scene=scannet0470"], 15.0, 50.0, 99.0, 0.5, SCANNET),
     "7scenes-growing": (["scene=rgbd_folder", f"scene.rgbd_folder.root={SEVEN}", "online.map=growing",
-                         "predictions=model", "predictions.model._target_=tests.test_model_predictions.grey_levels",
+                         "predictions=model", "predictions.model._target_=tests.toy_networks.grey_levels",
                          "predictions.cache_dir=null"], 40.0, 120.0, 97.0, None, SEVEN),
     "demo-growing": (["online.map=growing"], 40.0, 120.0, 97.0, 1.0, None),
 }
@@ -40,7 +40,7 @@ CASES = {
 @pytest.mark.parametrize("case", list(CASES))
 @pytest.mark.benchmark(group="online")
 def test_online_targets(benchmark, case):
-    from test_model_predictions import compose
+    from conftest import compose
 
     from diffuser_lab.data.predictions import with_predictions
     from diffuser_lab.data.taxonomy import resolve_taxonomy

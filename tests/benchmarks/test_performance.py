@@ -181,7 +181,7 @@ def test_first_run_cold_cache(benchmark, enabled, tmp_path):
     cache empty: target <= 8 s of wall time on a 2-core machine (it takes the numpy/scipy path and
     compiles in the background afterwards; that background process is stopped here)."""
     if not enabled:
-        pytest.skip("timing only: the cold-cache path itself is tested in tests/test_first_run.py")
+        pytest.skip("timing only: the cold-cache path itself is tested in tests/cli/test_first_run.py")
     import shutil
     import time
 

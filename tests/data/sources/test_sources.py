@@ -1,7 +1,6 @@
 """Dataset loaders: ScanNet export layout and posed RGB-D folders (diffuser_lab.data.sources)."""
 import time
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,6 +21,7 @@ from datasets import (  # noqa: F401
     write_rgbd,
     write_scannet,
 )
+from conftest import SHARED as _SHARED
 from plyfile import PlyData, PlyElement
 
 from diffuser_lab.data.geometry import backproject, project
@@ -31,7 +31,7 @@ from diffuser_lab.data.sources.rgbd_folder import load_rgbd_folder, read_depth_p
 from diffuser_lab.data.sources.scannet import load_scannet, read_labelled_mesh
 from diffuser_lab.method.evidence import visible_projection
 
-SHARED = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
+SHARED = _SHARED / "data"
 SCANNET_REAL = SHARED / "scannet" / "scene0470_00"
 SEVEN_SCENES = SHARED / "7scenes_sample"
 

@@ -65,7 +65,7 @@ def test_rows_moved_appended_and_classes_activated_keep_the_numbers(cloud, backe
     """A system that grows (rows appended, classes named late) and is re-ordered while it runs
     gives bit for bit what the same system, set up with its final rows, gives for the same steps."""
     g, mass = cloud
-    n, k = g.n, g.k
+    n = g.n
     lam, gamma = 1e-3, 0.99
     nbr, w, ws, order = g.sorted_neighbors, g.sorted_weights, g.sorted_row_sums, g.order
     # the reference: every row and all the evidence at once, 8 + 8 steps

@@ -41,7 +41,7 @@ def _synthetic_gt():
 # bit for bit on the machine that wrote them): the independent model must not move. Compared with
 # a tolerance, since the boundary jitter goes through a float32 matrix product whose rounding
 # depends on the BLAS kernel of the CPU.
-GOLDEN = Path(__file__).parent / "data" / "independent_model_ce807bb.npz"
+GOLDEN = Path(__file__).parent / "independent_model_ce807bb.npz"
 
 
 def test_independent_mode_unchanged_from_before():

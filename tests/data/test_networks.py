@@ -2,9 +2,8 @@
 (onnxruntime on the CPU), on the real 7-Scenes frames of ../shared/data; outputs mapped, resized
 and cached on disk (a second run does not call the network).
 
-The tiny models below live at module level so that the command line can name them
-(``predictions.model._target_=tests.test_model_predictions.grey_levels``); this module imports
-nothing from conftest at import time, so the CLI's subprocess can import it.
+The tiny models live in tests/toy_networks.py, a module the command line can name
+(``predictions.model._target_=tests.toy_networks.grey_levels``).
 """
 from __future__ import annotations
 
@@ -14,65 +13,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import SHARED, compose
+from toy_networks import CALLS, GREY_TO_SCANNET20, GreyWithDepth, soft_grey
 from diffuser_lab.data.scene import IGNORE, SCANNET20
 
-ROOT = Path(__file__).resolve().parent.parent
-SEVEN = ROOT.parent / "shared" / "data" / "7scenes_sample"
+SEVEN = SHARED / "data" / "7scenes_sample"
 needs_7scenes = pytest.mark.skipif(not (SEVEN / "camera-intrinsics.txt").is_file(),
                                    reason=f"real 7-Scenes sample absent: {SEVEN} not found")
 
-# The models' own 4-class label space (dark, mid, light, bright grey) and where its classes go.
-GREY_TO_SCANNET20 = "source_id,source_name,target\n0,dark,chair\n1,mid,wall\n2,light,floor\n3,bright,ignore\n"
-CALLS = {"n": 0}
-
-
-def grey_levels(rgb, cuts=(60, 120, 180)):
-    """Label ids (H, W) uint8: the grey level's bin among ``cuts`` (4 classes)."""
-    CALLS["n"] += 1
-    return np.digitize(rgb.astype(np.float32).mean(axis=2), cuts).astype(np.uint8)
-
-
-def soft_grey(rgb, centres=(40.0, 100.0, 160.0, 220.0), temperature=25.0):
-    """Class probabilities (H/2, W/2, 4) float32: softmax of minus the distance to each grey centre,
-    at half the input's resolution (the pipeline resizes it bilinearly)."""
-    CALLS["n"] += 1
-    g = rgb[::2, ::2].astype(np.float32).mean(axis=2)
-    s = -np.abs(g[..., None] - np.asarray(centres, np.float32)) / temperature
-    e = np.exp(s - s.max(axis=2, keepdims=True))
-    return e / e.sum(axis=2, keepdims=True)
-
-
-class GreyWithDepth:
-    """A class target: built once with its kwargs, called per frame as model(rgb, depth)."""
-
-    def __init__(self, near=1.0):
-        self.near, self.depths = near, []
-
-    def __call__(self, rgb, depth):
-        CALLS["n"] += 1
-        self.depths.append(depth)
-        ids = grey_levels(rgb)
-        return np.where((depth > 0) & (depth < self.near), 3, ids).astype(np.int32)
-
-
-def make_grey(cuts=(60, 120, 180)):
-    """A factory target: needs no frame, returns the per-frame callable."""
-    return lambda rgb: grey_levels(rgb, cuts)
-
-
 # ------------------------------------------------------------------------------------ helpers
-
-def compose(*overrides):
-    from hydra import compose as hcompose
-    from hydra import initialize_config_dir
-
-    from diffuser_lab.cli.main import config_dir
-    from diffuser_lab.config import register, to_object
-
-    register()
-    with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
-        return to_object(hcompose("config", overrides=list(overrides)))
-
 
 def scene_overrides(n_frames=5):
     return ["scene=rgbd_folder", f"scene.rgbd_folder.root={SEVEN}", f"scene.rgbd_folder.max_frames={n_frames}",
@@ -170,7 +119,7 @@ def test_build_callable_kinds():
     from diffuser_lab.data.networks import build_callable
 
     rgb = np.full((4, 6, 3), 200, np.uint8)
-    me = __name__
+    me = "toy_networks"
     fn = build_callable({"_target_": f"{me}.grey_levels", "cuts": [10, 20, 250]})  # bound, called per frame
     assert (fn(rgb) == 2).all()
     assert (build_callable({"_target_": f"{me}.make_grey", "cuts": [10, 20, 30]})(rgb) == 3).all()  # factory
@@ -271,7 +220,7 @@ def test_model_ids_run_cached_and_reused(scene, mapping_csv, tmp_path):
     from diffuser_lab.runs.pipeline import run
 
     cache = tmp_path / "cache"
-    ov = [*scene_overrides(), "predictions=model", f"predictions.model._target_={__name__}.grey_levels",
+    ov = [*scene_overrides(), "predictions=model", "predictions.model._target_=toy_networks.grey_levels",
           f"predictions.mapping={mapping_csv}", f"predictions.cache_dir={cache}"]
     n0 = CALLS["n"]
     first = run(compose(*ov), scene=scene)
@@ -302,7 +251,7 @@ def test_model_ids_run_cached_and_reused(scene, mapping_csv, tmp_path):
 def test_model_probabilities_resized_and_mapped(scene, mapping_csv, tmp_path):
     from diffuser_lab.data.networks import resize_bilinear
 
-    ov = ["predictions=model", f"predictions.model._target_={__name__}.soft_grey",
+    ov = ["predictions=model", "predictions.model._target_=toy_networks.soft_grey",
           f"predictions.mapping={mapping_csv}", f"predictions.cache_dir={tmp_path / 'c'}"]
     frames, st = frames_of(scene, *ov)
     assert st["probability_frames"] == 5 and st["model_calls"] == 5
@@ -320,7 +269,7 @@ def test_model_class_with_depth(scene, tmp_path):
     from diffuser_lab.data.networks import build_callable
     from diffuser_lab.data.predictions import with_predictions
 
-    cfg = compose(*scene_overrides(), "predictions=model", f"predictions.model._target_={__name__}.GreyWithDepth",
+    cfg = compose(*scene_overrides(), "predictions=model", "predictions.model._target_=toy_networks.GreyWithDepth",
                   "+predictions.model.near=1.2", "predictions.pass_depth=true", f"predictions.cache_dir={tmp_path}")
     fr = with_predictions(scene.frames, cfg.predictions, scene.taxonomy, scene_name=scene.name)
     f = fr[1]
@@ -389,7 +338,7 @@ def test_onnx_fixed_size_logits_ids_and_a_run(scene, mapping_csv, tmp_path):
 def test_cli_model_end_to_end(mapping_csv, tmp_path):
     from conftest import run_cli
 
-    args = [*scene_overrides(3), "predictions=model", "predictions.model._target_=tests.test_model_predictions.grey_levels",
+    args = [*scene_overrides(3), "predictions=model", "predictions.model._target_=tests.toy_networks.grey_levels",
             f"predictions.mapping={mapping_csv}", f"predictions.cache_dir={tmp_path / 'cache'}", "record=off"]
     out = []
     for k in range(2):

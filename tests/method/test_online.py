@@ -221,7 +221,7 @@ def test_cli_online_run_writes_its_folder(tmp_path):
                     reason=f"real ScanNet scene absent: {SHARED / 'data' / 'scannet' / 'scene0470_00'} not found")
 def test_scannet0470_given_map_keeps_the_batch_result():
     """The issue's accuracy targets on the real scene (its latency targets: the benchmark)."""
-    from test_model_predictions import compose
+    from conftest import compose
 
     cfg = compose("scene=scannet0470", "protocol=online", "record=off")
     res = online(cfg)
@@ -312,7 +312,7 @@ def test_cli_bad_frame_skips_or_stops_and_keeps_the_records(tmp_path):
     h, w = np.asarray(Image.open(depth)).shape
     _save_u16(depth, np.full((h, w), 65535))
     args = ["scene=rgbd_folder", f"scene.rgbd_folder.root={root}", "protocol=online", "predictions=model",
-            "predictions.model._target_=tests.test_model_predictions.grey_levels", "predictions.cache_dir=null",
+            "predictions.model._target_=tests.toy_networks.grey_levels", "predictions.cache_dir=null",
             "scene.rgbd_folder.cloud_voxel=0.05"]
     r = run_cli(*args, f"hydra.run.dir={tmp_path / 'skip'}")
     assert r.returncode == 0, r.stderr

@@ -1,0 +1,44 @@
+"""Toy 2D networks (grey levels of the RGB image) for predictions=model: importable by a test and, as
+``tests.toy_networks.<name>``, by the command line run from the repository root (the README's
+example of a network in the loop). Nothing here imports the tests' helpers."""
+from __future__ import annotations
+
+import numpy as np
+
+# The models' own 4-class label space (dark, mid, light, bright grey) and where its classes go.
+GREY_TO_SCANNET20 = "source_id,source_name,target\n0,dark,chair\n1,mid,wall\n2,light,floor\n3,bright,ignore\n"
+CALLS = {"n": 0}
+
+
+def grey_levels(rgb, cuts=(60, 120, 180)):
+    """Label ids (H, W) uint8: the grey level's bin among ``cuts`` (4 classes)."""
+    CALLS["n"] += 1
+    return np.digitize(rgb.astype(np.float32).mean(axis=2), cuts).astype(np.uint8)
+
+
+def soft_grey(rgb, centres=(40.0, 100.0, 160.0, 220.0), temperature=25.0):
+    """Class probabilities (H/2, W/2, 4) float32: softmax of minus the distance to each grey centre,
+    at half the input's resolution (the pipeline resizes it bilinearly)."""
+    CALLS["n"] += 1
+    g = rgb[::2, ::2].astype(np.float32).mean(axis=2)
+    s = -np.abs(g[..., None] - np.asarray(centres, np.float32)) / temperature
+    e = np.exp(s - s.max(axis=2, keepdims=True))
+    return e / e.sum(axis=2, keepdims=True)
+
+
+class GreyWithDepth:
+    """A class target: built once with its kwargs, called per frame as model(rgb, depth)."""
+
+    def __init__(self, near=1.0):
+        self.near, self.depths = near, []
+
+    def __call__(self, rgb, depth):
+        CALLS["n"] += 1
+        self.depths.append(depth)
+        ids = grey_levels(rgb)
+        return np.where((depth > 0) & (depth < self.near), 3, ids).astype(np.int32)
+
+
+def make_grey(cuts=(60, 120, 180)):
+    """A factory target: needs no frame, returns the per-frame callable."""
+    return lambda rgb: grey_levels(rgb, cuts)
