@@ -11,8 +11,9 @@ entry of :data:`BACKENDS`."""
 from __future__ import annotations
 
 from dataclasses import dataclass
-from enum import Enum
 from typing import Callable, Optional
+
+from diffuser_lab.config import SolverBackend
 
 from . import numba as nb
 from .base import IterationInputs, JacobiBackend
@@ -48,16 +49,18 @@ BACKENDS: dict[str, Backend] = {b.name: b for b in [
 ]}
 
 
-def resolve_backend(name: Enum | str) -> str:
+def resolve_backend(backend: SolverBackend | str) -> str:
     """``solver.backend`` -> a name of :data:`BACKENDS` (``auto``: numba when available, else scipy)."""
-    name = name.value if isinstance(name, Enum) else str(name)
-    if name == "auto":
+    try:
+        backend = SolverBackend(backend)
+    except ValueError:
+        raise ValueError(f"solver.backend={backend}: expected {', '.join(b.value for b in SolverBackend)}") from None
+    if backend == SolverBackend.auto:
         return "numba" if nb.available() else "scipy"
-    if name not in BACKENDS:
-        raise ValueError(f"solver.backend={name}: expected auto, {', '.join(sorted(BACKENDS))}")
-    if not BACKENDS[name].available():
-        raise RuntimeError(BACKENDS[name].unavailable)
-    return name
+    b = BACKENDS[backend.value]
+    if not b.available():
+        raise RuntimeError(b.unavailable)
+    return b.name
 
 
 def make_backend(name: str, inputs: IterationInputs, tol: float, *, device: Optional[str] = None, sparse: int = 0,
