@@ -1,5 +1,7 @@
-"""The one lazy frame sequence: :class:`LazyFrames`, a read-only ``Sequence[Frame]`` whose item i
-is computed when it is read.
+"""Frames, read lazily: the one lazy frame sequence (:class:`LazyFrames`) and the one frame loop
+(:class:`FrameLoop`).
+
+:class:`LazyFrames` is a read-only ``Sequence[Frame]`` whose item i is computed when it is read.
 
 Every frame sequence that is not a plain list is one of these: a source's frames read from disk
 (``LazyFrames(names, load)``), frames with their predictions or sensor depth attached
@@ -11,14 +13,23 @@ included), not on the order of access.
 Two dicts travel with a sequence: ``info``, the loader's statistics (frames found, skipped,
 ``depth_unit_checked``) and ``stats``, what the per-frame function counts as frames are read
 (unmapped pixels, a network's cached frames). Both are empty unless filled.
+
+:class:`FrameLoop` reads such a sequence in order, each frame once, with a progress line: the batch
+pipeline (every frame), the online runner (every frame, a bad one skipped or stopping the run) and
+the single-frame protocol (target frames, each with the window of frames around it) iterate their
+frames through it; only the current window stays in memory.
 """
 from __future__ import annotations
 
-from typing import Callable, Optional, Sequence
+import time
+import warnings
+from typing import Callable, Iterator, Optional, Sequence
+
+from diffuser_lab import progress
 
 from .scene import Frame
 
-__all__ = ["LazyFrames"]
+__all__ = ["LazyFrames", "FrameLoop", "first_line"]
 
 
 class LazyFrames(Sequence[Frame]):
@@ -76,3 +87,86 @@ class LazyFrames(Sequence[Frame]):
 
     def __repr__(self) -> str:
         return f"LazyFrames({self._n} frames)"
+
+
+def first_line(exc: BaseException) -> str:
+    """An error's first line (its type's name when it has no message)."""
+    return (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+
+
+class FrameLoop:
+    """Iterate ``(index, frame)`` over ``frames`` (a lazy sequence) under a progress line ``label``.
+
+    Args:
+        targets: the frame indices to visit, in order (default: every frame).
+        window: frames kept around each target (:meth:`window_frames`: the ``window`` frames
+            centred on it, kept at ``window`` near the ends of the sequence); 1 = the target alone.
+        check: called on each target frame; a ValueError or OSError it (or the loading) raises
+            makes the frame bad.
+        skip_bad: a bad frame is skipped with one warning line (``"<warn_prefix>frame i skipped:
+            <reason>"``) and ``on_skip(index, reason)`` is called; False: the error stops the loop.
+        note: called with the frame's index before it is yielded; what it returns (if anything)
+            is shown beside the progress bar.
+
+    Attributes:
+        read_s: seconds spent loading and checking target frames (their predictions included).
+        bar: the progress stage (its ``note`` may be called inside the loop).
+    """
+
+    def __init__(self, frames: Sequence[Frame], label: str, *, targets: Optional[Sequence[int]] = None,
+                 window: int = 1, check: Optional[Callable[[Frame], None]] = None, skip_bad: bool = False,
+                 warn_prefix: str = "", on_skip: Optional[Callable[[int, str], None]] = None):
+        self.frames, self.label = frames, label
+        self.targets = list(range(len(frames))) if targets is None else list(targets)
+        self.window = max(1, int(window))
+        self.check, self.skip_bad, self.warn_prefix, self.on_skip = check, skip_bad, warn_prefix, on_skip
+        self.read_s = 0.0
+        self.bar = progress.Stage()
+        self._cache: dict[int, Frame] = {}
+
+    def __len__(self) -> int:
+        return len(self.targets)
+
+    def window_of(self, i: int) -> list[int]:
+        """The ``window`` frame indices around frame i (kept at ``window`` near the ends)."""
+        n = len(self.frames)
+        w = min(self.window, n)
+        start = min(max(i - w // 2, 0), n - w)
+        return list(range(start, start + w))
+
+    def _frame(self, j: int) -> Frame:
+        if j not in self._cache:
+            self._cache[j] = self.frames[j]
+        return self._cache[j]
+
+    def window_frames(self, i: int) -> list[Frame]:
+        """The frames of :meth:`window_of` (read once, kept while the window holds them)."""
+        return [self._frame(j) for j in self.window_of(i)]
+
+    def __iter__(self) -> Iterator[tuple[int, Frame]]:
+        unit = "frame"
+        with progress.stage(self.label, total=len(self.targets), unit=unit) as bar:
+            self.bar = bar
+            for i in self.targets:
+                t0 = time.perf_counter()
+                keep = set(self.window_of(i)) if self.window > 1 else {i}
+                for j in [j for j in self._cache if j not in keep]:  # only the current window in memory
+                    del self._cache[j]
+                try:
+                    f = self._frame(i)
+                    if self.check is not None:
+                        self.check(f)
+                except (ValueError, OSError) as exc:
+                    if not self.skip_bad:
+                        raise
+                    msg = first_line(exc)
+                    warnings.warn(f"{self.warn_prefix}frame {i} skipped: {msg}", stacklevel=2)
+                    self._cache.pop(i, None)
+                    if self.on_skip is not None:
+                        self.on_skip(i, msg)
+                    bar.update()
+                    continue
+                self.read_s += time.perf_counter() - t0
+                yield i, f
+                bar.update()
+            self._cache.clear()

@@ -46,14 +46,14 @@ from typing import Optional
 
 import numpy as np
 
-from diffuser_lab.config import OnlineMap, OnlineSolver, SolverBackend
 from diffuser_lab.backends.morton import spatial_order
+from diffuser_lab.config import OnlineMap, OnlineSolver, SolverBackend
 from diffuser_lab.data.geometry import backproject, normals_from_depth
 from diffuser_lab.data.scene import IGNORE, Frame, Taxonomy
+from diffuser_lab.data.voxel_map import VoxelMap
 from diffuser_lab.method.diffusion import System, labels_from_scores
 from diffuser_lab.method.evidence import RunEvidence
 from diffuser_lab.method.graph import make_graph
-from diffuser_lab.data.voxel_map import VoxelMap
 from diffuser_lab.method.growing import IncrementalKnnGraph
 
 STEPS_GIVEN = 10

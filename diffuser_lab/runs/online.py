@@ -18,8 +18,7 @@ import numpy as np
 from diffuser_lab import progress
 from diffuser_lab.config import BadFrame, Config, OnlineMap
 from diffuser_lab.data import validate
-from diffuser_lab.data.frame_loop import FrameLoop
-from diffuser_lab.data.frames import LazyFrames
+from diffuser_lab.data.frames import FrameLoop, LazyFrames
 from diffuser_lab.data.predictions import describe as describe_predictions
 from diffuser_lab.data.predictions import with_predictions
 from diffuser_lab.data.scene import IGNORE, Frame, Scene

@@ -15,7 +15,7 @@ from diffuser_lab import progress
 from diffuser_lab.backends import resolve_backend
 from diffuser_lab.config import Config, DepthNoiseConfig, SceneConfig, SolverName, SparseClasses
 from diffuser_lab.data import sources, validate
-from diffuser_lab.data.frame_loop import FrameLoop
+from diffuser_lab.data.frames import FrameLoop
 from diffuser_lab.data.geometry import VoxelGrid, nearest_transfer, voxel_downsample
 from diffuser_lab.data.predictions import describe as describe_predictions
 from diffuser_lab.data.predictions import with_predictions
@@ -23,11 +23,10 @@ from diffuser_lab.data.scene import IGNORE, SCANNET20, Frame, Scene, Taxonomy
 from diffuser_lab.data.sensor import noisy_frames, sensor_model
 from diffuser_lab.data.taxonomy import resolve_taxonomy
 from diffuser_lab.hooks import RunHooks
-from diffuser_lab.method import calibration
+from diffuser_lab.method import calibration, fusion
 from diffuser_lab.method import evidence as evidence_mod
-from diffuser_lab.method.evidence import RunEvidence
-from diffuser_lab.method import fusion
 from diffuser_lab.method.diffusion import DiffusionResult, Observer, labels_from_scores, normalise, sparse_by_size
+from diffuser_lab.method.evidence import RunEvidence
 from diffuser_lab.method.graph import KnnGraph, graph_stage, make_graph
 from diffuser_lab.method.metrics import confusion_matrix, score, scores_from_confusion
 

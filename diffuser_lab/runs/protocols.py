@@ -21,14 +21,13 @@ import numpy as np
 from scipy.ndimage import distance_transform_edt
 
 from diffuser_lab.config import Config, FrameNormals
-from diffuser_lab.data.frame_loop import FrameLoop
+from diffuser_lab.data.frames import FrameLoop
 from diffuser_lab.data.geometry import backproject, normals_from_depth, voxel_downsample
 from diffuser_lab.data.predictions import with_predictions
 from diffuser_lab.data.scene import IGNORE, Frame, Scene
 from diffuser_lab.data.taxonomy import resolve_taxonomy
-from diffuser_lab.method import calibration
+from diffuser_lab.method import calibration, fusion
 from diffuser_lab.method import evidence as evidence_mod
-from diffuser_lab.method import fusion
 from diffuser_lab.method.diffusion import normalise
 from diffuser_lab.method.graph import graph_stage, make_graph
 from diffuser_lab.method.metrics import confusion_matrix, scores_from_confusion
