@@ -72,7 +72,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     from diffuser_lab.cli.main import config_dir
     from diffuser_lab.config import register, to_object
-    from diffuser_lab.runs.protocols import single_frame
+    from diffuser_lab.runs.single_frame import single_frame
 
     register()
     with initialize_config_dir(config_dir=config_dir(), version_base="1.3", job_name="gains"):

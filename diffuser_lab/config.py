@@ -577,10 +577,10 @@ class CalibrationConfig(Section):
 @dataclass
 class ProtocolConfig(Section):
     """Evaluation protocol (paper Sec. IV-A): ``name`` names an entry of the protocols' registry
-    (:mod:`diffuser_lab.runs.protocol_registry`)."""
+    (:mod:`diffuser_lab.runs.protocols`)."""
 
     KEY = "protocol"
-    name: str = named("global_3d", "protocols")  # the protocol's name (registry: diffuser_lab/runs/protocol_registry.py)
+    name: str = named("global_3d", "protocols")  # the protocol's name (registry: diffuser_lab/runs/protocols.py)
     window: int = key(5, at_least(1))  # single_frame: views fused per target frame in the multi-view rows (paper: 5)
     target_step: int = key(1, at_least(1))  # single_frame: evaluate every n-th frame of the sequence
     max_targets: Optional[int] = None  # single_frame: at most this many target frames

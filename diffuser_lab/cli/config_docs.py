@@ -26,7 +26,7 @@ from typing import Any, Optional, Sequence
 from omegaconf import MISSING
 
 from diffuser_lab import config
-from diffuser_lab.runs.protocol_registry import PROTOCOLS
+from diffuser_lab.runs.protocols import PROTOCOLS
 from diffuser_lab.runs.resolve import names
 
 BEGIN = ("<!-- keys: generated from diffuser_lab/config.py by `python -m diffuser_lab.cli.config_docs`; "

@@ -18,7 +18,7 @@ from diffuser_lab.config import RecordMode, SolverBackend, register, to_object
 from diffuser_lab.recording import make_hooks
 from diffuser_lab.recording.heap import retain_freed_memory
 from diffuser_lab.runs import launchers, report
-from diffuser_lab.runs.protocol_registry import PROTOCOLS
+from diffuser_lab.runs.protocols import PROTOCOLS
 from diffuser_lab.runs.resolve import resolve
 from diffuser_lab.runs.sweep import job_line, job_tag, print_table, say
 

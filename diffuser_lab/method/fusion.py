@@ -8,7 +8,7 @@ A method turns the frames' pixel evidence into point labels. Each entry says in 
 - the rows it has in the single-frame protocol (1 view, W views; paper Table II),
 
 and :meth:`FusionMethod.label` does the labelling. ``runs/pipeline.py`` and
-``runs/protocols.py`` both ask :data:`METHODS`; the resolve step (:mod:`diffuser_lab.runs.resolve`)
+``runs/single_frame.py`` both ask :data:`METHODS`; the resolve step (:mod:`diffuser_lab.runs.resolve`)
 accepts exactly its names and applies what the chosen method fixes. Adding a method is one entry
 here plus ``conf/method/<name>.yaml``.
 """

@@ -1,204 +1,112 @@
-"""The paper's single RGB-D frame protocol (Sec. IV-A-2, Table II).
+"""The protocols a run follows: the registry :data:`PROTOCOLS`, one entry each, named by ``protocol.name``.
 
-For each target frame: back-project its depth into a point cloud (voxel-downsampled with
-``scene.voxel_size`` when > 0), label that cloud from the target frame alone (1 view) or from
-a window of W neighbouring frames centred on it (W views), project the 3D labels back into
-the target frame and score 2D mIoU against its ground-truth label image. Pixels without
-depth or without a label count as misses of their true class.
+An entry knows how to run (a library call: ``run(cfg, scene=None, hooks=None)``), what it writes
+into a run folder beside summary.json and what summary.json says (``finish``), and the table the
+command line prints (``table``). Built in: ``global_3d`` (:func:`diffuser_lab.runs.pipeline.run`,
+paper Table I), ``single_frame`` (:func:`diffuser_lab.runs.single_frame.single_frame`, Table II) and
+``online`` (:func:`diffuser_lab.runs.online.online`).
 
-Rows (paper Table II): each fusion method of :data:`~diffuser_lab.method.fusion.METHODS` with
-1 view and, where it fuses several, W views: direct projection (1), LDLS (1), Bayesian fusion
-(1, W), Diffuser (1, W); Bayesian with 1 view is the direct row up to voxel merging. The
-Bayesian rows read the baseline's evidence (single pixel), as in global runs.
+Adding a protocol is one function that runs it (resolving the config it is handed), one
+``conf/protocol/<name>.yaml`` with ``name: <name>`` and one registry line (an entry below, or
+:func:`register`). The command line (:mod:`diffuser_lab.cli.main`) asks this registry and nothing else.
 """
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
-from typing import Optional
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Optional
 
 import numpy as np
-from scipy.ndimage import distance_transform_edt
 
-from diffuser_lab.config import Config, FrameNormals
-from diffuser_lab.data.frames import FrameLoop
-from diffuser_lab.data.geometry import backproject, normals_from_depth, voxel_downsample
-from diffuser_lab.data.predictions import with_predictions
-from diffuser_lab.data.scene import IGNORE, Frame, Scene
-from diffuser_lab.data.taxonomy import resolve_taxonomy
-from diffuser_lab.method import calibration, fusion
-from diffuser_lab.method import evidence as evidence_mod
-from diffuser_lab.method.diffusion import normalise
-from diffuser_lab.method.graph import graph_stage, make_graph
-from diffuser_lab.method.metrics import confusion_matrix, scores_from_confusion
+from diffuser_lab.config import Config, check_name
+from diffuser_lab.data.scene import Scene
+from diffuser_lab.hooks import RunHooks
 
-from .pipeline import load_scene
-from .resolve import resolve, with_method
+from . import online as online_mod
+from . import report, single_frame
+from .pipeline import run
+from .records import write_labels
+
+__all__ = ["Protocol", "PROTOCOLS", "register", "get"]
 
 
-@dataclass
-class Row:
-    method: str
-    views: int
-    conf: Optional[np.ndarray] = None  # pooled (C, C+1) confusion over target frames
-    per_frame_miou: list = field(default_factory=list)
-    cal: Optional[calibration.Calibration] = None  # its class distributions over the target frames' pixels
+@dataclass(frozen=True)
+class Protocol:
+    """One protocol.
 
-    def add(self, pred_img: np.ndarray, gt: np.ndarray, names) -> None:
-        c = confusion_matrix(pred_img, gt, len(names))
-        self.conf = c if self.conf is None else self.conf + c
-        self.per_frame_miou.append(scores_from_confusion(c, names)["miou"])
+    Attributes:
+        name: the ``protocol.name`` value that selects it.
+        description: a few words (docs/config.md's choices).
+        run: ``(cfg, *, scene=None, hooks=None) -> result``: the library call (the scene: the
+            configured source when None; ``hooks`` watch it; a protocol that takes none ignores them).
+        finish: ``(result, cfg, run_dir, summary, records) -> dict``: write the result's files into
+            ``run_dir`` and finish ``summary`` (a :class:`~diffuser_lab.runs.report.SummaryFile`) with
+            it and ``records`` (the recorders' files); returns summary.json's content.
+        table: ``(result, run_dir) -> str``: what the command line prints.
+        records: whether the command line makes recorders (run.rrd, run.mcap) for it.
+    """
 
-    def result(self, names) -> dict:
-        s = scores_from_confusion(self.conf, names) if self.conf is not None else {}
-        pf = np.array(self.per_frame_miou, float)
-        return {"method": self.method, "views": self.views, "miou": s.get("miou"), "accuracy": s.get("accuracy"),
-                "mean_frame_miou": float(np.nanmean(pf)) if pf.size else None,
-                "per_class_iou": s.get("per_class_iou"),
-                **({"calibration": self.cal.result()} if self.cal is not None else {})}
-
-
-@dataclass
-class SingleFrameResult:
-    scene: Scene
-    window: int
-    targets: list[int]
-    rows: list[dict]
-    predictions_2d: Optional[dict]
-    mean_points: float
-    timings_s: dict
-    filled: bool = False  # protocol.fill_missing_depth was on (not the paper's protocol)
+    name: str
+    description: str
+    run: Callable[..., Any]
+    finish: Callable[[Any, Config, Path, report.SummaryFile, dict], dict]
+    table: Callable[[Any, Path], str]
+    records: bool = True
 
 
-def image_normals(f: Frame, pix: np.ndarray, to_work: np.ndarray, m: int, window: int) -> np.ndarray:
-    """(m, 3) float32 unit world normals of a target frame's work points from its organised depth
-    image: the depth box-averaged over ``window`` x ``window`` valid pixels (sensor noise is
-    per pixel; PCA over a noisy cloud's kNN sees it in 3D), normals by central differences
-    (:func:`diffuser_lab.data.geometry.normals_from_depth`), turned towards the camera, averaged
-    over each work point's pixels (``pix`` (P, 2) rows/cols -> ``to_work`` (P,) in 0..m-1)."""
-    n = normals_from_depth(np.asarray(f.depth, np.float64), f.K, pix, T_cw=f.T_cw, window=window)
-    acc = np.zeros((m, 3))
-    np.add.at(acc, to_work, n)
-    norm = np.linalg.norm(acc, axis=1, keepdims=True)
-    out = np.where(norm > 0, acc / np.maximum(norm, 1e-30), np.array([0.0, 0.0, 1.0]))
-    return out.astype(np.float32)
+def _finish_global(result, cfg: Config, run_dir: Path, summary: report.SummaryFile, records: dict) -> dict:
+    t = time.perf_counter()
+    files = write_labels(run_dir, result.scene.points, result.labels, result.scene.taxonomy, ply=cfg.output.labels_ply)
+    result.timings_s["write"] = time.perf_counter() - t
+    return summary.result(result, cfg, records=records, files=files)
 
 
-def single_frame(cfg: Config, scene: Optional[Scene] = None, on_frame=None) -> SingleFrameResult:
-    """The single RGB-D frame protocol (paper Table II). ``on_frame(frame, images)``, if given, sees
-    each target frame and its rows' label images ({(method, views): (H, W) int16}) as scored; it
-    does not change the result. ``cfg`` is resolved first (:func:`~diffuser_lab.runs.resolve.resolve`)."""
-    cfg = resolve(cfg)
-    t0 = time.perf_counter()
-    if scene is None:
-        scene = load_scene(cfg.scene, resolve_taxonomy(cfg), cfg.depth)
-    tax, names = scene.taxonomy, scene.taxonomy.names
-    frames = with_predictions(scene.frames, cfg.predictions, tax, scene_name=scene.name)
-    n = len(frames)
-    if n == 0:
-        raise ValueError(f"scene {scene.name}: no frames for the single-frame protocol")
-    W = cfg.protocol.window
-    targets = list(range(0, n, cfg.protocol.target_step))[: cfg.protocol.max_targets]
-    order = [(m.name, v) for m in fusion.METHODS.values() for v in m.single_frame_rows(W)]
-    settings = {}  # each method: (entry, the run's config with what it fixes applied, evidence pixel window)
-    for m in fusion.METHODS.values():
-        mc = with_method(cfg, m.name)
-        settings[m.name] = (m, mc, 0 if m.evidence == fusion.BASELINE else mc.evidence.pixel_radius)
-    rows = {key: Row(*key, cal=calibration.Calibration(tax.num_classes, cfg.calibration.bins)) for key in order}
-    temperature = cfg.calibration.temperature
-    pred2d = Row("2d", 1)
-    t = {"load": time.perf_counter() - t0, "frames": 0.0, "evidence": 0.0, "graph": 0.0, "diffusion": 0.0}
-    n_points = []
-    ev_kw = dict(depth_tol=cfg.evidence.depth_tol)
-    lam, solver = cfg.evidence.pixel_weight, cfg.solver
-    fill = cfg.protocol.fill_missing_depth
-
-    def need_gt(f: Frame) -> None:
-        if f.gt_labels is None:
-            raise ValueError(f"frame {f.name}: the single-frame protocol needs ground-truth label images")
-
-    loop = FrameLoop(frames, f"single-frame protocol: target frames (window {W})", targets=targets, window=W,
-                     check=need_gt)
-    for i, f in loop:
-        ta = time.perf_counter()
-        pts, pix = backproject(f.depth, f.K, f.T_cw)
-        if pts.shape[0] <= cfg.graph.k:
-            continue  # almost no depth in this frame: nothing to label
-        if cfg.scene.voxel_size > 0:
-            grid = voxel_downsample(pts, cfg.scene.voxel_size)
-            work, to_work = grid.points, grid.inverse
-        else:
-            work, to_work = pts, np.arange(pts.shape[0])
-        n_points.append(work.shape[0])
-        pred = f.labels if f.labels is not None else np.argmax(f.probs, axis=2)
-        pred2d.add(pred, f.gt_labels, names)
-        win_frames = loop.window_frames(i)
-        t["frames"] += time.perf_counter() - ta
-
-        # each method's settings (what it fixes applied to the run's config), its evidence and
-        # graph built once per target frame and shared between the rows that use them
-        evidence, graphs, work_labels, work_scores = {}, {}, {}, {}
-        for name, views in order:
-            m, mc, radius = settings[name]
-            ekey = (views, radius)
-            if ekey not in evidence:
-                te = time.perf_counter()
-                evidence[ekey] = evidence_mod.accumulate(work, win_frames if views > 1 else [f], tax.num_classes,
-                                                         pixel_radius=radius, **ev_kw)
-                t["evidence"] += time.perf_counter() - te
-            system = None
-            if m.graph:
-                if mc.graph.use_normals not in graphs:
-                    tg = time.perf_counter()
-                    nrm = None
-                    if mc.graph.use_normals and cfg.protocol.normals == FrameNormals.depth_image:
-                        nrm = image_normals(f, pix, to_work, work.shape[0], cfg.protocol.normal_window_px)
-                    with graph_stage(work.shape[0], mc.graph, mc.graph.use_normals):
-                        graphs[mc.graph.use_normals] = make_graph(work, nrm, mc.graph)[1]
-                    t["graph"] += time.perf_counter() - tg
-                system = normalise(graphs[mc.graph.use_normals], evidence[ekey].mass, lam)
-            td = time.perf_counter()
-            work_labels[(name, views)], diff = m.label(evidence[ekey].mass, system=system, solver=solver)
-            work_scores[(name, views)] = diff.Z if diff is not None else evidence[ekey].mass
-            if m.graph:
-                t["diffusion"] += time.perf_counter() - td
-
-        at = np.full(f.shape, -1, np.int64)  # each pixel's work point (-1: no depth, uniform)
-        at[pix[:, 0], pix[:, 1]] = to_work
-        if fill:  # protocol.fill_missing_depth: a pixel without depth reads its nearest pixel with depth
-            near = distance_transform_edt(at < 0, return_distances=False, return_indices=True)
-            at = at[near[0], near[1]]
-        images = {}
-        for key, lab in work_labels.items():  # 3D labels back into the target frame
-            img = np.where(at >= 0, lab[np.maximum(at, 0)], IGNORE).astype(np.int16)
-            rows[key].add(img, f.gt_labels, names)
-            rows[key].cal.add(work_scores[key], f.gt_labels, at, temperature)
-            images[key] = img
-        if on_frame is not None:
-            on_frame(f, images)
-    t["frames"] += loop.read_s
-
-    t["total"] = time.perf_counter() - t0
-    results = [rows[k].result(names) for k in order]
-    for r in results:
-        r["calibration"]["temperature"] = float(temperature)
-    p2 = pred2d.result(names) if pred2d.conf is not None else None
-    return SingleFrameResult(scene=scene, window=W, targets=targets, rows=results, predictions_2d=p2,
-                             mean_points=float(np.mean(n_points)) if n_points else 0.0, timings_s=t,
-                             filled=bool(fill))
+def _run_single_frame(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHooks] = None):
+    return single_frame.single_frame(cfg, scene)
 
 
-def table(res: SingleFrameResult) -> str:
-    lines = [f"diffuser-lab single-frame protocol | scene {res.scene.name} | {len(res.targets)} target frames | "
-             f"window {res.window} | {res.mean_points:,.0f} points per frame"
-             + (" | pixels without depth filled (protocol.fill_missing_depth, not the paper's protocol)"
-                if res.filled else "")]
-    lines.append(f"{'method':12s}{'views':>6s}{'2D mIoU':>9s}{'frame mean':>12s}{'acc':>7s}")
-    for r in res.rows:
-        lines.append(f"{r['method']:12s}{r['views']:>6d}{r['miou']:>9.1f}{r['mean_frame_miou']:>12.1f}"
-                     f"{r['accuracy']:>7.1f}")
-    if res.predictions_2d:
-        p = res.predictions_2d
-        lines.append(f"{'2D input':12s}{'':>6s}{p['miou']:>9.1f}{p['mean_frame_miou']:>12.1f}{p['accuracy']:>7.1f}")
-    lines.append("time [s]  " + "  ".join(f"{k} {v:.2f}" for k, v in res.timings_s.items()))
-    return "\n".join(lines)
+def _finish_single_frame(result, cfg: Config, run_dir: Path, summary: report.SummaryFile, records: dict) -> dict:
+    return summary.single_frame(result)
+
+
+def _finish_online(result, cfg: Config, run_dir: Path, summary: report.SummaryFile, records: dict) -> dict:
+    """labels.npy holds the final map's labels (given map: of the scene's points; growing: map
+    order), map.npy a growing map's points."""
+    pts = result.scene.points if result.scene_labels is not None else result.points
+    labels = result.scene_labels if result.scene_labels is not None else result.labels
+    files = write_labels(run_dir, pts, labels, result.scene.taxonomy, ply=cfg.output.labels_ply)
+    if result.mode == "growing":
+        np.save(run_dir / "map.npy", result.points)
+        files["map"] = "map.npy"
+    summary.data.update(online_mod.summary(result))
+    summary.update(records=records, files=files, status="ok")
+    return summary.data
+
+
+PROTOCOLS: dict[str, Protocol] = {p.name: p for p in [
+    Protocol("global_3d", "label the scene's points, score 3D mIoU (paper Table I)", run, _finish_global,
+             lambda result, run_dir: report.table(result, run_dir)),
+    Protocol("single_frame", "label each frame's back-projected depth, score 2D mIoU (Table II)", _run_single_frame,
+             _finish_single_frame, lambda result, run_dir: single_frame.table(result) + f"\nrun folder: {run_dir}",
+             records=False),
+    Protocol("online", "frames one at a time in sequence order; the map labels itself as they come (online.*)",
+             online_mod.online, _finish_online,
+             lambda result, run_dir: online_mod.table(result) + f"\nrun folder: {run_dir}"),
+]}
+"""The protocols by name (``protocol.name``)."""
+
+
+def register(protocol: Protocol) -> Protocol:
+    """Add a protocol (a run started after this may name it in ``protocol.name``)."""
+    if protocol.name in PROTOCOLS:
+        raise ValueError(f"protocol {protocol.name!r} is already registered")
+    PROTOCOLS[protocol.name] = protocol
+    return protocol
+
+
+def get(name: str) -> Protocol:
+    """The entry named ``name``; :class:`~diffuser_lab.config.ConfigError` naming ``protocol.name`` and
+    the registered names otherwise."""
+    check_name("protocol.name", name, list(PROTOCOLS))
+    return PROTOCOLS[name]

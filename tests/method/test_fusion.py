@@ -36,7 +36,7 @@ def test_a_new_method_is_one_registry_entry(monkeypatch):
     """A method added to the registry runs in the pipeline and the single-frame protocol with no
     other code: here Bayesian votes under another name, which must label as `bayesian` does."""
     from diffuser_lab import default_config, run
-    from diffuser_lab.runs.protocols import single_frame
+    from diffuser_lab.runs.single_frame import single_frame
 
     entry = fusion.FusionMethod("copy_of_bayesian", "the Bayesian baseline, renamed", graph=False,
                                 evidence=fusion.BASELINE, multi_view_row=True)

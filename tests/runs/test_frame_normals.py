@@ -4,7 +4,7 @@ import numpy as np
 from diffuser_lab.data.geometry import backproject
 from diffuser_lab.data.render import intrinsics, look_at
 from diffuser_lab.data.scene import Frame
-from diffuser_lab.runs.protocols import image_normals
+from diffuser_lab.runs.single_frame import image_normals
 
 
 def test_normals_of_a_noisy_tilted_plane_face_the_camera():

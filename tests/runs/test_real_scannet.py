@@ -45,7 +45,7 @@ def test_global_protocol_diffuser_beats_bayesian_by_8_points(scene):
 
 
 def test_single_frame_protocol_rows(scene):
-    from diffuser_lab.runs.protocols import single_frame
+    from diffuser_lab.runs.single_frame import single_frame
 
     cfg = compose("protocol=single_frame", "protocol.max_targets=8", "protocol.target_step=5")
     res = single_frame(cfg, scene=scene)

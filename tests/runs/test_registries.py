@@ -1,5 +1,5 @@
 """What a user extends is a registry entry: scene sources (diffuser_lab/data/sources), prediction
-sources (diffuser_lab/data/predictions.py) and protocols (diffuser_lab/runs/protocol_registry.py),
+sources (diffuser_lab/data/predictions.py) and protocols (diffuser_lab/runs/protocols.py),
 as fusion methods are. A source registered at run time runs through every protocol with no other code."""
 import dataclasses
 
@@ -12,7 +12,7 @@ from diffuser_lab.data.frames import LazyFrames
 from diffuser_lab.data.scene import Scene
 from diffuser_lab.data.sources.demo import make_demo_scene
 from diffuser_lab.runs import report
-from diffuser_lab.runs.protocol_registry import PROTOCOLS
+from diffuser_lab.runs.protocols import PROTOCOLS
 from diffuser_lab.runs.resolve import default_config
 
 ROOM = {"seed": 1, "n_views": 6, "image_width": 64, "image_height": 48, "point_spacing": 0.1}

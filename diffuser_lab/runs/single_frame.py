@@ -1,0 +1,204 @@
+"""The paper's single RGB-D frame protocol (Sec. IV-A-2, Table II).
+
+For each target frame: back-project its depth into a point cloud (voxel-downsampled with
+``scene.voxel_size`` when > 0), label that cloud from the target frame alone (1 view) or from
+a window of W neighbouring frames centred on it (W views), project the 3D labels back into
+the target frame and score 2D mIoU against its ground-truth label image. Pixels without
+depth or without a label count as misses of their true class.
+
+Rows (paper Table II): each fusion method of :data:`~diffuser_lab.method.fusion.METHODS` with
+1 view and, where it fuses several, W views: direct projection (1), LDLS (1), Bayesian fusion
+(1, W), Diffuser (1, W); Bayesian with 1 view is the direct row up to voxel merging. The
+Bayesian rows read the baseline's evidence (single pixel), as in global runs.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+from scipy.ndimage import distance_transform_edt
+
+from diffuser_lab.config import Config, FrameNormals
+from diffuser_lab.data.frames import FrameLoop
+from diffuser_lab.data.geometry import backproject, normals_from_depth, voxel_downsample
+from diffuser_lab.data.predictions import with_predictions
+from diffuser_lab.data.scene import IGNORE, Frame, Scene
+from diffuser_lab.data.taxonomy import resolve_taxonomy
+from diffuser_lab.method import calibration, fusion
+from diffuser_lab.method import evidence as evidence_mod
+from diffuser_lab.method.diffusion import normalise
+from diffuser_lab.method.graph import graph_stage, make_graph
+from diffuser_lab.method.metrics import confusion_matrix, scores_from_confusion
+
+from .pipeline import load_scene
+from .resolve import resolve, with_method
+
+
+@dataclass
+class Row:
+    method: str
+    views: int
+    conf: Optional[np.ndarray] = None  # pooled (C, C+1) confusion over target frames
+    per_frame_miou: list = field(default_factory=list)
+    cal: Optional[calibration.Calibration] = None  # its class distributions over the target frames' pixels
+
+    def add(self, pred_img: np.ndarray, gt: np.ndarray, names) -> None:
+        c = confusion_matrix(pred_img, gt, len(names))
+        self.conf = c if self.conf is None else self.conf + c
+        self.per_frame_miou.append(scores_from_confusion(c, names)["miou"])
+
+    def result(self, names) -> dict:
+        s = scores_from_confusion(self.conf, names) if self.conf is not None else {}
+        pf = np.array(self.per_frame_miou, float)
+        return {"method": self.method, "views": self.views, "miou": s.get("miou"), "accuracy": s.get("accuracy"),
+                "mean_frame_miou": float(np.nanmean(pf)) if pf.size else None,
+                "per_class_iou": s.get("per_class_iou"),
+                **({"calibration": self.cal.result()} if self.cal is not None else {})}
+
+
+@dataclass
+class SingleFrameResult:
+    scene: Scene
+    window: int
+    targets: list[int]
+    rows: list[dict]
+    predictions_2d: Optional[dict]
+    mean_points: float
+    timings_s: dict
+    filled: bool = False  # protocol.fill_missing_depth was on (not the paper's protocol)
+
+
+def image_normals(f: Frame, pix: np.ndarray, to_work: np.ndarray, m: int, window: int) -> np.ndarray:
+    """(m, 3) float32 unit world normals of a target frame's work points from its organised depth
+    image: the depth box-averaged over ``window`` x ``window`` valid pixels (sensor noise is
+    per pixel; PCA over a noisy cloud's kNN sees it in 3D), normals by central differences
+    (:func:`diffuser_lab.data.geometry.normals_from_depth`), turned towards the camera, averaged
+    over each work point's pixels (``pix`` (P, 2) rows/cols -> ``to_work`` (P,) in 0..m-1)."""
+    n = normals_from_depth(np.asarray(f.depth, np.float64), f.K, pix, T_cw=f.T_cw, window=window)
+    acc = np.zeros((m, 3))
+    np.add.at(acc, to_work, n)
+    norm = np.linalg.norm(acc, axis=1, keepdims=True)
+    out = np.where(norm > 0, acc / np.maximum(norm, 1e-30), np.array([0.0, 0.0, 1.0]))
+    return out.astype(np.float32)
+
+
+def single_frame(cfg: Config, scene: Optional[Scene] = None, on_frame=None) -> SingleFrameResult:
+    """The single RGB-D frame protocol (paper Table II). ``on_frame(frame, images)``, if given, sees
+    each target frame and its rows' label images ({(method, views): (H, W) int16}) as scored; it
+    does not change the result. ``cfg`` is resolved first (:func:`~diffuser_lab.runs.resolve.resolve`)."""
+    cfg = resolve(cfg)
+    t0 = time.perf_counter()
+    if scene is None:
+        scene = load_scene(cfg.scene, resolve_taxonomy(cfg), cfg.depth)
+    tax, names = scene.taxonomy, scene.taxonomy.names
+    frames = with_predictions(scene.frames, cfg.predictions, tax, scene_name=scene.name)
+    n = len(frames)
+    if n == 0:
+        raise ValueError(f"scene {scene.name}: no frames for the single-frame protocol")
+    W = cfg.protocol.window
+    targets = list(range(0, n, cfg.protocol.target_step))[: cfg.protocol.max_targets]
+    order = [(m.name, v) for m in fusion.METHODS.values() for v in m.single_frame_rows(W)]
+    settings = {}  # each method: (entry, the run's config with what it fixes applied, evidence pixel window)
+    for m in fusion.METHODS.values():
+        mc = with_method(cfg, m.name)
+        settings[m.name] = (m, mc, 0 if m.evidence == fusion.BASELINE else mc.evidence.pixel_radius)
+    rows = {key: Row(*key, cal=calibration.Calibration(tax.num_classes, cfg.calibration.bins)) for key in order}
+    temperature = cfg.calibration.temperature
+    pred2d = Row("2d", 1)
+    t = {"load": time.perf_counter() - t0, "frames": 0.0, "evidence": 0.0, "graph": 0.0, "diffusion": 0.0}
+    n_points = []
+    ev_kw = dict(depth_tol=cfg.evidence.depth_tol)
+    lam, solver = cfg.evidence.pixel_weight, cfg.solver
+    fill = cfg.protocol.fill_missing_depth
+
+    def need_gt(f: Frame) -> None:
+        if f.gt_labels is None:
+            raise ValueError(f"frame {f.name}: the single-frame protocol needs ground-truth label images")
+
+    loop = FrameLoop(frames, f"single-frame protocol: target frames (window {W})", targets=targets, window=W,
+                     check=need_gt)
+    for i, f in loop:
+        ta = time.perf_counter()
+        pts, pix = backproject(f.depth, f.K, f.T_cw)
+        if pts.shape[0] <= cfg.graph.k:
+            continue  # almost no depth in this frame: nothing to label
+        if cfg.scene.voxel_size > 0:
+            grid = voxel_downsample(pts, cfg.scene.voxel_size)
+            work, to_work = grid.points, grid.inverse
+        else:
+            work, to_work = pts, np.arange(pts.shape[0])
+        n_points.append(work.shape[0])
+        pred = f.labels if f.labels is not None else np.argmax(f.probs, axis=2)
+        pred2d.add(pred, f.gt_labels, names)
+        win_frames = loop.window_frames(i)
+        t["frames"] += time.perf_counter() - ta
+
+        # each method's settings (what it fixes applied to the run's config), its evidence and
+        # graph built once per target frame and shared between the rows that use them
+        evidence, graphs, work_labels, work_scores = {}, {}, {}, {}
+        for name, views in order:
+            m, mc, radius = settings[name]
+            ekey = (views, radius)
+            if ekey not in evidence:
+                te = time.perf_counter()
+                evidence[ekey] = evidence_mod.accumulate(work, win_frames if views > 1 else [f], tax.num_classes,
+                                                         pixel_radius=radius, **ev_kw)
+                t["evidence"] += time.perf_counter() - te
+            system = None
+            if m.graph:
+                if mc.graph.use_normals not in graphs:
+                    tg = time.perf_counter()
+                    nrm = None
+                    if mc.graph.use_normals and cfg.protocol.normals == FrameNormals.depth_image:
+                        nrm = image_normals(f, pix, to_work, work.shape[0], cfg.protocol.normal_window_px)
+                    with graph_stage(work.shape[0], mc.graph, mc.graph.use_normals):
+                        graphs[mc.graph.use_normals] = make_graph(work, nrm, mc.graph)[1]
+                    t["graph"] += time.perf_counter() - tg
+                system = normalise(graphs[mc.graph.use_normals], evidence[ekey].mass, lam)
+            td = time.perf_counter()
+            work_labels[(name, views)], diff = m.label(evidence[ekey].mass, system=system, solver=solver)
+            work_scores[(name, views)] = diff.Z if diff is not None else evidence[ekey].mass
+            if m.graph:
+                t["diffusion"] += time.perf_counter() - td
+
+        at = np.full(f.shape, -1, np.int64)  # each pixel's work point (-1: no depth, uniform)
+        at[pix[:, 0], pix[:, 1]] = to_work
+        if fill:  # protocol.fill_missing_depth: a pixel without depth reads its nearest pixel with depth
+            near = distance_transform_edt(at < 0, return_distances=False, return_indices=True)
+            at = at[near[0], near[1]]
+        images = {}
+        for key, lab in work_labels.items():  # 3D labels back into the target frame
+            img = np.where(at >= 0, lab[np.maximum(at, 0)], IGNORE).astype(np.int16)
+            rows[key].add(img, f.gt_labels, names)
+            rows[key].cal.add(work_scores[key], f.gt_labels, at, temperature)
+            images[key] = img
+        if on_frame is not None:
+            on_frame(f, images)
+    t["frames"] += loop.read_s
+
+    t["total"] = time.perf_counter() - t0
+    results = [rows[k].result(names) for k in order]
+    for r in results:
+        r["calibration"]["temperature"] = float(temperature)
+    p2 = pred2d.result(names) if pred2d.conf is not None else None
+    return SingleFrameResult(scene=scene, window=W, targets=targets, rows=results, predictions_2d=p2,
+                             mean_points=float(np.mean(n_points)) if n_points else 0.0, timings_s=t,
+                             filled=bool(fill))
+
+
+def table(res: SingleFrameResult) -> str:
+    lines = [f"diffuser-lab single-frame protocol | scene {res.scene.name} | {len(res.targets)} target frames | "
+             f"window {res.window} | {res.mean_points:,.0f} points per frame"
+             + (" | pixels without depth filled (protocol.fill_missing_depth, not the paper's protocol)"
+                if res.filled else "")]
+    lines.append(f"{'method':12s}{'views':>6s}{'2D mIoU':>9s}{'frame mean':>12s}{'acc':>7s}")
+    for r in res.rows:
+        lines.append(f"{r['method']:12s}{r['views']:>6d}{r['miou']:>9.1f}{r['mean_frame_miou']:>12.1f}"
+                     f"{r['accuracy']:>7.1f}")
+    if res.predictions_2d:
+        p = res.predictions_2d
+        lines.append(f"{'2D input':12s}{'':>6s}{p['miou']:>9.1f}{p['mean_frame_miou']:>12.1f}{p['accuracy']:>7.1f}")
+    lines.append("time [s]  " + "  ".join(f"{k} {v:.2f}" for k, v in res.timings_s.items()))
+    return "\n".join(lines)
