@@ -19,7 +19,8 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 
-from diffuser_lab.config import MistakeCorrelation, PredictionsConfig, check_name
+from diffuser_lab.config import MistakeCorrelation, PredictionsConfig
+from diffuser_lab.registry import Registry
 
 from .frames import LazyFrames
 from .mapping import load_mapping, native_mapping
@@ -143,7 +144,7 @@ def _need_gt(f: Frame) -> None:
         raise ValueError(f"frame {f.name}: predictions need ground-truth label images, which this scene lacks")
 
 
-SOURCES: dict[str, PredictionSource] = {s.name: s for s in [
+SOURCES: Registry = Registry("predictions.source", "prediction source", [
     PredictionSource("simulated", "simulated 2D-network mistakes on ground-truth label images",
                      simulated_predictions, lambda cfg: "simulated 2D predictions"),
     PredictionSource("gt", "ground-truth label images (perfect 2D labels)", gt_predictions,
@@ -154,20 +155,15 @@ SOURCES: dict[str, PredictionSource] = {s.name: s for s in [
                      lambda cfg: f"2D predictions of {(cfg.model or {}).get('_target_')}"),
     PredictionSource("onnx", "an exported ONNX segmentation network run with onnxruntime on the CPU",
                      onnx_predictions, lambda cfg: f"2D predictions of {Path(cfg.onnx.path).name} (onnx)"),
-]}
+])
 """The prediction sources by name (``predictions.source``)."""
 
 
-def register(source: PredictionSource) -> PredictionSource:
-    """Add a prediction source (a run started after this may name it in ``predictions.source``)."""
-    if source.name in SOURCES:
-        raise ValueError(f"prediction source {source.name!r} is already registered")
-    SOURCES[source.name] = source
-    return source
+def register(entry: PredictionSource) -> PredictionSource:
+    """Add a prediction source (a run started after this may name it)."""
+    return SOURCES.register(entry)
 
 
 def get(name: str) -> PredictionSource:
-    """The entry named ``name``; :class:`~diffuser_lab.config.ConfigError` naming ``predictions.source``
-    and the registered names otherwise."""
-    check_name("predictions.source", name, list(SOURCES))
-    return SOURCES[name]
+    """The entry a name names, or one line naming predictions.source and the names."""
+    return SOURCES.named(name)

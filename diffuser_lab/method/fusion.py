@@ -19,7 +19,7 @@ from typing import Optional
 
 import numpy as np
 
-from diffuser_lab.config import check_name
+from diffuser_lab.registry import Registry
 
 from .diffusion import labels_from_scores
 from .solvers import solve
@@ -65,7 +65,7 @@ class FusionMethod:
         return [1, window] if self.multi_view_row and window > 1 else [1]
 
 
-METHODS: dict[str, FusionMethod] = {m.name: m for m in [  # the order of the paper's Table II
+METHODS: Registry = Registry("method.name", "fusion method", [  # the order of the paper's Table II
     FusionMethod("direct", "labels projected from a single view (method.view)", graph=False, evidence=ONE_VIEW,
                  multi_view_row=False),
     FusionMethod("ldls", "LDLS (Wang et al. 2019): distance-only graph, 3x3 pixel window", graph=True,
@@ -73,11 +73,10 @@ METHODS: dict[str, FusionMethod] = {m.name: m for m in [  # the order of the pap
     FusionMethod("bayesian", "per-point sum of pixel likelihoods (or votes), argmax", graph=False,
                  evidence=BASELINE),
     FusionMethod("diffuser", "the paper's method: the evidence diffused over the kNN graph", graph=True),
-]}
+], sort_names=True)
+"""The fusion methods by name (``method.name``)."""
 
 
 def get(name: str) -> FusionMethod:
-    """The entry named ``name``; :class:`~diffuser_lab.config.ConfigError` naming ``method.name`` and the
-    registered names otherwise."""
-    check_name("method.name", name, sorted(METHODS))
-    return METHODS[name]
+    """The entry a name names, or one line naming method.name and the names (sorted)."""
+    return METHODS.named(name)

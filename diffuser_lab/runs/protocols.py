@@ -19,9 +19,10 @@ from typing import Any, Callable, Optional
 
 import numpy as np
 
-from diffuser_lab.config import Config, check_name
+from diffuser_lab.config import Config
 from diffuser_lab.data.scene import Scene
 from diffuser_lab.hooks import RunHooks
+from diffuser_lab.registry import Registry
 
 from . import online as online_mod
 from . import report, single_frame
@@ -84,7 +85,7 @@ def _finish_online(result, cfg: Config, run_dir: Path, summary: report.SummaryFi
     return summary.data
 
 
-PROTOCOLS: dict[str, Protocol] = {p.name: p for p in [
+PROTOCOLS: Registry = Registry("protocol.name", "protocol", [
     Protocol("global_3d", "label the scene's points, score 3D mIoU (paper Table I)", run, _finish_global,
              lambda result, run_dir: report.table(result, run_dir)),
     Protocol("single_frame", "label each frame's back-projected depth, score 2D mIoU (Table II)", _run_single_frame,
@@ -93,20 +94,17 @@ PROTOCOLS: dict[str, Protocol] = {p.name: p for p in [
     Protocol("online", "frames one at a time in sequence order; the map labels itself as they come (online.*)",
              online_mod.online, _finish_online,
              lambda result, run_dir: online_mod.table(result) + f"\nrun folder: {run_dir}"),
-]}
+])
 """The protocols by name (``protocol.name``)."""
 
 
-def register(protocol: Protocol) -> Protocol:
-    """Add a protocol (a run started after this may name it in ``protocol.name``)."""
-    if protocol.name in PROTOCOLS:
-        raise ValueError(f"protocol {protocol.name!r} is already registered")
-    PROTOCOLS[protocol.name] = protocol
-    return protocol
+
+
+def register(entry: Protocol) -> Protocol:
+    """Add a protocol (a run started after this may name it)."""
+    return PROTOCOLS.register(entry)
 
 
 def get(name: str) -> Protocol:
-    """The entry named ``name``; :class:`~diffuser_lab.config.ConfigError` naming ``protocol.name`` and
-    the registered names otherwise."""
-    check_name("protocol.name", name, list(PROTOCOLS))
-    return PROTOCOLS[name]
+    """The entry a name names, or one line naming protocol.name and the names."""
+    return PROTOCOLS.named(name)

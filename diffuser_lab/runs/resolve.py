@@ -36,10 +36,10 @@ def names(protocols: Optional[Mapping[str, Any]] = None) -> dict[str, list[str]]
     accepts, in the order its error line lists them: a registry's own order, the fusion methods
     sorted, the shipped taxonomies sorted then ``file``, ``ids``); ``protocol.name`` when
     ``protocols`` is given."""
-    out = {"scene.source": list(sources.SOURCES), "taxonomy.name": taxonomy_names(),
-           "predictions.source": list(predictions.SOURCES), "method.name": sorted(fusion.METHODS)}
+    out = {"scene.source": sources.SOURCES.names(), "taxonomy.name": taxonomy_names(),
+           "predictions.source": predictions.SOURCES.names(), "method.name": fusion.METHODS.names()}
     if protocols is not None:
-        out["protocol.name"] = list(protocols)
+        out["protocol.name"] = protocols.names() if hasattr(protocols, "names") else list(protocols)
     return out
 
 

@@ -25,8 +25,8 @@ def tiny(monkeypatch):
     """A scene source ``tiny`` registered at run time: a small room (points, normals, ground-truth
     labels; frames with depth and ground-truth label images), its settings in ``scene.options``;
     and a prediction source ``oracle`` (the ground-truth label images)."""
-    monkeypatch.setattr(sources, "SOURCES", dict(sources.SOURCES))
-    monkeypatch.setattr(predictions, "SOURCES", dict(predictions.SOURCES))
+    monkeypatch.setattr(sources, "SOURCES", sources.SOURCES.copy())
+    monkeypatch.setattr(predictions, "SOURCES", predictions.SOURCES.copy())
     seen = []
 
     def load(cfg: SceneConfig, taxonomy, sensor) -> Scene:

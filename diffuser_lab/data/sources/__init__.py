@@ -19,9 +19,10 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from diffuser_lab.config import SceneConfig, check_name
+from diffuser_lab.config import SceneConfig
 from diffuser_lab.data.scene import Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
+from diffuser_lab.registry import Registry
 
 from . import demo, mesh_views, rgbd_folder, scannet, tum
 
@@ -51,7 +52,7 @@ class SceneSource:
     label_ids: Optional[Callable[[SceneConfig, int], list[tuple[np.ndarray, str]]]] = None
 
 
-SOURCES: dict[str, SceneSource] = {s.name: s for s in [
+SOURCES: Registry = Registry("scene.source", "scene source", [
     SceneSource("demo", "embedded procedural room", demo.load, rendered=True),
     SceneSource("mesh_views", "labelled mesh (PLY with per-vertex label) + rendered views", mesh_views.load,
                 rendered=True, label_ids=mesh_views.label_ids),
@@ -60,20 +61,15 @@ SOURCES: dict[str, SceneSource] = {s.name: s for s in [
     SceneSource("rgbd_folder", "frame-XXXXXX.{color,depth,pose} + camera-intrinsics.txt", rgbd_folder.load,
                 label_ids=rgbd_folder.label_ids),
     SceneSource("tum", "TUM RGB-D: rgb.txt depth.txt groundtruth.txt, associated by timestamp", tum.load),
-]}
+])
 """The scene sources by name (``scene.source``)."""
 
 
-def register(source: SceneSource) -> SceneSource:
-    """Add a scene source (a run started after this may name it in ``scene.source``)."""
-    if source.name in SOURCES:
-        raise ValueError(f"scene source {source.name!r} is already registered")
-    SOURCES[source.name] = source
-    return source
+def register(entry: SceneSource) -> SceneSource:
+    """Add a scene source (a run started after this may name it)."""
+    return SOURCES.register(entry)
 
 
 def get(name: str) -> SceneSource:
-    """The entry named ``name``; :class:`~diffuser_lab.config.ConfigError` naming ``scene.source`` and the
-    registered names otherwise."""
-    check_name("scene.source", name, list(SOURCES))
-    return SOURCES[name]
+    """The entry a name names, or one line naming scene.source and the names."""
+    return SOURCES.named(name)
