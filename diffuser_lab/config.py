@@ -414,7 +414,8 @@ class SceneConfig(Section):
     rgbd_folder: Optional[RgbdFolderConfig] = None
     tum: Optional[TumConfig] = None
     voxel_size: float = key(0.0, at_least(0, "metres", note="(0 = off)"))  # metres; > 0: voxel-downsample before diffusion, labels transferred back
-    # the keys of a source registered at run time (free-form: its loader reads and checks them)
+    # the keys of a source added to the registry: the dataclass its entry declares (the resolve step
+    # makes it from this dict), else a free-form dict its loader reads
     options: Dict[str, Any] = field(default_factory=dict)
 
     def _check_keys(self) -> None:

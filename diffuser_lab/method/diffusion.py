@@ -269,11 +269,8 @@ class System:
         normalise_rows(rows, self.order, self.edge_weights, self.edge_sums, self.mass, self.pixel_weight,
                        self.gamma, EDGE_FLOOR, self.sorted_P, self.B_rows)
         self._csr = None
-        named = self.B_rows.any(0) if rows is None else self.B_rows[rows].any(0)
-        if rows is None:
-            self.active = np.flatnonzero(named)
-        elif not named[self.active].all() or named.sum() > len(self.active):
-            self.active = np.union1d(self.active, np.flatnonzero(named)).astype(np.int64)
+        named = np.flatnonzero(self.B_rows.any(0) if rows is None else self.B_rows[rows].any(0))
+        self.active = named if rows is None else np.union1d(self.active, named)
         if self._backend is not None:
             self._backend.update(self.inputs(), rows)
 

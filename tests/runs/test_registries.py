@@ -6,7 +6,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from diffuser_lab.config import ConfigError, SceneConfig
+from diffuser_lab.config import ConfigError, SceneConfig, Section, at_least, key, within
 from diffuser_lab.data import predictions, sources
 from diffuser_lab.data.frames import LazyFrames
 from diffuser_lab.data.scene import Scene
@@ -78,3 +78,37 @@ def test_registry_names_are_checked_in_one_line(tiny):
         default_config(**{"predictions.source": "nope"})
     with pytest.raises(ValueError, match="already registered"):
         sources.register(sources.SceneSource("demo", "another demo", sources.SOURCES["demo"].load))
+
+
+@dataclasses.dataclass
+class RoomKeys(Section):
+    """A registered source's own keys, declared as every key is (types, defaults, ranges)."""
+
+    KEY = "scene.options"
+    seed: int = 0
+    n_views: int = key(6, at_least(1))
+    point_spacing: float = key(0.1, within(0.02, 0.5, "metres"))
+
+
+def test_a_registered_source_declares_its_keys(monkeypatch):
+    """A source's own keys as a dataclass in its entry: scene.options arrives typed, with its
+    defaults, and a value out of range or a key it does not have stops with one line."""
+    monkeypatch.setattr(sources, "SOURCES", sources.SOURCES.copy())
+    got = []
+
+    def load(cfg: SceneConfig, taxonomy, sensor) -> Scene:
+        got.append(cfg.options)
+        room, _ = make_demo_scene(seed=cfg.options.seed, n_views=cfg.options.n_views, image_width=64, image_height=48,
+                                  point_spacing=cfg.options.point_spacing)
+        return Scene(name="keyed", points=room.points, taxonomy=taxonomy, normals=room.normals,
+                     gt_labels=room.gt_labels, frames=room.frames)
+
+    sources.register(sources.SceneSource("keyed", "a room with declared keys", load, options=RoomKeys))
+    cfg = default_config(**{"scene.source": "keyed", "scene.options": {"n_views": "4"}, **RUN})
+    assert cfg.scene.options == RoomKeys(seed=0, n_views=4, point_spacing=0.1)  # "4" typed, defaults filled
+    res = PROTOCOLS["global_3d"].run(cfg)
+    assert res.scene.name == "keyed" and len(res.frames) == 4 and got == [cfg.scene.options]
+    with pytest.raises(ConfigError, match=r"^scene\.options\.point_spacing=1\.0: expected in \[0\.02, 0\.5\] metres$"):
+        default_config(**{"scene.source": "keyed", "scene.options": {"point_spacing": 1.0}})
+    with pytest.raises(ConfigError, match=r"^scene\.options\.colour: "):
+        default_config(**{"scene.source": "keyed", "scene.options": {"colour": 1}})

@@ -43,6 +43,10 @@ class SceneSource:
             the depth is real and ``depth.apply_to_real`` applies the sensor model to the loaded frames.
         label_ids: for ``taxonomy=ids``: ``(scene config, n) -> [(unique label ids, where found)]``
             from the first ``n`` ground-truth label images (or a labelled mesh); None = none.
+        options: the dataclass of the source's own keys under ``scene.options`` (a
+            :class:`~diffuser_lab.config.Section` with ``KEY = "scene.options"``: types, defaults
+            and ranges declared as for every key); the resolve step turns ``scene.options`` into
+            it, so ``load`` reads ``cfg.options`` typed and checked. None: a free-form dict.
     """
 
     name: str
@@ -50,6 +54,7 @@ class SceneSource:
     load: Callable[[SceneConfig, Taxonomy, Optional[SensorModel]], Scene]
     rendered: bool = False
     label_ids: Optional[Callable[[SceneConfig, int], list[tuple[np.ndarray, str]]]] = None
+    options: Optional[type] = None
 
 
 SOURCES: Registry = Registry("scene.source", "scene source", [
