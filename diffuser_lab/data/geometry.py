@@ -58,6 +58,37 @@ def backproject(depth: np.ndarray, K: np.ndarray, T_cw: np.ndarray, stride: int 
     return pw.astype(np.float32), np.stack([rows, cols], 1)
 
 
+def scaled_intrinsics(K: np.ndarray, src_shape: tuple[int, int], dst_shape: tuple[int, int]) -> np.ndarray:
+    """(3, 3) K of an image of (H, W) ``src_shape`` resized to ``dst_shape`` with pixel centres
+    aligned (pixel centre at integer coordinates): f' = f s, c' = (c + 0.5) s - 0.5 per axis."""
+    sy, sx = dst_shape[0] / src_shape[0], dst_shape[1] / src_shape[1]
+    out = np.array(K, np.float64)
+    out[0, 0], out[0, 1] = K[0, 0] * sx, K[0, 1] * sx
+    out[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
+    out[1, 1] = K[1, 1] * sy
+    out[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
+    return out
+
+
+def visible_projection(points: np.ndarray, frame, depth_tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points of ``frame`` (a :class:`~diffuser_lab.data.scene.Frame`: K, T_cw, depth) that project inside the image and pass the depth check.
+
+    Returns:
+        idx: (M,) int64 indices into ``points``; rows, cols: (M,) int64 pixel of each.
+    """
+    h, w = frame.depth.shape[:2]
+    u, v, z = project(points, frame.K, frame.T_cw)
+    cols = np.rint(u)
+    rows = np.rint(v)
+    inside = (cols >= 0) & (cols < w) & (rows >= 0) & (rows < h)  # NaN (behind camera) -> False
+    idx = np.flatnonzero(inside)
+    rows = rows[idx].astype(np.int64)
+    cols = cols[idx].astype(np.int64)
+    d = frame.depth[rows, cols]
+    ok = (d > 0) & (np.abs(z[idx] - d) <= depth_tol)
+    return idx[ok], rows[ok], cols[ok]
+
+
 @dataclass
 class VoxelGrid:
     """Voxel downsampling with the map back to the original points.

@@ -27,7 +27,7 @@ import numpy as np
 
 from diffuser_lab.backends.evidence import hard_votes
 from diffuser_lab.config import BayesianMode
-from diffuser_lab.data.geometry import project
+from diffuser_lab.data.geometry import visible_projection
 from diffuser_lab.data.scene import IGNORE, Frame
 
 
@@ -53,25 +53,6 @@ class Evidence:
     def seen(self) -> np.ndarray:
         """(N,) bool: the point received pixel mass."""
         return self.mass.sum(1) > 0
-
-
-def visible_projection(points: np.ndarray, frame: Frame, depth_tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Points of ``frame`` that project inside the image and pass the depth check.
-
-    Returns:
-        idx: (M,) int64 indices into ``points``; rows, cols: (M,) int64 pixel of each.
-    """
-    h, w = frame.shape
-    u, v, z = project(points, frame.K, frame.T_cw)
-    cols = np.rint(u)
-    rows = np.rint(v)
-    inside = (cols >= 0) & (cols < w) & (rows >= 0) & (rows < h)  # NaN (behind camera) -> False
-    idx = np.flatnonzero(inside)
-    rows = rows[idx].astype(np.int64)
-    cols = cols[idx].astype(np.int64)
-    d = frame.depth[rows, cols]
-    ok = (d > 0) & (np.abs(z[idx] - d) <= depth_tol)
-    return idx[ok], rows[ok], cols[ok]
 
 
 def _class_vectors(frame: Frame, num_classes: int, hard: bool) -> tuple[np.ndarray | None, np.ndarray | None]:

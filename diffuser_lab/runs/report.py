@@ -37,6 +37,9 @@ def summary(res: RunResult, cfg: Config) -> dict:
         "predictions_stats": res.predictions_stats,
         "timings_s": {k: round(v, 4) for k, v in res.timings_s.items()},
     }
+    capture = _capture(scene)
+    if capture:
+        out["capture"] = capture
     if res.diffusion is not None:
         out["diffusion"] = {"iterations": res.diffusion.iterations, "converged": res.diffusion.converged,
                             "residual": res.diffusion.residual,
@@ -47,6 +50,27 @@ def summary(res: RunResult, cfg: Config) -> dict:
         out["graph"] = {"k": int(res.graph.neighbors.shape[1]), "rho_m": res.graph.rho,
                         "sigma_d_m": res.graph.sigma_d, "normals": cfg.graph.use_normals}
     return out
+
+
+CAPTURE_KEYS = ("cloud", "visibility", "gt_from_frames")
+"""What a capture format's loader reports (diffuser_lab/data/capture.py), in summary.json's ``capture``."""
+
+
+def _capture(scene) -> dict:
+    info = getattr(scene.frames, "info", None) or {}
+    return {k: info[k] for k in CAPTURE_KEYS if k in info}
+
+
+def _capture_line(scene) -> Optional[str]:
+    c = _capture(scene)
+    if not c:
+        return None
+    parts = [f"cloud {c['cloud']}" if "cloud" in c else "", f"visibility: {c['visibility']}" if "visibility" in c else ""]
+    g = c.get("gt_from_frames")
+    if g:
+        parts.append(f"ground truth carried from the frames' labels ({g['points_labelled']:,} points, "
+                     f"{g['points_disagreeing']:,} with disagreeing views)")
+    return "capture: " + "; ".join(p for p in parts if p)
 
 
 def _fmt(x, spec=".1f") -> str:
@@ -74,6 +98,9 @@ def table(res: RunResult, run_dir: Path | None = None) -> str:
             m = m or {}
             lines.append(f"{name:22s}{_fmt(m.get('miou')):>7s}{_fmt(m.get('accuracy')):>7s}"
                          f"{_fmt(m.get('coverage')):>7s}")
+    line = _capture_line(s)
+    if line:
+        lines.append(line)
     st = res.predictions_stats
     if "model_calls" in st:  # a network in the loop (diffuser_lab/data/networks.py)
         lines.append(f"2D predictions: {st['model']}, {st['model_calls']} frames run, {st['cached_frames']} from "

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from typing import Callable, Optional
 
 import numpy as np
+from hydra.core.config_store import ConfigStore
 
 from diffuser_lab.config import SceneConfig
 from diffuser_lab.data.scene import Scene, Taxonomy
@@ -70,8 +71,20 @@ SOURCES: Registry = Registry("scene.source", "scene source", [
 """The scene sources by name (``scene.source``)."""
 
 
+def _store_options(entry: SceneSource) -> None:
+    """A source's keys dataclass as Hydra's ``scene/options`` config ``<name>``: its YAML's defaults
+    list takes it (``- options: <name>``), so every key is there, typed, to override without ``+``."""
+    if entry.options is not None:
+        ConfigStore.instance().store(group="scene/options", name=entry.name, node=entry.options)
+
+
+for _entry in SOURCES.values():
+    _store_options(_entry)
+
+
 def register(entry: SceneSource) -> SceneSource:
     """Add a scene source (a run started after this may name it)."""
+    _store_options(entry)
     return SOURCES.register(entry)
 
 

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import re
 import warnings
-from collections.abc import Sequence
 from pathlib import Path
 from typing import Optional
 
@@ -31,8 +30,9 @@ import numpy as np
 
 from diffuser_lab import progress
 from diffuser_lab.config import SceneConfig
+from diffuser_lab.data.capture import fuse_depth
+from diffuser_lab.data.clouds import read_point_cloud_ply
 from diffuser_lab.data.frames import LazyFrames
-from diffuser_lab.data.geometry import backproject, voxel_downsample
 from diffuser_lab.data.mapping import ClassMapping, load_mapping, native_mapping
 from diffuser_lab.data.prediction_files import label_ids_in, open_image, read_label_png, resize_nearest
 from diffuser_lab.data.scene import IGNORE, SCANNET20, Frame, Scene, Taxonomy
@@ -168,36 +168,6 @@ def read_rgb(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndarr
         if shape is not None and im.size != (shape[1], shape[0]):
             im = im.resize((int(shape[1]), int(shape[0])), Image.BILINEAR)
         return np.asarray(im, dtype=np.uint8).copy()
-
-
-def read_point_cloud_ply(path: str | Path) -> dict:
-    """PLY vertices -> dict with ``points`` (N, 3) float32 and, when present, ``colors``
-    (N, 3) uint8, ``normals`` (N, 3) float32 unit, ``labels`` (N,) int64 (property ``label``)."""
-    from plyfile import PlyData
-
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"point cloud {path} does not exist")
-    try:
-        ply = PlyData.read(str(path))
-    except Exception as e:  # plyfile raises several types for corrupt files
-        raise ValueError(f"{path}: not a readable PLY file ({type(e).__name__}: {e})") from None
-    if "vertex" not in ply:
-        raise ValueError(f"{path}: PLY has no 'vertex' element, expected points with x, y, z")
-    v = ply["vertex"].data
-    names = set(v.dtype.names or ())
-    if not {"x", "y", "z"} <= names or len(v) == 0:
-        raise ValueError(f"{path}: PLY vertices lack x/y/z or are empty, expected points in metres")
-    out = {"points": np.stack([v["x"], v["y"], v["z"]], 1).astype(np.float32)}
-    if {"red", "green", "blue"} <= names:
-        out["colors"] = np.stack([v["red"], v["green"], v["blue"]], 1).astype(np.uint8)
-    if {"nx", "ny", "nz"} <= names:
-        n = np.stack([v["nx"], v["ny"], v["nz"]], 1).astype(np.float32)
-        norm = np.linalg.norm(n, axis=1, keepdims=True)
-        out["normals"] = np.where(norm > 0, n / np.maximum(norm, 1e-12), 0).astype(np.float32)
-    if "label" in names:
-        out["labels"] = np.asarray(v["label"]).astype(np.int64)
-    return out
 
 
 def _as_mapping(mapping, taxonomy: Taxonomy) -> ClassMapping | None:
@@ -346,59 +316,6 @@ def load_rgbd_folder(
             raise ValueError(f"{root}: no valid depth to build a point cloud from (max_depth={max_depth})")
     return Scene(name=root.name, points=points, taxonomy=taxonomy, frames=frames, normals=normals,
                  colors=colors, gt_labels=gt_points)
-
-
-def _merge(pts: np.ndarray, cols: np.ndarray, w: np.ndarray, voxel_size: float):
-    """Weighted voxel merge: (N, 3) points, (N, 3) colours and (N,) weights (point counts)
-    -> (M, 3) float32 weighted centroids, (M, 3) float32 mean colours, (M,) float64 summed weights."""
-    grid = voxel_downsample(pts, voxel_size)
-    m = grid.points.shape[0]
-    wsum = np.bincount(grid.inverse, weights=w, minlength=m)
-    # Weight by point count so the result equals one voxelisation of all points (up to grid offsets).
-    P = np.stack([np.bincount(grid.inverse, weights=pts[:, j] * w, minlength=m) for j in range(3)], 1)
-    C = np.stack([np.bincount(grid.inverse, weights=cols[:, j] * w, minlength=m) for j in range(3)], 1)
-    return (P / wsum[:, None]).astype(np.float32), (C / wsum[:, None]).astype(np.float32), wsum
-
-
-def fuse_depth(frames: Sequence[Frame], voxel_size: float, stride: int, max_depth: float | None):
-    """Back-project every frame's depth and merge on a voxel grid, one frame at a time.
-
-    Per-frame voxelisation bounds what is kept per frame; the partial clouds are merged
-    again whenever they grow past a few times the merged size, so memory follows the
-    scene's extent, not the number of frames.
-    Returns (M, 3) float32 points and (M, 3) uint8 colours (grey 128 without colour).
-    """
-    with progress.stage(f"fusing depth into a cloud ({voxel_size:g} m voxels)", total=len(frames),
-                        unit="frame") as bar:
-        return _fuse_depth_frames(frames, voxel_size, stride, max_depth, bar)
-
-
-def _fuse_depth_frames(frames: Sequence[Frame], voxel_size: float, stride: int, max_depth: float | None,
-                       bar: progress.Stage):
-    acc_p, acc_c, acc_w = [], [], []
-    merged_size, pending = 0, 0
-    for k in range(len(frames)):  # loop over frames
-        bar.update()
-        f = frames[k]
-        depth = f.depth
-        if max_depth is not None:
-            depth = np.where(depth <= max_depth, depth, 0).astype(np.float32)
-        pts, pix = backproject(depth, f.K, f.T_cw, stride)
-        if pts.shape[0] == 0:
-            continue
-        rgb = f.rgb[pix[:, 0], pix[:, 1]].astype(np.float32) if f.rgb is not None \
-            else np.full((pts.shape[0], 3), 128.0, np.float32)
-        p, c, w = _merge(pts, rgb, np.ones(pts.shape[0]), voxel_size)
-        acc_p.append(p), acc_c.append(c), acc_w.append(w)
-        pending += p.shape[0]
-        if pending > max(4 * merged_size, 2_000_000):
-            p, c, w = _merge(np.concatenate(acc_p), np.concatenate(acc_c), np.concatenate(acc_w), voxel_size)
-            acc_p, acc_c, acc_w = [p], [c], [w]
-            merged_size = pending = p.shape[0]
-    if not acc_p:
-        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
-    p, c, _ = _merge(np.concatenate(acc_p), np.concatenate(acc_c), np.concatenate(acc_w), voxel_size)
-    return p, np.clip(np.rint(c), 0, 255).astype(np.uint8)
 
 
 def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) -> Scene:

@@ -41,7 +41,7 @@ import numpy as np
 from diffuser_lab import progress
 from diffuser_lab.config import SceneConfig
 from diffuser_lab.data.frames import LazyFrames
-from diffuser_lab.data.geometry import estimate_normals
+from diffuser_lab.data.geometry import estimate_normals, scaled_intrinsics
 from diffuser_lab.data.mapping import ClassMapping, identity_mapping, load_mapping, native_mapping
 from diffuser_lab.data.prediction_files import label_ids_in, read_label_png, resize_nearest
 from diffuser_lab.data.scene import SCANNET20, Frame, Scene, Taxonomy
@@ -127,18 +127,6 @@ def _vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     if bad.any():  # isolated or only-degenerate-face vertices
         n[bad] = estimate_normals(vertices)[bad]
     return n
-
-
-def scaled_intrinsics(K: np.ndarray, src_shape: tuple[int, int], dst_shape: tuple[int, int]) -> np.ndarray:
-    """(3, 3) K of an image of (H, W) ``src_shape`` resized to ``dst_shape`` with pixel centres
-    aligned (pixel centre at integer coordinates): f' = f s, c' = (c + 0.5) s - 0.5 per axis."""
-    sy, sx = dst_shape[0] / src_shape[0], dst_shape[1] / src_shape[1]
-    out = np.array(K, np.float64)
-    out[0, 0], out[0, 1] = K[0, 0] * sx, K[0, 1] * sx
-    out[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
-    out[1, 1] = K[1, 1] * sy
-    out[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
-    return out
 
 
 def _find_mesh(root: Path, pattern: str) -> Path | None:

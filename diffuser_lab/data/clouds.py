@@ -1,0 +1,130 @@
+"""Point cloud files in and out: PLY, LAS and LAZ (the cloud to label, the labelled result).
+
+:func:`read_cloud` reads any of them by extension -> ``points`` (N, 3) float32 metres and, when the
+file has them, ``colors`` (N, 3) uint8, ``normals`` (N, 3) float32 unit, ``labels`` (N,) int64 (a
+PLY's ``label`` property; a LAS/LAZ file's ``label`` extra dimension, as :func:`write_las` writes
+it), with ``source`` naming the file.
+
+:func:`write_las` writes labelled points as LAS 1.4 (point format 7: x y z, RGB) or LAZ
+(compressed through laspy's ``lazrs`` backend): the class goes to the ``classification`` field as
+``class id + 1`` (0 = unlabelled: LAS reserves 0 for "never classified"), the exact id (-1 =
+unlabelled) to an extra dimension ``label``, and the taxonomy's names to a VLR
+(``diffuser-lab``/``classes``, JSON ``{"1": "wall", ...}``) and a side file ``<name>.classes.json``.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["read_cloud", "read_point_cloud_ply", "read_las", "write_las", "CLOUD_SUFFIXES"]
+
+CLOUD_SUFFIXES = (".ply", ".las", ".laz")
+
+
+def read_cloud(path: str | Path) -> dict:
+    """A PLY, LAS or LAZ file -> dict (module docstring); one line naming the file otherwise."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in CLOUD_SUFFIXES:
+        raise ValueError(f"{path}: point cloud of unknown type {suffix or '(no suffix)'}, expected one of "
+                         f"{', '.join(CLOUD_SUFFIXES)}")
+    out = read_point_cloud_ply(path) if suffix == ".ply" else read_las(path)
+    out["source"] = path.name
+    return out
+
+
+def read_point_cloud_ply(path: str | Path) -> dict:
+    """PLY vertices -> dict with ``points`` (N, 3) float32 and, when present, ``colors``
+    (N, 3) uint8, ``normals`` (N, 3) float32 unit, ``labels`` (N,) int64 (property ``label``)."""
+    from plyfile import PlyData
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"point cloud {path} does not exist")
+    try:
+        ply = PlyData.read(str(path))
+    except Exception as e:  # plyfile raises several types for corrupt files
+        raise ValueError(f"{path}: not a readable PLY file ({type(e).__name__}: {e})") from None
+    if "vertex" not in ply:
+        raise ValueError(f"{path}: PLY has no 'vertex' element, expected points with x, y, z")
+    v = ply["vertex"].data
+    names = set(v.dtype.names or ())
+    if not {"x", "y", "z"} <= names or len(v) == 0:
+        raise ValueError(f"{path}: PLY vertices lack x/y/z or are empty, expected points in metres")
+    out = {"points": np.stack([v["x"], v["y"], v["z"]], 1).astype(np.float32)}
+    if {"red", "green", "blue"} <= names:
+        out["colors"] = np.stack([v["red"], v["green"], v["blue"]], 1).astype(np.uint8)
+    if {"nx", "ny", "nz"} <= names:
+        n = np.stack([v["nx"], v["ny"], v["nz"]], 1).astype(np.float32)
+        norm = np.linalg.norm(n, axis=1, keepdims=True)
+        out["normals"] = np.where(norm > 0, n / np.maximum(norm, 1e-12), 0).astype(np.float32)
+    if "label" in names:
+        out["labels"] = np.asarray(v["label"]).astype(np.int64)
+    return out
+
+
+
+
+def read_las(path: str | Path) -> dict:
+    """LAS / LAZ -> dict (module docstring): scaled x y z (metres, as the file's CRS has them),
+    RGB (16-bit scaled to 8 when any value exceeds 255), the ``label`` extra dimension if present."""
+    import laspy
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"point cloud {path} does not exist")
+    try:
+        las = laspy.read(str(path))
+    except Exception as e:  # laspy raises several types for truncated or foreign files
+        raise ValueError(f"{path}: not a readable LAS/LAZ file ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})") from None
+    if len(las.points) == 0:
+        raise ValueError(f"{path}: LAS/LAZ file holds no points, expected points in metres")
+    out = {"points": np.stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)], 1).astype(np.float32)}
+    dims = set(las.point_format.dimension_names)
+    if {"red", "green", "blue"} <= dims:
+        rgb = np.stack([np.asarray(las.red), np.asarray(las.green), np.asarray(las.blue)], 1)
+        if rgb.max(initial=0) > 255:
+            rgb = rgb >> 8
+        out["colors"] = rgb.astype(np.uint8)
+    if "label" in dims:
+        out["labels"] = np.asarray(las["label"]).astype(np.int64)
+    return out
+
+
+def write_las(path: str | Path, points: np.ndarray, labels: np.ndarray, names, colors: np.ndarray | None = None) -> list[Path]:
+    """Labelled points -> LAS (``.las``) or LAZ (``.laz``) at ``path`` (module docstring).
+
+    Args:
+        points: (N, 3) world metres. labels: (N,) int class ids, -1 = unlabelled.
+        names: the taxonomy's class names (class id c -> ``names[c]``).
+        colors: (N, 3) uint8 (e.g. the class colours); None = no RGB.
+    Returns:
+        The files written (the cloud and its ``.classes.json``).
+    """
+    import laspy
+
+    path = Path(path)
+    if len(names) > 254:
+        raise ValueError(f"{path}: {len(names)} classes do not fit LAS classification (at most 254 besides 0)")
+    header = laspy.LasHeader(point_format=7, version="1.4")
+    header.add_extra_dim(laspy.ExtraBytesParams(name="label", type=np.int16, description="class id, -1 unlabelled"))
+    pts = np.asarray(points, np.float64)
+    header.offsets = np.floor(pts.min(0)) if len(pts) else np.zeros(3)
+    header.scales = np.array([1e-4, 1e-4, 1e-4])  # 0.1 mm: below any cloud's noise
+    classes = {str(c + 1): str(n) for c, n in enumerate(names)}
+    header.vlrs.append(laspy.VLR(user_id="diffuser-lab", record_id=1, description="classes",
+                                 record_data=json.dumps(classes).encode()))
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = pts[:, 0], pts[:, 1], pts[:, 2]
+    lab = np.asarray(labels).astype(np.int64)
+    las.classification = np.where(lab >= 0, lab + 1, 0).astype(np.uint8)
+    las["label"] = lab.astype(np.int16)
+    if colors is not None:
+        c = np.asarray(colors, np.uint16) * 257  # 8 -> 16 bit, as LAS stores colour
+        las.red, las.green, las.blue = c[:, 0], c[:, 1], c[:, 2]
+    las.write(str(path))
+    side = path.with_name(path.stem + ".classes.json")
+    side.write_text(json.dumps({"classification": "class id + 1 (0 = unlabelled)", "classes": classes}, indent=1))
+    return [path, side]
