@@ -186,6 +186,14 @@ class SolverBackend(Enum):
     torch = "torch"  # PyTorch on a GPU (optional extra; CUDA required)
 
 
+class CloudFormat(Enum):
+    """output.clouds: formats the labelled cloud is written in besides labels.npy / labels.ply."""
+
+    las = "las"  # labels.las (LAS 1.4)
+    laz = "laz"  # labels.laz (LAS compressed)
+    ros2 = "ros2"  # labels_ros2/ (a ROS 2 bag, MCAP storage, one sensor_msgs/PointCloud2)
+
+
 class BayesianMode(Enum):
     likelihood = "likelihood"  # sum of per-pixel class probabilities (one-hot for hard labels)
     votes = "votes"  # sum of one-hot argmax votes
@@ -305,7 +313,7 @@ class RgbdFolderConfig(Section):
     color_suffix: Optional[str] = key("color.jpg", _suffix(null=True))  # null = no colour; no such file at all = no colour (warning)
     label_suffix: Optional[str] = key(None, _suffix(null=True))  # ground-truth label images frame-XXXXXX.<suffix>, if any
     mapping: Optional[str] = None  # label ids -> taxonomy; null = ids are taxonomy ids
-    cloud: Optional[str] = None  # PLY point cloud; null = back-project and voxel-merge the depth frames
+    cloud: Optional[str] = None  # PLY, LAS or LAZ point cloud; null = back-project and voxel-merge the depth frames
     cloud_voxel: float = key(0.02, above(0, "metres"))  # metres, for the back-projected cloud
     cloud_stride: int = key(4, at_least(1))  # every n-th pixel of each depth frame for the back-projected cloud
     max_depth: Optional[float] = None  # metres; ignore depth beyond it
@@ -718,6 +726,9 @@ class OutputConfig(Section):
 
     KEY = "output"
     labels_ply: bool = True  # write labels.ply (points coloured by label)
+    # also write the labelled cloud as: las, laz (class in the classification field), ros2 (a ROS 2
+    # MCAP bag with a sensor_msgs/PointCloud2 that rviz2 and Foxglove open); docs/layouts.md
+    clouds: List[CloudFormat] = field(default_factory=list)
     quiet: bool = False  # do not print the result table
 
 

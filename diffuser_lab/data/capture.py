@@ -71,7 +71,7 @@ class CaptureOptions(Section):
     mapping: Optional[str] = None  # label ids of label images / cloud labels -> taxonomy (shipped table or CSV); null = taxonomy ids
     visibility: Visibility = Visibility.auto  # the depth check's depth: depth images | mesh | cloud (rendered) | auto
     mesh: Optional[str] = None  # visibility=mesh (or auto without depth): a triangle mesh PLY in the cloud's frame
-    splat: float = key(1.0, above(0))  # visibility=cloud: splat radius / the mean distance to a point's 4 nearest neighbours
+    splat: float = key(0.4, above(0))  # visibility=cloud: splat radius / the mean distance to a point's 4 nearest neighbours (0.4: best on real 7-Scenes depth, docs/layouts.md)
     splat_max_px: int = key(8, at_least(0))  # visibility=cloud: largest splat radius, pixels
     gt_from_frames: bool = True  # no labels in the cloud: carry the frames' label images to the points (carry_frame_labels)
     depth_tol: float = key(0.05, above(0, "metres"))  # gt_from_frames: the depth check of a pixel that sees a point

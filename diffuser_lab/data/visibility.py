@@ -26,12 +26,13 @@ class CloudDepth:
 
     Args:
         points: (N, 3) float32 world metres.
-        splat: the splat radius in units of the local spacing (1 closes a uniformly sampled
-            surface; larger closes holes of sparse clouds and thickens silhouettes).
+        splat: the splat radius in units of the local spacing. A splat is drawn at its point's
+            depth, so a large one in front of a slanted surface hides the points behind it; a
+            small one lets occluded points through its gaps (0.4: the best labels on real depth).
         max_radius_px: splats are at most this many pixels in radius (near points).
     """
 
-    def __init__(self, points: np.ndarray, splat: float = 1.0, max_radius_px: int = 8):
+    def __init__(self, points: np.ndarray, splat: float = 0.4, max_radius_px: int = 8):
         self.points = np.ascontiguousarray(points, np.float32)
         k = min(5, len(self.points))
         if k < 2:

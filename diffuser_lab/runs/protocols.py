@@ -58,7 +58,8 @@ class Protocol:
 
 def _finish_global(result, cfg: Config, run_dir: Path, summary: report.SummaryFile, records: dict) -> dict:
     t = time.perf_counter()
-    files = write_labels(run_dir, result.scene.points, result.labels, result.scene.taxonomy, ply=cfg.output.labels_ply)
+    files = write_labels(run_dir, result.scene.points, result.labels, result.scene.taxonomy, ply=cfg.output.labels_ply,
+                         clouds=cfg.output.clouds)
     result.timings_s["write"] = time.perf_counter() - t
     return summary.result(result, cfg, records=records, files=files)
 
@@ -76,7 +77,8 @@ def _finish_online(result, cfg: Config, run_dir: Path, summary: report.SummaryFi
     order), map.npy a growing map's points."""
     pts = result.scene.points if result.scene_labels is not None else result.points
     labels = result.scene_labels if result.scene_labels is not None else result.labels
-    files = write_labels(run_dir, pts, labels, result.scene.taxonomy, ply=cfg.output.labels_ply)
+    files = write_labels(run_dir, pts, labels, result.scene.taxonomy, ply=cfg.output.labels_ply,
+                         clouds=cfg.output.clouds)
     if result.mode == "growing":
         np.save(run_dir / "map.npy", result.points)
         files["map"] = "map.npy"

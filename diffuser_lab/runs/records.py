@@ -8,13 +8,14 @@ import math
 import os
 from enum import Enum
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import yaml
 from omegaconf import OmegaConf
 
 from diffuser_lab import progress
+from diffuser_lab.data.clouds import write_las
 from diffuser_lab.data.scene import Taxonomy
 
 
@@ -61,12 +62,33 @@ def write_json_atomic(path: Path, data: dict) -> None:
     os.replace(tmp, path)
 
 
-def write_labels(run_dir: Path, points: np.ndarray, labels: np.ndarray, taxonomy: Taxonomy, ply: bool = True) -> dict:
-    """labels.npy ((N,) int16, -1 = unlabeled) and labels.ply (points coloured by class, with a
-    per-vertex ``label`` property). Returns the file names written."""
+def _las(suffix: str) -> Callable[[Path, np.ndarray, np.ndarray, Taxonomy], list[Path]]:
+    def write(run_dir: Path, points: np.ndarray, labels: np.ndarray, taxonomy: Taxonomy) -> list[Path]:
+        return write_las(run_dir / f"labels.{suffix}", points, labels, taxonomy.names, taxonomy.colorize(labels))
+
+    return write
+
+
+CLOUD_WRITERS: dict[str, Callable[[Path, np.ndarray, np.ndarray, Taxonomy], list[Path]]] = {
+    "las": _las("las"),
+    "laz": _las("laz"),
+}
+"""``output.clouds`` formats: ``(run folder, points, labels, taxonomy) -> files written``."""
+
+
+def write_labels(run_dir: Path, points: np.ndarray, labels: np.ndarray, taxonomy: Taxonomy, ply: bool = True,
+                 clouds: Sequence = ()) -> dict:
+    """labels.npy ((N,) int16, -1 = unlabeled), labels.ply (points coloured by class, with a
+    per-vertex ``label`` property) and the ``clouds`` formats (:data:`CLOUD_WRITERS`, names or
+    :class:`~diffuser_lab.config.CloudFormat`). Returns the file names written."""
     run_dir = Path(run_dir)
-    with progress.stage(f"writing labels.npy{' + labels.ply' if ply else ''}"):
-        return _write_labels(run_dir, points, labels, taxonomy, ply)
+    names = [getattr(c, "value", c) for c in clouds]
+    with progress.stage("writing " + " + ".join(["labels.npy"] + (["labels.ply"] if ply else []) + names)):
+        out = _write_labels(run_dir, points, labels, taxonomy, ply)
+        for name in names:  # loop over output formats
+            written = CLOUD_WRITERS[name](run_dir, points, labels, taxonomy)
+            out[f"labels_{name}"] = Path(written[0]).name
+        return out
 
 
 def _write_labels(run_dir: Path, points: np.ndarray, labels: np.ndarray, taxonomy: Taxonomy, ply: bool) -> dict:

@@ -31,7 +31,7 @@ import numpy as np
 from diffuser_lab import progress
 from diffuser_lab.config import SceneConfig
 from diffuser_lab.data.capture import fuse_depth
-from diffuser_lab.data.clouds import read_point_cloud_ply
+from diffuser_lab.data.clouds import read_cloud, read_point_cloud_ply
 from diffuser_lab.data.frames import LazyFrames
 from diffuser_lab.data.mapping import ClassMapping, load_mapping, native_mapping
 from diffuser_lab.data.prediction_files import label_ids_in, open_image, read_label_png, resize_nearest
@@ -231,7 +231,7 @@ def load_rgbd_folder(
             without that file get ``gt_labels=None``.
         taxonomy: evaluation classes. mapping: label ids -> taxonomy (CSV name/path or
             ClassMapping); None = label images (and a cloud's ``label``) hold taxonomy ids.
-        cloud: PLY path of the points to label (optional colours, normals, ``label``),
+        cloud: PLY / LAS / LAZ path of the points to label (optional colours, normals, ``label``),
             or None = fuse the frames' depth: every ``cloud_stride``-th pixel up to
             ``max_depth`` metres (None = no cutoff), merged on a ``voxel_size`` grid,
             colours averaged from the colour images. ``max_depth`` only affects this fusion.
@@ -306,7 +306,7 @@ def load_rgbd_folder(
     normals = colors = gt_points = None
     if cloud is not None:
         with progress.stage(f"reading point cloud {Path(cloud).name}"):
-            pc = read_point_cloud_ply(cloud)
+            pc = read_cloud(cloud)
         points, colors, normals = pc["points"], pc.get("colors"), pc.get("normals")
         if "labels" in pc:
             gt_points = _taxonomy_ids(pc["labels"], mapping, taxonomy, str(cloud))
