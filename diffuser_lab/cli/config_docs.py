@@ -26,6 +26,8 @@ from typing import Any, Optional, Sequence
 from omegaconf import MISSING
 
 from diffuser_lab import config
+from diffuser_lab.data.capture import CaptureOptions
+from diffuser_lab.data.sources import SOURCES
 from diffuser_lab.runs.protocols import PROTOCOLS
 from diffuser_lab.runs.resolve import names
 
@@ -132,11 +134,17 @@ def _prose(doc: str) -> str:
     return _text(text.replace("``", "`"))
 
 
-def _tables(cls: type, prefix: str, registries: dict[str, list[str]]) -> list[str]:
+def _tables(cls: type, prefix: str, registries: dict[str, list[str]], *, title: str = "",
+            skip: frozenset = frozenset()) -> list[str]:
     hints = typing.get_type_hints(cls)
-    comments = _comments(cls)
+    comments = {}
+    for base in reversed(cls.__mro__):  # a field's comment is where it is declared
+        if dataclasses.is_dataclass(base) and base.__module__ != "builtins":
+            comments.update(_comments(base) if "__dataclass_fields__" in vars(base) else {})
     rows, nested = [], []
     for f in dataclasses.fields(cls):
+        if f.name in skip:
+            continue
         key = f"{prefix}.{f.name}" if prefix else f.name
         sub = _section_type(hints[f.name])
         if sub is not None:
@@ -147,7 +155,7 @@ def _tables(cls: type, prefix: str, registries: dict[str, list[str]]) -> list[st
     out = []
     if rows:
         doc = _prose(inspect.getdoc(cls) or "") if cls is not config.Config else ""
-        out += [f"### `{prefix}`" if prefix else "### (top level)", ""]
+        out += [title or (f"### `{prefix}`" if prefix else "### (top level)"), ""]
         if doc:
             out += [doc, ""]
         out += ["| key | type | default | range / choices | comment |", "| --- | --- | --- | --- | --- |", *rows, ""]
@@ -158,8 +166,17 @@ def _tables(cls: type, prefix: str, registries: dict[str, list[str]]) -> list[st
 
 def generated() -> str:
     """The generated part of docs/config.md (between and with the markers)."""
-    lines = [BEGIN, "", *_tables(config.Config, "", names(PROTOCOLS)), END]
-    return "\n".join(lines)
+    registries = names(PROTOCOLS)
+    lines = [BEGIN, "", *_tables(config.Config, "", registries)]
+    common = frozenset(f.name for f in dataclasses.fields(CaptureOptions))
+    lines += _tables(CaptureOptions, "scene.options", registries,
+                     title="### `scene.options` of every capture format (`diffuser_lab/data/capture.py`)")
+    for entry in SOURCES.values():  # the scene sources that declare their keys: their own ones
+        if entry.options is not None:
+            own = common if issubclass(entry.options, CaptureOptions) else frozenset()
+            lines += _tables(entry.options, "scene.options", registries, skip=own,
+                             title=f"### `scene.options` of `scene={entry.name}` ({entry.description})")
+    return "\n".join([*lines, END])
 
 
 def render(text: str) -> str:
