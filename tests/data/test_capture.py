@@ -120,3 +120,11 @@ def test_las_round_trip_and_errors(tmp_path):
         read_cloud(tmp_path / "t.laz")
     with pytest.raises(ValueError, match=r"c\.xyz: point cloud of unknown type \.xyz"):
         read_cloud(tmp_path / "c.xyz")
+
+
+def test_a_laz_cloud_is_the_points_to_label(world, tmp_path):
+    ref = capture_scene("w", _frames(world), CaptureOptions(), SCANNET20)
+    path = write_las(tmp_path / "scan.laz", ref.points, ref.gt_labels, SCANNET20.names)[0]
+    s = capture_scene("w", _frames(world, depth=False, labels=False), CaptureOptions(cloud=str(path)), SCANNET20)
+    assert np.abs(s.points - ref.points).max() < 1e-4 and (s.gt_labels == ref.gt_labels).all()
+    assert s.frames.info["cloud"] == f"{len(ref.points):,} points from scan.laz"
