@@ -25,7 +25,7 @@ from diffuser_lab.data.scene import Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
 from diffuser_lab.registry import Registry
 
-from . import demo, mesh_views, rgbd_folder, scannet, tum
+from . import demo, mesh_views, rgbd_folder, rosbag, scannet, tum
 
 __all__ = ["SceneSource", "SOURCES", "register", "get"]
 
@@ -67,6 +67,8 @@ SOURCES: Registry = Registry("scene.source", "scene source", [
     SceneSource("rgbd_folder", "frame-XXXXXX.{color,depth,pose} + camera-intrinsics.txt", rgbd_folder.load,
                 label_ids=rgbd_folder.label_ids),
     SceneSource("tum", "TUM RGB-D: rgb.txt depth.txt groundtruth.txt, associated by timestamp", tum.load),
+    SceneSource("rosbag", "ROS 1 .bag / ROS 2 bag (mcap, db3): depth, colour, CameraInfo, tf or a pose topic",
+                rosbag.load, options=rosbag.RosbagOptions),
 ])
 """The scene sources by name (``scene.source``)."""
 

@@ -1,0 +1,645 @@
+"""ROS 1 and ROS 2 bags (``.bag``; a rosbag2 folder, ``.mcap`` or ``.db3``), read with ``rosbags``
+(no ROS installation): ``scene.source=rosbag``.
+
+What is read (message definitions: https://docs.ros.org/en/rolling/p/sensor_msgs/):
+
+- **depth** ``sensor_msgs/Image`` ``16UC1`` (millimetres, ``depth_scale`` units per metre) or ``32FC1``
+  (metres; NaN / inf = none), or ``sensor_msgs/CompressedImage`` ``compressedDepth`` (PNG, as
+  ``compressed_depth_image_transport`` writes it); 0 = no depth (REP 118);
+- **colour** ``Image`` rgb8 / bgr8 / rgba8 / bgra8 / mono8 or ``CompressedImage`` jpeg / png, registered to
+  the depth image (one optical frame: e.g. RealSense ``aligned_depth_to_color``), resized to its size;
+- **labels** ``Image`` mono8 / mono16 (8UC1, 16UC1, 32SC1) or a PNG ``CompressedImage``: label ids;
+- **intrinsics** ``sensor_msgs/CameraInfo`` of the depth topic: ``K`` for ``width x height``; images
+  must be undistorted (``D`` all zero; a non-zero ``D`` is refused);
+- **poses** of the camera's optical frame (x right, y down, z forward: OpenCV's camera, REP 103) in the
+  world: the tf2 chain ``world_frame`` -> ``camera_frame`` of ``/tf`` + ``/tf_static``
+  (``tf2_msgs/TFMessage``; any number of links, static and dynamic), or a pose topic
+  (``geometry_msgs/PoseStamped``, ``PoseWithCovarianceStamped``, ``TransformStamped``,
+  ``nav_msgs/Odometry``) of a body whose camera sits at ``camera_in_body``.
+
+Stamps are the messages' ``header.stamp`` (``use_header_stamp=false``: the bag's record time). The depth
+image is the frame's clock; the nearest colour / label image within ``max_time_diff`` seconds joins it;
+the pose at its stamp is interpolated (translation linear, rotation slerp) between the samples around it
+that lie within ``pose_max_time_diff``, else the nearest such sample. Frames without colour or pose are
+skipped and counted in ``scene.frames.info``; frames are ordered by stamp.
+
+Frames are lazy: the first pass keeps (topic, record time, ordinal) per image message and decodes only
+the small messages (CameraInfo, tf, poses); an image is read from the bag when its frame is.
+
+:func:`write_pointcloud2_bag` writes labelled points as a ROS 2 bag (MCAP storage) with one
+``sensor_msgs/msg/PointCloud2`` message that rviz2 and Foxglove display.
+"""
+from __future__ import annotations
+
+import io
+import struct
+import threading
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import List, Optional
+
+import numpy as np
+from omegaconf import MISSING
+
+from diffuser_lab.config import SceneConfig, above, key, rule
+from diffuser_lab.data.capture import CaptureOptions, CapturedFrame, capture_scene
+from diffuser_lab.data.scene import IGNORE, Scene, Taxonomy
+from diffuser_lab.data.sensor import SensorModel
+from diffuser_lab.data.validate import check_depth_unit
+
+from .tum import associate
+
+__all__ = ["RosbagOptions", "load", "load_rosbag", "decode_image", "write_pointcloud2_bag", "read_pointcloud2_bag",
+           "interpolate_poses"]
+
+IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
+INFO_TYPE = "sensor_msgs/msg/CameraInfo"
+TF_TYPE = "tf2_msgs/msg/TFMessage"
+POSE_TYPES = ("geometry_msgs/msg/PoseStamped", "geometry_msgs/msg/PoseWithCovarianceStamped",
+              "geometry_msgs/msg/TransformStamped", "nav_msgs/msg/Odometry")
+QUAT_TOL = 1e-2  # |norm(q) - 1| above this: not a rotation (as the TUM reader checks)
+
+
+_SEVEN = rule("[x, y, z, qx, qy, qz, qw] (metres, unit quaternion) or null", null=True, test=lambda v: len(v) == 7
+              and abs(float(np.linalg.norm(np.asarray(v[3:], float))) - 1.0) <= QUAT_TOL)
+
+
+@dataclass
+class RosbagOptions(CaptureOptions):
+    """``scene.options`` of ``scene=rosbag`` (docs/layouts.md, "ROS bags")."""
+
+    path: str = MISSING  # the bag: a ROS 1 .bag, a rosbag2 folder (metadata.yaml), or its .mcap / .db3 file
+    depth_topic: Optional[str] = None  # sensor_msgs Image / CompressedImage; null = the one image topic named *depth*
+    color_topic: Optional[str] = "auto"  # auto = the one image topic named *color* / *rgb* (raw before compressed); null = none
+    labels_topic: Optional[str] = None  # label-id images (mono8 / mono16 / PNG); null = none
+    camera_info_topic: Optional[str] = None  # the depth's CameraInfo; null = <depth topic's namespace>/camera_info, else the only one
+    pose_topic: Optional[str] = None  # PoseStamped / PoseWithCovarianceStamped / TransformStamped / Odometry; null = /tf + /tf_static
+    world_frame: Optional[str] = "map"  # tf: the world frame of the poses (null with pose_topic: the poses' header.frame_id)
+    camera_frame: Optional[str] = None  # tf: the camera's optical frame; null = the depth images' header.frame_id
+    camera_in_body: Optional[List[float]] = key(None, _SEVEN)  # pose_topic: the camera optical frame's pose in the body; null = the pose is the camera's
+    max_time_diff: float = key(0.02, above(0, "seconds"))  # colour / label image: nearest within this of the depth stamp
+    pose_max_time_diff: float = key(0.05, above(0, "seconds"))  # pose samples used: within this of the depth stamp
+    pose_interpolation: bool = True  # interpolate between the pose samples around a stamp; false = the nearest
+    use_header_stamp: bool = True  # false = the bag's record (receive) time instead of header.stamp
+    depth_scale: float = key(1000.0, above(0))  # 16UC1 depth: units per metre (REP 118: millimetres)
+
+
+# --------------------------------------------------------------------------- images
+
+
+def _pil(data: bytes, what: str) -> np.ndarray:
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(io.BytesIO(bytes(data))) as im:
+            im.load()
+            return np.asarray(im.convert("RGB") if im.mode in ("P", "CMYK", "YCbCr", "LA", "RGBA") else im).copy()
+    except (OSError, UnidentifiedImageError, SyntaxError, ValueError) as exc:
+        raise ValueError(f"{what}: unreadable compressed image ({type(exc).__name__}: {exc})") from None
+
+
+_RAW = {"rgb8": ("u1", 3), "bgr8": ("u1", 3), "rgba8": ("u1", 4), "bgra8": ("u1", 4), "mono8": ("u1", 1),
+        "8UC1": ("u1", 1), "8UC3": ("u1", 3), "mono16": ("u2", 1), "16UC1": ("u2", 1), "16SC1": ("i2", 1),
+        "32SC1": ("i4", 1), "32FC1": ("f4", 1)}
+
+
+def decode_image(msg, what: str) -> tuple[np.ndarray, str]:
+    """A ``sensor_msgs`` Image / CompressedImage -> ((H, W) or (H, W, C) array, encoding).
+
+    Raw images honour ``step`` (row padding) and ``is_bigendian``; the encoding returned is the
+    message's (``rgb8``, ``16UC1``...). Compressed: ``compressedDepth`` -> (H, W) float32 metres with
+    encoding ``depth``, else the PIL-decoded pixels with encoding ``compressed``.
+    """
+    if hasattr(msg, "format"):
+        fmt = str(msg.format)
+        data = np.asarray(msg.data, np.uint8)
+        if "compresseddepth" in fmt.lower():
+            if data.size < 12:
+                raise ValueError(f"{what}: compressedDepth message of {data.size} bytes, "
+                                 f"expected a 12-byte header + PNG")
+            _, qa, qb = struct.unpack("<iff", data[:12].tobytes())
+            raw = _pil(data[12:].tobytes(), what)
+            if "32FC1" in fmt:  # inverse depth, quantised: depth = qa / (v - qb)
+                v = raw.astype(np.float32)
+                d = np.where(v > 0, qa / np.maximum(v - qb, 1e-9), 0.0).astype(np.float32)
+            else:
+                d = raw.astype(np.float32) / 1000.0  # 16UC1 millimetres
+            return d, "depth"
+        return _pil(data.tobytes(), what), "compressed"
+    enc = str(msg.encoding)
+    if enc not in _RAW:
+        raise ValueError(f"{what}: image encoding {enc!r}, expected one of {', '.join(_RAW)}")
+    kind, ch = _RAW[enc]
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    dt = np.dtype(kind).newbyteorder(">" if msg.is_bigendian else "<")
+    row = w * ch * dt.itemsize
+    data = np.asarray(msg.data, np.uint8)
+    if step < row or data.size < h * step:
+        raise ValueError(f"{what}: {enc} image {w}x{h} with step {step} and {data.size} bytes, "
+                         f"expected step >= {row} and {h} x step bytes")
+    a = data[: h * step].reshape(h, step)[:, :row].copy().view(dt).reshape(h, w, ch)
+    return (a[..., 0] if ch == 1 else a).astype(dt.newbyteorder("=")), enc
+
+
+def _to_depth(a: np.ndarray, enc: str, scale: float, what: str) -> np.ndarray:
+    """Decoded depth -> (H, W) float32 metres, 0 = none."""
+    if enc == "depth":
+        d = a
+    elif enc in ("16UC1", "mono16"):
+        d = a.astype(np.float32) / np.float32(scale)
+    elif enc == "32FC1":
+        d = a.astype(np.float32)
+    else:
+        raise ValueError(f"{what}: depth image of encoding {enc}, expected 16UC1 (millimetres), 32FC1 (metres) "
+                         f"or a compressedDepth image")
+    return np.where(np.isfinite(d) & (d > 0), d, 0).astype(np.float32)
+
+
+def _to_rgb(a: np.ndarray, enc: str, what: str) -> np.ndarray:
+    """Decoded colour -> (H, W, 3) uint8 RGB."""
+    if a.dtype != np.uint8:
+        raise ValueError(f"{what}: colour image of encoding {enc} ({a.dtype}), "
+                         f"expected 8-bit rgb8/bgr8/rgba8/bgra8/mono8")
+    if a.ndim == 2:
+        return np.repeat(a[..., None], 3, axis=2)
+    if enc in ("bgr8", "bgra8"):
+        return np.ascontiguousarray(a[..., 2::-1])
+    return np.ascontiguousarray(a[..., :3])
+
+
+def _to_labels(a: np.ndarray, enc: str, what: str) -> np.ndarray:
+    if a.ndim != 2 or a.dtype.kind not in "ui":
+        raise ValueError(f"{what}: label image of encoding {enc} shape {a.shape}, expected one integer channel "
+                         f"(mono8 / mono16 / 32SC1 / a PNG)")
+    return a.astype(np.int64)
+
+
+# --------------------------------------------------------------------------- poses
+
+
+def _quat_matrix(t: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """(N, 3) translations, (N, 4) quaternions qx qy qz qw -> (N, 4, 4) rigid transforms."""
+    from scipy.spatial.transform import Rotation
+
+    T = np.tile(np.eye(4), (len(t), 1, 1))
+    if len(t):
+        T[:, :3, :3] = Rotation.from_quat(q).as_matrix()
+        T[:, :3, 3] = t
+    return T
+
+
+def interpolate_poses(stamps: np.ndarray, trans: np.ndarray, quats: np.ndarray, at: np.ndarray, tol: float,
+                      interpolate: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Poses of a sampled trajectory at other times.
+
+    Args:
+        stamps: (M,) int64 nanoseconds, sorted. trans: (M, 3) metres. quats: (M, 4) qx qy qz qw, unit.
+        at: (N,) int64 nanoseconds. tol: seconds; a sample farther than this from ``at`` is not used.
+        interpolate: between the samples just before and after (both within ``tol``): translation linear,
+            rotation slerp; otherwise (and when only one is within ``tol``) the nearest sample.
+    Returns:
+        (N, 4, 4) float64 transforms and (N,) bool: a sample lay within ``tol``.
+    """
+    at = np.asarray(at, np.int64)
+    m = len(stamps)
+    jr = np.clip(np.searchsorted(stamps, at), 0, m - 1)
+    jl = np.clip(jr - 1, 0, m - 1)
+    jl = np.where(stamps[jr] == at, jr, jl)
+    dl, dr = np.abs(at - stamps[jl]) * 1e-9, np.abs(at - stamps[jr]) * 1e-9
+    ok = np.minimum(dl, dr) <= tol
+    near = np.where(dl <= dr, jl, jr)
+    both = interpolate & (jl != jr) & (stamps[jl] <= at) & (at <= stamps[jr]) & (dl <= tol) & (dr <= tol)
+    a = np.where(both, (at - stamps[jl]) / np.maximum(stamps[jr] - stamps[jl], 1), 0.0)[:, None]
+    i0, i1 = np.where(both, jl, near), np.where(both, jr, near)
+    t = (1 - a) * trans[i0] + a * trans[i1]
+    q0, q1 = quats[i0], quats[i1]
+    d = np.sum(q0 * q1, 1, keepdims=True)
+    q1 = np.where(d < 0, -q1, q1)  # the shorter arc
+    th = np.arccos(np.clip(np.abs(d), -1.0, 1.0))
+    s = np.sin(th)
+    small = s < 1e-9
+    w0 = np.where(small, 1 - a, np.sin((1 - a) * th) / np.where(small, 1, s))
+    w1 = np.where(small, a, np.sin(a * th) / np.where(small, 1, s))
+    q = w0 * q0 + w1 * q1
+    return _quat_matrix(t, q / np.linalg.norm(q, axis=1, keepdims=True)), ok
+
+
+def _rigid(q: np.ndarray, t: np.ndarray, where: str) -> None:
+    """One line when a sample's quaternion is not a rotation (or any value is not finite)."""
+    n = np.linalg.norm(q, axis=1)
+    bad = ~(np.abs(n - 1) <= QUAT_TOL) | ~np.isfinite(t).all(1)
+    if bad.any():
+        k = int(np.argmax(bad))
+        raise ValueError(f"{where}: sample {k} has quaternion norm {n[k]:.4g} (or non-finite values), expected a "
+                         f"rigid pose (a unit quaternion x y z w)")
+
+
+class _Track:
+    """One sampled transform (a tf edge parent -> child, or a pose topic): stamps and values."""
+
+    def __init__(self, parent: str, static: bool, where: str):
+        self.parent, self.static, self.where = parent, static, where
+        self.t: list[int] = []
+        self.v: list[tuple] = []
+
+    def arrays(self):
+        st = np.asarray(self.t, np.int64)
+        v = np.asarray(self.v, np.float64).reshape(-1, 7)
+        o = np.argsort(st, kind="stable")
+        _rigid(v[o, 3:], v[o, :3], self.where)
+        return st[o], v[o, :3], v[o, 3:] / np.linalg.norm(v[o, 3:], axis=1, keepdims=True)
+
+    def at(self, at: np.ndarray, tol: float, interpolate: bool) -> tuple[np.ndarray, np.ndarray]:
+        st, tr, q = self.arrays()
+        if self.static:  # valid at every time: the latest sample
+            return np.repeat(_quat_matrix(tr[-1:], q[-1:]), len(at), 0), np.ones(len(at), bool)
+        return interpolate_poses(st, tr, q, at, tol, interpolate)
+
+
+def _chain(edges: dict[str, _Track], world: str, camera: str, bag: Path) -> tuple[list[str], list[str]]:
+    """The tf tree's path world -> camera: (frames from world up to the common ancestor,
+    frames from the camera up to it), each edge a child frame of ``edges``."""
+    known = sorted(set(edges) | {e.parent for e in edges.values()})
+    for name, role in ((world, "world_frame"), (camera, "camera_frame")):
+        if name not in known:
+            raise ValueError(f"{bag}: frame {name!r} (scene.options.{role}) is not in /tf or /tf_static; "
+                             f"frames there: {', '.join(known) or 'none'}")
+
+    def up(f: str) -> list[str]:
+        out = [f]
+        while out[-1] in edges and len(out) <= len(edges):
+            out.append(edges[out[-1]].parent)
+        return out
+
+    a, b = up(camera), up(world)
+    common = next((f for f in a if f in b), None)
+    if common is None:
+        raise ValueError(f"{bag}: frames {world!r} and {camera!r} are not connected in /tf + /tf_static "
+                         f"(roots {b[-1]!r} and {a[-1]!r})")
+    return b[: b.index(common)], a[: a.index(common)]
+
+
+def _chain_poses(edges, world, camera, at, tol, interpolate, bag) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 4, 4) world-from-camera at the (N,) stamps and (N,) bool: every link had a sample."""
+    up_world, up_cam = _chain(edges, world, camera, bag)
+    ok = np.ones(len(at), bool)
+
+    def root_from(frames: list[str]) -> np.ndarray:  # root-from-frames[0]: the links composed
+        nonlocal ok
+        T = np.tile(np.eye(4), (len(at), 1, 1))
+        for f in frames:  # loop over the few links of a chain
+            Tf, okf = edges[f].at(at, tol, interpolate)
+            T, ok = Tf @ T, ok & okf
+        return T
+
+    Tw, Tc = root_from(up_world), root_from(up_cam)
+    Rw = np.transpose(Tw[:, :3, :3], (0, 2, 1))
+    inv = np.tile(np.eye(4), (len(at), 1, 1))
+    inv[:, :3, :3], inv[:, :3, 3] = Rw, -np.einsum("nij,nj->ni", Rw, Tw[:, :3, 3])
+    return inv @ Tc, ok
+
+
+def _tf_values(tr) -> tuple:
+    t, r = tr.translation, tr.rotation
+    return (t.x, t.y, t.z, r.x, r.y, r.z, r.w)
+
+
+def _pose_values(msg, msgtype: str) -> tuple:
+    if msgtype.endswith("TransformStamped"):
+        return _tf_values(msg.transform)
+    p = msg.pose.pose if msgtype.endswith(("Odometry", "WithCovarianceStamped")) else msg.pose
+    return (p.position.x, p.position.y, p.position.z, p.orientation.x, p.orientation.y, p.orientation.z,
+            p.orientation.w)
+
+
+# --------------------------------------------------------------------------- the bag
+
+
+def _stamp_ns(t) -> int:
+    return int(t.sec) * 1_000_000_000 + int(t.nanosec)
+
+
+def _header(raw: memoryview | bytes, ros2: bool, what: str) -> tuple[int, str]:
+    """(stamp ns, frame_id) of a serialised message whose first field is a std_msgs/Header, read from
+    its first bytes (CDR: 4-byte encapsulation, sec, nanosec, frame_id; ROS 1: seq, sec, nsec, frame_id)."""
+    raw = bytes(raw[:4096])
+    if len(raw) < 16:
+        raise ValueError(f"{what}: message of {len(raw)} bytes, expected a std_msgs/Header first")
+    end = "<" if (not ros2 or raw[1] & 1) else ">"
+    sec, nsec, n = struct.unpack(end + ("iII" if ros2 else "III"), raw[4:16])
+    fid = raw[16: 16 + n].rstrip(b"\0").decode("utf-8", "replace") if n < 4080 else ""
+    return sec * 1_000_000_000 + nsec, fid.lstrip("/")
+
+
+class _Bag:
+    """The bag, opened once per thread for the lazy frame reads (``rosbags.highlevel.AnyReader``)."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self._local = threading.local()
+
+    def open(self):
+        from rosbags.highlevel import AnyReader
+        from rosbags.typesys import Stores, get_typestore
+
+        r = getattr(self._local, "reader", None)
+        if r is None:
+            r = AnyReader([self.path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+            try:
+                r.open()
+            except Exception as e:  # rosbags raises its own errors (and KeyError, struct.error) on a damaged bag
+                raise ValueError(f"{self.path}: not a readable ROS bag ({type(e).__name__}: "
+                                 f"{str(e).splitlines()[0] if str(e) else ''}); a recording cut short needs "
+                                 f"'mcap recover' (MCAP) or 'rosbag reindex' (ROS 1)") from None
+            self._local.reader = r
+        return r
+
+    def message(self, topic: str, t: int, ordinal: int):
+        """The ``ordinal``-th message of ``topic`` recorded at ``t`` ns, deserialised."""
+        r = self.open()
+        conns = [c for c in r.connections if c.topic == topic]
+        try:
+            for k, (c, _, raw) in enumerate(r.messages(connections=conns, start=t, stop=t + 1)):
+                if k == ordinal:
+                    return r.deserialize(raw, c.msgtype)
+        except Exception as e:
+            raise ValueError(f"{self.path}: {topic} message at {t * 1e-9:.6f} s unreadable ({type(e).__name__}: "
+                             f"{str(e).splitlines()[0] if str(e) else ''})") from None
+        raise ValueError(f"{self.path}: {topic} has no message recorded at {t * 1e-9:.6f} s")
+
+
+def _topics_line(topics: dict) -> str:
+    return ", ".join(f"{n} ({i.msgtype})" for n, i in sorted(topics.items())) or "none"
+
+
+def _pick(topics: dict, name: Optional[str], types, key: str, bag: Path, words=(), exclude=()) -> Optional[str]:
+    """The topic ``name`` (checked: present, of one of ``types``), or for ``auto`` / None (where the
+    key has no null meaning none) the one image topic whose name has one of ``words``."""
+    if name is not None and name != "auto":
+        if name not in topics:
+            raise ValueError(f"{bag}: no topic {name} (scene.options.{key}); topics present: {_topics_line(topics)}")
+        if topics[name].msgtype not in types:
+            raise ValueError(f"{bag}: topic {name} (scene.options.{key}) is {topics[name].msgtype}, expected "
+                             f"{' or '.join(types)}")
+        return name
+    cand = [n for n, i in topics.items() if i.msgtype in types and any(w in n.lower() for w in words)
+            and not any(w in n.lower() for w in exclude)]
+    cand = [n for n in cand if not (n.endswith("/compressed") and n[: -len("/compressed")] in cand)] or cand
+    if len(cand) == 1:
+        return cand[0]
+    if key == "color_topic" and not cand:
+        return None
+    raise ValueError(f"{bag}: {'no' if not cand else 'several'} {' / '.join(words)} image topics "
+                     f"({', '.join(sorted(cand)) or 'none'}): set scene.options.{key}; topics present: "
+                     f"{_topics_line(topics)}")
+
+
+def _info_topic(topics: dict, name: Optional[str], depth_topic: str, bag: Path) -> str:
+    if name is not None:
+        return _pick(topics, name, (INFO_TYPE,), "camera_info_topic", bag)
+    base = depth_topic
+    for suffix in ("/compressedDepth", "/compressed"):  # image_transport's sub-topics
+        base = base[: -len(suffix)] if base.endswith(suffix) else base
+    sibling = base.rsplit("/", 1)[0] + "/camera_info"
+    if sibling in topics and topics[sibling].msgtype == INFO_TYPE:
+        return sibling
+    infos = [n for n, i in topics.items() if i.msgtype == INFO_TYPE]
+    if len(infos) == 1:
+        return infos[0]
+    raise ValueError(f"{bag}: no CameraInfo topic {sibling} beside {depth_topic} and {len(infos)} others "
+                     f"({', '.join(sorted(infos)) or 'none'}): set scene.options.camera_info_topic")
+
+
+def _intrinsics(msg, bag: Path, topic: str) -> tuple[np.ndarray, Optional[tuple[int, int]]]:
+    """CameraInfo -> (3, 3) K, (H, W) it is for (None when width/height are 0)."""
+    K = np.asarray(getattr(msg, "k", None) if hasattr(msg, "k") else msg.K, np.float64).reshape(3, 3)
+    D = np.asarray(getattr(msg, "d", None) if hasattr(msg, "d") else msg.D, np.float64).ravel()
+    if np.any(D != 0):
+        raise ValueError(f"{bag}: {topic} distortion_model {msg.distortion_model!r} with D = "
+                         f"{np.round(D, 5).tolist()}; expected undistorted images (D all zero: a rectified "
+                         f"image topic)")
+    if not (K[0, 0] > 0 and K[1, 1] > 0):
+        raise ValueError(f"{bag}: {topic} K = {K.ravel().tolist()}, expected fx, fy > 0")
+    size = (int(msg.height), int(msg.width)) if msg.height and msg.width else None
+    return K, size
+
+
+def load_rosbag(o: RosbagOptions, taxonomy: Taxonomy) -> Scene:
+    """The capture in the bag ``o.path`` (module docstring) as a Scene (lazy frames ordered by stamp)."""
+    bag = Path(o.path)
+    if not bag.exists():
+        raise FileNotFoundError(f"ROS bag {bag} does not exist (scene.options.path)")
+    handle = _Bag(bag)
+    r = handle.open()
+    ros2 = r.is2
+    topics = r.topics
+    depth_t = _pick(topics, o.depth_topic, IMAGE_TYPES, "depth_topic", bag, ("depth",))
+    color_t = None if o.color_topic is None else _pick(topics, o.color_topic, IMAGE_TYPES, "color_topic", bag,
+                                                       ("color", "rgb"), ("depth",))
+    label_t = None if o.labels_topic is None else _pick(topics, o.labels_topic, IMAGE_TYPES, "labels_topic", bag)
+    info_t = _info_topic(topics, o.camera_info_topic, depth_t, bag)
+    pose_t = None if o.pose_topic is None else _pick(topics, o.pose_topic, POSE_TYPES, "pose_topic", bag)
+    tf_t = [] if pose_t else [t for t in ("/tf", "/tf_static") if t in topics and topics[t].msgtype == TF_TYPE]
+    if not pose_t and not tf_t:
+        raise ValueError(f"{bag}: no /tf or /tf_static topic and no scene.options.pose_topic; topics present: "
+                         f"{_topics_line(topics)}")
+
+    images = {t: ([], [], []) for t in (depth_t, color_t, label_t) if t}  # stamps, record times, ordinals
+    depth_frame = None
+    info_msg = None
+    edges: dict[str, _Track] = {}
+    track = _Track("", False, f"{bag}: {pose_t}")
+    pose_frame = None
+    last: dict[str, tuple[int, int]] = {}
+    wanted = set(images) | {info_t, *tf_t} | ({pose_t} if pose_t else set())
+    conns = [c for c in r.connections if c.topic in wanted]
+    try:
+        for c, t, raw in r.messages(connections=conns):  # the one pass: metadata; small messages decoded
+            topic = c.topic
+            if topic in images:
+                lt, n = last.get(topic, (None, 0))
+                n = n + 1 if lt == t else 0
+                last[topic] = (t, n)
+                stamp, fid = _header(raw, ros2, f"{bag}: {topic}")
+                s = images[topic]
+                s[0].append(stamp if o.use_header_stamp else t), s[1].append(t), s[2].append(n)
+                if topic == depth_t and depth_frame is None:
+                    depth_frame = fid
+            elif topic == info_t:
+                if info_msg is None:
+                    info_msg = r.deserialize(raw, c.msgtype)
+            elif topic == pose_t:
+                m = r.deserialize(raw, c.msgtype)
+                pose_frame = pose_frame or m.header.frame_id.lstrip("/")
+                track.t.append(_stamp_ns(m.header.stamp) if o.use_header_stamp else t)
+                track.v.append(_pose_values(m, c.msgtype))
+            else:  # /tf, /tf_static
+                for ts in r.deserialize(raw, c.msgtype).transforms:
+                    child, parent = ts.child_frame_id.lstrip("/"), ts.header.frame_id.lstrip("/")
+                    e = edges.setdefault(child, _Track(parent, topic == "/tf_static",
+                                                       f"{bag}: {topic} {parent} -> {child}"))
+                    if e.parent != parent or e.static != (topic == "/tf_static"):
+                        raise ValueError(f"{bag}: frame {child!r} has two parents in /tf + /tf_static ({e.parent!r} "
+                                         f"and {parent!r}), expected one tf tree")
+                    e.t.append(_stamp_ns(ts.header.stamp)), e.v.append(_tf_values(ts.transform))
+    except Exception as e:  # a damaged chunk, a message that does not deserialise
+        if isinstance(e, ValueError) and str(e).startswith(str(bag)):
+            raise
+        raise ValueError(f"{bag}: unreadable messages ({type(e).__name__}: "
+                         f"{str(e).splitlines()[0] if str(e) else ''})") from None
+    if info_msg is None:
+        raise ValueError(f"{bag}: no message on {info_t} (scene.options.camera_info_topic)")
+    K, K_size = _intrinsics(info_msg, bag, info_t)
+    d_st, d_rt, d_ord = (np.asarray(x, np.int64) for x in images[depth_t])
+    if len(d_st) == 0:
+        raise ValueError(f"{bag}: no message on {depth_t} (scene.options.depth_topic)")
+    order = np.argsort(d_st, kind="stable")
+    d_st, d_rt, d_ord = d_st[order], d_rt[order], d_ord[order]
+    keep = np.ones(len(d_st), bool)
+    info: dict = {"bag": str(bag), "depth_topic": depth_t, "n_frames_found": int(len(d_st))}
+
+    def match(topic):  # (index into the topic's sorted messages per depth frame, their arrays)
+        st, rt, od = (np.asarray(x, np.int64) for x in images[topic])
+        o2 = np.argsort(st, kind="stable")
+        st, rt, od = st[o2], rt[o2], od[o2]
+        j = associate(d_st * 1e-9, st * 1e-9, o.max_time_diff, one_to_one=False) if len(st) else \
+            np.full(len(d_st), -1)
+        return j, rt, od
+
+    if color_t:
+        cj, c_rt, c_ord = match(color_t)
+        info["n_no_color"] = int(np.count_nonzero(cj < 0))
+        keep &= cj >= 0
+    if label_t:
+        lj, l_rt, l_ord = match(label_t)
+        info["n_no_labels"] = int(np.count_nonzero(keep & (lj < 0)))  # kept, without ground truth
+    if pose_t:
+        if not track.t:
+            raise ValueError(f"{bag}: no message on {pose_t} (scene.options.pose_topic)")
+        st, tr, q = track.arrays()
+        T_wb, ok = interpolate_poses(st, tr, q, d_st, o.pose_max_time_diff, o.pose_interpolation)
+        T_bc = np.eye(4) if o.camera_in_body is None else _quat_matrix(
+            np.asarray(o.camera_in_body[:3], float)[None], np.asarray(o.camera_in_body[3:], float)[None])[0]
+        T_wc = T_wb @ T_bc
+        world = pose_frame
+        camera = "(camera_in_body)" if o.camera_in_body is not None else pose_t
+    else:
+        world = o.world_frame
+        camera = o.camera_frame or depth_frame
+        if not world or not camera:
+            raise ValueError(f"{bag}: scene.options.world_frame / camera_frame not set and the depth images "
+                             f"have no header.frame_id")
+        T_wc, ok = _chain_poses(edges, world, camera, d_st, o.pose_max_time_diff, o.pose_interpolation, bag)
+    info["n_no_pose"] = int(np.count_nonzero(keep & ~ok))
+    keep &= ok
+    info.update(world_frame=world, camera_frame=camera)
+    sel = np.flatnonzero(keep)
+    if len(sel) == 0:
+        raise ValueError(f"{bag}: none of the {len(d_st)} depth images on {depth_t} has "
+                         f"{'a colour image and ' if color_t else ''}a pose within max_time_diff="
+                         f"{o.max_time_diff} s / pose_max_time_diff={o.pose_max_time_diff} s "
+                         f"({info.get('n_no_color', 0)} without colour, {info['n_no_pose']} without pose)")
+    if len(sel) < 0.5 * len(d_st):
+        warnings.warn(f"{bag}: {len(d_st) - len(sel)} of {len(d_st)} depth images dropped "
+                      f"({info.get('n_no_color', 0)} without colour, {info['n_no_pose']} without pose)", stacklevel=2)
+    R_t = np.transpose(T_wc[:, :3, :3], (0, 2, 1))
+    T_cw = np.tile(np.eye(4), (len(d_st), 1, 1))  # rigid inverse of every pose at once
+    T_cw[:, :3, :3], T_cw[:, :3, 3] = R_t, -np.einsum("nij,nj->ni", R_t, T_wc[:, :3, 3])
+    info["timestamps"] = (d_st[sel] * 1e-9).tolist()
+
+    def reader(topic, t, n, convert):
+        what = f"{bag}: {topic} at {t * 1e-9:.6f} s"
+        return lambda: convert(*decode_image(handle.message(topic, int(t), int(n)), what), what)
+
+    scale = o.depth_scale
+    frames = []
+    for i in sel:  # one CapturedFrame (readers only) per kept depth message
+        name = f"{d_st[i] // 1_000_000_000}.{d_st[i] % 1_000_000_000:09d}"
+        frames.append(CapturedFrame(
+            name=name, T_cw=T_cw[i], K=K, K_size=K_size,
+            depth=reader(depth_t, d_rt[i], d_ord[i], lambda a, e, w: _to_depth(a, e, scale, w)),
+            rgb=reader(color_t, c_rt[cj[i]], c_ord[cj[i]], _to_rgb) if color_t else None,
+            labels=reader(label_t, l_rt[lj[i]], l_ord[lj[i]], _to_labels) if label_t and lj[i] >= 0 else None))
+    scene = capture_scene(bag.stem if bag.is_file() else bag.name, frames, o, taxonomy, root=bag, info=info)
+    check_depth_unit(scene.frames[0], hint=f"scene.options.depth_scale={scale} (16UC1 units per metre)")
+    return scene
+
+
+def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) -> Scene:
+    """``scene.source=rosbag``: the bag of ``scene.options`` (a :class:`RosbagOptions`; real depth)."""
+    return load_rosbag(cfg.options, taxonomy)
+
+
+# --------------------------------------------------------------------------- output: PointCloud2
+
+
+_PC2_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgb", "<f4"), ("label", "<i4")])
+
+
+def write_pointcloud2_bag(path, points: np.ndarray, labels: np.ndarray, taxonomy: Taxonomy, frame_id: str = "map",
+                          topic: str = "/diffuser_lab/labels", stamp_ns: Optional[int] = None,
+                          ignore_color=(128, 128, 128)) -> Path:
+    """Labelled points as a ROS 2 bag (MCAP storage, CDR, ROS 2 Humble message definitions).
+
+    One ``sensor_msgs/msg/PointCloud2`` on ``topic``: fields x y z (float32, metres in ``frame_id``),
+    rgb (float32 holding the packed 0x00RRGGBB bytes, as rviz reads it: the class colours; IGNORE
+    ``ignore_color``) and label (int32 class id, -1 = IGNORE); height 1, little endian, dense.
+
+    Args:
+        path: the bag folder to create (``<path>/<name>.mcap`` + ``metadata.yaml``); must not exist.
+        points: (N, 3) world metres. labels: (N,) class ids of ``taxonomy``.
+        stamp_ns: header stamp and record time; None = now.
+    Returns:
+        the ``.mcap`` file (Foxglove opens it as it is; ``ros2 bag play`` takes the folder).
+    """
+    from rosbags.rosbag2 import StoragePlugin, Writer, WriterError
+    from rosbags.typesys import Stores, get_typestore
+
+    path = Path(path)
+    points = np.asarray(points, np.float32).reshape(-1, 3)
+    labels = np.asarray(labels).reshape(-1)
+    if len(labels) != len(points):
+        raise ValueError(f"{path}: {len(points)} points but {len(labels)} labels")
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    PointCloud2, PointField = ts.types["sensor_msgs/msg/PointCloud2"], ts.types["sensor_msgs/msg/PointField"]
+    Header, Time = ts.types["std_msgs/msg/Header"], ts.types["builtin_interfaces/msg/Time"]
+    rgb = taxonomy.colorize(labels, ignore_color).astype(np.uint32)
+    packed = (rgb[:, 0] << 16) | (rgb[:, 1] << 8) | rgb[:, 2]
+    rec = np.empty(len(points), _PC2_DTYPE)
+    rec["x"], rec["y"], rec["z"] = points[:, 0], points[:, 1], points[:, 2]
+    rec["rgb"] = packed.view(np.float32)
+    rec["label"] = np.where(labels == IGNORE, -1, labels).astype(np.int32)
+    stamp = time.time_ns() if stamp_ns is None else int(stamp_ns)
+    fields = [PointField(name=n, offset=_PC2_DTYPE.fields[n][1], datatype=d, count=1)
+              for n, d in (("x", 7), ("y", 7), ("z", 7), ("rgb", 7), ("label", 5))]  # 7 FLOAT32, 5 INT32
+    msg = PointCloud2(header=Header(stamp=Time(sec=stamp // 1_000_000_000, nanosec=stamp % 1_000_000_000),
+                                    frame_id=frame_id),
+                      height=1, width=len(points), fields=fields, is_bigendian=False,
+                      point_step=_PC2_DTYPE.itemsize, row_step=_PC2_DTYPE.itemsize * len(points),
+                      data=rec.view(np.uint8).reshape(-1), is_dense=True)
+    try:
+        with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+            conn = w.add_connection(topic, PointCloud2.__msgtype__, typestore=ts)
+            w.write(conn, stamp, ts.serialize_cdr(msg, PointCloud2.__msgtype__))
+    except WriterError as e:
+        raise FileExistsError(f"{path}: {e}") from None
+    return next(path.glob("*.mcap"))
+
+
+def read_pointcloud2_bag(path, topic: str = "/diffuser_lab/labels") -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
+    """What :func:`write_pointcloud2_bag` wrote: (N, 3) float32 points, (N,) int32 labels, (N, 3) uint8
+    colours and the frame_id (the first message on ``topic``)."""
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([Path(path)]) as r:
+        conns = [c for c in r.connections if c.topic == topic]
+        if not conns:
+            raise ValueError(f"{path}: no topic {topic}; topics present: {_topics_line(r.topics)}")
+        c, _, raw = next(r.messages(connections=conns))
+        m = r.deserialize(raw, c.msgtype)
+    rec = np.frombuffer(np.asarray(m.data, np.uint8).tobytes(), _PC2_DTYPE)
+    p = rec["rgb"].view(np.uint32)
+    cols = np.stack([(p >> 16) & 255, (p >> 8) & 255, p & 255], 1).astype(np.uint8)
+    return np.stack([rec["x"], rec["y"], rec["z"]], 1), rec["label"].copy(), cols, m.header.frame_id
