@@ -17,6 +17,7 @@ from omegaconf import OmegaConf
 from diffuser_lab import progress
 from diffuser_lab.data.clouds import write_las
 from diffuser_lab.data.scene import Taxonomy
+from diffuser_lab.data.sources.rosbag import write_pointcloud2_bag
 
 
 def config_yaml(conf: Any) -> str:
@@ -69,9 +70,14 @@ def _las(suffix: str) -> Callable[[Path, np.ndarray, np.ndarray, Taxonomy], list
     return write
 
 
+def _ros2(run_dir: Path, points: np.ndarray, labels: np.ndarray, taxonomy: Taxonomy) -> list[Path]:
+    return [write_pointcloud2_bag(run_dir / "labels_ros2", points, labels, taxonomy)]
+
+
 CLOUD_WRITERS: dict[str, Callable[[Path, np.ndarray, np.ndarray, Taxonomy], list[Path]]] = {
     "las": _las("las"),
     "laz": _las("laz"),
+    "ros2": _ros2,
 }
 """``output.clouds`` formats: ``(run folder, points, labels, taxonomy) -> files written``."""
 

@@ -1,7 +1,8 @@
 """Scene sources: the registry :data:`SOURCES`, one entry per source, named by ``scene.source``.
 
 Built in: the demo room (demo.py), views rendered from a labelled mesh (mesh_views.py), a ScanNet
-export (scannet.py), a posed RGB-D folder (rgbd_folder.py), a TUM RGB-D sequence (tum.py). Each
+export (scannet.py), a posed RGB-D folder (rgbd_folder.py), a TUM RGB-D sequence (tum.py), path
+templates for any other layout (templates.py). Each
 module has a ``load(cfg, taxonomy, sensor) -> Scene`` that reads its own keys of the
 :class:`~diffuser_lab.config.SceneConfig` (``scene.demo.*``, ``scene.scannet.*``, ...).
 
@@ -25,7 +26,7 @@ from diffuser_lab.data.scene import Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
 from diffuser_lab.registry import Registry
 
-from . import demo, mesh_views, rgbd_folder, rosbag, scannet, tum
+from . import demo, mesh_views, rgbd_folder, rosbag, scannet, templates, tum
 
 __all__ = ["SceneSource", "SOURCES", "register", "get"]
 
@@ -69,6 +70,8 @@ SOURCES: Registry = Registry("scene.source", "scene source", [
     SceneSource("tum", "TUM RGB-D: rgb.txt depth.txt groundtruth.txt, associated by timestamp", tum.load),
     SceneSource("rosbag", "ROS 1 .bag / ROS 2 bag (mcap, db3): depth, colour, CameraInfo, tf or a pose topic",
                 rosbag.load, options=rosbag.RosbagOptions),
+    SceneSource("templates", "any layout: a path template per file kind ({scene}, {frame:06d})", templates.load,
+                options=templates.TemplatesOptions),
 ])
 """The scene sources by name (``scene.source``)."""
 

@@ -33,6 +33,7 @@ from diffuser_lab.config import SceneConfig
 from diffuser_lab.data.capture import fuse_depth
 from diffuser_lab.data.clouds import read_cloud, read_point_cloud_ply
 from diffuser_lab.data.frames import LazyFrames
+from diffuser_lab.data.intrinsics import read_intrinsics, read_matrix_file
 from diffuser_lab.data.mapping import ClassMapping, load_mapping, native_mapping
 from diffuser_lab.data.prediction_files import label_ids_in, open_image, read_label_png, resize_nearest
 from diffuser_lab.data.scene import IGNORE, SCANNET20, Frame, Scene, Taxonomy
@@ -65,20 +66,6 @@ def rigid_inverse(T: np.ndarray) -> np.ndarray:
     return out
 
 
-def _read_matrix(path: Path, what: str) -> np.ndarray:
-    if not path.is_file():
-        raise FileNotFoundError(f"{what} file {path} does not exist")
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # an empty file is reported below, not as a warning
-            M = np.loadtxt(path, dtype=np.float64, ndmin=2)
-    except ValueError as e:
-        raise ValueError(f"{path}: cannot parse {what} as a numeric matrix ({str(e).splitlines()[0]})") from None
-    if M.size == 0:
-        raise ValueError(f"{path}: empty {what} file")
-    return M
-
-
 def read_pose_c2w(path: str | Path, tol: float = 1e-3, convention: str = CAMERA_TO_WORLD) -> np.ndarray | None:
     """4x4 pose file -> (4, 4) float64 as stored, or None when it has non-finite
     entries (ScanNet marks failed tracking with -inf poses; the caller skips those).
@@ -89,7 +76,7 @@ def read_pose_c2w(path: str | Path, tol: float = 1e-3, convention: str = CAMERA_
             det R != 1, last row != 0 0 0 1), naming the file.
     """
     path = Path(path)
-    T = _read_matrix(path, "pose")
+    T = read_matrix_file(path, "pose")
     if T.shape != (4, 4):
         raise ValueError(f"{path}: pose of shape {T.shape}, expected a 4x4 {convention.replace('_', '-')} matrix")
     if not np.isfinite(T).all():
@@ -110,22 +97,6 @@ def pose_to_world_to_camera(T: np.ndarray, convention: str) -> np.ndarray:
     if convention == WORLD_TO_CAMERA:
         return np.array(T, np.float64)
     raise ValueError(f"pose convention {convention!r}: expected {CAMERA_TO_WORLD} or {WORLD_TO_CAMERA}")
-
-
-def read_intrinsics(path: str | Path) -> np.ndarray:
-    """3x3 intrinsics file (or 4x4 whose upper-left 3x3 is K, as ScanNet's) -> (3, 3) float64.
-
-    Raises:
-        ValueError: wrong shape, non-positive focal lengths or a non-[0 0 1] last row.
-    """
-    path = Path(path)
-    M = _read_matrix(path, "intrinsics")
-    if M.shape not in ((3, 3), (4, 4)):
-        raise ValueError(f"{path}: intrinsics of shape {M.shape}, expected 3x3 (or 4x4 with K upper-left)")
-    K = M[:3, :3].copy()
-    if not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0 or np.abs(K[2] - [0, 0, 1]).max() > 1e-6:
-        raise ValueError(f"{path}: intrinsics {K.tolist()} need positive focal lengths fx, fy and last row 0 0 1")
-    return K
 
 
 def read_depth_png(path: str | Path, depth_scale: float, bit_shift: int = 0,

@@ -179,7 +179,9 @@ def load_scannet(root, *, frame_step: int = 10, max_frames: int | None = None,
 
     mesh_path = _find_mesh(root, layout.mesh)
     if mesh_path is None:
-        raise FileNotFoundError(f"{root}: no {layout.mesh.format(scene=root.name)} mesh (scene.scannet.mesh)")
+        raise FileNotFoundError(f"{root}: no {layout.mesh.format(scene=root.name)} mesh (scene.scannet.mesh); "
+                                f"without a mesh use scene=scannet_frames scene.options.root={root} (the cloud "
+                                f"back-projected from the depth, ground truth carried from label-filt)")
     label_path = _find_mesh(root, layout.labels_mesh)
     with progress.stage(f"reading mesh {mesh_path.name}" + (" + labels" if label_path is not None else "")):
         vertices, triangles, _, colors = read_labelled_mesh(mesh_path)
