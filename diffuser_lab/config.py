@@ -191,7 +191,7 @@ class CloudFormat(Enum):
 
     las = "las"  # labels.las (LAS 1.4)
     laz = "laz"  # labels.laz (LAS compressed)
-    ros2 = "ros2"  # labels_ros2.mcap (a ROS 2 bag in MCAP storage, one sensor_msgs/PointCloud2)
+    ros2 = "ros2"  # labels_ros2/ (a ROS 2 bag: labels_ros2.mcap + metadata.yaml, one sensor_msgs/PointCloud2)
 
 
 class BayesianMode(Enum):

@@ -93,7 +93,7 @@ def write_labels(run_dir: Path, points: np.ndarray, labels: np.ndarray, taxonomy
         out = _write_labels(run_dir, points, labels, taxonomy, ply)
         for name in names:  # loop over output formats
             written = CLOUD_WRITERS[name](run_dir, points, labels, taxonomy)
-            out[f"labels_{name}"] = Path(written[0]).name
+            out[f"labels_{name}"] = Path(written[0]).relative_to(run_dir).as_posix()
         return out
 
 

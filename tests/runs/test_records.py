@@ -16,10 +16,10 @@ def test_output_clouds_read_back(tmp_path):
     files = write_labels(tmp_path, pts, lab, SCANNET20, ply=False, clouds=list(CloudFormat))
     assert set(CLOUD_WRITERS) == {c.value for c in CloudFormat}  # every format the config offers has a writer
     assert files == {"labels": "labels.npy", "labels_las": "labels.las", "labels_laz": "labels.laz",
-                     "labels_ros2": "labels_ros2.mcap"}
+                     "labels_ros2": "labels_ros2/labels_ros2.mcap"}
     for name in ("labels.las", "labels.laz"):  # loop over the two LAS encodings
         back = read_cloud(tmp_path / name)
         assert np.abs(back["points"] - pts).max() < 1e-3 and (back["labels"] == lab).all()
-    p, labels, colors, frame = read_pointcloud2_bag(tmp_path / "labels_ros2.mcap")
+    p, labels, colors, frame = read_pointcloud2_bag(tmp_path / "labels_ros2")
     assert np.abs(p - pts).max() == 0 and (labels == lab).all() and frame == "map"
     assert (colors[lab >= 0] == SCANNET20.colorize(lab)[lab >= 0]).all()
