@@ -71,7 +71,7 @@ def test_a_source_registered_at_run_time_runs_every_protocol(tiny, tmp_path):
 
 def test_registry_names_are_checked_in_one_line(tiny):
     with pytest.raises(ConfigError, match=r"^scene\.source='nope': expected one of demo, mesh_views, scannet, "
-                                          r"rgbd_folder, tum, tiny$"):
+                                          r"rgbd_folder, tum, nerfstudio, replica, tiny$"):
         default_config(**{"scene.source": "nope"})
     with pytest.raises(ConfigError, match=r"^predictions\.source='nope': expected one of simulated, gt, files, "
                                           r"model, onnx, oracle$"):
