@@ -113,10 +113,18 @@ def taxonomy_mapping(mapping, taxonomy: Taxonomy) -> Optional[ClassMapping]:
 
 
 def _to_taxonomy(ids: np.ndarray, mapping: Optional[ClassMapping], taxonomy: Taxonomy, what: str) -> np.ndarray:
-    """Raw label ids -> (same shape) int16 taxonomy ids, via ``mapping`` or checked as they are."""
+    """Raw label ids -> (same shape) int16 taxonomy ids, via ``mapping`` or checked as they are.
+    A negative raw id is a reader's "no label here" (a label file holds none: e.g. outside the
+    distorted image after undistortion) and stays IGNORE."""
     if mapping is not None:
+        ids = np.asarray(ids)
+        none = ids < 0
         try:
-            return mapping.apply(ids)[0]
+            if not none.any():
+                return mapping.apply(ids)[0]
+            out = np.full(ids.shape, IGNORE, np.int16)
+            out[~none] = mapping.apply(ids[~none])[0]
+            return out
         except ValueError as e:
             raise ValueError(f"{what}: {e}") from None
     if ids.size and (ids.min() < IGNORE or ids.max() >= taxonomy.num_classes):

@@ -1,17 +1,22 @@
 """Scene sources: the registry :data:`SOURCES`, one entry per source, named by ``scene.source``.
 
 Built in: the demo room (demo.py), views rendered from a labelled mesh (mesh_views.py), a ScanNet
-export (scannet.py), a posed RGB-D folder (rgbd_folder.py), a TUM RGB-D sequence (tum.py), path
-templates for any other layout (templates.py). Each
-module has a ``load(cfg, taxonomy, sensor) -> Scene`` that reads its own keys of the
-:class:`~diffuser_lab.config.SceneConfig` (``scene.demo.*``, ``scene.scannet.*``, ...).
+export with its mesh (scannet.py), a posed RGB-D folder (rgbd_folder.py), a TUM RGB-D sequence
+(tum.py); and the capture formats built on :mod:`diffuser_lab.data.capture`: path templates for any
+other layout (templates.py; ScanNet without a mesh and as SensReader writes it are YAMLs of it),
+nerfstudio's transforms.json (nerfstudio.py), Replica as NICE-SLAM ships it (replica.py), COLMAP
+models (colmap.py), ROS 1 / ROS 2 bags (rosbag.py). Each module has a
+``load(cfg, taxonomy, sensor) -> Scene``; the first five read their own keys of the
+:class:`~diffuser_lab.config.SceneConfig` (``scene.demo.*``, ``scene.scannet.*``, ...), the capture
+formats ``scene.options``, an instance of the options dataclass their entry declares.
 
-Adding a dataset format is one module with such a ``load``, one ``conf/scene/<name>.yaml`` that
-says ``source: <name>`` (and sets the keys the loader reads) and one registry line: an entry in
-:data:`SOURCES` below, or, from outside the package, ``register(SceneSource("<name>", ..., load))``
-before the run. A source registered at run time reads its keys from ``scene.options`` (a
-free-form dict: Hydra's schema is fixed when it is stored, a dict is what a YAML file or
-``+scene.options.KEY=VALUE`` can fill); its loader checks them.
+Adding a dataset format is one module with such a ``load`` and an options dataclass (extending
+:class:`~diffuser_lab.data.capture.CaptureOptions` for a frame-based capture), one
+``conf/scene/<name>.yaml`` whose defaults list takes ``- options: <name>`` and says
+``source: <name>``, and one registry line: an entry in :data:`SOURCES` below, or, from outside the
+package, ``register(SceneSource("<name>", ..., load, options=...))`` before the run. Its keys are then
+``scene.options.KEY=VALUE`` on the command line, typed and range-checked; a source without an
+options dataclass reads ``scene.options`` as a free-form dict (``+scene.options.KEY=VALUE``).
 """
 from __future__ import annotations
 
@@ -26,7 +31,7 @@ from diffuser_lab.data.scene import Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
 from diffuser_lab.registry import Registry
 
-from . import demo, mesh_views, rgbd_folder, rosbag, scannet, templates, tum
+from . import demo, mesh_views, nerfstudio, replica, rgbd_folder, rosbag, scannet, templates, tum
 
 __all__ = ["SceneSource", "SOURCES", "register", "get"]
 
@@ -72,6 +77,10 @@ SOURCES: Registry = Registry("scene.source", "scene source", [
                 rosbag.load, options=rosbag.RosbagOptions),
     SceneSource("templates", "any layout: a path template per file kind ({scene}, {frame:06d})", templates.load,
                 options=templates.TemplatesOptions),
+    SceneSource("nerfstudio", "nerfstudio transforms.json (ns-process-data, Record3D, Polycam, ScanNet++)",
+                nerfstudio.load, options=nerfstudio.NerfstudioOptions),
+    SceneSource("replica", "Replica as NICE-SLAM ships it: traj.txt + results/ + cam_params.json", replica.load,
+                options=replica.ReplicaOptions),
 ])
 """The scene sources by name (``scene.source``)."""
 

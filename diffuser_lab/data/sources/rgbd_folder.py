@@ -52,6 +52,7 @@ __all__ = [
     "read_rgb",
     "read_point_cloud_ply",
     "rigid_inverse",
+    "check_rigid",
 ]
 
 CAMERA_TO_WORLD, WORLD_TO_CAMERA = "camera_to_world", "world_to_camera"  # pose file conventions
@@ -81,13 +82,19 @@ def read_pose_c2w(path: str | Path, tol: float = 1e-3, convention: str = CAMERA_
         raise ValueError(f"{path}: pose of shape {T.shape}, expected a 4x4 {convention.replace('_', '-')} matrix")
     if not np.isfinite(T).all():
         return None
+    check_rigid(T, str(path), convention, tol)
+    return T
+
+
+def check_rigid(T: np.ndarray, where: str, convention: str = CAMERA_TO_WORLD, tol: float = 1e-3) -> None:
+    """A finite (4, 4) pose must be rigid: R^T R = I and det R = 1 within ``tol``, last row 0 0 0 1;
+    else one ValueError starting with ``where`` (the file, and the field when it has several)."""
     R = T[:3, :3]
     ortho = np.abs(R.T @ R - np.eye(3)).max()
     det = np.linalg.det(R)
     if ortho > tol or abs(det - 1.0) > tol or np.abs(T[3] - [0, 0, 0, 1]).max() > tol:
-        raise ValueError(f"{path}: pose is not a rigid transform (max|R^T R - I| = {ortho:.2g}, det R = {det:.4g}, "
+        raise ValueError(f"{where}: pose is not a rigid transform (max|R^T R - I| = {ortho:.2g}, det R = {det:.4g}, "
                          f"last row {T[3].tolist()}), expected 4x4 {convention.replace('_', '-')} rotation + translation")
-    return T
 
 
 def pose_to_world_to_camera(T: np.ndarray, convention: str) -> np.ndarray:
