@@ -27,6 +27,9 @@ SCANNET_SMALL = ["scene.voxel_size=0.05", "scene.mesh_views.image_width=80", "sc
 SINGLE_FRAME_SMALL = ["protocol.max_targets=8"]
 VENV = Path(sys.prefix)
 HAVE_SHARED = (SHARED / "data" / "scannet").is_dir()
+HAVE_7SCENES = (SHARED / "data" / "7scenes_sample" / "camera-intrinsics.txt").is_file()
+CAPTURES = ("NERFSTUDIO_DIR", "COLMAP_DIR", "REPLICA_DIR", "SENSREADER_DIR", "TEMPLATES_DIR", "BAG")
+"""Placeholders of the capture formats' commands: the real 7-Scenes frames written in each layout."""
 
 
 @dataclass
@@ -118,8 +121,12 @@ def classify(c: Command) -> Command:
         c.key = "analysis"
     else:
         c.key = "shell"
+    if "scene=scannet_frames" in t:
+        c.append = ["scene.options.max_frames=8"]  # 8 of the 27 real frames
     if ("scannet0470" in t or "../shared" in t) and not HAVE_SHARED and not c.skip:
         c.skip = f"needs the real data in {SHARED / 'data'} (absent)"
+    if any(p in t for p in CAPTURES) and not HAVE_7SCENES and not c.skip:
+        c.skip = f"its fixture is written from the real 7-Scenes sample in {SHARED / 'data'} (absent)"
     return c
 
 
@@ -172,7 +179,54 @@ def own_data(folder: Path) -> dict[str, str]:
         "MSEG_PRED_DIR": str(write_mseg_predictions(folder / "mseg", world, ["0", "1", "2", "3"])),
         # the layout of conf/scene/my_rgbd_lab.yaml: (raw >> 3) / 1e4 m reaches 0.82 m, so a room at 1:8
         "LAB_FOLDER": str(write_lab_layout(folder, scaled_world(world, 0.125), depth_scale=1e4)),
+        **(captures(folder / "captures") if HAVE_7SCENES else {}),
     }
+
+
+def _test_module(name: str):
+    """A format's test module (tests/data/sources/<name>.py), for its fixture writer."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(name, ROOT / "tests" / "data" / "sources" / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def captures(folder: Path) -> dict[str, str]:
+    """The capture formats' placeholders (:data:`CAPTURES`): 4 real 7-Scenes frames written in each
+    layout by the formats' own test writers, with ground-truth label images where the layout has them:
+    the grey-level classes of tests/toy_networks.py as ScanNet-20 ids (wall, floor, cabinet, bed; as
+    NYU40 ids 1-4 for ScanNet's layouts), so the default simulated network runs and is scored."""
+    import numpy as np
+    from PIL import Image
+
+    sys.path.insert(0, str(ROOT / "tests"))
+    from captures import seven_frames
+    from toy_networks import grey_levels
+
+    frames = seven_frames(4, 20)
+    grey = {f["name"]: grey_levels(np.asarray(Image.open(f["color_path"]).convert("RGB"))) for f in frames}
+    K = frames[0]["K"]
+    out = {"NERFSTUDIO_DIR": _test_module("test_nerfstudio").write_nerfstudio(folder, frames, labels=grey)}
+    rep = _test_module("test_replica").write_replica(folder, frames)
+    for i, f in enumerate(frames):  # loop over 4 frames: Replica's label images
+        Image.fromarray(grey[f["name"]]).save(rep / "results" / f"semantic{i:06d}.png")
+    out["REPLICA_DIR"] = rep
+    tm = _test_module("test_templates")
+    sens = tm.write_sensreader(folder / "sensreader", frames, K)
+    split = tm.write_split(folder / "kitchen", frames, K)  # {scene}: the root's name
+    (split / "labels").mkdir()
+    for f in frames:  # loop over 4 frames: label-filt (NYU40 ids) and the split layout's labels
+        n = int(f["name"].split("-")[1])
+        Image.fromarray((grey[f["name"]] + 1).astype(np.uint8)).save(sens / f"frame-{n:06d}.label.png")
+        Image.fromarray(grey[f["name"]]).save(split / "labels" / f"{n}.png")
+    out["SENSREADER_DIR"], out["TEMPLATES_DIR"] = sens, split
+    out["BAG"] = _test_module("test_rosbag").write_ros2_bag(folder / "capture_bag", frames, extra_depth=False)
+    colmap = ROOT / "tests" / "data" / "sources" / "test_colmap.py"
+    if colmap.is_file():
+        out["COLMAP_DIR"] = _test_module("test_colmap").write_readme_fixture(folder / "colmap", frames, grey)
+    return {k: str(v) for k, v in out.items()}
 
 
 def scaled_world(world: dict, s: float) -> dict:
