@@ -43,7 +43,7 @@ from diffuser_lab.data.scene import IGNORE, Frame, Scene, Taxonomy
 from diffuser_lab.data.visibility import CloudDepth, MeshDepth
 
 __all__ = ["Visibility", "CaptureOptions", "CapturedFrame", "capture_scene", "carry_frame_labels",
-           "taxonomy_mapping", "fuse_depth", "resize_rgb"]
+           "taxonomy_mapping", "to_taxonomy", "fuse_depth", "resize_rgb"]
 
 
 class Visibility(Enum):
@@ -112,7 +112,8 @@ def taxonomy_mapping(mapping, taxonomy: Taxonomy) -> Optional[ClassMapping]:
     return load_mapping(mapping, taxonomy)
 
 
-def _to_taxonomy(ids: np.ndarray, mapping: Optional[ClassMapping], taxonomy: Taxonomy, what: str) -> np.ndarray:
+def to_taxonomy(ids: np.ndarray, mapping: Optional[ClassMapping], taxonomy: Taxonomy, what: str,
+                hint: str = "scene.options.mapping translates another label space") -> np.ndarray:
     """Raw label ids -> (same shape) int16 taxonomy ids, via ``mapping`` or checked as they are.
     A negative raw id is a reader's "no label here" (a label file holds none: e.g. outside the
     distorted image after undistortion) and stays IGNORE."""
@@ -129,7 +130,7 @@ def _to_taxonomy(ids: np.ndarray, mapping: Optional[ClassMapping], taxonomy: Tax
             raise ValueError(f"{what}: {e}") from None
     if ids.size and (ids.min() < IGNORE or ids.max() >= taxonomy.num_classes):
         raise ValueError(f"{what}: label ids in [{ids.min()}, {ids.max()}], expected {taxonomy.name} ids "
-                         f"0..{taxonomy.num_classes - 1} (scene.options.mapping translates another label space)")
+                         f"0..{taxonomy.num_classes - 1} ({hint})")
     return ids.astype(np.int16)
 
 
@@ -221,7 +222,7 @@ def _build_frame(cf: CapturedFrame, mapping, taxonomy: Taxonomy, render) -> Fram
         rgb = resize_rgb(cf.rgb(), shape)
     gt = None
     if cf.labels is not None:
-        gt = _to_taxonomy(resize_nearest(np.asarray(cf.labels()), shape), mapping, taxonomy, f"frame {cf.name} labels")
+        gt = to_taxonomy(resize_nearest(np.asarray(cf.labels()), shape), mapping, taxonomy, f"frame {cf.name} labels")
     return Frame(name=cf.name, K=K, T_cw=np.asarray(cf.T_cw, np.float64), depth=np.asarray(depth, np.float32),
                  gt_labels=gt, rgb=rgb)
 
@@ -330,7 +331,7 @@ def capture_scene(name: str, frames: Sequence[CapturedFrame], options: CaptureOp
         [f.name for f in frames], lambda i: _build_frame(frames[i], mapping, taxonomy, render), info=info)
     gt = None
     if cloud.get("labels") is not None:
-        gt = _to_taxonomy(np.asarray(cloud["labels"]), mapping, taxonomy, f"{cloud.get('source', 'cloud')} labels")
+        gt = to_taxonomy(np.asarray(cloud["labels"]), mapping, taxonomy, f"{cloud.get('source', 'cloud')} labels")
     elif options.gt_from_frames and any(f.labels is not None for f in frames):
         gt, stats = carry_frame_labels(points, out, taxonomy.num_classes, options.depth_tol)
         info["gt_from_frames"] = stats

@@ -30,13 +30,13 @@ import numpy as np
 
 from diffuser_lab import progress
 from diffuser_lab.config import SceneConfig
-from diffuser_lab.data.capture import fuse_depth
+from diffuser_lab.data.capture import fuse_depth, taxonomy_mapping, to_taxonomy
 from diffuser_lab.data.clouds import read_cloud, read_point_cloud_ply
 from diffuser_lab.data.frames import LazyFrames
 from diffuser_lab.data.intrinsics import read_intrinsics, read_matrix_file
-from diffuser_lab.data.mapping import ClassMapping, load_mapping, native_mapping
+from diffuser_lab.data.mapping import ClassMapping
 from diffuser_lab.data.prediction_files import label_ids_in, open_image, read_label_png, resize_nearest
-from diffuser_lab.data.scene import IGNORE, SCANNET20, Frame, Scene, Taxonomy
+from diffuser_lab.data.scene import SCANNET20, Frame, Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
 from diffuser_lab.data.validate import check_depth_unit
 
@@ -55,6 +55,7 @@ __all__ = [
     "check_rigid",
 ]
 
+_MAPPING_HINT = "pass mapping= to translate another label space"
 CAMERA_TO_WORLD, WORLD_TO_CAMERA = "camera_to_world", "world_to_camera"  # pose file conventions
 
 
@@ -148,27 +149,6 @@ def read_rgb(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndarr
         return np.asarray(im, dtype=np.uint8).copy()
 
 
-def _as_mapping(mapping, taxonomy: Taxonomy) -> ClassMapping | None:
-    if mapping is None:  # the taxonomy's own label ids (None: they are 0..C-1, checked as-is)
-        return native_mapping(taxonomy)
-    if isinstance(mapping, ClassMapping):
-        return mapping
-    return load_mapping(mapping, taxonomy)
-
-
-def _taxonomy_ids(ids: np.ndarray, mapping: ClassMapping | None, taxonomy: Taxonomy, what: str) -> np.ndarray:
-    """Raw label ids -> (same shape) int16 taxonomy ids, via ``mapping`` or checked as-is."""
-    if mapping is not None:
-        try:
-            return mapping.apply(ids)[0]
-        except ValueError as e:
-            raise ValueError(f"{what}: {e}") from None
-    if ids.size and (ids.min() < IGNORE or ids.max() >= taxonomy.num_classes):
-        raise ValueError(f"{what}: label ids in [{ids.min()}, {ids.max()}], expected {taxonomy.name} ids "
-                         f"0..{taxonomy.num_classes - 1}; pass mapping= to translate another label space")
-    return ids.astype(np.int16)
-
-
 def load_rgbd_folder(
     root,
     *,
@@ -226,7 +206,7 @@ def load_rgbd_folder(
                          f"voxel_size={voxel_size}: expected positive values (steps >= 1)")
     pose_to_world_to_camera(np.eye(4), pose_convention)  # a wrong name fails before any file is read
     K = read_intrinsics(root / intrinsics_file)
-    mapping = _as_mapping(mapping, taxonomy)
+    mapping = taxonomy_mapping(mapping, taxonomy)
     if mapping is not None and mapping.target.names != taxonomy.names:
         raise ValueError(f"mapping {mapping.source} targets taxonomy {mapping.target.name}, expected {taxonomy.name}")
     name_re = re.compile(re.escape(frame_prefix) + r"\d+")
@@ -272,7 +252,8 @@ def load_rgbd_folder(
         if label_suffix:
             lp = root / f"{name}.{label_suffix}"
             if lp.is_file():
-                gt = _taxonomy_ids(resize_nearest(read_label_png(lp), depth.shape), mapping, taxonomy, str(lp))
+                gt = to_taxonomy(resize_nearest(read_label_png(lp), depth.shape), mapping, taxonomy, str(lp),
+                                 _MAPPING_HINT)
         return Frame(name=name, K=K.copy(), T_cw=poses[i], depth=depth, gt_labels=gt, rgb=rgb)
 
     frames = LazyFrames(kept, load, info={"n_frames_found": len(depth_stems)})
@@ -287,7 +268,7 @@ def load_rgbd_folder(
             pc = read_cloud(cloud)
         points, colors, normals = pc["points"], pc.get("colors"), pc.get("normals")
         if "labels" in pc:
-            gt_points = _taxonomy_ids(pc["labels"], mapping, taxonomy, str(cloud))
+            gt_points = to_taxonomy(pc["labels"], mapping, taxonomy, str(cloud), _MAPPING_HINT)
     else:
         points, colors = fuse_depth(frames, voxel_size, cloud_stride, max_depth)
         if points.shape[0] == 0:

@@ -14,7 +14,7 @@ from plyfile import PlyData, PlyElement
 
 from diffuser_lab.data.distortion import FISHEYE, PERSPECTIVE, LensModel, distort_points, undistort_image, \
     undistort_points
-from diffuser_lab.data.capture import _to_taxonomy
+from diffuser_lab.data.capture import to_taxonomy
 from diffuser_lab.data.geometry import scaled_intrinsics
 from diffuser_lab.data.mapping import load_mapping
 from diffuser_lab.data.scene import IGNORE, SCANNET20
@@ -203,7 +203,7 @@ def test_undistortion_reproduces_the_pinhole_image(lens):
     assert np.abs(xd - (cols - K[0, 2]) / K[0, 0]).max() < 1e-9
     # labels: nearest, -1 where there is no source, which a mapping leaves IGNORE (capture's rule)
     ids = undistort_image(np.full((h, w), 5, np.int64), K, lens, order=0, fill=IGNORE)
-    mapped = _to_taxonomy(ids, load_mapping("nyu40_to_scannet20", SCANNET20), SCANNET20, "labels")
+    mapped = to_taxonomy(ids, load_mapping("nyu40_to_scannet20", SCANNET20), SCANNET20, "labels")
     assert ((mapped == IGNORE) == ~ok).all() and (mapped[ok] == mapped[ok][0]).all() and mapped[ok][0] >= 0
 
 
