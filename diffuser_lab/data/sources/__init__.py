@@ -1,8 +1,8 @@
 """Scene sources: the registry :data:`SOURCES`, one entry per source, named by ``scene.source``.
 
 Built in: the demo room (demo.py), views rendered from a labelled mesh (mesh_views.py), a ScanNet
-export (scannet.py), a posed RGB-D folder (rgbd_folder.py), a TUM RGB-D sequence (tum.py). Each
-module has a ``load(cfg, taxonomy, sensor) -> Scene`` that reads its own keys of the
+export (scannet.py), a posed RGB-D folder (rgbd_folder.py), a TUM RGB-D sequence (tum.py), a COLMAP
+model (colmap.py). Each module has a ``load(cfg, taxonomy, sensor) -> Scene`` that reads its own keys of the
 :class:`~diffuser_lab.config.SceneConfig` (``scene.demo.*``, ``scene.scannet.*``, ...).
 
 Adding a dataset format is one module with such a ``load``, one ``conf/scene/<name>.yaml`` that
@@ -25,7 +25,7 @@ from diffuser_lab.data.scene import Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
 from diffuser_lab.registry import Registry
 
-from . import demo, mesh_views, rgbd_folder, scannet, tum
+from . import colmap, demo, mesh_views, rgbd_folder, scannet, tum
 
 __all__ = ["SceneSource", "SOURCES", "register", "get"]
 
@@ -67,6 +67,8 @@ SOURCES: Registry = Registry("scene.source", "scene source", [
     SceneSource("rgbd_folder", "frame-XXXXXX.{color,depth,pose} + camera-intrinsics.txt", rgbd_folder.load,
                 label_ids=rgbd_folder.label_ids),
     SceneSource("tum", "TUM RGB-D: rgb.txt depth.txt groundtruth.txt, associated by timestamp", tum.load),
+    SceneSource("colmap", "COLMAP sparse model (.bin/.txt) + images (+ MVS depth maps, fused.ply)", colmap.load,
+                options=colmap.ColmapOptions),
 ])
 """The scene sources by name (``scene.source``)."""
 
