@@ -31,7 +31,7 @@ from diffuser_lab.data.scene import Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
 from diffuser_lab.registry import Registry
 
-from . import demo, mesh_views, nerfstudio, replica, rgbd_folder, rosbag, scannet, templates, tum
+from . import colmap, demo, mesh_views, nerfstudio, replica, rgbd_folder, rosbag, scannet, templates, tum
 
 __all__ = ["SceneSource", "SOURCES", "register", "get"]
 
@@ -81,6 +81,8 @@ SOURCES: Registry = Registry("scene.source", "scene source", [
                 nerfstudio.load, options=nerfstudio.NerfstudioOptions),
     SceneSource("replica", "Replica as NICE-SLAM ships it: traj.txt + results/ + cam_params.json", replica.load,
                 options=replica.ReplicaOptions),
+    SceneSource("colmap", "COLMAP sparse model (.bin/.txt) + images (+ MVS depth maps, fused.ply)", colmap.load,
+                options=colmap.ColmapOptions),
 ])
 """The scene sources by name (``scene.source``)."""
 
