@@ -255,6 +255,8 @@ class CitySceneConfig(Section):
                (self.image_width, self.image_height), ">= 16 pixels")
         _check(self.road_width + 2 * self.sidewalk_width + 10 <= self.block_size, "scene.city.block_size",
                self.block_size, ">= road_width + 2 sidewalk_width + 10 m (room for a lot)")
+        _check(self.drone_views == 0 or self.view_distance > self.drone_height[1], "scene.city.view_distance",
+               self.view_distance, "> drone_height max (a drone view sees the ground)")
 
 
 @dataclass

@@ -353,13 +353,13 @@ def _parcels(m: _Mesh, cfg: CitySceneConfig, rng, zt):
         return [a, a + L * rng.uniform(0.35, 0.65), b] if n == 2 else [a, b]
 
     xs, ys = cuts(), cuts()
-    for i in range(len(xs) - 1):
-        for j in range(len(ys) - 1):
-            x0, x1, y0, y1 = xs[i], xs[i + 1], ys[j], ys[j + 1]
-            if min(x1 - x0, y1 - y0) >= 12.0 and rng.random() < 0.7:
-                _yard(m, x0, y0, x1, y1, zt, rng)
-            else:
-                _park(m, x0, y0, x1, y1, zt, rng)
+    parcels = [(xs[i], ys[j], xs[i + 1], ys[j + 1]) for i in range(len(xs) - 1) for j in range(len(ys) - 1)]
+    built = int(rng.integers(len(parcels)))  # every block has a building (where a parcel is big enough)
+    for k, (x0, y0, x1, y1) in enumerate(parcels):
+        if min(x1 - x0, y1 - y0) >= 12.0 and (k == built or rng.random() < 0.6):
+            _yard(m, x0, y0, x1, y1, zt, rng)
+        else:
+            _park(m, x0, y0, x1, y1, zt, rng)
 
 
 def _yard(m: _Mesh, x0, y0, x1, y1, zt, rng):
