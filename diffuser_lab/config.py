@@ -222,6 +222,44 @@ class DemoSceneConfig(Section):
 
 
 @dataclass
+class CitySceneConfig(Section):
+    """Procedural outdoor city (diffuser_lab.data.sources.city): a grid of blocks, each built from
+    its own seed (seed, bx, by), labelled in cityscapes19; drone and street-level views rendered
+    per frame on access from the blocks around the camera."""
+
+    KEY = "scene.city"
+    seed: int = 0
+    blocks_x: int = key(2, within(1, 1000, steps=True))  # blocks along x (the city's extent)
+    blocks_y: int = key(2, within(1, 1000, steps=True))  # blocks along y
+    block_size: float = key(60.0, within(30, 500, "metres"))  # edge of a block (street + lot), metres
+    road_width: float = key(10.0, within(6, 30, "metres"))  # street on each block's low x / low y side
+    sidewalk_width: float = key(3.0, within(1.5, 10, "metres"))
+    point_spacing: float = key(0.2, within(0.01, 2.0, "metres"))  # metres between sampled surface points (~250k a block at 0.2)
+    point_noise: float = key(0.01, at_least(0))  # std of gaussian position noise, metres
+    drone_views: int = key(4, at_least(0))  # per block: nadir and oblique views from drone_height
+    street_views: int = key(4, at_least(0))  # per block: views from street_height along its streets
+    drone_height: List[float] = key(check=rule("min <= max, both > 30 m (above the roofs)",
+                                               lambda v: len(v) == 2 and 30 < v[0] <= v[1]),
+                                    factory=lambda: [40.0, 70.0])  # metres above the road
+    street_height: List[float] = key(check=rule("0.5 m <= min <= max <= 5 m",
+                                                lambda v: len(v) == 2 and 0.5 <= v[0] <= v[1] <= 5),
+                                     factory=lambda: [1.5, 2.0])  # metres above the road
+    view_distance: float = key(150.0, within(20, 2000, "metres"))  # frames see up to this far (depth 0 beyond)
+    image_width: int = 320
+    image_height: int = 240
+    fov_deg: float = key(70.0, within(10, 150))  # horizontal field of view
+    sky: bool = True  # label images: pixels looking up at nothing are sky (depth 0), else IGNORE
+
+    def _check_keys(self) -> None:
+        _check(self.image_width >= 16 and self.image_height >= 16, "scene.city.image_width/height",
+               (self.image_width, self.image_height), ">= 16 pixels")
+        _check(self.road_width + 2 * self.sidewalk_width + 10 <= self.block_size, "scene.city.block_size",
+               self.block_size, ">= road_width + 2 sidewalk_width + 10 m (room for a lot)")
+        _check(self.drone_views == 0 or self.view_distance > self.drone_height[1], "scene.city.view_distance",
+               self.view_distance, "> drone_height max (a drone view sees the ground)")
+
+
+@dataclass
 class MeshViewsConfig(Section):
     """Views rendered from a labelled mesh (diffuser_lab.data.sources.mesh_views)."""
 
@@ -417,6 +455,7 @@ class SceneConfig(Section):
     # one dataclass per built-in source; a source's own settings are set (by its conf/scene/*.yaml)
     # only when it is the selected one, so its required keys (MISSING) are asked for only then
     demo: DemoSceneConfig = field(default_factory=DemoSceneConfig)
+    city: Optional[CitySceneConfig] = None  # set by conf/scene/city.yaml; scene.source=city alone: the defaults
     mesh_views: Optional[MeshViewsConfig] = None
     scannet: Optional[ScannetConfig] = None
     rgbd_folder: Optional[RgbdFolderConfig] = None

@@ -26,7 +26,7 @@ from .scene import IGNORE, SCANNET20
 __all__ = ["simulate_predictions", "surface_regions", "SurfaceRegions", "coarse_output", "DEFAULT_CONFUSIONS"]
 
 DEFAULT_CONFUSIONS: dict[str, tuple[str, ...]] = {
-    "wall": ("door", "picture", "curtain", "window"),
+    "wall": ("door", "picture", "curtain", "window", "building", "fence"),  # the last two: cityscapes19
     "floor": ("otherfurniture",),
     "cabinet": ("otherfurniture", "bookshelf", "counter", "desk"),
     "bed": ("sofa",),
@@ -46,8 +46,28 @@ DEFAULT_CONFUSIONS: dict[str, tuple[str, ...]] = {
     "sink": ("counter", "toilet"),
     "bathtub": ("toilet", "sink"),
     "otherfurniture": ("cabinet", "table", "chair"),
+    # Cityscapes-19 (scene=city)
+    "road": ("sidewalk", "terrain"),
+    "sidewalk": ("road", "terrain"),
+    "building": ("wall", "fence", "vegetation"),
+    "fence": ("wall", "vegetation", "building"),
+    "pole": ("traffic sign", "traffic light", "building"),
+    "traffic light": ("pole", "traffic sign"),
+    "traffic sign": ("pole", "traffic light"),
+    "vegetation": ("terrain", "building"),
+    "terrain": ("vegetation", "sidewalk", "road"),
+    "sky": ("building", "vegetation"),
+    "person": ("rider",),
+    "rider": ("person", "bicycle", "motorcycle"),
+    "car": ("truck", "bus"),
+    "truck": ("car", "bus"),
+    "bus": ("truck", "train", "car"),
+    "train": ("bus", "truck"),
+    "motorcycle": ("bicycle", "rider"),
+    "bicycle": ("motorcycle", "rider"),
 }
-"""Plausible confusions of a 2D network, keyed by ScanNet-20 class name."""
+"""Plausible confusions of a 2D network, keyed by ScanNet-20 and Cityscapes-19 class name (a class's
+candidates not in the run's taxonomy are dropped, so each table serves the other unchanged)."""
 
 
 def _confusion_lut(num_classes: int, class_names: Sequence[str] | None,

@@ -1,6 +1,7 @@
 """Scene sources: the registry :data:`SOURCES`, one entry per source, named by ``scene.source``.
 
-Built in: the demo room (demo.py), views rendered from a labelled mesh (mesh_views.py), a ScanNet
+Built in: the demo room (demo.py), the procedural city (city.py: outdoors, cityscapes19), views
+rendered from a labelled mesh (mesh_views.py), a ScanNet
 export with its mesh (scannet.py), a posed RGB-D folder (rgbd_folder.py), a TUM RGB-D sequence
 (tum.py); and the capture formats built on :mod:`diffuser_lab.data.capture`: path templates for any
 other layout (templates.py; ScanNet without a mesh and as SensReader writes it are YAMLs of it),
@@ -31,7 +32,7 @@ from diffuser_lab.data.scene import Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
 from diffuser_lab.registry import Registry
 
-from . import colmap, demo, mesh_views, nerfstudio, replica, rgbd_folder, rosbag, scannet, templates, tum
+from . import city, colmap, demo, mesh_views, nerfstudio, replica, rgbd_folder, rosbag, scannet, templates, tum
 
 __all__ = ["SceneSource", "SOURCES", "register", "get"]
 
@@ -83,6 +84,8 @@ SOURCES: Registry = Registry("scene.source", "scene source", [
                 options=replica.ReplicaOptions),
     SceneSource("colmap", "COLMAP sparse model (.bin/.txt) + images (+ MVS depth maps, fused.ply)", colmap.load,
                 options=colmap.ColmapOptions),
+    SceneSource("city", "embedded procedural outdoor city (cityscapes19), drone and street views", city.load,
+                rendered=True),
 ])
 """The scene sources by name (``scene.source``)."""
 
