@@ -41,7 +41,7 @@ from diffuser_lab.data.scene import IGNORE, Scene
 from diffuser_lab.data.taxonomy import resolve_taxonomy
 from diffuser_lab.hooks import RunHooks
 from diffuser_lab.method import fusion
-from diffuser_lab.method.graph import knn, mean_spacing
+from diffuser_lab.method.graph import cloud_spacing
 from diffuser_lab.method.metrics import score
 
 from . import pipeline
@@ -165,8 +165,8 @@ def _specs(cfg: Config, scene: Scene) -> tuple[tuple[int, int], list[TileSpec], 
     return shape, specs, {s.id: np.sort(o) for s, o in zip(specs, owns)}, boxes
 
 
-def diffuse_tile(cfg: Config, scene: Scene, spec: TileSpec) -> tuple[np.ndarray, np.ndarray, dict]:
-    """The pipeline on one tile: (labels, Bayesian labels) of its own points and its record."""
+def diffuse_tile(cfg: Config, scene: Scene, spec: TileSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+    """The pipeline on one tile: its own points (indices), their labels and Bayesian labels, its record."""
     t0 = time.perf_counter()
     own, rows = tile_points(scene.points, spec)
     rec = {"id": spec.id, "points": int(own.size), "points_with_halo": int(rows.size),
@@ -188,7 +188,7 @@ def diffuse_tile(cfg: Config, scene: Scene, spec: TileSpec) -> tuple[np.ndarray,
             rec["warnings"] = msgs
     rec.update(time_s=round(time.perf_counter() - t0, 3), node=socket.gethostname(), pid=os.getpid(),
                status="done")
-    return labels, bayes, rec
+    return own, labels, bayes, rec
 
 
 def _crc(own: np.ndarray) -> int:
@@ -228,8 +228,7 @@ def read_tile(tiles_dir: Path, spec: TileSpec, own: np.ndarray) -> Optional[tupl
 
 
 def _run_tile(cfg: Config, scene: Scene, spec: TileSpec, tiles_dir: str) -> dict:
-    labels, bayes, rec = diffuse_tile(cfg, scene, spec)
-    own, _ = tile_points(scene.points, spec)
+    own, labels, bayes, rec = diffuse_tile(cfg, scene, spec)
     write_tile(Path(tiles_dir), spec, own, labels, bayes, rec)
     return rec
 
@@ -306,7 +305,7 @@ def tiled(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHook
     if cfg.graph.sigma_d is None and fusion.get(cfg.method.name).graph:
         # sigma_d = sigma_d_factor * rho, rho the mean spacing of the whole cloud: the tiles use the untiled value
         with progress.stage(f"point spacing ({scene.n_points:,} points)"):
-            rho = mean_spacing(knn(scene.points, 1)[0])
+            rho = cloud_spacing(scene.points)
         cfg = dataclasses.replace(cfg, graph=dataclasses.replace(cfg.graph, sigma_d=cfg.graph.sigma_d_factor * rho))
     if cfg.solver.sparse_classes == SparseClasses.auto:  # the untiled run's choice (by the whole cloud's size)
         on = pipeline._sparse_classes(cfg.solver, scene.n_points, scene.taxonomy.num_classes) > 0
