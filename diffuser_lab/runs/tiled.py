@@ -22,6 +22,7 @@ import dataclasses
 import hashlib
 import io
 import json
+import logging
 import os
 import socket
 import time
@@ -376,7 +377,7 @@ def _on_ray(cfg: Config, scene: Optional[Scene], todo: list[TileSpec], owns: dic
         # the workers import this package from where the driver does (a node must see that path,
         # e.g. a shared file system, or have diffuser-lab installed)
         path = [str(Path(__file__).resolve().parents[2])] + [p for p in [os.environ.get("PYTHONPATH")] if p]
-        ray.init(include_dashboard=False, log_to_driver=False,
+        ray.init(include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING,
                  runtime_env={"env_vars": {"PYTHONPATH": os.pathsep.join(path)}}, **kw)
         started = True
     try:

@@ -1,6 +1,7 @@
 """protocol=tiled (diffuser_lab/runs/tiled.py): the global pipeline per x-y tile equals the untiled run;
 a tile reads the frames that see it; tiles on a two-node Ray cluster; resume; the memory refusal."""
 import dataclasses
+import json
 import os
 
 import numpy as np
@@ -13,6 +14,7 @@ from diffuser_lab.data.predictions import with_predictions
 from diffuser_lab.method import evidence as evidence_mod
 from diffuser_lab.runs import pipeline, tiled
 from diffuser_lab.runs.tiled import TileSpec, frames_meeting, tile_points
+from conftest import SMALL_DEMO, run_cli
 
 SMALL = {"scene.demo.n_views": 12, "scene.demo.point_spacing": 0.07, "solver.max_iter": 60}
 TILED = {**SMALL, "protocol.name": "tiled", "tiling.size": 2.0}
@@ -123,6 +125,17 @@ def test_a_failing_tile_is_reported_and_the_others_kept(untiled, local_tiled, tm
     ok = out.labels != -1
     assert (out.labels[ok] == res.labels[ok]).all() and ok.sum() == untiled.scene.n_points - out.failed[0]["points"]
     assert f"tile {bad} failed: MemoryError" in tiled.table(out, tmp_path)
+
+
+def test_the_command_line_writes_the_tiles_and_their_records(tmp_path):
+    p = run_cli(*SMALL_DEMO, "protocol=tiled", "record=off", "output.labels_ply=false", f"hydra.run.dir={tmp_path}")
+    assert p.returncode == 0, p.stderr
+    assert "tiled 3x3 grid, 9 tiles" in p.stdout and "tiles: 9 of 9 done" in p.stdout
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert s["status"] == "ok" and s["protocol"] == "tiled" and s["tiling"]["grid"] == [3, 3]
+    rec = s["tiling"]["tiles"][0]
+    assert {"id", "points", "frames_read", "iterations", "time_s", "node", "pid", "status"} <= set(rec)
+    assert len(list((tmp_path / "tiles").glob("*.npz"))) == 9 and (tmp_path / "labels.npy").is_file()
 
 
 def test_memory_refusal_names_the_tiling_keys():
