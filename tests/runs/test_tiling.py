@@ -143,6 +143,8 @@ def test_memory_refusal_names_the_tiling_keys():
         validate.check_memory(3_000_000, 3_000_000, 20, 24, 1.0)
     msg = str(err.value)
     assert "\n" not in msg and "protocol=tiled tiling.size=" in msg and "this run needs about" in msg
+    with pytest.raises(MemoryError, match=r"memory_budget_gb=0.01; .* protocol=tiled tiling.size=<metres> \(at least"):
+        pipeline.run(default_config(**SMALL, memory_budget_gb=0.01))  # refused before the frames are read
 
 
 @pytest.fixture(scope="module")
