@@ -140,7 +140,7 @@ def frames_meeting(boxes: np.ndarray, K: np.ndarray, T_cw: np.ndarray, shape: tu
     return ~outside
 
 
-def _specs(cfg: Config, scene: Scene) -> tuple[tuple[int, int], list[TileSpec], dict[str, np.ndarray], list]:
+def _specs(cfg: Config, scene: Scene) -> tuple[tuple[int, int], list[TileSpec], dict[str, np.ndarray]]:
     """The tiles with own points, their own points and the frames that see each (one pass over the
     frames' cameras, one frame read at a time)."""
     tc = cfg.tiling
@@ -152,7 +152,7 @@ def _specs(cfg: Config, scene: Scene) -> tuple[tuple[int, int], list[TileSpec], 
     cells = [(int(k // shape[1]), int(k % shape[1])) for k in keys]
     boxes = []
     base = [TileSpec(ix, iy, origin, tc.size, tc.halo) for ix, iy in cells]
-    for spec, own in zip(base, owns):  # loop over tiles
+    for spec in base:  # loop over tiles
         _, rows = tile_points(scene.points, spec)
         p = scene.points[rows]
         boxes.append([p.min(0), p.max(0)])
@@ -163,7 +163,7 @@ def _specs(cfg: Config, scene: Scene) -> tuple[tuple[int, int], list[TileSpec], 
         seen[:, i] = frames_meeting(boxes, f.K, f.T_cw, f.shape, margin, tc.max_depth)
     specs = [dataclasses.replace(s, frames=tuple(int(i) for i in np.flatnonzero(seen[t])))
              for t, s in enumerate(base)]
-    return shape, specs, {s.id: np.sort(o) for s, o in zip(specs, owns)}, boxes
+    return shape, specs, {s.id: np.sort(o) for s, o in zip(specs, owns)}
 
 
 def diffuse_tile(cfg: Config, scene: Scene, spec: TileSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
@@ -314,7 +314,7 @@ def tiled(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHook
             cfg.solver, sparse_classes=SparseClasses.on if on else SparseClasses.off))
     tiles_dir = _tiles_dir(cfg, run_dir)
     _check_fingerprint(tiles_dir, cfg)
-    shape, specs, owns, _ = _specs(cfg, scene)
+    shape, specs, owns = _specs(cfg, scene)
     t["tiles"] = time.perf_counter() - tc0  # the spacing and which frames see which tiles
 
     records: dict[str, dict] = {}
