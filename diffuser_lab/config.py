@@ -683,6 +683,22 @@ class OnlineConfig(Section):
     compare_batch: bool = True  # after the last frame, run the batch Diffuser on the same frames (and final cloud)
 
 
+@dataclass
+class TilingConfig(Section):
+    """protocol=tiled (diffuser_lab/runs/tiled.py, docs/tiling.md): the cloud cut into a regular x-y
+    grid of ``size`` tiles; each tile runs the global pipeline on its points and a ``halo`` around
+    them, with the frames whose view meets that box, and keeps its own points' labels."""
+
+    KEY = "tiling"
+    size: float = key(2.0, above(0, "metres"))  # tile edge in x and y, metres
+    halo: float = key(0.75, at_least(0, "metres"))  # points within this distance (x, y) of a tile join its diffusion; docs/tiling.md: labels equal vs halo
+    max_depth: Optional[float] = key(None, above(0, "metres", null=True))  # a frame's view reaches this far when its tiles are chosen; null = unlimited
+    workers: int = key(0, at_least(0, note="(0 = the tiles one after another in this process)"))  # >= 1: tiles are Ray tasks; a local Ray instance gets this many CPUs
+    address: Optional[str] = None  # Ray cluster to run the tiles on: auto (a running cluster), ray://host:port; null = a local instance
+    max_retries: int = key(2, at_least(0))  # Ray retries of a failing tile before it is reported
+    resume: Optional[str] = None  # an earlier tiled run's folder: its finished tiles (tiles/*.npz) are kept, the rest computed there
+
+
 class RecordMode(Enum):
     off = "off"
     rerun = "rerun"  # run.rrd
@@ -794,6 +810,7 @@ class Config(Section):
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
     protocol: ProtocolConfig = field(default_factory=ProtocolConfig)
     online: OnlineConfig = field(default_factory=OnlineConfig)
+    tiling: TilingConfig = field(default_factory=TilingConfig)
     record: RecordConfig = field(default_factory=RecordConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
 

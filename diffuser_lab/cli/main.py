@@ -130,7 +130,7 @@ def _task(cfg: Any) -> Optional[float]:
         protocol = PROTOCOLS[conf.protocol.name]
         hooks = _record_hooks(conf, run_dir, hc) if protocol.records else None
         try:
-            result = protocol.run(conf, hooks=hooks)
+            result = protocol.run(conf, hooks=hooks, **({"run_dir": run_dir} if protocol.run_dir else {}))
         finally:
             if hooks is not None:
                 hooks.close()

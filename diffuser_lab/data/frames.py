@@ -7,8 +7,11 @@ Every frame sequence that is not a plain list is one of these: a source's frames
 (``LazyFrames(names, load)``), frames with their predictions or sensor depth attached
 (:meth:`LazyFrames.mapped`), a subset of frames (:meth:`LazyFrames.subset`), a benchmark's
 repeated or tiled views. Nothing is cached: reading item i twice computes it twice, so a long
-sequence is never held in memory; what is computed per frame must depend on i alone (seeds
-included), not on the order of access.
+sequence is never held in memory; what is computed per frame must depend on the frame alone (seeds
+included), not on the order of access nor on its position in a subset: a subset keeps each frame's
+index in the sequence it was cut from (``source_index``), and :meth:`LazyFrames.mapped` hands the
+per-frame function that index, so a frame's predictions (or sensor depth) are the same whether it
+is read in the whole sequence or in a subset of it (a tile's frames, the frames an online run kept).
 
 Two dicts travel with a sequence: ``info``, the loader's statistics (frames found, skipped,
 ``depth_unit_checked``) and ``stats``, what the per-frame function counts as frames are read
@@ -29,7 +32,7 @@ from diffuser_lab import progress
 
 from .scene import Frame
 
-__all__ = ["LazyFrames", "FrameLoop", "first_line"]
+__all__ = ["LazyFrames", "FrameLoop", "first_line", "index_of"]
 
 
 class LazyFrames(Sequence[Frame]):
@@ -55,23 +58,31 @@ class LazyFrames(Sequence[Frame]):
         self.info = info if info is not None else {}
         self.stats = stats if stats is not None else {}
         self.fn: Optional[Callable[[int, Frame], Frame]] = None  # mapped(): the per-frame function
+        # the frames' indices in the sequence they were cut from (subset()); None = their positions
+        self.source_index: Optional[list[int]] = None
 
     @classmethod
     def mapped(cls, frames: Sequence[Frame], fn: Callable[[int, Frame], Frame], *, stats: Optional[dict] = None,
                info: Optional[dict] = None) -> "LazyFrames":
-        """Item i is ``fn(i, frames[i])`` (predictions attached, depth corrupted, ...); ``fn`` is kept
+        """Item i is ``fn(j, frames[i])`` (predictions attached, depth corrupted, ...) where j is the
+        frame's index in the whole sequence (``frames.source_index[i]`` for a subset, else i); ``fn`` is kept
         as the sequence's ``fn`` (e.g. a network predictor, with its model once built)."""
-        out = cls(len(frames), lambda i: fn(i, frames[i]), info=info, stats=stats)
-        out.fn = fn
+        ids = index_of(frames)
+        out = cls(len(frames), (lambda i: fn(i, frames[i])) if ids is None else (lambda i: fn(ids[i], frames[i])),
+                  info=info, stats=stats)
+        out.fn, out.source_index = fn, ids
         return out
 
     @classmethod
     def subset(cls, frames: Sequence[Frame], keep: Sequence[int], *, info: Optional[dict] = None) -> "LazyFrames":
-        """Item i is ``frames[keep[i]]``."""
-        keep = list(keep)
+        """Item i is ``frames[keep[i]]``; its ``source_index`` is that frame's index in the whole sequence."""
+        keep = [int(k) for k in keep]
         names = getattr(frames, "names", None)
-        return cls([names[k] for k in keep] if names is not None else len(keep), lambda i: frames[keep[i]],
-                   info=info)
+        out = cls([names[k] for k in keep] if names is not None else len(keep), lambda i: frames[keep[i]],
+                  info=info)
+        ids = index_of(frames)
+        out.source_index = keep if ids is None else [ids[k] for k in keep]
+        return out
 
     def __len__(self) -> int:
         return self._n
@@ -80,13 +91,22 @@ class LazyFrames(Sequence[Frame]):
         if isinstance(i, slice):  # a lazy subset with the same names and statistics
             idx = range(self._n)[i]
             names = [self.names[k] for k in idx] if self.names is not None else len(idx)
-            return LazyFrames(names, lambda k: self._load(idx[k]), info=self.info, stats=self.stats)
+            out = LazyFrames(names, lambda k: self._load(idx[k]), info=self.info, stats=self.stats)
+            # a slice of a whole sequence is a sequence of its own (its frames counted from 0, as before)
+            out.source_index = None if self.source_index is None else [self.source_index[k] for k in idx]
+            return out
         if not -self._n <= i < self._n:
             raise IndexError(f"frame index {i} out of range for {self._n} frames")
         return self._load(i % self._n)
 
     def __repr__(self) -> str:
         return f"LazyFrames({self._n} frames)"
+
+
+def index_of(frames: Sequence[Frame]) -> Optional[list[int]]:
+    """The frames' indices in the sequence they were cut from (a :class:`LazyFrames` subset or
+    slice), or None when they are that sequence (their positions are their indices)."""
+    return getattr(frames, "source_index", None)
 
 
 def first_line(exc: BaseException) -> str:

@@ -6,6 +6,7 @@ are never loaded twice.
 """
 from __future__ import annotations
 
+import math
 import warnings
 
 import numpy as np
@@ -104,7 +105,9 @@ def estimate_memory(n_points: int, n_work: int, num_classes: int, k: int, sparse
 
 def check_memory(n_points: int, n_work: int, num_classes: int, k: int, budget_gb: float,
                  sparse_classes: int = 0) -> None:
-    """Refuse a run whose :func:`estimate_memory` exceeds ``budget_gb`` GiB, up front, with the estimate."""
+    """Refuse a run whose :func:`estimate_memory` exceeds ``budget_gb`` GiB, up front, with the estimate
+    and the keys that make it fit (the budget, a voxel grid, tiles: ``protocol=tiled tiling.size``,
+    about as many tiles as the estimate is over the budget, each with its halo)."""
     need = estimate_memory(n_points, n_work, num_classes, k, sparse_classes)
     if need > budget_gb * GIB:
         layout = f"sparse class set of {sparse_classes}" if sparse_classes else "dense scores"
@@ -112,4 +115,6 @@ def check_memory(n_points: int, n_work: int, num_classes: int, k: int, budget_gb
             ", solver.sparse_classes=on (keeps solver.classes_per_point classes per point)"
         raise MemoryError(f"this run needs about {need / GIB:.1f} GiB ({n_points:,} points, {n_work:,} diffused, "
                           f"K={k}, {num_classes} classes, {layout}) > memory_budget_gb={budget_gb:g}; raise the "
-                          f"budget{hint} or set scene.voxel_size to diffuse fewer points")
+                          f"budget{hint}, set scene.voxel_size to diffuse fewer points, or diffuse it in tiles: "
+                          f"protocol=tiled tiling.size=<metres> (at least {math.ceil(need / (budget_gb * GIB)) + 1} "
+                          f"tiles; docs/tiling.md)")

@@ -27,7 +27,7 @@ from diffuser_lab.backends.knn import normal_distance2
 from diffuser_lab.config import GraphConfig, NormalSign
 from diffuser_lab.data.geometry import estimate_normals
 
-__all__ = ["KnnGraph", "SortedKnnGraph", "build_graph", "graph_stage", "knn", "make_graph", "mean_spacing",
+__all__ = ["KnnGraph", "SortedKnnGraph", "build_graph", "graph_stage", "knn", "make_graph", "mean_spacing", "cloud_spacing",
            "normal_distance2"]
 
 
@@ -131,6 +131,24 @@ def mean_spacing(dist: np.ndarray) -> float:
     return float(pos.mean())
 
 
+def _rho(d0: np.ndarray) -> float:
+    """rho from :func:`~diffuser_lab.backends.knn.sorted_knn`'s d0: per point the squared distance to
+    its nearest *distinct* neighbour among its K (duplicates at distance 0 skipped; inf: none)."""
+    d = np.sqrt(d0)
+    pos = d[np.isfinite(d)]
+    if pos.size == 0:
+        raise ValueError("all points coincide: the mean point spacing rho is 0")
+    return float(pos.mean())
+
+
+def cloud_spacing(points: np.ndarray, k: int = 2, backend: str = "auto") -> float:
+    """rho of :func:`build_graph` without building the graph (a tiled run's tiles share the whole
+    cloud's): the nearest distinct neighbour among each point's ``k`` nearest (build_graph: among its
+    graph.k; the same unless a point has ``k`` or more duplicates), averaged in the same order."""
+    points = np.ascontiguousarray(points, np.float32)
+    return _rho(knn_backend.sorted_knn(points, None, min(k, points.shape[0] - 1), backend).d0)
+
+
 def build_graph(points: np.ndarray, k: int = 24, normals: np.ndarray | None = None, *,
                 sigma_s: float = 0.2, sigma_d: float | None = None, sigma_d_factor: float = 2.0,
                 invariant_normals: bool = False, backend: str = "auto") -> KnnGraph:
@@ -154,12 +172,7 @@ def build_graph(points: np.ndarray, k: int = 24, normals: np.ndarray | None = No
     if k >= n:
         raise ValueError(f"graph.k={k} must be smaller than the number of points ({n})")
     nbrs = knn_backend.sorted_knn(points, normals, k, backend)
-    # rho: per point the nearest *distinct* neighbour (duplicates at distance 0 skipped)
-    d0 = np.sqrt(nbrs.d0)
-    pos = d0[np.isfinite(d0)]
-    if pos.size == 0:
-        raise ValueError("all points coincide: the mean point spacing rho is 0")
-    rho = float(pos.mean())
+    rho = _rho(nbrs.d0)
     sd = float(sigma_d) if sigma_d is not None else sigma_d_factor * rho
     w, wsum = knn_backend.edge_weights(nbrs, invariant_normals, sd, sigma_s)
     return SortedKnnGraph(order=nbrs.order, sorted_neighbors=nbrs.idx, sorted_weights=w, sorted_row_sums=wsum,

@@ -4,7 +4,8 @@ An entry knows how to run (a library call: ``run(cfg, scene=None, hooks=None)``)
 into a run folder beside summary.json and what summary.json says (``finish``), and the table the
 command line prints (``table``). Built in: ``global_3d`` (:func:`diffuser_lab.runs.pipeline.run`,
 paper Table I), ``single_frame`` (:func:`diffuser_lab.runs.single_frame.single_frame`, Table II) and
-``online`` (:func:`diffuser_lab.runs.online.online`).
+``online`` (:func:`diffuser_lab.runs.online.online`) and ``tiled`` (:func:`diffuser_lab.runs.tiled.tiled`:
+the global pipeline per x-y tile, docs/tiling.md).
 
 Adding a protocol is one function that runs it (resolving the config it is handed), one
 ``conf/protocol/<name>.yaml`` with ``name: <name>`` and one registry line (an entry below, or
@@ -25,7 +26,7 @@ from diffuser_lab.hooks import RunHooks
 from diffuser_lab.registry import Registry
 
 from . import online as online_mod
-from . import report, single_frame
+from . import report, single_frame, tiled
 from .pipeline import run
 from .records import write_labels
 
@@ -46,6 +47,7 @@ class Protocol:
             it and ``records`` (the recorders' files); returns summary.json's content.
         table: ``(result, run_dir) -> str``: what the command line prints.
         records: whether the command line makes recorders (run.rrd, run.mcap) for it.
+        run_dir: whether ``run`` takes the run folder (``run_dir=``: a run that writes files as it goes).
     """
 
     name: str
@@ -54,6 +56,7 @@ class Protocol:
     finish: Callable[[Any, Config, Path, report.SummaryFile, dict], dict]
     table: Callable[[Any, Path], str]
     records: bool = True
+    run_dir: bool = False
 
 
 def _finish_global(result, cfg: Config, run_dir: Path, summary: report.SummaryFile, records: dict) -> dict:
@@ -87,6 +90,18 @@ def _finish_online(result, cfg: Config, run_dir: Path, summary: report.SummaryFi
     return summary.data
 
 
+def _finish_tiled(result, cfg: Config, run_dir: Path, summary: report.SummaryFile, records: dict) -> dict:
+    """labels.npy etc. of the whole scene; summary.json's ``tiling.tiles`` has every tile's record;
+    status ``incomplete`` when a tile failed (its points unlabeled)."""
+    t = time.perf_counter()
+    files = write_labels(run_dir, result.scene.points, result.labels, result.scene.taxonomy, ply=cfg.output.labels_ply,
+                         clouds=cfg.output.clouds)
+    result.timings_s["write"] = time.perf_counter() - t
+    summary.data.update(tiled.summary(result, cfg))
+    summary.update(records=records, files=files, status="incomplete" if result.failed else "ok")
+    return summary.data
+
+
 PROTOCOLS: Registry = Registry("protocol.name", "protocol", [
     Protocol("global_3d", "label the scene's points, score 3D mIoU (paper Table I)", run, _finish_global,
              lambda result, run_dir: report.table(result, run_dir)),
@@ -96,6 +111,9 @@ PROTOCOLS: Registry = Registry("protocol.name", "protocol", [
     Protocol("online", "frames one at a time in sequence order; the map labels itself as they come (online.*)",
              online_mod.online, _finish_online,
              lambda result, run_dir: online_mod.table(result) + f"\nrun folder: {run_dir}"),
+    Protocol("tiled", "global_3d per x-y tile of tiling.size (+ tiling.halo) on the frames that see it; tiles in "
+             "this process or on Ray (tiling.*)", tiled.tiled, _finish_tiled, tiled.table, records=False,
+             run_dir=True),
 ])
 """The protocols by name (``protocol.name``)."""
 

@@ -1,0 +1,456 @@
+"""Tiled global 3D labelling (``protocol=tiled``, docs/tiling.md): the batch pipeline per tile.
+
+The cloud is cut into a regular x-y grid of ``tiling.size`` metres (from the cloud's x-y minimum).
+A tile's run is :func:`diffuser_lab.runs.pipeline.run` on a sub-scene: the points within
+``tiling.halo`` (x and y) of the tile, and the frames whose view meets that box
+(:func:`frames_meeting`), a :meth:`~diffuser_lab.data.frames.LazyFrames.subset` of the scene's
+frames (each frame's predictions are seeded by the frame, so they are the ones the untiled run
+has). The tile keeps its own points' labels; the halo only gives them their neighbours and
+evidence. Labels and the Bayesian baseline are put together and scored once, over the whole scene.
+
+Each tile writes ``tiles/<ix>_<iy>.npz`` (its labels, a checksum of its points, its record)
+atomically; a run started with ``tiling.resume=<earlier run folder>`` keeps the tiles found
+complete there and computes the others. Tiles run one after another in this process
+(``tiling.workers=0``) or as Ray tasks (``tiling.workers>=1``: a local instance with that many
+CPUs, or the cluster at ``tiling.address``); a Ray worker loads the scene from its source itself
+(once per worker process) and reads only its tile's frames; a failing tile is retried
+(``tiling.max_retries``), then reported with its error while the others' labels are kept.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import io
+import json
+import logging
+import os
+import socket
+import time
+import warnings
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from diffuser_lab import progress
+from diffuser_lab.config import Config, SparseClasses
+from diffuser_lab.data import validate
+from diffuser_lab.data.frames import FrameLoop, LazyFrames, first_line
+from diffuser_lab.data.scene import IGNORE, Scene
+from diffuser_lab.data.taxonomy import resolve_taxonomy
+from diffuser_lab.hooks import RunHooks
+from diffuser_lab.method import fusion
+from diffuser_lab.method.graph import cloud_spacing
+from diffuser_lab.method.metrics import score
+
+from . import pipeline
+from .records import config_yaml, write_json_atomic
+from .resolve import resolve
+
+__all__ = ["TileSpec", "TiledResult", "tiled", "tile_grid", "tile_points", "frames_meeting", "summary", "table"]
+
+TILES = "tiles"
+"""The run folder's sub-folder of tile files."""
+
+
+@dataclass(frozen=True)
+class TileSpec:
+    """One tile: grid cell (ix, iy) of edge ``size`` from ``origin`` (x, y), its halo and the
+    indices of the frames that see the tile and its halo."""
+
+    ix: int
+    iy: int
+    origin: tuple[float, float]
+    size: float
+    halo: float
+    frames: tuple[int, ...] = ()
+
+    @property
+    def id(self) -> str:
+        return f"{self.ix}_{self.iy}"
+
+
+@dataclass
+class TiledResult:
+    """What a tiled run produced: labels on the scene's N points, the per-tile records."""
+
+    scene: Scene
+    method: str
+    labels: np.ndarray  # (N,) int16, IGNORE = unlabeled (a failed tile's points too)
+    bayesian_labels: np.ndarray  # (N,) int16
+    grid: tuple[int, int]
+    tiles: list[dict]
+    tiles_dir: Path
+    metrics: Optional[dict] = None
+    baseline: dict = field(default_factory=dict)
+    timings_s: dict = field(default_factory=dict)
+    resumed_from: Optional[str] = None
+    rho: Optional[float] = None  # the whole cloud's mean point spacing (sigma_d of every tile's graph from it)
+
+    @property
+    def failed(self) -> list[dict]:
+        return [t for t in self.tiles if t["status"] == "error"]
+
+
+def tile_grid(points: np.ndarray, size: float) -> tuple[tuple[float, float], tuple[int, int], np.ndarray]:
+    """The grid's origin (the cloud's x-y minimum), its shape (nx, ny) and each point's cell (N, 2)."""
+    origin = points[:, :2].min(0).astype(np.float64)
+    cell = np.floor((points[:, :2] - origin) / size).astype(np.int64)
+    shape = np.maximum(cell.max(0) + 1, 1)
+    return (float(origin[0]), float(origin[1])), (int(shape[0]), int(shape[1])), cell
+
+
+def tile_points(points: np.ndarray, spec: TileSpec) -> tuple[np.ndarray, np.ndarray]:
+    """(own, rows): sorted indices of the tile's own points and of its points plus halo (own is in rows).
+    A point's own tile is the cell of :func:`tile_grid`; the halo is the box grown by ``halo`` in x and y."""
+    o = np.asarray(spec.origin)
+    cell = np.floor((points[:, :2] - o) / spec.size).astype(np.int64)
+    own = np.flatnonzero((cell[:, 0] == spec.ix) & (cell[:, 1] == spec.iy))
+    lo = o + np.array([spec.ix, spec.iy]) * spec.size - spec.halo
+    hi = o + np.array([spec.ix + 1, spec.iy + 1]) * spec.size + spec.halo
+    xy = points[:, :2]
+    near = np.all((xy >= lo) & (xy <= hi), axis=1)
+    near[own] = True  # a point on the upper edge of the box (float rounding) is still in its tile
+    return own, np.flatnonzero(near)
+
+
+def frames_meeting(boxes: np.ndarray, K: np.ndarray, T_cw: np.ndarray, shape: tuple[int, int],
+                   margin_px: float = 1.0, max_depth: Optional[float] = None) -> np.ndarray:
+    """Which of the (T, 2, 3) axis-aligned boxes (min, max corner, world metres) a camera's view
+    meets: the view is the pyramid of points in front of the camera (z > 0, and z <= ``max_depth``)
+    that project into the image grown by ``margin_px`` pixels. A box is out of view when all its
+    8 corners lie outside one of the pyramid's planes; otherwise it counts as seen (conservative:
+    a box near a corner of the pyramid may count as seen without being so, never the reverse)."""
+    K = np.asarray(K, np.float64)
+    T = np.asarray(T_cw, np.float64)
+    h, w = shape
+    sel = np.array([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)])  # (8, 3) min/max per axis
+    corners = np.where(sel[None].astype(bool), boxes[:, 1][:, None], boxes[:, 0][:, None])  # (T, 8, 3)
+    X = corners @ T[:3, :3].T + T[:3, 3]  # camera coordinates
+    e3 = np.array([0.0, 0.0, 1.0])
+    lo_u, hi_u, lo_v, hi_v = -0.5 - margin_px, w - 0.5 + margin_px, -0.5 - margin_px, h - 0.5 + margin_px
+    planes = [K[0] - lo_u * e3, hi_u * e3 - K[0], K[1] - lo_v * e3, hi_v * e3 - K[1]]  # u*z = K[0].X
+    outside = np.all(X[..., 2] <= 0, axis=1)  # behind the camera
+    if max_depth is not None:
+        outside |= np.all(X[..., 2] > max_depth, axis=1)  # beyond the far plane
+    for p in planes:  # loop over the pyramid's side planes: all corners on the outer side
+        outside |= np.all(X @ p < 0, axis=1)
+    return ~outside
+
+
+def _specs(cfg: Config, scene: Scene) -> tuple[tuple[int, int], list[TileSpec], dict[str, np.ndarray]]:
+    """The tiles with own points, their own points and the frames that see each (one pass over the
+    frames' cameras, one frame read at a time)."""
+    tc = cfg.tiling
+    origin, shape, cell = tile_grid(scene.points, tc.size)
+    flat = cell[:, 0] * shape[1] + cell[:, 1]
+    order = np.argsort(flat, kind="stable")
+    keys, starts = np.unique(flat[order], return_index=True)
+    owns = np.split(order, starts[1:])
+    cells = [(int(k // shape[1]), int(k % shape[1])) for k in keys]
+    boxes = []
+    base = [TileSpec(ix, iy, origin, tc.size, tc.halo) for ix, iy in cells]
+    for spec in base:  # loop over tiles
+        _, rows = tile_points(scene.points, spec)
+        p = scene.points[rows]
+        boxes.append([p.min(0), p.max(0)])
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 2, 3)
+    seen = np.zeros((len(base), len(scene.frames)), bool)
+    margin = cfg.evidence.pixel_radius + 1.0
+    for i, f in FrameLoop(scene.frames, f"cameras: which frames see which of {len(base)} tiles"):
+        seen[:, i] = frames_meeting(boxes, f.K, f.T_cw, f.shape, margin, tc.max_depth)
+    specs = [dataclasses.replace(s, frames=tuple(int(i) for i in np.flatnonzero(seen[t])))
+             for t, s in enumerate(base)]
+    return shape, specs, {s.id: np.sort(o) for s, o in zip(specs, owns)}
+
+
+def diffuse_tile(cfg: Config, scene: Scene, spec: TileSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+    """The pipeline on one tile: its own points (indices), their labels and Bayesian labels, its record."""
+    t0 = time.perf_counter()
+    own, rows = tile_points(scene.points, spec)
+    rec = {"id": spec.id, "points": int(own.size), "points_with_halo": int(rows.size),
+           "frames_read": len(spec.frames), "iterations": 0}
+    labels = np.full(own.size, IGNORE, np.int16)
+    bayes = labels.copy()
+    if spec.frames:
+        sub = Scene(name=f"{scene.name} tile {spec.id}", points=scene.points[rows], taxonomy=scene.taxonomy,
+                    frames=LazyFrames.subset(scene.frames, spec.frames),
+                    normals=None if scene.normals is None else scene.normals[rows])
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            res = pipeline.run(cfg, scene=sub)
+        pos = np.searchsorted(rows, own)
+        labels, bayes = res.labels[pos], res.bayesian_labels[pos]
+        rec["iterations"] = int(res.diffusion.iterations) if res.diffusion is not None else 0
+        msgs = sorted({first_line(w.message) for w in caught})
+        if msgs:
+            rec["warnings"] = msgs
+    rec.update(time_s=round(time.perf_counter() - t0, 3), node=socket.gethostname(), pid=os.getpid(),
+               status="done")
+    return own, labels, bayes, rec
+
+
+def _crc(own: np.ndarray) -> int:
+    return zlib.crc32(np.ascontiguousarray(own, np.int64).tobytes())
+
+
+def write_tile(tiles_dir: Path, spec: TileSpec, own: np.ndarray, labels: np.ndarray, bayes: np.ndarray,
+               rec: dict) -> Path:
+    """``tiles/<id>.npz`` through a temporary file and os.replace (never half-written under its name)."""
+    path = Path(tiles_dir) / f"{spec.id}.npz"
+    buf = io.BytesIO()
+    np.savez(buf, labels=labels.astype(np.int16), bayesian=bayes.astype(np.int16), crc=np.int64(_crc(own)),
+             record=np.array(json.dumps(rec)))
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "wb") as fh:
+        fh.write(buf.getvalue())
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+    return path
+
+
+def read_tile(tiles_dir: Path, spec: TileSpec, own: np.ndarray) -> Optional[tuple[np.ndarray, np.ndarray, dict]]:
+    """A tile's finished file, or None when it is missing or not complete (unreadable, another shape,
+    another set of points)."""
+    path = Path(tiles_dir) / f"{spec.id}.npz"
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path) as z:
+            labels, bayes, crc, rec = z["labels"], z["bayesian"], int(z["crc"]), json.loads(str(z["record"]))
+    except Exception:  # noqa: BLE001 - a truncated or foreign file: the tile is computed again
+        return None
+    if labels.shape != (own.size,) or bayes.shape != (own.size,) or crc != _crc(own):
+        return None
+    return labels, bayes, rec
+
+
+def _run_tile(cfg: Config, scene: Scene, spec: TileSpec, tiles_dir: str) -> dict:
+    own, labels, bayes, rec = diffuse_tile(cfg, scene, spec)
+    write_tile(Path(tiles_dir), spec, own, labels, bayes, rec)
+    return rec
+
+
+_WORKER_SCENES: dict[str, Scene] = {}
+
+
+def _ray_tile(cfg: Config, scene_ref, spec: TileSpec, tiles_dir: str) -> dict:
+    """A Ray task: the tile's scene from the source (loaded once per worker process) or from the
+    object the driver put, then :func:`_run_tile`."""
+    # threads: Ray sets OMP_NUM_THREADS to the task's CPUs (1), which caps the compiled kernels' threads
+    if scene_ref is None:
+        key = config_yaml(cfg.scene) + config_yaml(cfg.depth) + config_yaml(cfg.taxonomy)
+        if key not in _WORKER_SCENES:
+            _WORKER_SCENES.clear()
+            _WORKER_SCENES[key] = pipeline.load_scene(cfg.scene, resolve_taxonomy(cfg), cfg.depth)
+        scene = _WORKER_SCENES[key]
+    else:
+        scene = scene_ref
+    with progress.quiet():
+        return _run_tile(cfg, scene, spec, tiles_dir)
+
+
+def _fingerprint(cfg: Config) -> str:
+    """What makes tiles of two runs interchangeable: the config without where and how they ran."""
+    t = dataclasses.replace(cfg.tiling, workers=0, address=None, max_retries=0, resume=None)
+    c = dataclasses.replace(cfg, tiling=t, record=type(cfg.record)(), output=type(cfg.output)())
+    return hashlib.sha1(config_yaml(c).encode()).hexdigest()
+
+
+def _tiles_dir(cfg: Config, run_dir: Optional[Path]) -> Path:
+    if cfg.tiling.resume:
+        d = Path(cfg.tiling.resume) / TILES
+        if not d.is_dir():
+            raise FileNotFoundError(f"tiling.resume={cfg.tiling.resume}: no {TILES}/ folder of a tiled run there")
+        return d
+    if run_dir is None:
+        raise ValueError("a tiled run needs a run folder for its tiles (run_dir=..., or tiling.resume=<folder>)")
+    d = Path(run_dir) / TILES
+    d.mkdir(parents=True, exist_ok=True)
+    return d
+
+
+def _check_fingerprint(tiles_dir: Path, cfg: Config) -> None:
+    path = tiles_dir / "tiling.json"
+    fp = _fingerprint(cfg)
+    if path.is_file():
+        old = json.loads(path.read_text()).get("config_sha1")
+        if old != fp:
+            raise ValueError(f"tiling.resume: the tiles in {tiles_dir} were made with another config (scene, "
+                             f"predictions, method, tiling.size/halo, ...); resume with the same keys")
+    else:
+        write_json_atomic(path, {"config_sha1": fp})
+
+
+def tiled(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHooks] = None,
+          run_dir: Optional[Path] = None) -> TiledResult:
+    """Label ``scene`` (default: the configured source) tile by tile; the tiles' files go to
+    ``run_dir/tiles`` (or to ``tiling.resume``'s). ``hooks`` are not called (tiles run apart)."""
+    cfg = resolve(cfg)
+    tc = cfg.tiling
+    if cfg.scene.voxel_size > 0:
+        raise ValueError(f"protocol=tiled needs scene.voxel_size=0 (got {cfg.scene.voxel_size:g}): the voxel grid "
+                         f"is anchored at the cloud's minimum, which a tile does not share")
+    t = {}
+    t0 = time.perf_counter()
+    given = scene is not None
+    if scene is None:
+        scene = pipeline.load_scene(cfg.scene, resolve_taxonomy(cfg), cfg.depth)
+    validate.check_points(scene)
+    t["load"] = time.perf_counter() - t0
+    tc0 = time.perf_counter()
+    rho = None
+    if cfg.graph.sigma_d is None and fusion.get(cfg.method.name).graph:
+        # sigma_d = sigma_d_factor * rho, rho the mean spacing of the whole cloud: the tiles use the untiled value
+        with progress.stage(f"point spacing ({scene.n_points:,} points)"):
+            rho = cloud_spacing(scene.points)
+        cfg = dataclasses.replace(cfg, graph=dataclasses.replace(cfg.graph, sigma_d=cfg.graph.sigma_d_factor * rho))
+    if cfg.solver.sparse_classes == SparseClasses.auto:  # the untiled run's choice (by the whole cloud's size)
+        on = pipeline._sparse_classes(cfg.solver, scene.n_points, scene.taxonomy.num_classes) > 0
+        cfg = dataclasses.replace(cfg, solver=dataclasses.replace(
+            cfg.solver, sparse_classes=SparseClasses.on if on else SparseClasses.off))
+    tiles_dir = _tiles_dir(cfg, run_dir)
+    _check_fingerprint(tiles_dir, cfg)
+    shape, specs, owns = _specs(cfg, scene)
+    t["tiles"] = time.perf_counter() - tc0  # the spacing and which frames see which tiles
+
+    records: dict[str, dict] = {}
+    todo = []
+    for spec in specs:  # loop over tiles: the finished ones are kept
+        got = read_tile(tiles_dir, spec, owns[spec.id])
+        if got is None:
+            todo.append(spec)
+        else:
+            records[spec.id] = dict(got[2], status="resumed" if tc.resume else got[2]["status"])
+    td = time.perf_counter()
+    if tc.workers == 0 and not tc.address:
+        with progress.stage(f"tiles ({shape[0]}x{shape[1]} grid, {len(todo)} to run)", total=len(todo),
+                            unit="tile") as bar:
+            for spec in todo:  # loop over tiles
+                try:
+                    records[spec.id] = _run_tile(cfg, scene, spec, str(tiles_dir))
+                except (ValueError, MemoryError, OSError, FloatingPointError) as exc:
+                    records[spec.id] = _error(spec, owns, exc)
+                bar.update()
+    elif todo:
+        records.update(_on_ray(cfg, scene if given else None, todo, owns, tiles_dir))
+    t["diffusion"] = time.perf_counter() - td
+
+    tl = time.perf_counter()
+    labels = np.full(scene.n_points, IGNORE, np.int16)
+    bayes = labels.copy()
+    for spec in specs:  # loop over tiles: their files -> the scene's labels
+        got = read_tile(tiles_dir, spec, owns[spec.id]) if records[spec.id]["status"] != "error" else None
+        if got is None and records[spec.id]["status"] != "error":
+            records[spec.id] = dict(records[spec.id], status="error", error="its tile file is missing or damaged")
+        if got is not None:
+            labels[owns[spec.id]], bayes[owns[spec.id]] = got[0], got[1]
+    t["labels"] = time.perf_counter() - tl
+    res = TiledResult(scene=scene, method=cfg.method.name, labels=labels, bayesian_labels=bayes, grid=shape,
+                      tiles=[records[s.id] for s in specs], tiles_dir=tiles_dir, resumed_from=tc.resume, rho=rho)
+    if scene.gt_labels is not None:
+        tm = time.perf_counter()
+        res.metrics = score(labels, scene.gt_labels, scene.taxonomy.names)
+        res.baseline["bayesian"] = score(bayes, scene.gt_labels, scene.taxonomy.names)
+        t["metrics"] = time.perf_counter() - tm
+    t["total"] = time.perf_counter() - t0
+    res.timings_s = t
+    return res
+
+
+def _error(spec: TileSpec, owns: dict, exc: BaseException) -> dict:
+    return {"id": spec.id, "points": int(owns[spec.id].size), "frames_read": len(spec.frames), "iterations": 0,
+            "status": "error", "error": f"{type(exc).__name__}: {first_line(exc)}"}
+
+
+def _on_ray(cfg: Config, scene: Optional[Scene], todo: list[TileSpec], owns: dict, tiles_dir: Path) -> dict:
+    """The tiles as Ray tasks (retried ``tiling.max_retries`` times); their records by id."""
+    import ray  # only a run on Ray pays its import (a second)
+
+    tc = cfg.tiling
+    started = False
+    if not ray.is_initialized():
+        kw = dict(address=tc.address) if tc.address else dict(num_cpus=tc.workers)
+        # the workers import this package from where the driver does (a node must see that path,
+        # e.g. a shared file system, or have diffuser-lab installed)
+        path = [str(Path(__file__).resolve().parents[2])] + [p for p in [os.environ.get("PYTHONPATH")] if p]
+        ray.init(include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING,
+                 runtime_env={"env_vars": {"PYTHONPATH": os.pathsep.join(path)}}, **kw)
+        started = True
+    try:
+        task = ray.remote(num_cpus=1, max_retries=tc.max_retries, retry_exceptions=True)(_ray_tile)
+        scene_ref = ray.put(scene) if scene is not None else None
+        refs = {task.remote(cfg, scene_ref, spec, str(tiles_dir)): spec for spec in todo}
+        out: dict[str, dict] = {}
+        pending = list(refs)
+        with progress.stage(f"tiles on Ray ({len(todo)} tasks)", total=len(todo), unit="tile") as bar:
+            while pending:
+                done, pending = ray.wait(pending, num_returns=1)
+                for ref in done:  # loop over finished tiles
+                    spec = refs[ref]
+                    try:
+                        out[spec.id] = ray.get(ref)
+                    except Exception as exc:  # noqa: BLE001 - a tile's error, after its retries, is its record
+                        cause = getattr(exc, "cause", None) or exc
+                        out[spec.id] = _error(spec, owns, cause)
+                    bar.update()
+        return out
+    finally:
+        if started:
+            ray.shutdown()
+
+
+def summary(res: TiledResult, cfg: Config) -> dict:
+    """summary.json content of a tiled run (``tiling.tiles``: one record per tile)."""
+    s = res.scene
+    failed = res.failed
+    return {
+        "protocol": "tiled",
+        "method": res.method,
+        "scene": s.name,
+        "n_points": s.n_points,
+        "n_frames": len(s.frames),
+        "n_classes": s.taxonomy.num_classes,
+        "taxonomy": s.taxonomy.name,
+        "n_unlabeled": int((res.labels == IGNORE).sum()),
+        "metrics": res.metrics,
+        "baseline": {"bayesian": res.baseline.get("bayesian")},
+        "diffusion": {"iterations": max([r.get("iterations", 0) for r in res.tiles] or [0])},
+        "timings_s": {k: round(v, 4) for k, v in res.timings_s.items()},
+        "tiling": {"size": cfg.tiling.size, "halo": cfg.tiling.halo, "grid": list(res.grid),
+                   "n_tiles": len(res.tiles), "failed": len(failed), "workers": cfg.tiling.workers,
+                   "address": cfg.tiling.address, "tiles_dir": str(res.tiles_dir), "resumed_from": res.resumed_from,
+                   "rho_m": res.rho, "tiles": res.tiles},
+    }
+
+
+def table(res: TiledResult, run_dir: Optional[Path] = None) -> str:
+    """What the command line prints after a tiled run."""
+    s = res.scene
+    n = len(res.tiles)
+    frames = [r["frames_read"] for r in res.tiles]
+    resumed = sum(r["status"] == "resumed" for r in res.tiles)
+    lines = [f"diffuser-lab | scene {s.name} | {s.n_points:,} points | {len(s.frames)} frames | tiled "
+             f"{res.grid[0]}x{res.grid[1]} grid, {n} tiles"]
+    if res.metrics is not None:
+        lines.append(f"{'':22s}{'mIoU':>7s}{'acc':>7s}{'cover':>7s}")
+        for name, m in [(res.method, res.metrics), ("bayesian (baseline)", res.baseline.get("bayesian"))]:
+            m = m or {}
+            lines.append(f"{name:22s}" + "".join(f"{'-' if m.get(k) is None else format(m[k], '.1f'):>7s}"
+                                                 for k in ("miou", "accuracy", "coverage")))
+    lines.append(f"tiles: {n - len(res.failed)} of {n} done ({resumed} kept from {res.resumed_from}), frames read "
+                 f"per tile {min(frames, default=0)}-{max(frames, default=0)} of {len(s.frames)}"
+                 if resumed else f"tiles: {n - len(res.failed)} of {n} done, frames read per tile "
+                 f"{min(frames, default=0)}-{max(frames, default=0)} of {len(s.frames)}")
+    for r in res.failed:  # loop over failed tiles
+        lines.append(f"tile {r['id']} failed: {r['error']}")
+    lines.append("time [s]  " + "  ".join(f"{k} {v:.2f}" for k, v in res.timings_s.items()))
+    if run_dir is not None:
+        lines.append(f"run folder: {run_dir}")
+        if res.failed:
+            folder = res.resumed_from or run_dir
+            lines.append(f"finish the failed tiles: diffuser-lab protocol=tiled ... tiling.resume={folder}")
+    return "\n".join(lines)

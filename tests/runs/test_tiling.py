@@ -1,0 +1,176 @@
+"""protocol=tiled (diffuser_lab/runs/tiled.py): the global pipeline per x-y tile equals the untiled run;
+a tile reads the frames that see it; tiles on a two-node Ray cluster; resume; the memory refusal."""
+import dataclasses
+import json
+import os
+
+import numpy as np
+import pytest
+
+from diffuser_lab.config import default_config
+from diffuser_lab.data import validate
+from diffuser_lab.data.frames import LazyFrames
+from diffuser_lab.data.predictions import with_predictions
+from diffuser_lab.method import evidence as evidence_mod
+from diffuser_lab.runs import pipeline, tiled
+from diffuser_lab.runs.tiled import TileSpec, frames_meeting, tile_points
+from conftest import SMALL_DEMO, run_cli
+
+SMALL = {"scene.demo.n_views": 12, "scene.demo.point_spacing": 0.07, "solver.max_iter": 60}
+TILED = {**SMALL, "protocol.name": "tiled", "tiling.size": 2.0}
+
+
+@pytest.fixture(scope="module")
+def untiled():
+    return pipeline.run(default_config(**SMALL))
+
+
+@pytest.fixture(scope="module")
+def local_tiled(tmp_path_factory):
+    run_dir = tmp_path_factory.mktemp("tiled")
+    return tiled.tiled(default_config(**TILED), run_dir=run_dir), run_dir
+
+
+def test_tiled_labels_equal_the_untiled_run(untiled, local_tiled):
+    res, _ = local_tiled
+    assert res.grid == (3, 3) and not res.failed
+    assert (res.labels == untiled.labels).mean() >= 0.999
+    np.testing.assert_array_equal(res.bayesian_labels, untiled.bayesian_labels)  # the same evidence per point
+    assert res.metrics["miou"] == pytest.approx(untiled.metrics["miou"], abs=0.2)
+    assert sum(r["points"] for r in res.tiles) == untiled.scene.n_points
+
+
+def test_a_frame_has_the_same_predictions_in_a_tile(untiled):
+    cfg = default_config(**SMALL)
+    frames, tax = untiled.scene.frames, untiled.scene.taxonomy
+    whole = with_predictions(frames, cfg.predictions, tax)
+    keep = [7, 2, 9]
+    part = with_predictions(LazyFrames.subset(frames, keep), cfg.predictions, tax)
+    for i, k in enumerate(keep):
+        np.testing.assert_array_equal(part[i].labels, whole[k].labels)
+
+
+def test_a_tile_reads_the_frames_that_see_it(untiled, local_tiled):
+    """Every frame into which a tile's point (or halo point) projects, in front of the camera, is
+    read by the tile (its ``frames_read``) (brute force: all points into all frames); the evidence its points get from
+    the frames it reads is the evidence of all frames."""
+    res, _ = local_tiled
+    scene, cfg = untiled.scene, default_config(**TILED)
+    preds = with_predictions(scene.frames, cfg.predictions, scene.taxonomy)
+    extra = reads = 0
+    for rec in res.tiles:
+        ix, iy = map(int, rec["id"].split("_"))
+        spec = TileSpec(ix, iy, tuple(scene.points[:, :2].min(0).astype(float)), cfg.tiling.size, cfg.tiling.halo)
+        _, rows = tile_points(scene.points, spec)
+        p = scene.points[rows].astype(np.float64)
+        sees = []
+        for i, f in enumerate(scene.frames):
+            X = p @ f.T_cw[:3, :3].T + f.T_cw[:3, 3]
+            z = X[:, 2]
+            u = X @ f.K[0] / np.where(z > 0, z, 1)
+            v = X @ f.K[1] / np.where(z > 0, z, 1)
+            h, w = f.shape
+            if np.any((z > 0) & (u >= -0.5) & (u < w - 0.5) & (v >= -0.5) & (v < h - 0.5)):
+                sees.append(i)
+        box = np.stack([p.min(0), p.max(0)])[None]
+        margin = cfg.evidence.pixel_radius + 1.0
+        read = [i for i, f in enumerate(scene.frames) if frames_meeting(box, f.K, f.T_cw, f.shape, margin)[0]]
+        assert set(sees) <= set(read) and rec["frames_read"] == len(read)
+        extra += len(read) - len(sees)
+        reads += len(read)
+        mine = evidence_mod.accumulate(p.astype(np.float32), [preds[i] for i in read], scene.taxonomy.num_classes,
+                                       depth_tol=cfg.evidence.depth_tol, pixel_radius=cfg.evidence.pixel_radius)
+        np.testing.assert_array_equal(mine.mass, untiled.evidence.mass[rows])
+    # the box test (the tile's box against each view's pyramid) reads some frames that see none of
+    # the tile's points (21 of 95 here: a room's tile boxes span floor to ceiling); never one too few
+    assert extra <= 0.3 * reads
+
+
+def test_resume_keeps_finished_tiles_and_redoes_damaged_ones(local_tiled, tmp_path):
+    res, run_dir = local_tiled
+    files = sorted((run_dir / "tiles").glob("*.npz"))
+    assert len(files) == len(res.tiles)
+    kept, damaged, missing = files[0], files[1], files[2]
+    before = {f.name: os.stat(f).st_mtime_ns for f in files}
+    damaged.write_bytes(damaged.read_bytes()[:100])  # a half-written file
+    missing.unlink()
+    again = tiled.tiled(default_config(**TILED, **{"tiling.resume": str(run_dir)}), run_dir=tmp_path)
+    np.testing.assert_array_equal(again.labels, res.labels)
+    assert os.stat(kept).st_mtime_ns == before[kept.name]
+    assert os.stat(damaged).st_mtime_ns != before[damaged.name] and missing.is_file()
+    status = {r["id"]: r["status"] for r in again.tiles}
+    assert status[kept.stem] == "resumed" and status[damaged.stem] == status[missing.stem] == "done"
+    assert not (tmp_path / "tiles").exists()  # the tiles stay in the resumed folder
+
+
+def test_resume_with_another_config_is_refused(local_tiled, tmp_path):
+    _, run_dir = local_tiled
+    with pytest.raises(ValueError, match="another config"):
+        tiled.tiled(default_config(**TILED, **{"tiling.resume": str(run_dir), "tiling.halo": 0.1}), run_dir=tmp_path)
+
+
+def _budget_failing_the_largest_tile(res, k=24, classes=20):
+    need = sorted(validate.estimate_memory(r["points_with_halo"], r["points_with_halo"], classes, k)
+                  for r in res.tiles)
+    return (need[-1] + need[-2]) / 2 / validate.GIB
+
+
+def test_a_failing_tile_is_reported_and_the_others_kept(untiled, local_tiled, tmp_path):
+    res, _ = local_tiled
+    budget = _budget_failing_the_largest_tile(res)
+    out = tiled.tiled(default_config(**TILED, memory_budget_gb=budget), run_dir=tmp_path)
+    assert len(out.failed) == 1 and out.failed[0]["error"].startswith("MemoryError: this run needs about")
+    bad = out.failed[0]["id"]
+    assert not (tmp_path / "tiles" / f"{bad}.npz").exists()
+    ok = out.labels != -1
+    assert (out.labels[ok] == res.labels[ok]).all() and ok.sum() == untiled.scene.n_points - out.failed[0]["points"]
+    assert f"tile {bad} failed: MemoryError" in tiled.table(out, tmp_path)
+
+
+def test_the_command_line_writes_the_tiles_and_their_records(tmp_path):
+    p = run_cli(*SMALL_DEMO, "protocol=tiled", "record=off", "output.labels_ply=false", f"hydra.run.dir={tmp_path}")
+    assert p.returncode == 0, p.stderr
+    assert "tiled 3x3 grid, 9 tiles" in p.stdout and "tiles: 9 of 9 done" in p.stdout
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert s["status"] == "ok" and s["protocol"] == "tiled" and s["tiling"]["grid"] == [3, 3]
+    rec = s["tiling"]["tiles"][0]
+    assert {"id", "points", "frames_read", "iterations", "time_s", "node", "pid", "status"} <= set(rec)
+    assert len(list((tmp_path / "tiles").glob("*.npz"))) == 9 and (tmp_path / "labels.npy").is_file()
+
+
+def test_memory_refusal_names_the_tiling_keys():
+    with pytest.raises(MemoryError) as err:
+        validate.check_memory(3_000_000, 3_000_000, 20, 24, 1.0)
+    msg = str(err.value)
+    assert "\n" not in msg and "protocol=tiled tiling.size=" in msg and "this run needs about" in msg
+    with pytest.raises(MemoryError, match=r"memory_budget_gb=0.01; .* protocol=tiled tiling.size=<metres> \(at least"):
+        pipeline.run(default_config(**SMALL, memory_budget_gb=0.01))  # refused before the frames are read
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    ray = pytest.importorskip("ray")
+    from ray.cluster_utils import Cluster
+
+    c = Cluster(initialize_head=True, head_node_args={"num_cpus": 1})
+    c.add_node(num_cpus=1)
+    c.wait_for_nodes()
+    yield c
+    if ray.is_initialized():
+        ray.shutdown()
+    c.shutdown()
+
+
+@pytest.mark.slow  # ~40 s with the cluster's start
+def test_tiles_on_a_two_node_ray_cluster(cluster, local_tiled, tmp_path):
+    res, _ = local_tiled
+    cfg = default_config(**TILED, **{"tiling.address": cluster.address, "tiling.max_retries": 1})
+    out = tiled.tiled(cfg, run_dir=tmp_path / "a")
+    np.testing.assert_array_equal(out.labels, res.labels)
+    assert {r["status"] for r in out.tiles} == {"done"} and len({r["pid"] for r in out.tiles}) >= 2
+    # a tile that fails (its memory estimate over the budget) is retried, then reported; the others are kept
+    bad = dataclasses.replace(cfg, memory_budget_gb=_budget_failing_the_largest_tile(res))
+    out = tiled.tiled(bad, run_dir=tmp_path / "b")
+    assert len(out.failed) == 1 and "MemoryError" in out.failed[0]["error"]
+    ok = out.labels != -1
+    assert (out.labels[ok] == res.labels[ok]).all()
