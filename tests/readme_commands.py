@@ -123,6 +123,8 @@ def classify(c: Command) -> Command:
         c.key = "shell"
     if "scene=scannet_frames" in t:
         c.append = ["scene.options.max_frames=8"]  # 8 of the 27 real frames
+    if "scene=city" in t:
+        c.append = ["scene.city.blocks_x=1", "scene.city.blocks_y=1", "scene.city.point_spacing=0.5"]  # ~40k points
     if ("scannet0470" in t or "../shared" in t) and not HAVE_SHARED and not c.skip:
         c.skip = f"needs the real data in {SHARED / 'data'} (absent)"
     if any(p in t for p in CAPTURES) and not HAVE_7SCENES and not c.skip:
