@@ -137,7 +137,10 @@ def _task(cfg: Any) -> Optional[float]:
         if hooks is not None:
             records = hooks.files()
         elif protocol.result_records:  # written by this process from the result (a tiled run's)
+            t_rec = time.perf_counter()
             records = record_result(conf, run_dir, result, overrides=list(hc.overrides.task))
+            if records and isinstance(getattr(result, "timings_s", None), dict):
+                result.timings_s["records"] = time.perf_counter() - t_rec
         else:
             records = {}
         done = protocol.finish(result, conf, run_dir, summary, records)
