@@ -9,6 +9,8 @@
                                                   the MCAP re-logged to a temporary .rrd)
     diffuser-lab-inspect RUN --foxglove-layout L.json  write the Foxglove layout for run.mcap
 
+A tiled run (protocol=tiled) prints its grid and a line per tile (status, points, frames read,
+iterations, time, node); ``--at`` and ``--to-rrd`` refuse (it records no iterations: open its run.rrd).
 An online run (protocol=online) prints a per-frame summary instead (frames, latency, final
 mIoU, the frames whose Z was kept); ``--at FRAME`` takes a frame index; ``--to-rrd`` refuses
 (its run.mcap keeps the map's labels only on the kept frames: open its run.rrd).
@@ -50,6 +52,7 @@ from diffuser_lab.recording.mcap_write import FOXGLOVE_LAYOUT, online_foxglove_l
 from diffuser_lab.recording.rerun_log import RerunRecorder
 from diffuser_lab.recording.schedule import describe
 from diffuser_lab.recording.steps import StepTracker
+from diffuser_lab.recording.tiled import tiled_meta
 
 PROG = "diffuser-lab-inspect"
 
@@ -187,6 +190,51 @@ def is_online_mcap(mcap_path: Path | str) -> bool:
         if topic in (TOPIC_RUN, TOPIC_Z):
             return False
     return False
+
+
+def is_tiled_mcap(mcap_path: Path | str) -> bool:
+    """Whether a run.mcap is a tiled run's (its ``diffuser_lab.tiled`` metadata, before any iteration)."""
+    log = RunLog(path=Path(mcap_path))
+    for topic, _ in iter_run(mcap_path, log):
+        if topic == "metadata:diffuser_lab.tiled":
+            return True
+        if topic in (TOPIC_RUN, TOPIC_Z, TOPIC_ONLINE_FRAME):
+            return False
+    return False
+
+
+def tiled_text(log: Any, meta: dict) -> str:
+    """A tiled run at a glance: the grid, the points shown, the result."""
+    run, s = log.run, log.summary
+    tiles = meta.get("tiles", [])
+    status = {k: sum(t.get("status") == k for t in tiles) for k in ("done", "resumed", "error")}
+    lines = [f"run.mcap: {log.path} ({_size(log.path)}, {'complete' if log.complete else 'TRUNCATED'})",
+             f"scene     {run.get('scene', '?')} | tiled {meta['grid'][0]}x{meta['grid'][1]} grid of "
+             f"{meta['size']:g} m (halo {meta['halo']:g} m), {len(tiles)} tiles: {status['done']} done, "
+             f"{status['resumed']} kept from resume, {status['error']} failed | {len(log.class_names)} classes "
+             f"({run.get('taxonomy', '')})",
+             f"overrides {' '.join(log.overrides) if log.overrides else '(none)'}",
+             f"recorded  final labels of {meta['displayed_points']:,} of {meta['n_points']:,} points ("
+             + ("all" if meta["stride"] == 1 else f"every {meta['stride']}-th") + "), the tiles; no iterations "
+             "(a tiled run records no intermediate Z)"]
+    if s is not None:
+        m, b = s.get("metrics") or {}, (s.get("baseline") or {}).get("bayesian") or {}
+        lines.append(f"result    mIoU {_f(m.get('miou'))}  acc {_f(m.get('accuracy'))}  cover "
+                     f"{_f(m.get('coverage'))} | bayesian mIoU {_f(b.get('miou'))} | {s.get('n_unlabeled', 0):,} "
+                     f"points unlabeled")
+    else:
+        lines.append("result    (no summary)")
+    return "\n".join(lines)
+
+
+def tiles_table_text(tiles: Sequence[dict]) -> str:
+    """One line per tile."""
+    rows = [f"{'tile':>8s}  {'status':>8s}  {'points':>9s}  {'frames':>6s}  {'iters':>5s}  {'time[s]':>7s}  node:pid"]
+    for t in tiles:
+        rows.append(f"{t['id']:>8s}  {t.get('status', '?'):>8s}  {t.get('points', 0):9,d}  {t.get('frames_read', 0):6d}  "
+                    f"{t.get('iterations', 0):5d}  {_f(t.get('time_s'), '.2f'):>7s}  {t.get('node', '-')}:{t.get('pid', '-')}"
+                    + (f"  {t['error']}" if t.get("error") else ""))
+    return "\n".join(rows)
 
 
 def table_text(metrics: Sequence[dict]) -> str:
@@ -361,6 +409,9 @@ def _main(args: argparse.Namespace) -> int:
             shutil.copyfile(FOXGLOVE_LAYOUT, args.foxglove_layout)
         print(f"wrote {args.foxglove_layout}: open {mcap} in Foxglove, then Layouts > Import from file")
         return 0
+    if (args.to_rrd or args.view or args.at is not None) and is_tiled_mcap(mcap):
+        raise UsageError(f"{mcap}: a tiled run records its final labels and tiles, no iterations; open its "
+                         f"run.rrd (diffuser-lab-inspect RUN --view)")
     if (args.to_rrd or args.view) and is_online_mcap(mcap):
         raise UsageError(f"{mcap}: an online run's run.mcap keeps the map's labels only on the frames whose Z it "
                          f"kept, so it is not re-logged; open the run's run.rrd (diffuser-lab-inspect RUN --view)")
@@ -397,6 +448,14 @@ def _main(args: argparse.Namespace) -> int:
             lab = labels_from_scores(Z)
             print(f"Z at {what} {it}: {Z.shape[0]:,} x {Z.shape[1]} float32, max {Z.max():.3e}, "
                   f"{int((lab >= 0).sum()):,} labelled points; stored as {precision} (use --out z.npy to save it)")
+        return 0
+    meta = tiled_meta(log.metadata)
+    if meta is not None:
+        print(tiled_text(log, meta))
+        if args.config:
+            print("config:\n" + log.config_yaml)
+        if not args.no_table:
+            print(tiles_table_text(meta.get("tiles", [])))
         return 0
     if log.online is not None:
         print(online_text(log))

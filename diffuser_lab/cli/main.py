@@ -15,7 +15,7 @@ from typing import Any, Optional
 
 from diffuser_lab.backends import numba as nb
 from diffuser_lab.config import RecordMode, SolverBackend, register, to_object
-from diffuser_lab.recording import make_hooks
+from diffuser_lab.recording import make_hooks, record_result
 from diffuser_lab.recording.heap import retain_freed_memory
 from diffuser_lab.runs import launchers, report
 from diffuser_lab.runs.protocols import PROTOCOLS
@@ -134,7 +134,16 @@ def _task(cfg: Any) -> Optional[float]:
         finally:
             if hooks is not None:
                 hooks.close()
-        done = protocol.finish(result, conf, run_dir, summary, hooks.files() if hooks is not None else {})
+        if hooks is not None:
+            records = hooks.files()
+        elif protocol.result_records:  # written by this process from the result (a tiled run's)
+            t_rec = time.perf_counter()
+            records = record_result(conf, run_dir, result, overrides=list(hc.overrides.task))
+            if records and isinstance(getattr(result, "timings_s", None), dict):
+                result.timings_s["records"] = time.perf_counter() - t_rec
+        else:
+            records = {}
+        done = protocol.finish(result, conf, run_dir, summary, records)
         if multirun:  # one line per job; the sweep's table comes at the end (sweep.print_table)
             say(job_line(hc.job.num, run_dir, done, time.perf_counter() - t_start))
         elif not conf.output.quiet:

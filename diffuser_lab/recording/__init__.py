@@ -41,6 +41,7 @@ from .online import OnlineHooks, is_online
 from .recorders import MCAP_NAME, RRD_NAME
 from .steps import Step, StepTracker
 from .thread import ThreadLane
+from .tiled import record_tiled
 
 ASYNC = True
 """Record on a background thread (False: in the run's thread, as the hooks are called)."""
@@ -74,5 +75,15 @@ def make_hooks(conf: Any, run_dir: Path | str, overrides: Sequence[str] = (), *,
     return (OnlineHooks if is_online(conf) else BatchHooks)(conf, lane)
 
 
-__all__ = ["make_hooks", "RecordingHooks", "BatchHooks", "OnlineHooks", "Step", "StepTracker", "RRD_NAME",
+def record_result(conf: Any, run_dir: Path | str, result: Any, overrides: Sequence[str] = ()) -> dict:
+    """The records of a run whose protocol writes them from its result once it is done
+    (``Protocol.result_records``: a tiled run, :func:`.tiled.record_tiled`); ``{}`` for record=off.
+    Returns ``{"rrd": .., "mcap": ..}`` as :meth:`RecordingHooks.files` does."""
+    if conf.record.mode == RecordMode.off:
+        return {}
+    Path(run_dir).mkdir(parents=True, exist_ok=True)
+    return record_tiled(conf, run_dir, result, overrides)
+
+
+__all__ = ["make_hooks", "record_result", "RecordingHooks", "BatchHooks", "OnlineHooks", "Step", "StepTracker", "RRD_NAME",
            "MCAP_NAME"]

@@ -69,6 +69,9 @@ from .mcap_encode import (
     TOPIC_RUN,
     TOPIC_SCENE,
     TOPIC_TF,
+    TOPIC_TILED_LABELS,
+    TOPIC_TILED_RECORDS,
+    TOPIC_TILED_TILES,
     TOPIC_Z,
     _cloud,
     _point_cloud,
@@ -404,6 +407,48 @@ class McapRecorder:
         dtype = "float32" if exact else self.z_dtype
         mv = z_state_bytes(index, Z, dtype, self._pooled(TOPIC_Z), labels=labels)
         self._write(TOPIC_Z, _RawMessage(mv, functools.partial(self._free[TOPIC_Z].put, mv.obj)), index, t)
+
+    # -- protocol=tiled ------------------------------------------------------------------------
+    def log_tiled(self, points: np.ndarray, labels: np.ndarray, tiles: Sequence[dict], centers: np.ndarray,
+                  half_sizes: np.ndarray, colors: np.ndarray, meta: dict) -> None:
+        """A tiled run's final records (:mod:`.tiled`): the displayed points coloured by final
+        label on /tiled/labels, one cube per tile on /tiled/tiles (foxglove.SceneUpdate), each
+        tile's record as JSON on /diffuser_lab/tiles, ``meta`` as ``diffuser_lab.tiled`` metadata."""
+        from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+        from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+
+        t = self._time("evidence")
+        upd = SceneUpdate()
+        for i, rec in enumerate(tiles):  # loop over tiles
+            e = upd.entities.add(frame_id="world", id=f"tile_{rec['id']}", frame_locked=True)
+            e.timestamp.FromNanoseconds(t)
+            for k in ("id", "status", "points", "frames_read", "iterations", "time_s", "node", "pid", "error"):
+                if rec.get(k) is not None:
+                    e.metadata.add(key=k, value=str(rec[k]))
+            c = e.cubes.add()
+            c.pose.position.x, c.pose.position.y, c.pose.position.z = (float(v) for v in centers[i])
+            c.pose.orientation.w = 1.0
+            c.size.x, c.size.y, c.size.z = (2.0 * float(v) for v in half_sizes[i])
+            c.color.r, c.color.g, c.color.b = (float(v) / 255.0 for v in colors[i])
+            c.color.a = 0.25
+
+        def start():
+            for topic, cls in ((TOPIC_TILED_LABELS, PointCloud), (TOPIC_TILED_TILES, SceneUpdate)):
+                self._channels[topic] = self.w.register_channel(topic=topic, message_encoding="protobuf",
+                                                                schema_id=self._schema(cls))
+            self._channels[TOPIC_TILED_RECORDS] = self.w.register_channel(topic=TOPIC_TILED_RECORDS,
+                                                                          message_encoding="json", schema_id=0)
+            self.w.add_metadata("diffuser_lab.tiled", {"json": json.dumps(meta, default=_json_default)})
+
+        self._submit(start)
+        buf = _cloud(points)
+        self._paint(buf, labels)
+        self._write(TOPIC_TILED_LABELS, _point_cloud(buf, t), t=t)
+        self._write(TOPIC_TILED_TILES, upd, t=t)
+        for i, rec in enumerate(tiles):  # loop over tiles
+            raw = json.dumps(rec, default=_json_default).encode()
+            self._write(TOPIC_TILED_RECORDS, _RawMessage(raw), i, t + i)
+        self._flush()
 
     def log_summary(self, summary: dict) -> None:
         self._submit(self.w.add_metadata, "diffuser_lab.summary",

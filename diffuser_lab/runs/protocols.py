@@ -48,6 +48,8 @@ class Protocol:
         table: ``(result, run_dir) -> str``: what the command line prints.
         records: whether the command line makes recorders (run.rrd, run.mcap) for it.
         run_dir: whether ``run`` takes the run folder (``run_dir=``: a run that writes files as it goes).
+        result_records: the command line writes its records (run.rrd, run.mcap) from the result
+            once the run is done (:func:`diffuser_lab.recording.record_result`), not through hooks.
     """
 
     name: str
@@ -57,6 +59,7 @@ class Protocol:
     table: Callable[[Any, Path], str]
     records: bool = True
     run_dir: bool = False
+    result_records: bool = False
 
 
 def _finish_global(result, cfg: Config, run_dir: Path, summary: report.SummaryFile, records: dict) -> dict:
@@ -113,7 +116,7 @@ PROTOCOLS: Registry = Registry("protocol.name", "protocol", [
              lambda result, run_dir: online_mod.table(result) + f"\nrun folder: {run_dir}"),
     Protocol("tiled", "global_3d per x-y tile of tiling.size (+ tiling.halo) on the frames that see it; tiles in "
              "this process or on Ray (tiling.*)", tiled.tiled, _finish_tiled, tiled.table, records=False,
-             run_dir=True),
+             run_dir=True, result_records=True),
 ])
 """The protocols by name (``protocol.name``)."""
 
