@@ -40,15 +40,29 @@ def load_scene(cfg: SceneConfig, taxonomy: Taxonomy = SCANNET20, depth: Optional
 
     ``depth`` (the run's ``cfg.depth``; None = perfect): the sensor model applied to rendered depth
     (demo, mesh_views) and, with ``depth.apply_to_real``, to the real sources' depth frames."""
-    source = sources.get(cfg.source)
-    sensor = sensor_model(depth) if depth is not None else None
+    source, sensor = sources.get(cfg.source), sensor_model(depth) if depth is not None else None
     with progress.stage(f"loading scene ({cfg.source})"):  # its own steps show inside
         scene = source.load(cfg, taxonomy, sensor)
-    if sensor is not None and depth.apply_to_real and not source.rendered:
-        scene.frames = noisy_frames(scene.frames, sensor)  # the cloud stays the loader's
+    scene.frames = _real_depth(scene.frames, source, sensor, depth)
     if cfg.name:
         scene.name = cfg.name
     return scene
+
+
+def load_frames(cfg: SceneConfig, taxonomy: Taxonomy = SCANNET20, depth: Optional[DepthNoiseConfig] = None
+                ) -> Sequence[Frame]:
+    """The frames of :func:`load_scene`'s scene, without its cloud where the source can (its
+    ``frames`` entry: the city); otherwise the scene is loaded and its frames kept."""
+    source, sensor = sources.get(cfg.source), sensor_model(depth) if depth is not None else None
+    if source.frames is None:
+        return load_scene(cfg, taxonomy, depth).frames
+    return _real_depth(source.frames(cfg, taxonomy, sensor), source, sensor, depth)
+
+
+def _real_depth(frames, source, sensor, depth):
+    if sensor is not None and depth.apply_to_real and not source.rendered:
+        return noisy_frames(frames, sensor)  # the cloud stays the loader's
+    return frames
 
 
 @dataclass

@@ -23,6 +23,7 @@ import hashlib
 import io
 import json
 import logging
+import math
 import os
 import socket
 import time
@@ -49,10 +50,12 @@ from . import pipeline
 from .records import config_yaml, write_json_atomic
 from .resolve import resolve
 
-__all__ = ["TileSpec", "TiledResult", "tiled", "tile_grid", "tile_points", "frames_meeting", "summary", "table"]
+__all__ = ["TileSpec", "TileInput", "TiledResult", "tiled", "tile_grid", "tile_points", "frames_meeting", "summary", "table"]
 
 TILES = "tiles"
 """The run folder's sub-folder of tile files."""
+INPUTS = "inputs"
+"""``tiles/inputs/<id>.npz``: a Ray tile's points (:class:`TileInput`), removed once the tile is done."""
 
 
 @dataclass(frozen=True)
@@ -95,10 +98,13 @@ class TiledResult:
 
 
 def tile_grid(points: np.ndarray, size: float) -> tuple[tuple[float, float], tuple[int, int], np.ndarray]:
-    """The grid's origin (the cloud's x-y minimum), its shape (nx, ny) and each point's cell (N, 2)."""
+    """The grid's origin (the cloud's x-y minimum), its shape (nx, ny) and each point's cell (N, 2) int32
+    (an axis at a time: 12 bytes a point at most besides the result)."""
     origin = points[:, :2].min(0).astype(np.float64)
-    cell = np.floor((points[:, :2] - origin) / size).astype(np.int64)
-    shape = np.maximum(cell.max(0) + 1, 1)
+    cell = np.empty((len(points), 2), np.int32)
+    for k in range(2):  # x, y: float64 as tile_points computes it
+        cell[:, k] = np.floor((points[:, k].astype(np.float64) - origin[k]) / size)
+    shape = np.maximum(cell.max(0).astype(np.int64) + 1, 1)
     return (float(origin[0]), float(origin[1])), (int(shape[0]), int(shape[1])), cell
 
 
@@ -140,44 +146,95 @@ def frames_meeting(boxes: np.ndarray, K: np.ndarray, T_cw: np.ndarray, shape: tu
     return ~outside
 
 
-def _specs(cfg: Config, scene: Scene) -> tuple[tuple[int, int], list[TileSpec], dict[str, np.ndarray]]:
-    """The tiles with own points, their own points and the frames that see each (one pass over the
-    frames' cameras, one frame read at a time)."""
+@dataclass
+class TileInput:
+    """What a tile's diffusion reads besides its frames: its own points and its points with halo
+    (sorted indices into the scene's N points; own is in rows), their coordinates and normals
+    (world metres, float32). Written by the driver for Ray workers (``tiles/inputs/<id>.npz``)."""
+
+    own: np.ndarray  # (n_own,) int64
+    rows: np.ndarray  # (n_rows,) int64
+    points: np.ndarray  # (n_rows, 3) float32
+    normals: Optional[np.ndarray]  # (n_rows, 3) float32 or None
+
+    def save(self, path: Path) -> Path:
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        with open(tmp, "wb") as fh:
+            np.savez(fh, own=self.own, rows=self.rows, points=self.points,
+                     **({} if self.normals is None else {"normals": self.normals}))
+        os.replace(tmp, path)
+        return path
+
+    @classmethod
+    def load(cls, path: Path) -> "TileInput":
+        with np.load(path) as z:
+            return cls(z["own"], z["rows"], z["points"], z["normals"] if "normals" in z.files else None)
+
+
+class _Cells:
+    """The cloud's points by grid cell (one argsort), for a tile's rows from its neighbouring cells."""
+
+    def __init__(self, points: np.ndarray, size: float):
+        origin, self.shape, cell = tile_grid(points, size)
+        flat = cell[:, 0].astype(np.int64) * self.shape[1] + cell[:, 1]
+        del cell
+        order = np.argsort(flat, kind="stable")  # within a cell: ascending point index
+        keys, starts = np.unique(flat[order], return_index=True)
+        del flat
+        self.origin = origin
+        self.owns = {(int(k // self.shape[1]), int(k % self.shape[1])): o
+                     for k, o in zip(keys, np.split(order, starts[1:]))}
+
+    def rows(self, points: np.ndarray, spec: TileSpec) -> np.ndarray:
+        """:func:`tile_points`' rows of ``spec``, from the cells within the halo's reach only."""
+        r = int(math.ceil(spec.halo / spec.size))
+        parts = [self.owns.get((spec.ix + i, spec.iy + j)) for i in range(-r, r + 1) for j in range(-r, r + 1)]
+        cand = np.concatenate([p for p in parts if p is not None])
+        o = np.asarray(spec.origin)
+        lo = o + np.array([spec.ix, spec.iy]) * spec.size - spec.halo
+        hi = o + np.array([spec.ix + 1, spec.iy + 1]) * spec.size + spec.halo
+        xy = points[cand, :2]
+        near = np.all((xy >= lo) & (xy <= hi), axis=1)
+        # a point on the upper edge of the box (float rounding) is still in its tile
+        return np.union1d(cand[near], self.owns[(spec.ix, spec.iy)])
+
+    def input(self, scene: Scene, spec: TileSpec) -> TileInput:
+        rows = self.rows(scene.points, spec)
+        return TileInput(self.owns[(spec.ix, spec.iy)], rows, scene.points[rows],
+                         None if scene.normals is None else scene.normals[rows])
+
+
+def _specs(cfg: Config, scene: Scene) -> tuple[_Cells, list[TileSpec]]:
+    """The cloud's cells and the tiles with own points, each with the frames that see it (one pass
+    over the frames' cameras, one frame read at a time)."""
     tc = cfg.tiling
-    origin, shape, cell = tile_grid(scene.points, tc.size)
-    flat = cell[:, 0] * shape[1] + cell[:, 1]
-    order = np.argsort(flat, kind="stable")
-    keys, starts = np.unique(flat[order], return_index=True)
-    owns = np.split(order, starts[1:])
-    cells = [(int(k // shape[1]), int(k % shape[1])) for k in keys]
-    boxes = []
-    base = [TileSpec(ix, iy, origin, tc.size, tc.halo) for ix, iy in cells]
-    for spec in base:  # loop over tiles
-        _, rows = tile_points(scene.points, spec)
-        p = scene.points[rows]
-        boxes.append([p.min(0), p.max(0)])
-    boxes = np.asarray(boxes, np.float64).reshape(-1, 2, 3)
+    cells = _Cells(scene.points, tc.size)
+    base = [TileSpec(ix, iy, cells.origin, tc.size, tc.halo) for ix, iy in cells.owns]
+    boxes = np.empty((len(base), 2, 3), np.float64)
+    for t, spec in enumerate(base):  # loop over tiles
+        p = scene.points[cells.rows(scene.points, spec)]
+        boxes[t] = p.min(0), p.max(0)
     seen = np.zeros((len(base), len(scene.frames)), bool)
     margin = cfg.evidence.pixel_radius + 1.0
     for i, f in FrameLoop(scene.frames, f"cameras: which frames see which of {len(base)} tiles"):
         seen[:, i] = frames_meeting(boxes, f.K, f.T_cw, f.shape, margin, tc.max_depth)
-    specs = [dataclasses.replace(s, frames=tuple(int(i) for i in np.flatnonzero(seen[t])))
-             for t, s in enumerate(base)]
-    return shape, specs, {s.id: np.sort(o) for s, o in zip(specs, owns)}
+    return cells, [dataclasses.replace(s, frames=tuple(int(i) for i in np.flatnonzero(seen[t])))
+                   for t, s in enumerate(base)]
 
 
-def diffuse_tile(cfg: Config, scene: Scene, spec: TileSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
-    """The pipeline on one tile: its own points (indices), their labels and Bayesian labels, its record."""
+def diffuse_tile(cfg: Config, inp: TileInput, frames, taxonomy, name: str, spec: TileSpec
+                 ) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The pipeline on one tile: its own points' labels and Bayesian labels, and its record.
+    ``frames`` is the whole scene's frame sequence: the tile reads only ``spec.frames`` of it."""
     t0 = time.perf_counter()
-    own, rows = tile_points(scene.points, spec)
+    own, rows = inp.own, inp.rows
     rec = {"id": spec.id, "points": int(own.size), "points_with_halo": int(rows.size),
            "frames_read": len(spec.frames), "iterations": 0}
     labels = np.full(own.size, IGNORE, np.int16)
     bayes = labels.copy()
     if spec.frames:
-        sub = Scene(name=f"{scene.name} tile {spec.id}", points=scene.points[rows], taxonomy=scene.taxonomy,
-                    frames=LazyFrames.subset(scene.frames, spec.frames),
-                    normals=None if scene.normals is None else scene.normals[rows])
+        sub = Scene(name=f"{name} tile {spec.id}", points=inp.points, taxonomy=taxonomy,
+                    frames=LazyFrames.subset(frames, spec.frames), normals=inp.normals)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             res = pipeline.run(cfg, scene=sub)
@@ -188,8 +245,17 @@ def diffuse_tile(cfg: Config, scene: Scene, spec: TileSpec) -> tuple[np.ndarray,
         if msgs:
             rec["warnings"] = msgs
     rec.update(time_s=round(time.perf_counter() - t0, 3), node=socket.gethostname(), pid=os.getpid(),
-               status="done")
-    return own, labels, bayes, rec
+               status="done", peak_rss_gb=round(_peak_rss_gb(), 3))
+    return labels, bayes, rec
+
+
+def _peak_rss_gb() -> float:
+    """This process's peak resident memory so far (GB; 0 where the platform does not say)."""
+    try:
+        import resource
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB on Linux
+    except (ImportError, OSError):
+        return 0.0
 
 
 def _crc(own: np.ndarray) -> int:
@@ -228,29 +294,31 @@ def read_tile(tiles_dir: Path, spec: TileSpec, own: np.ndarray) -> Optional[tupl
     return labels, bayes, rec
 
 
-def _run_tile(cfg: Config, scene: Scene, spec: TileSpec, tiles_dir: str) -> dict:
-    own, labels, bayes, rec = diffuse_tile(cfg, scene, spec)
-    write_tile(Path(tiles_dir), spec, own, labels, bayes, rec)
+def _run_tile(cfg: Config, inp: TileInput, frames, taxonomy, name: str, spec: TileSpec, tiles_dir: str) -> dict:
+    labels, bayes, rec = diffuse_tile(cfg, inp, frames, taxonomy, name, spec)
+    write_tile(Path(tiles_dir), spec, inp.own, labels, bayes, rec)
     return rec
 
 
-_WORKER_SCENES: dict[str, Scene] = {}
+_WORKER_FRAMES: dict[str, object] = {}
 
 
-def _ray_tile(cfg: Config, scene_ref, spec: TileSpec, tiles_dir: str) -> dict:
-    """A Ray task: the tile's scene from the source (loaded once per worker process) or from the
-    object the driver put, then :func:`_run_tile`."""
+def _ray_tile(cfg: Config, frames_ref, taxonomy, name: str, spec: TileSpec, tiles_dir: str) -> dict:
+    """A Ray task: the tile's points from ``tiles/inputs/<id>.npz`` (the driver wrote it), its frames
+    from the source (built once per worker process, without the cloud where the source can) or
+    from the sequence the driver put, then :func:`_run_tile`. Memory: the tile's, not the scene's."""
     # threads: Ray sets OMP_NUM_THREADS to the task's CPUs (1), which caps the compiled kernels' threads
-    if scene_ref is None:
+    if frames_ref is None:
         key = config_yaml(cfg.scene) + config_yaml(cfg.depth) + config_yaml(cfg.taxonomy)
-        if key not in _WORKER_SCENES:
-            _WORKER_SCENES.clear()
-            _WORKER_SCENES[key] = pipeline.load_scene(cfg.scene, resolve_taxonomy(cfg), cfg.depth)
-        scene = _WORKER_SCENES[key]
+        if key not in _WORKER_FRAMES:
+            _WORKER_FRAMES.clear()
+            _WORKER_FRAMES[key] = pipeline.load_frames(cfg.scene, taxonomy, cfg.depth)
+        frames = _WORKER_FRAMES[key]
     else:
-        scene = scene_ref
+        frames = frames_ref
+    inp = TileInput.load(Path(tiles_dir) / INPUTS / f"{spec.id}.npz")
     with progress.quiet():
-        return _run_tile(cfg, scene, spec, tiles_dir)
+        return _run_tile(cfg, inp, frames, taxonomy, name, spec, tiles_dir)
 
 
 def _fingerprint(cfg: Config) -> str:
@@ -314,7 +382,8 @@ def tiled(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHook
             cfg.solver, sparse_classes=SparseClasses.on if on else SparseClasses.off))
     tiles_dir = _tiles_dir(cfg, run_dir)
     _check_fingerprint(tiles_dir, cfg)
-    shape, specs, owns = _specs(cfg, scene)
+    cells, specs = _specs(cfg, scene)
+    shape, owns = cells.shape, {s.id: cells.owns[(s.ix, s.iy)] for s in specs}
     t["tiles"] = time.perf_counter() - tc0  # the spacing and which frames see which tiles
 
     records: dict[str, dict] = {}
@@ -331,12 +400,13 @@ def tiled(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHook
                             unit="tile") as bar:
             for spec in todo:  # loop over tiles
                 try:
-                    records[spec.id] = _run_tile(cfg, scene, spec, str(tiles_dir))
+                    records[spec.id] = _run_tile(cfg, cells.input(scene, spec), scene.frames, scene.taxonomy,
+                                                 scene.name, spec, str(tiles_dir))
                 except (ValueError, MemoryError, OSError, FloatingPointError) as exc:
-                    records[spec.id] = _error(spec, owns, exc)
+                    records[spec.id] = _error(spec, owns[spec.id], exc)
                 bar.update()
     elif todo:
-        records.update(_on_ray(cfg, scene if given else None, todo, owns, tiles_dir))
+        records.update(_on_ray(cfg, scene, given, cells, todo, tiles_dir))
     t["diffusion"] = time.perf_counter() - td
 
     tl = time.perf_counter()
@@ -361,13 +431,15 @@ def tiled(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHook
     return res
 
 
-def _error(spec: TileSpec, owns: dict, exc: BaseException) -> dict:
-    return {"id": spec.id, "points": int(owns[spec.id].size), "frames_read": len(spec.frames), "iterations": 0,
+def _error(spec: TileSpec, own: np.ndarray, exc: BaseException) -> dict:
+    return {"id": spec.id, "points": int(own.size), "frames_read": len(spec.frames), "iterations": 0,
             "status": "error", "error": f"{type(exc).__name__}: {first_line(exc)}"}
 
 
-def _on_ray(cfg: Config, scene: Optional[Scene], todo: list[TileSpec], owns: dict, tiles_dir: Path) -> dict:
-    """The tiles as Ray tasks (retried ``tiling.max_retries`` times); their records by id."""
+def _on_ray(cfg: Config, scene: Scene, given: bool, cells: _Cells, todo: list[TileSpec], tiles_dir: Path) -> dict:
+    """The tiles as Ray tasks (retried ``tiling.max_retries`` times); their records by id. Each
+    task's points go through ``tiles/inputs/<id>.npz`` (written here one tile at a time); its
+    frames come from the source in the worker, or, for a ``given`` scene, from the object put here."""
     import ray  # only a run on Ray pays its import (a second)
 
     tc = cfg.tiling
@@ -380,10 +452,15 @@ def _on_ray(cfg: Config, scene: Optional[Scene], todo: list[TileSpec], owns: dic
         ray.init(include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING,
                  runtime_env={"env_vars": {"PYTHONPATH": os.pathsep.join(path)}}, **kw)
         started = True
+    inputs = tiles_dir / INPUTS
+    inputs.mkdir(exist_ok=True)
     try:
         task = ray.remote(num_cpus=1, max_retries=tc.max_retries, retry_exceptions=True)(_ray_tile)
-        scene_ref = ray.put(scene) if scene is not None else None
-        refs = {task.remote(cfg, scene_ref, spec, str(tiles_dir)): spec for spec in todo}
+        frames_ref = ray.put(scene.frames) if given else None
+        refs = {}
+        for spec in todo:  # loop over tiles: one tile's points in memory at a time
+            cells.input(scene, spec).save(inputs / f"{spec.id}.npz")
+            refs[task.remote(cfg, frames_ref, scene.taxonomy, scene.name, spec, str(tiles_dir))] = spec
         out: dict[str, dict] = {}
         pending = list(refs)
         with progress.stage(f"tiles on Ray ({len(todo)} tasks)", total=len(todo), unit="tile") as bar:
@@ -393,9 +470,10 @@ def _on_ray(cfg: Config, scene: Optional[Scene], todo: list[TileSpec], owns: dic
                     spec = refs[ref]
                     try:
                         out[spec.id] = ray.get(ref)
+                        (inputs / f"{spec.id}.npz").unlink(missing_ok=True)
                     except Exception as exc:  # noqa: BLE001 - a tile's error, after its retries, is its record
                         cause = getattr(exc, "cause", None) or exc
-                        out[spec.id] = _error(spec, owns, cause)
+                        out[spec.id] = _error(spec, cells.owns[(spec.ix, spec.iy)], cause)
                     bar.update()
         return out
     finally:

@@ -40,6 +40,20 @@ def test_tiled_labels_equal_the_untiled_run(untiled, local_tiled):
     assert sum(r["points"] for r in res.tiles) == untiled.scene.n_points
 
 
+@pytest.mark.parametrize("halo", [0.0, 0.3, 2.5])
+def test_a_tiles_rows_from_its_neighbouring_cells_are_the_brute_force_ones(halo):
+    rng = np.random.default_rng(3)
+    pts = (rng.random((20_000, 3)) * [9.0, 5.0, 2.0]).astype(np.float32)
+    pts[:50, 0] = np.float32(2.0)  # on a cell edge
+    cells = tiled._Cells(pts, 2.0)
+    assert cells.shape == (5, 3) and sum(o.size for o in cells.owns.values()) == len(pts)
+    for ix, iy in cells.owns:
+        spec = TileSpec(ix, iy, cells.origin, 2.0, halo)
+        own, rows = tile_points(pts, spec)
+        np.testing.assert_array_equal(cells.owns[(ix, iy)], own)
+        np.testing.assert_array_equal(cells.rows(pts, spec), rows)
+
+
 def test_a_frame_has_the_same_predictions_in_a_tile(untiled):
     cfg = default_config(**SMALL)
     frames, tax = untiled.scene.frames, untiled.scene.taxonomy

@@ -22,13 +22,13 @@ options dataclass reads ``scene.options`` as a free-form dict (``+scene.options.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Optional
+from typing import Callable, Optional, Sequence
 
 import numpy as np
 from hydra.core.config_store import ConfigStore
 
 from diffuser_lab.config import SceneConfig
-from diffuser_lab.data.scene import Scene, Taxonomy
+from diffuser_lab.data.scene import Frame, Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
 from diffuser_lab.registry import Registry
 
@@ -55,6 +55,9 @@ class SceneSource:
             :class:`~diffuser_lab.config.Section` with ``KEY = "scene.options"``: types, defaults
             and ranges declared as for every key); the resolve step turns ``scene.options`` into
             it, so ``load`` reads ``cfg.options`` typed and checked. None: a free-form dict.
+        frames: ``(scene config, taxonomy, sensor) -> LazyFrames``: the frames alone, as ``load``
+            gives them, without building the cloud (a tiled run's workers read only their frames);
+            None = ``load(...).frames``.
     """
 
     name: str
@@ -63,6 +66,7 @@ class SceneSource:
     rendered: bool = False
     label_ids: Optional[Callable[[SceneConfig, int], list[tuple[np.ndarray, str]]]] = None
     options: Optional[type] = None
+    frames: Optional[Callable[[SceneConfig, Taxonomy, Optional[SensorModel]], Sequence[Frame]]] = None
 
 
 SOURCES: Registry = Registry("scene.source", "scene source", [
@@ -85,7 +89,7 @@ SOURCES: Registry = Registry("scene.source", "scene source", [
     SceneSource("colmap", "COLMAP sparse model (.bin/.txt) + images (+ MVS depth maps, fused.ply)", colmap.load,
                 options=colmap.ColmapOptions),
     SceneSource("city", "embedded procedural outdoor city (cityscapes19), drone and street views", city.load,
-                rendered=True),
+                rendered=True, frames=city.frames),
 ])
 """The scene sources by name (``scene.source``)."""
 

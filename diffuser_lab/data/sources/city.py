@@ -37,7 +37,7 @@ from diffuser_lab.data.render import MeshRenderer, intrinsics, look_at, sample_s
 from diffuser_lab.data.scene import IGNORE, Frame, Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
 
-__all__ = ["CITYSCAPES19", "City", "block_mesh", "make_city_scene", "load"]
+__all__ = ["CITYSCAPES19", "City", "block_mesh", "make_city_scene", "load", "frames"]
 
 CITYSCAPES19 = Taxonomy(
     name="cityscapes19",
@@ -545,21 +545,41 @@ def make_city_scene(cfg: CitySceneConfig, sensor: Optional[SensorModel] = None) 
     return scene, city
 
 
-def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) -> Scene:
-    """``scene.source=city``: the city of the ``scene.city`` keys (defaults when unset), in ``taxonomy``
-    (cityscapes19, or one a shipped ``cityscapes19_to_<name>`` mapping reaches)."""
-    scene, _ = make_city_scene(cfg.city if cfg.city is not None else CitySceneConfig(), sensor)
-    if taxonomy.name == scene.taxonomy.name:
-        scene.taxonomy = taxonomy
-        return scene
-    name = f"{scene.taxonomy.name}_to_{taxonomy.name}"
+def _lut(taxonomy: Taxonomy) -> Optional[np.ndarray]:
+    """None when ``taxonomy`` is cityscapes19, else the shipped ``cityscapes19_to_<name>`` lookup."""
+    if taxonomy.name == CITYSCAPES19.name:
+        return None
+    name = f"{CITYSCAPES19.name}_to_{taxonomy.name}"
     if name not in shipped_mappings():
         raise ValueError(f"scene=city is labelled in cityscapes19 and no shipped mapping {name} moves it to "
                          f"taxonomy={taxonomy.name}: run it with taxonomy=cityscapes19")
-    lut = load_mapping(name, taxonomy).lut
+    return load_mapping(name, taxonomy).lut
 
-    def move(ids):
-        return np.where(ids == IGNORE, IGNORE, lut[np.maximum(ids, 0)]).astype(np.int16)
 
-    frames = LazyFrames.mapped(scene.frames, lambda i, f: Frame(f.name, f.K, f.T_cw, f.depth, gt_labels=move(f.gt_labels)))
-    return Scene(scene.name, scene.points, taxonomy, frames, scene.normals, gt_labels=move(scene.gt_labels))
+def _moved(lut: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    return np.where(ids == IGNORE, IGNORE, lut[np.maximum(ids, 0)]).astype(np.int16)
+
+
+def _frames_in(frames: LazyFrames, lut: Optional[np.ndarray]) -> LazyFrames:
+    if lut is None:
+        return frames
+    return LazyFrames.mapped(frames, lambda i, f: Frame(f.name, f.K, f.T_cw, f.depth, gt_labels=_moved(lut, f.gt_labels)))
+
+
+def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) -> Scene:
+    """``scene.source=city``: the city of the ``scene.city`` keys (defaults when unset), in ``taxonomy``
+    (cityscapes19, or one a shipped ``cityscapes19_to_<name>`` mapping reaches)."""
+    lut = _lut(taxonomy)
+    scene, _ = make_city_scene(cfg.city if cfg.city is not None else CitySceneConfig(), sensor)
+    if lut is None:
+        scene.taxonomy = taxonomy
+        return scene
+    return Scene(scene.name, scene.points, taxonomy, _frames_in(scene.frames, lut), scene.normals,
+                 gt_labels=_moved(lut, scene.gt_labels))
+
+
+def frames(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) -> LazyFrames:
+    """The frames of :func:`load`'s scene without sampling the cloud (a tiled run's worker):
+    rendered when read from the blocks around each camera."""
+    city = City(cfg.city if cfg.city is not None else CitySceneConfig(), sensor)
+    return _frames_in(LazyFrames([v[0] for v in city.views], city.frame), _lut(taxonomy))

@@ -147,3 +147,21 @@ def test_other_taxonomy_needs_a_mapping():
     with pytest.raises(ValueError, match="taxonomy=cityscapes19"):
         city.load(dataclasses.replace(SceneConfig(), source="city", city=tiny(blocks_x=1, blocks_y=1)), SCANNET20,
                   None)
+
+
+def test_frames_alone_are_the_scenes_frames(city):
+    """The ``frames`` entry (a tiled run's workers) gives the frames of ``load`` without sampling the cloud."""
+    from diffuser_lab.config import SceneConfig
+    from diffuser_lab.data.sources import city as source
+    from diffuser_lab.runs.pipeline import load_frames
+
+    scene, _ = city
+    cfg = dataclasses.replace(SceneConfig(), source="city", city=tiny(blocks_x=2, blocks_y=1))
+    frames = load_frames(cfg, CITYSCAPES19)
+    assert list(frames.names) == list(scene.frames.names)
+    for i in (0, len(frames) - 1):
+        a, b = frames[i], scene.frames[i]
+        assert np.array_equal(a.depth, b.depth) and np.array_equal(a.gt_labels, b.gt_labels)
+    with pytest.raises(ValueError, match="taxonomy=cityscapes19"):
+        from diffuser_lab.data.scene import SCANNET20
+        source.frames(cfg, SCANNET20, None)
