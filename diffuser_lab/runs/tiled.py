@@ -43,7 +43,7 @@ from diffuser_lab.data.scene import IGNORE, Scene
 from diffuser_lab.data.taxonomy import resolve_taxonomy
 from diffuser_lab.hooks import RunHooks
 from diffuser_lab.method import fusion
-from diffuser_lab.method.graph import cloud_spacing
+from diffuser_lab.method.graph import spacing_sum
 from diffuser_lab.method.metrics import score
 
 from . import pipeline
@@ -181,7 +181,7 @@ class _Cells:
         order = np.argsort(flat, kind="stable")  # within a cell: ascending point index
         keys, starts = np.unique(flat[order], return_index=True)
         del flat
-        self.origin = origin
+        self.origin, self.size = origin, size
         self.owns = {(int(k // self.shape[1]), int(k % self.shape[1])): o
                      for k, o in zip(keys, np.split(order, starts[1:]))}
 
@@ -198,17 +198,31 @@ class _Cells:
         # a point on the upper edge of the box (float rounding) is still in its tile
         return np.union1d(cand[near], self.owns[(spec.ix, spec.iy)])
 
+    def spacing(self, points: np.ndarray, halo: float) -> float:
+        """rho (:func:`~diffuser_lab.method.graph.cloud_spacing`) cell by cell: each cell's points
+        against its points within ``halo`` (at least 5% of the tile size) (memory: a tile's, not the cloud's)."""
+        total, count = 0.0, 0
+        with progress.stage(f"point spacing ({len(points):,} points, {len(self.owns)} tiles)",
+                            total=len(self.owns), unit="tile") as bar:
+            for (ix, iy), own in self.owns.items():  # loop over tiles
+                rows = self.rows(points, TileSpec(ix, iy, self.origin, self.size, max(halo, 0.05 * self.size)))
+                s, n = spacing_sum(points[rows], np.searchsorted(rows, own))
+                total, count = total + s, count + n
+                bar.update()
+        if count == 0:
+            raise ValueError("all points coincide: the mean point spacing rho is 0")
+        return total / count
+
     def input(self, scene: Scene, spec: TileSpec) -> TileInput:
         rows = self.rows(scene.points, spec)
         return TileInput(self.owns[(spec.ix, spec.iy)], rows, scene.points[rows],
                          None if scene.normals is None else scene.normals[rows])
 
 
-def _specs(cfg: Config, scene: Scene) -> tuple[_Cells, list[TileSpec]]:
-    """The cloud's cells and the tiles with own points, each with the frames that see it (one pass
-    over the frames' cameras, one frame read at a time)."""
+def _specs(cfg: Config, scene: Scene, cells: _Cells) -> list[TileSpec]:
+    """The tiles with own points, each with the frames that see it (one pass over the frames'
+    cameras, one frame read at a time)."""
     tc = cfg.tiling
-    cells = _Cells(scene.points, tc.size)
     base = [TileSpec(ix, iy, cells.origin, tc.size, tc.halo) for ix, iy in cells.owns]
     boxes = np.empty((len(base), 2, 3), np.float64)
     for t, spec in enumerate(base):  # loop over tiles
@@ -218,8 +232,7 @@ def _specs(cfg: Config, scene: Scene) -> tuple[_Cells, list[TileSpec]]:
     margin = cfg.evidence.pixel_radius + 1.0
     for i, f in FrameLoop(scene.frames, f"cameras: which frames see which of {len(base)} tiles"):
         seen[:, i] = frames_meeting(boxes, f.K, f.T_cw, f.shape, margin, tc.max_depth)
-    return cells, [dataclasses.replace(s, frames=tuple(int(i) for i in np.flatnonzero(seen[t])))
-                   for t, s in enumerate(base)]
+    return [dataclasses.replace(s, frames=tuple(int(i) for i in np.flatnonzero(seen[t]))) for t, s in enumerate(base)]
 
 
 def diffuse_tile(cfg: Config, inp: TileInput, frames, taxonomy, name: str, spec: TileSpec
@@ -370,11 +383,11 @@ def tiled(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHook
     validate.check_points(scene)
     t["load"] = time.perf_counter() - t0
     tc0 = time.perf_counter()
+    cells = _Cells(scene.points, tc.size)
     rho = None
     if cfg.graph.sigma_d is None and fusion.get(cfg.method.name).graph:
         # sigma_d = sigma_d_factor * rho, rho the mean spacing of the whole cloud: the tiles use the untiled value
-        with progress.stage(f"point spacing ({scene.n_points:,} points)"):
-            rho = cloud_spacing(scene.points)
+        rho = cells.spacing(scene.points, tc.halo)
         cfg = dataclasses.replace(cfg, graph=dataclasses.replace(cfg.graph, sigma_d=cfg.graph.sigma_d_factor * rho))
     if cfg.solver.sparse_classes == SparseClasses.auto:  # the untiled run's choice (by the whole cloud's size)
         on = pipeline._sparse_classes(cfg.solver, scene.n_points, scene.taxonomy.num_classes) > 0
@@ -382,7 +395,7 @@ def tiled(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHook
             cfg.solver, sparse_classes=SparseClasses.on if on else SparseClasses.off))
     tiles_dir = _tiles_dir(cfg, run_dir)
     _check_fingerprint(tiles_dir, cfg)
-    cells, specs = _specs(cfg, scene)
+    specs = _specs(cfg, scene, cells)
     shape, owns = cells.shape, {s.id: cells.owns[(s.ix, s.iy)] for s in specs}
     t["tiles"] = time.perf_counter() - tc0  # the spacing and which frames see which tiles
 
