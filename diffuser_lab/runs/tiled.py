@@ -186,32 +186,45 @@ class _Cells:
                      for k, o in zip(keys, np.split(order, starts[1:]))}
 
     def rows(self, points: np.ndarray, spec: TileSpec) -> np.ndarray:
-        """:func:`tile_points`' rows of ``spec``, from the cells within the halo's reach only."""
+        """:func:`tile_points`' rows of ``spec``, from the cells within the halo's reach only: the
+        tile's own cell whole, the others' points within the box."""
         r = int(math.ceil(spec.halo / spec.size))
-        parts = [self.owns.get((spec.ix + i, spec.iy + j)) for i in range(-r, r + 1) for j in range(-r, r + 1)]
-        cand = np.concatenate([p for p in parts if p is not None])
+        own = self.owns[(spec.ix, spec.iy)]
+        parts = [self.owns.get((spec.ix + i, spec.iy + j)) for i in range(-r, r + 1) for j in range(-r, r + 1)
+                 if i or j]
+        parts = [p for p in parts if p is not None]
+        if not parts:
+            return own.copy()
+        cand = np.concatenate(parts)
         o = np.asarray(spec.origin)
         lo = o + np.array([spec.ix, spec.iy]) * spec.size - spec.halo
         hi = o + np.array([spec.ix + 1, spec.iy + 1]) * spec.size + spec.halo
         xy = points[cand, :2]
-        near = np.all((xy >= lo) & (xy <= hi), axis=1)
-        # a point on the upper edge of the box (float rounding) is still in its tile
-        return np.union1d(cand[near], self.owns[(spec.ix, spec.iy)])
+        rows = np.concatenate([own, cand[np.all((xy >= lo) & (xy <= hi), axis=1)]])
+        rows.sort()
+        return rows
 
-    def spacing(self, points: np.ndarray, halo: float) -> float:
-        """rho (:func:`~diffuser_lab.method.graph.cloud_spacing`) cell by cell: each cell's points
-        against its points within ``halo`` (at least 5% of the tile size) (memory: a tile's, not the cloud's)."""
+    def survey(self, points: np.ndarray, halo: float, spacing: bool) -> tuple[Optional[float], np.ndarray]:
+        """One pass over the tiles (in ``owns`` order) with halo ``halo``: rho
+        (:func:`~diffuser_lab.method.graph.cloud_spacing`, each tile's own points against its points
+        with halo: the whole cloud's where a point's nearest neighbour lies within the halo) when
+        ``spacing``, and each tile's (2, 3) box (min, max corner of its points with halo, metres)."""
         total, count = 0.0, 0
-        with progress.stage(f"point spacing ({len(points):,} points, {len(self.owns)} tiles)",
-                            total=len(self.owns), unit="tile") as bar:
-            for (ix, iy), own in self.owns.items():  # loop over tiles
-                rows = self.rows(points, TileSpec(ix, iy, self.origin, self.size, max(halo, 0.05 * self.size)))
-                s, n = spacing_sum(points[rows], np.searchsorted(rows, own))
-                total, count = total + s, count + n
+        boxes = np.empty((len(self.owns), 2, 3), np.float64)
+        what = "point spacing and tile boxes" if spacing else "tile boxes"
+        with progress.stage(f"{what} ({len(points):,} points, {len(self.owns)} tiles)", total=len(self.owns),
+                            unit="tile") as bar:
+            for t, ((ix, iy), own) in enumerate(self.owns.items()):  # loop over tiles
+                rows = self.rows(points, TileSpec(ix, iy, self.origin, self.size, halo))
+                p = points[rows]
+                boxes[t] = p.min(0), p.max(0)
+                if spacing:
+                    s, n = spacing_sum(p, np.searchsorted(rows, own))
+                    total, count = total + s, count + n
                 bar.update()
-        if count == 0:
+        if spacing and count == 0:
             raise ValueError("all points coincide: the mean point spacing rho is 0")
-        return total / count
+        return (total / count if spacing else None), boxes
 
     def input(self, scene: Scene, spec: TileSpec) -> TileInput:
         rows = self.rows(scene.points, spec)
@@ -219,15 +232,11 @@ class _Cells:
                          None if scene.normals is None else scene.normals[rows])
 
 
-def _specs(cfg: Config, scene: Scene, cells: _Cells) -> list[TileSpec]:
-    """The tiles with own points, each with the frames that see it (one pass over the frames'
-    cameras, one frame read at a time)."""
+def _specs(cfg: Config, scene: Scene, cells: _Cells, boxes: np.ndarray) -> list[TileSpec]:
+    """The tiles with own points (``cells.owns`` order, their (T, 2, 3) ``boxes``), each with the
+    frames that see it (one pass over the frames' cameras, one frame read at a time)."""
     tc = cfg.tiling
     base = [TileSpec(ix, iy, cells.origin, tc.size, tc.halo) for ix, iy in cells.owns]
-    boxes = np.empty((len(base), 2, 3), np.float64)
-    for t, spec in enumerate(base):  # loop over tiles
-        p = scene.points[cells.rows(scene.points, spec)]
-        boxes[t] = p.min(0), p.max(0)
     seen = np.zeros((len(base), len(scene.frames)), bool)
     margin = cfg.evidence.pixel_radius + 1.0
     for i, f in FrameLoop(scene.frames, f"cameras: which frames see which of {len(base)} tiles"):
@@ -384,10 +393,9 @@ def tiled(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHook
     t["load"] = time.perf_counter() - t0
     tc0 = time.perf_counter()
     cells = _Cells(scene.points, tc.size)
-    rho = None
-    if cfg.graph.sigma_d is None and fusion.get(cfg.method.name).graph:
-        # sigma_d = sigma_d_factor * rho, rho the mean spacing of the whole cloud: the tiles use the untiled value
-        rho = cells.spacing(scene.points, tc.halo)
+    # sigma_d = sigma_d_factor * rho, rho the mean spacing of the whole cloud: the tiles use the untiled value
+    rho, boxes = cells.survey(scene.points, tc.halo, cfg.graph.sigma_d is None and fusion.get(cfg.method.name).graph)
+    if rho is not None:
         cfg = dataclasses.replace(cfg, graph=dataclasses.replace(cfg.graph, sigma_d=cfg.graph.sigma_d_factor * rho))
     if cfg.solver.sparse_classes == SparseClasses.auto:  # the untiled run's choice (by the whole cloud's size)
         on = pipeline._sparse_classes(cfg.solver, scene.n_points, scene.taxonomy.num_classes) > 0
@@ -395,7 +403,7 @@ def tiled(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHook
             cfg.solver, sparse_classes=SparseClasses.on if on else SparseClasses.off))
     tiles_dir = _tiles_dir(cfg, run_dir)
     _check_fingerprint(tiles_dir, cfg)
-    specs = _specs(cfg, scene, cells)
+    specs = _specs(cfg, scene, cells, boxes)
     shape, owns = cells.shape, {s.id: cells.owns[(s.ix, s.iy)] for s in specs}
     t["tiles"] = time.perf_counter() - tc0  # the spacing and which frames see which tiles
 
