@@ -185,6 +185,8 @@ def test_tiles_on_a_two_node_ray_cluster(cluster, local_tiled, tmp_path):
     out = tiled.tiled(cfg, run_dir=tmp_path / "a")
     np.testing.assert_array_equal(out.labels, res.labels)
     assert {r["status"] for r in out.tiles} == {"done"} and len({r["pid"] for r in out.tiles}) >= 2
+    # each task read its tile's points from tiles/inputs/<id>.npz, removed once the tile was done
+    assert (tmp_path / "a" / "tiles" / "inputs").is_dir() and not list((tmp_path / "a" / "tiles" / "inputs").iterdir())
     # a tile that fails (its memory estimate over the budget) is retried, then reported; the others are kept
     bad = dataclasses.replace(cfg, memory_budget_gb=_budget_failing_the_largest_tile(res))
     out = tiled.tiled(bad, run_dir=tmp_path / "b")
