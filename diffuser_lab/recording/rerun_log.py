@@ -455,9 +455,11 @@ class RerunRecorder:
             rec.log("metrics/accuracy", rr.Scalars(step.accuracy))
 
     # -- protocol=online ------------------------------------------------------------------------
-    def log_online_start(self, has_gt: bool, growing: bool, points: Optional[np.ndarray] = None) -> None:
+    def log_online_start(self, has_gt: bool, growing: bool, points: Optional[np.ndarray] = None,
+                         spacing: Optional[float] = None) -> None:
         """An online run: its blueprint (:func:`online_blueprint`, the overview eye over ``points``
-        (N, 3) world m, the scene's cloud; None or empty: Rerun's eye) and plot styles."""
+        (N, 3) world m, the scene's cloud; None or empty: Rerun's eye) and plot styles.
+        ``spacing``: a growing map's voxel size, m (its points are drawn with half of it as radius)."""
         rr = self.rr
         eye = overview_eye(points) if points is not None and len(points) else None
         self.rec.send_blueprint(online_blueprint(has_gt, growing, eye), make_active=False, make_default=True)
@@ -467,7 +469,10 @@ class RerunRecorder:
                                  ("changed", "labels changed", (148, 103, 189)),
                                  ("points", "map points", (44, 160, 44))):
             self.rec.log(f"metrics/{key}", rr.SeriesLines(names=name, colors=color), static=True)
-        self._online_radius: Optional[float] = None
+        # a growing map's points are its voxels' centroids: half the voxel touch. (Estimated from
+        # the first frame's map, the radius came out 3x that: its points are far sparser than the
+        # map's, and the walls were drawn as a shell of overlapping balls.)
+        self._online_radius: Optional[float] = 0.5 * float(spacing) if growing and spacing else None
         self._block_rows: dict[int, int] = {}  # block -> map rows its positions were logged with
 
     def log_online_frame(self, rec, mirror, changed: bool) -> None:
