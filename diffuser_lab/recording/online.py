@@ -238,7 +238,8 @@ class OnlineRecorder:
         growing = r.conf.online.map == OnlineMap.growing
         meta = online_meta(r.conf, scene)
         self.mirror = MapMirror(growing, scene.points, scene.gt_labels)
-        r.each(lambda: r.rerun.log_online_start(scene.gt_labels is not None, growing),
+        spacing = float(r.conf.online.voxel_size) or None
+        r.each(lambda: r.rerun.log_online_start(scene.gt_labels is not None, growing, scene.points, spacing),
                lambda: r.mcap.log_online_start(meta))
 
     def frame(self, rec: FrameRecord) -> None:

@@ -53,6 +53,7 @@ import numpy as np
 
 from diffuser_lab.data.scene import IGNORE
 
+from .eyes import eye_kw, follow_eye, overview_eye, scene_up
 from .live import live_target
 from .online import TIMELINE as FRAME_TIMELINE
 from .steps import Step
@@ -171,10 +172,12 @@ def point_radius(points: np.ndarray) -> float:
     return float(max(0.5 * np.mean(d[:, 1]), 1e-4))
 
 
-def blueprint(score_layers: Sequence[tuple[str, str]] = ()):
+def blueprint(score_layers: Sequence[tuple[str, str]] = (), eye=None):
     """The default layout: the labelled points in 3D beside the time series; other 3D views
     (confidence, errors, ground truth, input + cameras, depth, evidence, and one per
-    ``score_layers`` (class name, entity path)) in tabs behind it.
+    ``score_layers`` (class name, entity path)) in tabs behind it. Every 3D view opens on ``eye``
+    (:func:`~.eyes.overview_eye`: from above one side, looking down into the scene), None:
+    Rerun's own (from outside the scene's box, which in a room shows the walls' backs).
 
     Rerun's entity filters have no wildcard inside a path (only a trailing ``/**``), so the
     depth images live under ``world/depth`` and the camera tabs take ``world/cameras/**`` whole:
@@ -183,7 +186,7 @@ def blueprint(score_layers: Sequence[tuple[str, str]] = ()):
     import rerun.blueprint as rrb
 
     def view3d(name: str, contents: list[str], **kw):
-        return rrb.Spatial3DView(name=name, origin="/world", contents=contents, **kw)
+        return rrb.Spatial3DView(name=name, origin="/world", contents=contents, **eye_kw(eye), **kw)
 
     # the errors tab draws the labels cloud in one grey (an override of this view only), so that
     # the wrong points are the only colour in it
@@ -226,25 +229,33 @@ ONLINE_MAX_BLOCKS = 64
 finished without loading a recording"); 64 load."""
 
 
-def online_blueprint(has_gt: bool, growing: bool):
-    """The layout of an online run: the map's labels (with the moving camera), the Bayesian
-    labels, errors and ground truth (with ground truth), the input with the camera, in tabs
-    beside the per-frame plots and the camera's label image."""
+FOLLOW_CAMERA = "/world/online/camera"
+"""The entity of an online run's moving camera, which the "through the camera" tab's eye tracks."""
+
+
+def online_blueprint(has_gt: bool, growing: bool, eye=None):
+    """The layout of an online run: the map's labels (with the moving camera) seen from ``eye``
+    (:func:`~.eyes.overview_eye`; None: Rerun's own), the same labels through the moving camera
+    (its eye tracks :data:`FOLLOW_CAMERA`: pose and field of view of the frame shown), the
+    Bayesian labels, errors and ground truth (with ground truth) from ``eye``, in tabs beside
+    the per-frame plots and the camera's label image."""
     import rerun as rr
     import rerun.blueprint as rrb
 
-    def view3d(name: str, contents: list[str], **kw):
-        return rrb.Spatial3DView(name=name, origin="/world", contents=contents, **kw)
+    def view3d(name: str, contents: list[str], view_eye=eye, **kw):
+        return rrb.Spatial3DView(name=name, origin="/world", contents=contents, **eye_kw(view_eye), **kw)
 
     cam = "/world/online/camera/**"
-    tabs = [view3d("online: labels", ["/world/online/labels/**", cam]),
+    # through the camera: its frustum but not its label image, which would fill the view at 0.25 m
+    follow = view3d("through the camera", ["/world/online/labels/**", FOLLOW_CAMERA],
+                    view_eye=follow_eye(FOLLOW_CAMERA))
+    tabs = [view3d("online: labels", ["/world/online/labels/**", cam]), follow,
             view3d("bayesian", ["/world/online/bayesian/**", cam])]
     if has_gt:
         grey = rr.Points3D.from_fields(colors=RIGHT_RGB).visualizer()
         dim = {f"/world/online/labels/{b:04d}": grey for b in range(ONLINE_MAX_BLOCKS if growing else 1)}
         tabs.append(view3d("errors", ["/world/online/labels/**", "/world/online/wrong"], overrides=dim))
         tabs.append(view3d("ground truth", ["/world/online/ground_truth/**" if growing else "/world/scene/ground_truth"]))
-    tabs.append(view3d("camera", ["/world/scene/points", cam]))
     plots = [rrb.TimeSeriesView(name="mIoU so far [%]", origin="/metrics",
                                 contents=["/metrics/diffuser_miou", "/metrics/bayesian_miou"])] if has_gt else []
     plots += [rrb.TimeSeriesView(name="latency [ms]", origin="/metrics", contents=["/metrics/latency_ms"]),
@@ -284,8 +295,12 @@ class RerunRecorder:
         for _name, _ in score_classes:
             self.score_paths.append(score_entity(_name, self.score_paths))
         self.score_index = np.asarray([int(c) for _, c in score_classes], np.int64)
-        # an online run's layout depends on its ground truth: sent with log_online_start
-        bp = None if online else blueprint([(str(n), p) for (n, _), p in zip(score_classes, self.score_paths)])
+        # the layout is sent once the scene is known (its eye frames the scene): a batch run's with
+        # log_scene (else at close), an online run's with log_online_start (it depends on ground truth)
+        self._layers = [(str(n), p) for (n, _), p in zip(score_classes, self.score_paths)]
+        self._eye_up: Optional[np.ndarray] = None  # the up of the batch blueprint sent; None: none sent
+        self._poses: list[np.ndarray] = []  # a batch run's cameras (T_cw), for the up of its eye
+        bp = None
         batcher = rr.ChunkBatcherConfig(flush_tick=BATCH_SECONDS, flush_num_bytes=BATCH_BYTES)
         self.rec = rr.RecordingStream(application_id, recording_id=recording_id or str(uuid.uuid4()),
                                       batcher_config=batcher)
@@ -330,11 +345,21 @@ class RerunRecorder:
         for key, name, color in rr_series if not self.online else ():  # an online run's: log_online_start
             self.rec.log(f"metrics/{key}", rr.SeriesLines(names=name, colors=color), static=True)
 
+    def _send_batch_blueprint(self, T_cw: Optional[np.ndarray] = None) -> None:
+        """A batch run's blueprint, its eye over the scene's points, up from the cameras ``T_cw``
+        (F, 4, 4) where given (else +z, as ``world``'s ViewCoordinates say)."""
+        pts = getattr(self, "_scene_points", None)
+        eye = overview_eye(pts, T_cw) if pts is not None else None
+        self.rec.send_blueprint(blueprint(self._layers, eye), make_active=False, make_default=True)
+        self._eye_up = scene_up(T_cw)
+
     def log_scene(self, points: np.ndarray, colors: Optional[np.ndarray], gt: Optional[np.ndarray]) -> None:
         """points (N, 3) world m; colors (N, 3) uint8 or None; gt (N,) int class ids or None."""
         rr = self.rr
         self.radius = point_radius(points)
         self._scene_points = points
+        if not self.online:
+            self._send_batch_blueprint()
         cols = colors if colors is not None else np.full((1, 3), 160, np.uint8)
         self.rec.log("world/scene/points", rr.Points3D(points, colors=cols, radii=self.radius), static=True)
         if gt is not None:
@@ -359,6 +384,7 @@ class RerunRecorder:
         pose and pinhole (a few hundred bytes), the label and colour images under the camera."""
         rr = self.rr
         path = f"world/cameras/{index:04d}"
+        self._poses.append(np.asarray(T_cw, np.float64))
         T_wc = np.linalg.inv(np.asarray(T_cw, np.float64))
         K_img = np.asarray(K, np.float64)
         res = (int(width), int(height))
@@ -384,6 +410,12 @@ class RerunRecorder:
         """Work cloud (M, 3); seen (M,) bool; bayesian (M,) labels. Also logs the static
         positions of the per-iteration entities."""
         rr = self.rr
+        if not self.online and self._poses:
+            # the cameras are in (a batch run reads its frames first): where their up is not the
+            # +z the eye was set up with (a COLMAP capture's world), the layout again with theirs
+            T = np.stack(self._poses)
+            if self._eye_up is None or float(scene_up(T) @ self._eye_up) < np.cos(np.radians(10.0)):
+                self._send_batch_blueprint(T)
         same = work_points is getattr(self, "_scene_points", None)
         self._work_radius = self.radius if same else point_radius(work_points)
         r = self._work_radius
@@ -423,17 +455,24 @@ class RerunRecorder:
             rec.log("metrics/accuracy", rr.Scalars(step.accuracy))
 
     # -- protocol=online ------------------------------------------------------------------------
-    def log_online_start(self, has_gt: bool, growing: bool) -> None:
-        """An online run: its blueprint (:func:`online_blueprint`) and plot styles."""
+    def log_online_start(self, has_gt: bool, growing: bool, points: Optional[np.ndarray] = None,
+                         spacing: Optional[float] = None) -> None:
+        """An online run: its blueprint (:func:`online_blueprint`, the overview eye over ``points``
+        (N, 3) world m, the scene's cloud; None or empty: Rerun's eye) and plot styles.
+        ``spacing``: a growing map's voxel size, m (its points are drawn with half of it as radius)."""
         rr = self.rr
-        self.rec.send_blueprint(online_blueprint(has_gt, growing), make_active=False, make_default=True)
+        eye = overview_eye(points) if points is not None and len(points) else None
+        self.rec.send_blueprint(online_blueprint(has_gt, growing, eye), make_active=False, make_default=True)
         for key, name, color in (("diffuser_miou", "online Diffuser mIoU so far [%]", (31, 119, 180)),
                                  ("bayesian_miou", "online Bayesian mIoU so far [%]", (255, 127, 14)),
                                  ("latency_ms", "latency [ms]", (214, 39, 40)),
                                  ("changed", "labels changed", (148, 103, 189)),
                                  ("points", "map points", (44, 160, 44))):
             self.rec.log(f"metrics/{key}", rr.SeriesLines(names=name, colors=color), static=True)
-        self._online_radius: Optional[float] = None
+        # a growing map's points are its voxels' centroids: half the voxel touch. (Estimated from
+        # the first frame's map, the radius came out 3x that: its points are far sparser than the
+        # map's, and the walls were drawn as a shell of overlapping balls.)
+        self._online_radius: Optional[float] = 0.5 * float(spacing) if growing and spacing else None
         self._block_rows: dict[int, int] = {}  # block -> map rows its positions were logged with
 
     def log_online_frame(self, rec, mirror, changed: bool) -> None:
@@ -501,6 +540,8 @@ class RerunRecorder:
         if self._closed:
             return
         self._closed = True
+        if not self.online and self._eye_up is None:  # no scene came (a run that failed early): the layout
+            self.rec.send_blueprint(blueprint(self._layers), make_active=False, make_default=True)
         if self.live is None:
             self.rec.flush()
         else:

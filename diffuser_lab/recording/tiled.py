@@ -38,7 +38,7 @@ import json
 import logging
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Any, Sequence
+from typing import Any, Optional, Sequence
 
 import numpy as np
 
@@ -48,6 +48,7 @@ from diffuser_lab.runs import tiled as tiled_run
 from diffuser_lab.runs.records import config_yaml
 
 from .mcap_write import McapRecorder
+from .eyes import eye_kw, overview_eye
 from .recorders import MCAP_NAME, RRD_NAME
 from .rerun_log import RerunRecorder, class_ids, point_radius
 
@@ -94,11 +95,16 @@ def tiles_markdown(tiles: Sequence[dict]) -> str:
     return "\n".join(rows)
 
 
-def blueprint(has_gt: bool):
+def blueprint(has_gt: bool, points: Optional[np.ndarray] = None):
+    """Labels, tile grid, errors and ground truth in tabs, each opening on the overview eye over
+    ``points`` (N, 3) world m (:func:`~.eyes.overview_eye`; None: Rerun's own), beside the tiles'
+    table and plots."""
     import rerun.blueprint as rrb
 
+    eye = overview_eye(points) if points is not None else None
+
     def view3d(name: str, contents: list[str]):
-        return rrb.Spatial3DView(name=name, origin="/world", contents=contents)
+        return rrb.Spatial3DView(name=name, origin="/world", contents=contents, **eye_kw(eye))
 
     tabs = [view3d("tiled: labels", ["/world/tiled/labels", "/world/tiled/tiles"]),
             view3d("tiles", ["/world/tiled/tiles"])]
@@ -120,9 +126,9 @@ def _rerun(path: Path, res: Any, idx: np.ndarray, centers: np.ndarray, half: np.
     tax = scene.taxonomy
     rec = RerunRecorder(path, max_image_side=conf.record.max_image_side, online=True)  # online: no batch blueprint
     try:
-        rec.rec.send_blueprint(blueprint(scene.gt_labels is not None), make_active=False, make_default=True)
-        rec.log_taxonomy(tax.names, tax.colors)
         pts = scene.points[idx]
+        rec.rec.send_blueprint(blueprint(scene.gt_labels is not None, pts), make_active=False, make_default=True)
+        rec.log_taxonomy(tax.names, tax.colors)
         r = point_radius(pts)
         lab = res.labels[idx]
         rec.rec.log("world/tiled/labels", rr.Points3D(pts, class_ids=class_ids(lab), radii=r), static=True)
