@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Set up diffuser-lab in ./.venv on a Debian/Ubuntu machine and run a job.
-#   bash scripts/dev.sh demo [hydra overrides...]   set up, then run the demo (diffuser-lab)
-#   bash scripts/dev.sh test [pytest args...]       set up, then run the test suite
+#   bash scripts/dev.sh demo [hydra overrides...]   set up what the demo needs, then run it (diffuser-lab)
+#   bash scripts/dev.sh test [pytest args...]       set up everything (the test extra), then run the test suite
 #   bash scripts/dev.sh setup                       set up only
 # System packages (open3d's shared libraries, python venv) come from apt-get when missing:
 # as root directly, otherwise through sudo; without either, the script says what to install.
@@ -31,12 +31,14 @@ system_deps() {
   DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
 }
 
-python_env() {
-  local stamp="$VENV/.installed"
+python_env() {  # $1: the extra to install ("" for the demo: the package alone; "test": everything)
+  local extra=${1:-} stamp="$VENV/.installed${1:+-$1}" full="$VENV/.installed-test"
+  # an environment set up for the tests has what the demo needs
+  if [ -z "$extra" ] && [ -f "$full" ] && [ ! pyproject.toml -nt "$full" ]; then return 0; fi
   if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
     [ -x "$VENV/bin/python" ] || python3 -m venv "$VENV"
-    "$VENV/bin/python" -m pip install -q --upgrade pip
-    "$VENV/bin/python" -m pip install -q -e '.[test]'
+    [ -z "$extra" ] || "$VENV/bin/python" -m pip install -q --upgrade pip  # the demo skips it: seconds on a first run
+    "$VENV/bin/python" -m pip install -q --disable-pip-version-check -e ".${extra:+[$extra]}"
     touch "$stamp"
   fi
 }
@@ -44,7 +46,7 @@ python_env() {
 cmd=${1:-demo}
 [ $# -gt 0 ] && shift
 system_deps
-python_env
+case $cmd in demo) python_env "" ;; *) python_env test ;; esac
 case $cmd in
   setup) ;;
   demo) exec "$VENV/bin/diffuser-lab" "$@" ;;

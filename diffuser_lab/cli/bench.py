@@ -15,6 +15,12 @@ median of each figure. ``--write-demo-input FILE.npz`` writes such a file for th
 demo-room workload (``--points`` points, 30 rendered 640x480 views of simulated 2D-network
 evidence, 21 classes or ``--classes C`` split by space; :mod:`diffuser_lab.runs.workloads`) and exits.
 ``--sparse-classes auto|on|off`` and ``--classes-per-point M``: solver.sparse_classes (docs/many-classes.md).
+
+Beside the timings (Jacobi), the line holds this machine's roof measured in the same process
+(``roof``: copy bandwidth and float32 multiply-add rate, :mod:`diffuser_lab.backends.roof`), what
+one step moves and computes (``per_step``: bytes, multiply-adds), the floor of the iterations on
+that roof (``floor_s``, ``bound``) and ``efficiency`` = floor_s / total_s (graph included) and
+``efficiency_diffusion`` = floor_s / diffusion_s: ratios comparable across machines. ``--no-roof`` skips it.
 """
 from __future__ import annotations
 
@@ -27,6 +33,7 @@ import time
 import numpy as np
 
 from diffuser_lab import progress
+from diffuser_lab.backends import roof as roofline
 from diffuser_lab.method import reference as ref
 from diffuser_lab.method.diffusion import diffuse, labels_from_scores, normalise
 from diffuser_lab.method.exact import solve_exact
@@ -125,6 +132,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeat", type=int, default=1, help="runs; medians are reported (default 1)")
     ap.add_argument("--warmup", action="store_true", help="one untimed run first (compiles the kernels)")
     ap.add_argument("--out", help="write the (N,) int16 labels here (.npy)")
+    ap.add_argument("--no-roof", action="store_true", help="skip measuring the copy bandwidth and matmul rate")
     a = ap.parse_args(argv)
     if a.write_demo_input:
         return _write_demo_input(a.write_demo_input, a.points, a.classes)
@@ -140,6 +148,7 @@ def main(argv: list[str] | None = None) -> int:
         if a.warmup:
             run_once(pts, nrm, ev, **kw)
         runs = [run_once(pts, nrm, ev, **kw) for _ in range(a.repeat)]
+        roof = None if a.no_roof or a.solver != "jacobi" else roofline.measure_roof()
     except (ValueError, RuntimeError, OSError) as e:
         print(f"diffuser-lab-bench: error: {e}", file=sys.stderr)
         return 2
@@ -153,6 +162,12 @@ def main(argv: list[str] | None = None) -> int:
             out[key] = runs[-1][1][key]
     if "residual" in runs[-1][1]:
         out["residual"] = float(runs[-1][1]["residual"])
+    if roof is not None:
+        m = runs[-1][1].get("sparse_classes")
+        cost = roofline.step_cost(pts.shape[0], a.k, int(m) if m else ev.shape[1])
+        eff = roofline.efficiency(roof, cost, out["iterations"], figs["total_s"])
+        out.update(roof=roof.asdict(), per_step=cost, **eff,
+                   efficiency_diffusion=roofline.efficiency(roof, cost, out["iterations"], figs["diffusion_s"])["efficiency"])
     print(json.dumps(out))
     if a.out:
         np.save(a.out, lab)

@@ -3,8 +3,8 @@ in one run (a ratio, not an absolute time: the machine is shared).
 
     .venv/bin/python -m pytest tests/benchmarks/test_tiling_perf.py --benchmark-enable -s
 
-Enabled: the demo room (its default 4 cm points, 30 views) in 2 m tiles; the default test run: a
-small demo. Labels of the two runs must be equal; the speed-up is reported (extra_info, printed),
+Enabled: the default city (2 x 2 blocks, 923k points at 0.2 m, 32 frames, ``predictions=realistic_city``)
+in 30 m tiles (a 5 x 5 grid); the default test run: a small demo in 2 m tiles. Labels of the two runs must be equal; the speed-up is reported (extra_info, printed),
 not asserted. A worker is a Ray task with one CPU (its compiled kernels on one thread), so one
 worker uses one core and two use both.
 """
@@ -16,10 +16,11 @@ import time
 import numpy as np
 import pytest
 
-from diffuser_lab.config import default_config
 from diffuser_lab.runs import tiled
+from conftest import compose
 
-SMALL = {"scene.demo.n_views": 8, "scene.demo.point_spacing": 0.1, "solver.max_iter": 30}
+SMALL = ["scene.demo.n_views=8", "scene.demo.point_spacing=0.1", "solver.max_iter=30", "tiling.size=2"]
+CITY = ["scene=city", "predictions=realistic_city", "tiling.size=30"]
 
 
 @pytest.fixture(scope="module")
@@ -30,12 +31,12 @@ def enabled(request) -> bool:
 @pytest.mark.benchmark(group="tiling")
 def test_two_workers_vs_one(benchmark, enabled, tmp_path):
     pytest.importorskip("ray")
-    keys = {"protocol.name": "tiled", "tiling.size": 2.0, **({} if enabled else SMALL)}
+    keys = ["protocol=tiled", "record=off", *(CITY if enabled else SMALL)]
     runs = {}
 
     def run(workers: int):
         t0 = time.perf_counter()
-        res = tiled.tiled(default_config(**keys, **{"tiling.workers": workers}), run_dir=tmp_path / f"w{workers}")
+        res = tiled.tiled(compose(*keys, f"tiling.workers={workers}"), run_dir=tmp_path / f"w{workers}")
         runs[workers] = (time.perf_counter() - t0, res)
         return res
 
