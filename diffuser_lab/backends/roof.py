@@ -12,13 +12,17 @@ limits, measured in the same run, does: ``floor_s / measured_s`` (the ``efficien
 The step model (dense Z, float32, the compiled Jacobi kernel's layout): each step reads the K
 neighbour indices (int32) and weights (float32) of every row and reads and writes Z (N x C):
 ``N K (4 + 4) + 2 N C 4`` bytes, and does ``N K C`` multiply-adds (neighbour gathers of Z are
-counted once: a row's neighbours lie close in the Morton order, so they come from cache). With
-sparse classes (M per point) C is M. The floor is the larger of the two; the bound is the limit that sets it.
+counted once: a row's neighbours lie close in the Morton order, so they come from cache). When
+what a step reads (one state of Z, N C 4 bytes, and the indices and weights) fits in the
+last-level cache (its size read from Linux's sysfs), Z's reads come from cache and only its
+writes are counted. With sparse classes (M
+per point) C is M. The floor is the larger of the two; the bound is the limit that sets it.
 """
 from __future__ import annotations
 
 import time
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -31,6 +35,7 @@ class Roof:
     fma_gflops: float  # GFLOP/s float32 (a multiply-add = 2 flops), a BLAS matmul
     copy_mb: int  # the copied array's size, MB
     matmul_n: int
+    llc_mb: float = 0.0  # last-level cache, MB (0 = unknown)
 
     def asdict(self) -> dict:
         return {k: round(v, 2) if isinstance(v, float) else v for k, v in asdict(self).items()}
@@ -56,13 +61,29 @@ def measure_roof(copy_mb: int = 256, matmul_n: int = 2048, repeat: int = 5) -> R
     t_copy = best(lambda: np.copyto(dst, src))
     t_mm = best(lambda: a @ b)
     return Roof(copy_gbps=2 * src.nbytes / t_copy / 1e9, fma_gflops=2 * matmul_n**3 / t_mm / 1e9,
-                copy_mb=copy_mb, matmul_n=matmul_n)
+                copy_mb=copy_mb, matmul_n=matmul_n, llc_mb=last_level_cache_mb())
 
 
-def step_cost(n: int, k: int, classes: int) -> dict:
+def last_level_cache_mb() -> float:
+    """The largest CPU cache of cpu0 (Linux sysfs), MB; 0 where it cannot be read."""
+    sizes = []
+    for f in Path("/sys/devices/system/cpu/cpu0/cache").glob("index*/size"):  # a handful of levels
+        try:
+            t = f.read_text().strip().upper()
+            sizes.append(float(t[:-1]) * {"K": 1 / 1024, "M": 1.0, "G": 1024.0}[t[-1]] if t[-1] in "KMG" else float(t) / 2**20)
+        except (OSError, ValueError):
+            continue
+    return max(sizes, default=0.0)
+
+
+def step_cost(n: int, k: int, classes: int, llc_mb: float = 0.0) -> dict:
     """One dense Jacobi step on ``n`` rows, ``k`` neighbours, ``classes`` columns of float32 Z:
-    ``bytes`` moved and ``multiply_adds`` (the module's model)."""
-    return {"bytes": int(n * k * 8 + 2 * n * classes * 4), "multiply_adds": int(n * k * classes)}
+    ``bytes`` moved to and from memory and ``multiply_adds`` (the module's model; ``llc_mb``: the
+    last-level cache: Z's reads not counted when Z, the indices and the weights fit in it)."""
+    z = n * classes * 4
+    in_cache = 0 < z + n * k * 8 <= llc_mb * 2**20
+    return {"bytes": int(n * k * 8 + (1 if in_cache else 2) * z), "multiply_adds": int(n * k * classes),
+            "z_in_cache": bool(in_cache)}
 
 
 def efficiency(roof: Roof, cost: dict, steps: int, measured_s: float) -> dict:

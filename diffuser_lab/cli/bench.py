@@ -164,7 +164,7 @@ def main(argv: list[str] | None = None) -> int:
         out["residual"] = float(runs[-1][1]["residual"])
     if roof is not None:
         m = runs[-1][1].get("sparse_classes")
-        cost = roofline.step_cost(pts.shape[0], a.k, int(m) if m else ev.shape[1])
+        cost = roofline.step_cost(pts.shape[0], a.k, int(m) if m else ev.shape[1], roof.llc_mb)
         eff = roofline.efficiency(roof, cost, out["iterations"], figs["total_s"])
         out.update(roof=roof.asdict(), per_step=cost, **eff,
                    efficiency_diffusion=roofline.efficiency(roof, cost, out["iterations"], figs["diffusion_s"])["efficiency"])

@@ -1,0 +1,45 @@
+"""The machine's roof and the Jacobi step model (diffuser_lab/backends/roof.py), and diffuser-lab-bench's
+efficiency figures built on them."""
+import json
+
+import numpy as np
+
+from diffuser_lab.backends import roof
+from diffuser_lab.cli import bench
+
+
+def test_step_model_is_the_issues_arithmetic():
+    # 300k points, K = 24, 21 classes: K indices + weights 57.6 MB, Z read and written 50.4 MB
+    c = roof.step_cost(300_000, 24, 21)
+    assert c == {"bytes": 108_000_000, "multiply_adds": 151_200_000, "z_in_cache": False}
+    assert roof.step_cost(300_000, 24, 21, llc_mb=32) == c  # Z 25 MB + indices and weights 58 MB > 32 MB
+    # 30k x 200 classes x 100 steps: Z (24 MB) read from a 32 MB cache, written (24 MB a step); 14.4 G
+    # multiply-adds, 0.374 s at 77 GFLOP/s: compute-bound
+    r = roof.Roof(copy_gbps=20.5, fma_gflops=77.0, copy_mb=256, matmul_n=2048, llc_mb=32)
+    many = roof.step_cost(30_000, 24, 200, 32)
+    assert many["z_in_cache"] and many["bytes"] == 30_000 * 24 * 8 + 24_000_000
+    e = roof.efficiency(r, many, 100, 1.9)
+    assert e["bound"] == "compute" and abs(e["compute_floor_s"] - 0.374) < 0.001
+    assert abs(e["efficiency"] - 0.374 / 1.9) < 0.001
+    e = roof.efficiency(r, c, 200, 2.0)
+    assert e["bound"] == "memory" and abs(e["floor_s"] - 200 * 108e6 / 20.5e9) < 1e-3
+
+
+def test_measured_roof_is_positive_and_plausible():
+    r = roof.measure_roof(copy_mb=16, matmul_n=256, repeat=2)
+    assert 0.1 < r.copy_gbps < 10_000 and 0.1 < r.fma_gflops < 1_000_000
+
+
+def test_bench_reports_efficiency(tmp_path, capsys):
+    rng = np.random.default_rng(0)
+    pts = rng.random((3000, 3)).astype(np.float32)
+    nrm = np.tile(np.float32([0, 0, 1]), (3000, 1))
+    ev = np.zeros((3000, 5), np.float32)
+    ev[np.arange(0, 3000, 7), rng.integers(0, 5, 429)] = 1.0
+    np.savez(tmp_path / "in.npz", points=pts, normals=nrm, evidence=ev)
+    assert bench.main(["--input", str(tmp_path / "in.npz"), "--iters", "20"]) == 0
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert out["per_step"] == roof.step_cost(3000, 24, 5, out["roof"]["llc_mb"]) and out["bound"] in ("memory", "compute")
+    assert 0 < out["efficiency"] <= out["efficiency_diffusion"] and out["roof"]["copy_gbps"] > 0
+    assert bench.main(["--input", str(tmp_path / "in.npz"), "--iters", "5", "--no-roof"]) == 0
+    assert "efficiency" not in json.loads(capsys.readouterr().out.strip().splitlines()[-1])
