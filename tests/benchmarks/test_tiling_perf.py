@@ -32,8 +32,8 @@ def enabled(request) -> bool:
 @pytest.mark.benchmark(group="tiling")
 def test_two_workers_vs_one(benchmark, enabled, tmp_path):
     """Three runs on the same tiles: one worker alone on one core (the process tree's CPU affinity,
-    which Ray's processes inherit), one worker with both cores free (open3d's ray casting and BLAS
-    then use the second core), two workers."""
+    which Ray's processes inherit), one worker with both cores free (part of a task, likely open3d's
+    ray casting or BLAS, then uses the second core), two workers."""
     pytest.importorskip("ray")
     if not enabled:  # ~55 s even on a tiny demo (three Ray starts): the cluster test covers the mechanics
         pytest.skip("three Ray runs: run with --benchmark-enable")
