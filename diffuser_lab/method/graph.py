@@ -27,7 +27,7 @@ from diffuser_lab.backends.knn import normal_distance2
 from diffuser_lab.config import GraphConfig, NormalSign
 from diffuser_lab.data.geometry import estimate_normals
 
-__all__ = ["KnnGraph", "SortedKnnGraph", "build_graph", "graph_stage", "knn", "make_graph", "mean_spacing", "cloud_spacing", "spacing_sum",
+__all__ = ["KnnGraph", "SortedKnnGraph", "build_graph", "graph_stage", "knn", "make_graph", "mean_spacing", "spacing_sum",
            "normal_distance2"]
 
 
@@ -141,18 +141,11 @@ def _rho(d0: np.ndarray) -> float:
     return float(pos.mean())
 
 
-def cloud_spacing(points: np.ndarray, k: int = 2, backend: str = "auto") -> float:
-    """rho of :func:`build_graph` without building the graph (a tiled run's tiles share the whole
-    cloud's): the nearest distinct neighbour among each point's ``k`` nearest (build_graph: among its
-    graph.k; the same unless a point has ``k`` or more duplicates), averaged in the same order."""
-    points = np.ascontiguousarray(points, np.float32)
-    return _rho(knn_backend.sorted_knn(points, None, min(k, points.shape[0] - 1), backend).d0)
-
-
 def spacing_sum(points: np.ndarray, own: np.ndarray, k: int = 2, backend: str = "auto") -> tuple[float, int]:
-    """:func:`cloud_spacing`'s sum and count over the points ``own`` (indices into ``points``) only, for a
-    cloud taken part by part (a tiled run: a tile's own points against its points with halo, whose
-    nearest neighbours lie in the halo): the parts' sums over their counts give the whole cloud's rho."""
+    """rho's sum and count (:func:`build_graph`'s rho: per point the nearest distinct neighbour among its
+    ``k`` nearest) over the points ``own`` (indices into ``points``) only, for a cloud taken part by
+    part (a tiled run: a tile's own points against its points with halo, whose nearest neighbours
+    lie in the halo): the parts' sums over their counts give the whole cloud's rho."""
     points = np.ascontiguousarray(points, np.float32)
     if points.shape[0] < 2:
         return 0.0, 0

@@ -12,7 +12,6 @@ from diffuser_lab.data import validate
 from diffuser_lab.data.frames import LazyFrames
 from diffuser_lab.data.predictions import with_predictions
 from diffuser_lab.method import evidence as evidence_mod
-from diffuser_lab.method.graph import cloud_spacing
 from diffuser_lab.runs import pipeline, tiled
 from diffuser_lab.runs.tiled import TileSpec, frames_meeting, tile_points
 from conftest import SMALL_DEMO, run_cli
@@ -39,8 +38,8 @@ def test_tiled_labels_equal_the_untiled_run(untiled, local_tiled):
     np.testing.assert_array_equal(res.bayesian_labels, untiled.bayesian_labels)  # the same evidence per point
     assert res.metrics["miou"] == pytest.approx(untiled.metrics["miou"], abs=0.2)
     assert sum(r["points"] for r in res.tiles) == untiled.scene.n_points
-    # rho tile by tile (each tile's points against its halo) is the whole cloud's
-    assert res.rho == pytest.approx(cloud_spacing(untiled.scene.points, k=24), rel=1e-9)
+    # rho tile by tile (each tile's points against its halo) is the untiled graph's
+    assert res.rho == pytest.approx(untiled.graph.rho, rel=1e-9)
 
 
 @pytest.mark.parametrize("halo", [0.0, 0.3, 2.5])
