@@ -12,8 +12,9 @@ Each tile writes ``tiles/<ix>_<iy>.npz`` (its labels, a checksum of its points, 
 atomically; a run started with ``tiling.resume=<earlier run folder>`` keeps the tiles found
 complete there and computes the others. Tiles run one after another in this process
 (``tiling.workers=0``) or as Ray tasks (``tiling.workers>=1``: a local instance with that many
-CPUs, or the cluster at ``tiling.address``); a Ray worker loads the scene from its source itself
-(once per worker process) and reads only its tile's frames; a failing tile is retried
+CPUs, or the cluster at ``tiling.address``); a Ray worker reads its tile's points from the file the
+driver wrote (``tiles/inputs/<id>.npz``) and only its tile's frames, built from the scene source once
+per worker process without the cloud where the source can; a failing tile is retried
 (``tiling.max_retries``), then reported with its error while the others' labels are kept.
 """
 from __future__ import annotations
