@@ -6,6 +6,7 @@ Samples every process descended from the command (psutil, every ``--interval`` s
 the largest single-process RSS (with its command line), the largest sum over the tree at one instant,
 and the wall time. A sampler misses peaks shorter than its interval; /usr/bin/time's "maximum
 resident set size" covers the command's own process exactly, not the processes Ray starts apart.
+Needs psutil (it comes with Ray: the ``test`` and ``ray`` extras).
 """
 from __future__ import annotations
 
