@@ -272,8 +272,9 @@ def test_fixed_rows_pads_short_rows_with_zero_weight():
 
 @needs_numba
 def test_more_classes_than_one_kernel_block_stop_where_scipy_does():
-    """Above 32 active classes the numba path runs several class blocks a step at a time under
-    one residual: same iterations and labels as scipy's CSR products."""
+    """Above 32 active classes the numba path runs several 16-wide class blocks in one compiled
+    call under one residual: same iterations and labels as scipy's CSR products; an observer
+    splitting the run (a call per step) changes nothing."""
     pts, nrm, mass = cloud(3000)
     rng = np.random.default_rng(1)
     wide = np.concatenate([mass] + [mass[rng.permutation(len(pts))] for _ in range(8)], 1)  # 45 columns, 36 voted for
@@ -286,3 +287,30 @@ def test_more_classes_than_one_kernel_block_stop_where_scipy_does():
     assert a.converged and a.iterations == b.iterations == 58
     np.testing.assert_allclose(a.Z, b.Z, rtol=0, atol=1e-5 * float(b.Z.max()))
     assert np.mean(labels_from_scores(a.Z) == labels_from_scores(b.Z)) >= 0.999
+    seen = []
+    c = diffuse(s, max_iter=400, tol=tol, backend="numba", observer=lambda it, Z, st: seen.append(it))
+    assert seen == list(range(1, 59)) and c.residuals == a.residuals
+    np.testing.assert_array_equal(a.Z, c.Z)
+
+
+@needs_numba
+def test_several_blocks_on_threads_equal_one_thread_exactly():
+    """``msteps``: three class blocks, rows claimed 97 at a time by 1 or 3 threads: the same Z."""
+    pts, nrm, mass = cloud(3000)
+    s = normalise(build_graph(pts, 12, nrm), mass, 1e-4)
+    W = kernels.MULTI_WIDTH
+    rng = np.random.default_rng(0)
+    B = np.zeros((3, len(pts), W), np.float32)
+    B[..., :5] = np.stack([s.B[s.order][rng.permutation(len(pts))] for _ in range(3)]) / s.B.max()
+    out = []
+    for th in (1, 3):
+        Z, Zn = np.zeros_like(B), np.zeros_like(B)
+        with kernels.StepRunner(len(pts), threads=th, min_rows_per_thread=1, chunk=97) as runner:
+            args = (s.sorted_neighbors, s.sorted_P, Z.reshape(3, -1), Zn.reshape(3, -1), B.reshape(3, -1),
+                    np.float32(1e-18), -1.0)
+            res = runner.launch(kernels._multi_kernel(), args, 30, 2)
+        assert res.shape == (30, th, 2)
+        out.append((Z.copy(), res.max(axis=1)))
+    np.testing.assert_array_equal(out[0][0], out[1][0])
+    np.testing.assert_array_equal(out[0][1], out[1][1])
+    assert out[0][0][..., 5:].max() == 0 and out[0][0].max() > 0

@@ -22,13 +22,17 @@ from typing import Optional
 
 import numpy as np
 
-from ..base import IterationInputs, JacobiBackend, residual
+from ..base import IterationInputs, JacobiBackend
 from ..krylov import gmres
 from . import NB, _unrolled, first_compile, n_threads, slp
 from .krylov import NumbaKrylovOps
 
 WIDTHS = (8, 16, 24, 32)
 """Class-block widths of the generated Jacobi kernels; wider problems are split into blocks."""
+MULTI_WIDTH = 16
+"""Block width when the active classes need several blocks (more than 32): per class a step, 16
+is the cheapest width (30k points, one core: 8 / 16 / 24 / 32 wide 0.071 / 0.043 / 0.050 / 0.094 ms;
+32 runs out of registers)."""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -108,6 +112,34 @@ def steps_{W}(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, c
     return n_steps
 
 
+@njit(cache=True, boundscheck=False, nogil=True)
+def msteps_{W}(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, ctrl, res):
+    n = nbr.shape[0]
+    nchunks = (n + chunk - 1) // chunk
+    for s in range(n_steps):
+        src = Za if s % 2 == 0 else Zb
+        dst = Zb if s % 2 == 0 else Za
+        ch = np.float32(0.0)
+        tp = np.float32(0.0)
+        while True:
+            c = atomic_add(ctrl, 1 + s, 1)
+            if c >= nchunks:
+                break
+            lo = c * chunk
+            hi = min(lo + chunk, n)
+            for blk in range(Za.shape[0]):
+                a, b = rows_{W}(nbr, wts, src[blk], dst[blk], Bf[blk], floor, lo, hi)
+                ch = max(ch, a)
+                tp = max(tp, b)
+        res[s, tid, 0] = ch
+        res[s, tid, 1] = tp
+        atomic_add(ctrl, 0, 1)
+        wait_until(ctrl, 0, (s + 1) * nthreads)
+        if all_converged(res, s, nthreads, tol):
+            return s + 1
+    return n_steps
+
+
 """.splitlines()
 """``steps_W(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, ctrl, res)``: thread
 ``tid`` of ``nthreads`` runs up to ``n_steps`` Jacobi steps on (N*W,) blocks, Za -> Zb -> Za ...
@@ -115,7 +147,11 @@ Every step's rows are taken ``chunk`` at a time from the ticket counter ``ctrl[1
 thread that the OS parks is made up for by the others), each thread writes its (max |Zn - Z|,
 max Zn) to ``res[s, tid]`` and all meet at the barrier ``ctrl[0]`` (arrivals, never reset);
 after it every thread sees the same residual and stops after the first step whose relative
-change is <= ``tol``. Returns the number of steps done."""
+change is <= ``tol``. Returns the number of steps done.
+
+``msteps_W`` is the same over several class blocks at once: Za, Zb, Bf are (blocks, N*W), a
+claimed run of rows is done for every block before the next claim (the run's neighbours and
+weights stay in cache across the blocks) and the residual is the largest over all blocks."""
 
 
 _GEN = Path(__file__).with_name("_unrolled.py")
@@ -124,6 +160,11 @@ _GEN = Path(__file__).with_name("_unrolled.py")
 def _step_kernels():
     """{W: steps_W} of the generated module (see :data:`_STEPS_TEMPLATE`)."""
     return {W: getattr(_unrolled, f"steps_{W}") for W in WIDTHS}
+
+
+def _multi_kernel():
+    """``msteps_W`` for W = :data:`MULTI_WIDTH` (see :data:`_STEPS_TEMPLATE`)."""
+    return getattr(_unrolled, f"msteps_{MULTI_WIDTH}")
 
 
 class StepRunner:
@@ -291,14 +332,12 @@ def unpermute_scaled(Zs, order, active, scale, out):
 
 
 def blocks_of(n_active: int) -> list[tuple[int, int, int]]:
-    """Split the active classes into kernel blocks: (first, count, width) with width in WIDTHS."""
-    out, c = [], 0
-    while c < n_active:
-        cnt = min(n_active - c, WIDTHS[-1])
-        width = next(w for w in WIDTHS if w >= cnt)
-        out.append((c, cnt, width))
-        c += cnt
-    return out
+    """Split the active classes into kernel blocks: (first, count, width) with width in WIDTHS; up
+    to 32 classes one block of the narrowest width that holds them, more in blocks of
+    :data:`MULTI_WIDTH` (all that width: one compiled call steps them all, :data:`_STEPS_TEMPLATE`)."""
+    if n_active <= WIDTHS[-1]:
+        return [(0, n_active, next(w for w in WIDTHS if w >= n_active))] if n_active else []
+    return [(c, min(MULTI_WIDTH, n_active - c), MULTI_WIDTH) for c in range(0, n_active, MULTI_WIDTH)]
 
 
 class Block:
@@ -306,18 +345,19 @@ class Block:
     row kernels' widths; the padding columns stay 0). ``B``, ``Z`` (the current state) and ``Zn``
     (the other buffer) have ``capacity`` rows, the first N in use."""
 
-    def __init__(self, first: int, cnt: int, width: int, capacity: int):
+    def __init__(self, first: int, cnt: int, width: int, capacity: int, arrays=None):
         self.first, self.cnt, self.width = first, cnt, width
-        self.B = np.zeros((capacity, width), np.float32)
-        self.Z = np.zeros_like(self.B)
-        self.Zn = np.zeros_like(self.B)
+        if arrays is None:
+            arrays = tuple(np.zeros((capacity, width), np.float32) for _ in range(3))
+        self.B, self.Z, self.Zn = arrays  # views of the backend's (blocks, capacity, width) arrays when several
         self.U: Optional[np.ndarray] = None  # the GMRES basis, made on first use
 
 
 class NumbaJacobi(JacobiBackend):
     """Jacobi steps in compiled code on :class:`StepRunner` threads. With one class block (up
     to 32 classes) all ``count`` steps, the stopping rule included, run in one compiled call per
-    thread; several blocks share one residual and go a step at a time.
+    thread; so do several blocks (``msteps``: every block of a run of rows before the next run),
+    which share one residual.
 
     P and the neighbours are read where the system keeps them (no copy); B is copied into the
     blocks. A growing system (``rows_hint`` > 0) gets blocks with room to grow (capacity doubles);
@@ -335,7 +375,12 @@ class NumbaJacobi(JacobiBackend):
         super().setup(inputs)
         n = inputs.shape[0]
         cap = n if not self.rows_hint else max(n, 2 * self._capacity(), 1024)
-        self.blocks = [Block(first, cnt, width, cap) for first, cnt, width in blocks_of(len(inputs.active))]
+        spec = blocks_of(len(inputs.active))
+        self._stack = None  # several blocks: (B, Z, Zn) as (blocks, capacity, width) arrays, the blocks their views
+        if len(spec) > 1:
+            self._stack = [np.zeros((len(spec), cap, MULTI_WIDTH), np.float32) for _ in range(3)]
+        self.blocks = [Block(first, cnt, width, cap, None if self._stack is None else tuple(a[i] for a in self._stack))
+                       for i, (first, cnt, width) in enumerate(spec)]
         self._take(inputs, None)
 
     def _capacity(self) -> int:
@@ -367,6 +412,8 @@ class NumbaJacobi(JacobiBackend):
 
     @property
     def compiling(self) -> bool:
+        if self._stack is not None:
+            return first_compile(_multi_kernel())
         return bool(self.blocks) and first_compile(*{_step_kernels()[b.width] for b in self.blocks})
 
     def steps(self, count: int) -> np.ndarray:
@@ -377,17 +424,16 @@ class NumbaJacobi(JacobiBackend):
             if len(out) % 2:
                 b.Z, b.Zn = b.Zn, b.Z
             return out
-        out = []
-        for _ in range(count):  # several class blocks share one residual: a step at a time
-            ct = np.zeros(2, np.float32)
+        B3, Z3, Zn3 = self._stack  # several blocks, one residual: all in one compiled call per thread
+        nb = len(self.blocks)
+        args = (self.nbr, self.wts, Z3.reshape(nb, -1), Zn3.reshape(nb, -1), B3.reshape(nb, -1),
+                np.float32(floor), float(tol))
+        out = self.runner.launch(_multi_kernel(), args, count, 2).max(axis=1)
+        if len(out) % 2:
+            self._stack = [B3, Zn3, Z3]
             for b in self.blocks:
-                ct = np.maximum(ct, self.runner.run(b.width, self.nbr, self.wts, b.Z[:n], b.Zn[:n], b.B[:n], floor,
-                                                    -1.0, 1)[0])
                 b.Z, b.Zn = b.Zn, b.Z
-            out.append(ct)
-            if residual(ct[0], ct[1]) <= tol:
-                break
-        return np.array(out, np.float32).reshape(-1, 2)
+        return out
 
     def state(self) -> np.ndarray:
         n = self.inputs.shape[0]
