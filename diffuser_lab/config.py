@@ -425,8 +425,8 @@ class DepthNoiseConfig(Section):
     lateral_scale: float = key(1.0, at_least(0, note="(0 = off)"))  # x Nguyen's sigma_L = 0.8 + 0.035 theta / (pi/2 - theta) px (640-px image) at edges
     projector_baseline: float = key(0.075, at_least(0, note="(0 = off)"))  # metres, IR camera -> projector (+x): shadows left of objects; 0 = none
     edge_jump: float = key(0.05, above(0, note="(a share of the depth)"))  # a 4-neighbour jump larger than this share of the nearer depth is a discontinuity
-    edge_hole_px: int = key(1, within(0, 20, "pixels", steps=True))  # hole band along discontinuities: the two pixels of the jump dilated by this - 1; 0 = none
-    max_incidence_deg: float = key(75.0, within(0, 90, "degrees", open_lo=True))  # no depth beyond this angle between ray and surface normal; 90 = never
+    edge_hole_px: int = key(0, within(0, 20, "pixels", steps=True))  # hole band along discontinuities: the two pixels of the jump dilated by this - 1; 0 = none (real ScanNet depth: docs/sensor.md)
+    max_incidence_deg: float = key(80.0, within(0, 90, "degrees", open_lo=True))  # no depth beyond this angle between ray and surface normal; 90 = never (80: real ScanNet depth)
     min_range: float = 0.5  # metres; sensor depth outside [min_range, max_range] is no return (Kinect: 0.5-4.5)
     max_range: float = 4.5
     quantization: DepthQuantization = DepthQuantization.mm
