@@ -2,7 +2,8 @@
 for CUDA (torch.py). Without numba (or with DIFFUSER_LAB_NUMBA=0) everything runs on numpy/scipy;
 the modules here choose, once per operation: normalise.py (Eqs. 14-15), knn.py (the kNN graph),
 growing.py and voxel_map.py (a growing map's graph and voxels), evidence.py (the fused evidence
-pass), records.py (the Z states a run records), krylov.py (GMRES on a backend's products).
+pass), records.py (the Z states a run records), krylov.py (GMRES on a backend's products),
+threads.py (BLAS kept off the kernels' cores).
 
 The Jacobi steps of Eq. 10 sit behind one small interface (:class:`~diffuser_lab.backends.base.JacobiBackend`):
 :data:`BACKENDS` is their registry (``solver.backend``), each with its dense and, where it has one,

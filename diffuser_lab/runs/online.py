@@ -7,6 +7,7 @@ reference. Nothing here writes files; hooks (:mod:`diffuser_lab.hooks`) see ever
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import time
 import warnings
@@ -16,6 +17,7 @@ from typing import Callable, Optional, Sequence
 import numpy as np
 
 from diffuser_lab import progress
+from diffuser_lab.backends.threads import blas_one_thread
 from diffuser_lab.config import BadFrame, Config, OnlineMap
 from diffuser_lab.data import validate
 from diffuser_lab.data.frames import FrameLoop, LazyFrames
@@ -161,6 +163,8 @@ def online(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHoo
     loop = FrameLoop(frames, f"online ({cfg.online.map.value} map): {describe_predictions(cfg.predictions)}",
                      check=check_online_frame, skip_bad=cfg.online.bad_frames == BadFrame.skip,
                      warn_prefix="online: ", on_skip=skipped)
+    blas = contextlib.ExitStack()  # BLAS's spinning workers would take the Jacobi threads' core between frames
+    blas.enter_context(blas_one_thread())
     try:
         for i, f in loop:
             tf = time.perf_counter()
@@ -194,6 +198,7 @@ def online(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHoo
         t["frames"] += loop.read_s
     finally:
         od.close()
+        blas.close()
     if not kept:
         raise ValueError(f"scene {scene.name}: no frame could be taken ({len(frames)} frames)")
     res = OnlineResult(scene=scene, mode=cfg.online.map.value, points=od.points.copy(), labels=od.labels.copy(),

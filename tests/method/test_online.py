@@ -340,3 +340,26 @@ def subprocess_inspect(run_dir):
 
     return subprocess.run([sys.executable, "-m", "diffuser_lab.cli.inspect", str(run_dir)], capture_output=True,
                           text=True, timeout=300)
+
+
+def test_online_run_keeps_blas_on_one_thread_while_it_plays(demo):
+    """BLAS's spinning workers took the Jacobi threads' core between frames (docs/online.md): the
+    run limits BLAS to one thread while the frames play and gives the caller's limit back after."""
+    threadpoolctl = pytest.importorskip("threadpoolctl")
+    from diffuser_lab.hooks import RunHooks
+
+    def blas_threads():
+        return [p["num_threads"] for p in threadpoolctl.threadpool_info() if p["user_api"] == "blas"]
+
+    before = blas_threads()
+    seen = []
+
+    class Hooks(RunHooks):
+        def on_frame(self, i, frame):
+            seen.append(blas_threads())
+
+    cfg, scene, *_ = demo
+    online(dataclasses.replace(cfg, online=dataclasses.replace(cfg.online, compare_batch=False)), scene=scene,
+           hooks=Hooks())
+    assert seen and all(s and max(s) == 1 for s in seen), seen
+    assert blas_threads() == before
