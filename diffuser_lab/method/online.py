@@ -46,6 +46,7 @@ from typing import Optional
 
 import numpy as np
 
+from diffuser_lab.backends.base import union_rows
 from diffuser_lab.backends.morton import spatial_order
 from diffuser_lab.config import OnlineMap, OnlineSolver, SolverBackend
 from diffuser_lab.data.geometry import backproject, normals_from_depth
@@ -279,7 +280,7 @@ class OnlineDiffuser:
         st.seen = int(seen.size)
         rows = self._pos[seen] if self.growing else seen  # the system's rows
         if changed_rows.size:
-            rows = np.union1d(rows, changed_rows)
+            rows = union_rows(rows, changed_rows, self._n)
         elif self.growing:
             rows = np.sort(rows)
         if rows.size:

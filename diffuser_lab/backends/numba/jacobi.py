@@ -22,7 +22,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..base import IterationInputs, JacobiBackend
+from ..base import IterationInputs, JacobiBackend, union_rows
 from ..krylov import gmres
 from . import NB, _unrolled, first_compile, n_threads, slp
 from .krylov import NumbaKrylovOps
@@ -407,7 +407,7 @@ class NumbaJacobi(JacobiBackend):
             super().update(inputs, rows, moved)  # re-laid out: state carried over
             return
         if rows is not None and n > n_old:  # appended rows (their Z is 0: never written)
-            rows = np.union1d(rows, np.arange(n_old, n))
+            rows = union_rows(rows, np.arange(n_old, n), n)
         self._take(inputs, rows)
 
     @property
