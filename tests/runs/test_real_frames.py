@@ -81,3 +81,24 @@ def test_real_frames_single_frame_orderings():
     assert m["diffuser_1v"] >= m["ldls_1v"] + MARGIN, m
     assert m["diffuser_5v"] >= m["bayesian_5v"] + MARGIN, m
     assert m["direct_1v"] < sf.predictions_2d["miou"], m  # 14 % of the pixels have no depth: direct leaves them
+
+
+@needs_scannet
+def test_the_loader_on_the_real_frames():
+    """Every frame: the depth intrinsics (for 640x480) at the depth image's size, depth in metres
+    (a bathroom: valid depths within 0.3-5 m, median 0.5-3 m), rigid world-to-camera poses, the
+    label-filt image resized to the depth image."""
+    from diffuser_lab.data.intrinsics import read_intrinsics_file
+    from diffuser_lab.runs.pipeline import load_scene
+
+    cfg = compose(*REAL)
+    scene = load_scene(cfg.scene)
+    Kd, _ = read_intrinsics_file(SCANNET / "intrinsic" / "intrinsic_depth.txt")
+    assert len(scene.frames) == 27
+    for f in scene.frames:
+        assert f.depth.shape == f.gt_labels.shape == (480, 640) and np.allclose(f.K, Kd[:3, :3])
+        d = f.depth[f.depth > 0]
+        assert 0.3 <= d.min() and d.max() <= 5.0 and 0.5 <= np.median(d) <= 3.0, (f.name, d.min(), d.max())
+        R = np.asarray(f.T_cw)[:3, :3]
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-5)
+        assert abs(np.linalg.det(R) - 1) < 1e-5
