@@ -295,7 +295,7 @@ def test_more_classes_than_one_kernel_block_stop_where_scipy_does():
 
 @needs_numba
 def test_several_blocks_on_threads_equal_one_thread_exactly():
-    """``msteps``: three class blocks, rows claimed 97 at a time by 1 or 3 threads: the same Z."""
+    """Three class blocks in one ``steps_W`` call, rows claimed 97 at a time by 1 or 3 threads: the same Z."""
     pts, nrm, mass = cloud(3000)
     s = normalise(build_graph(pts, 12, nrm), mass, 1e-4)
     W = kernels.MULTI_WIDTH

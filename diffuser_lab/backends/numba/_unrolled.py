@@ -112,32 +112,6 @@ def steps_8(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, ctr
             if c >= nchunks:
                 break
             lo = c * chunk
-            a, b = rows_8(nbr, wts, src, dst, Bf, floor, lo, min(lo + chunk, n))
-            ch = max(ch, a)
-            tp = max(tp, b)
-        res[s, tid, 0] = ch
-        res[s, tid, 1] = tp
-        atomic_add(ctrl, 0, 1)
-        wait_until(ctrl, 0, (s + 1) * nthreads)
-        if all_converged(res, s, nthreads, tol):
-            return s + 1
-    return n_steps
-
-
-@njit(cache=True, boundscheck=False, nogil=True)
-def msteps_8(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, ctrl, res):
-    n = nbr.shape[0]
-    nchunks = (n + chunk - 1) // chunk
-    for s in range(n_steps):
-        src = Za if s % 2 == 0 else Zb
-        dst = Zb if s % 2 == 0 else Za
-        ch = np.float32(0.0)
-        tp = np.float32(0.0)
-        while True:
-            c = atomic_add(ctrl, 1 + s, 1)
-            if c >= nchunks:
-                break
-            lo = c * chunk
             hi = min(lo + chunk, n)
             for blk in range(Za.shape[0]):
                 a, b = rows_8(nbr, wts, src[blk], dst[blk], Bf[blk], floor, lo, hi)
@@ -328,32 +302,6 @@ def rows_16(nbr, wts, Zf, Znf, Bf, floor, lo, hi):
 
 @njit(cache=True, boundscheck=False, nogil=True)
 def steps_16(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, ctrl, res):
-    n = nbr.shape[0]
-    nchunks = (n + chunk - 1) // chunk
-    for s in range(n_steps):
-        src = Za if s % 2 == 0 else Zb
-        dst = Zb if s % 2 == 0 else Za
-        ch = np.float32(0.0)
-        tp = np.float32(0.0)
-        while True:
-            c = atomic_add(ctrl, 1 + s, 1)
-            if c >= nchunks:
-                break
-            lo = c * chunk
-            a, b = rows_16(nbr, wts, src, dst, Bf, floor, lo, min(lo + chunk, n))
-            ch = max(ch, a)
-            tp = max(tp, b)
-        res[s, tid, 0] = ch
-        res[s, tid, 1] = tp
-        atomic_add(ctrl, 0, 1)
-        wait_until(ctrl, 0, (s + 1) * nthreads)
-        if all_converged(res, s, nthreads, tol):
-            return s + 1
-    return n_steps
-
-
-@njit(cache=True, boundscheck=False, nogil=True)
-def msteps_16(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, ctrl, res):
     n = nbr.shape[0]
     nchunks = (n + chunk - 1) // chunk
     for s in range(n_steps):
@@ -636,32 +584,6 @@ def rows_24(nbr, wts, Zf, Znf, Bf, floor, lo, hi):
 
 @njit(cache=True, boundscheck=False, nogil=True)
 def steps_24(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, ctrl, res):
-    n = nbr.shape[0]
-    nchunks = (n + chunk - 1) // chunk
-    for s in range(n_steps):
-        src = Za if s % 2 == 0 else Zb
-        dst = Zb if s % 2 == 0 else Za
-        ch = np.float32(0.0)
-        tp = np.float32(0.0)
-        while True:
-            c = atomic_add(ctrl, 1 + s, 1)
-            if c >= nchunks:
-                break
-            lo = c * chunk
-            a, b = rows_24(nbr, wts, src, dst, Bf, floor, lo, min(lo + chunk, n))
-            ch = max(ch, a)
-            tp = max(tp, b)
-        res[s, tid, 0] = ch
-        res[s, tid, 1] = tp
-        atomic_add(ctrl, 0, 1)
-        wait_until(ctrl, 0, (s + 1) * nthreads)
-        if all_converged(res, s, nthreads, tol):
-            return s + 1
-    return n_steps
-
-
-@njit(cache=True, boundscheck=False, nogil=True)
-def msteps_24(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, ctrl, res):
     n = nbr.shape[0]
     nchunks = (n + chunk - 1) // chunk
     for s in range(n_steps):
@@ -1024,32 +946,6 @@ def rows_32(nbr, wts, Zf, Znf, Bf, floor, lo, hi):
 
 @njit(cache=True, boundscheck=False, nogil=True)
 def steps_32(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, ctrl, res):
-    n = nbr.shape[0]
-    nchunks = (n + chunk - 1) // chunk
-    for s in range(n_steps):
-        src = Za if s % 2 == 0 else Zb
-        dst = Zb if s % 2 == 0 else Za
-        ch = np.float32(0.0)
-        tp = np.float32(0.0)
-        while True:
-            c = atomic_add(ctrl, 1 + s, 1)
-            if c >= nchunks:
-                break
-            lo = c * chunk
-            a, b = rows_32(nbr, wts, src, dst, Bf, floor, lo, min(lo + chunk, n))
-            ch = max(ch, a)
-            tp = max(tp, b)
-        res[s, tid, 0] = ch
-        res[s, tid, 1] = tp
-        atomic_add(ctrl, 0, 1)
-        wait_until(ctrl, 0, (s + 1) * nthreads)
-        if all_converged(res, s, nthreads, tol):
-            return s + 1
-    return n_steps
-
-
-@njit(cache=True, boundscheck=False, nogil=True)
-def msteps_32(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, ctrl, res):
     n = nbr.shape[0]
     nchunks = (n + chunk - 1) // chunk
     for s in range(n_steps):

@@ -100,32 +100,6 @@ def steps_{W}(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, c
             if c >= nchunks:
                 break
             lo = c * chunk
-            a, b = rows_{W}(nbr, wts, src, dst, Bf, floor, lo, min(lo + chunk, n))
-            ch = max(ch, a)
-            tp = max(tp, b)
-        res[s, tid, 0] = ch
-        res[s, tid, 1] = tp
-        atomic_add(ctrl, 0, 1)
-        wait_until(ctrl, 0, (s + 1) * nthreads)
-        if all_converged(res, s, nthreads, tol):
-            return s + 1
-    return n_steps
-
-
-@njit(cache=True, boundscheck=False, nogil=True)
-def msteps_{W}(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, ctrl, res):
-    n = nbr.shape[0]
-    nchunks = (n + chunk - 1) // chunk
-    for s in range(n_steps):
-        src = Za if s % 2 == 0 else Zb
-        dst = Zb if s % 2 == 0 else Za
-        ch = np.float32(0.0)
-        tp = np.float32(0.0)
-        while True:
-            c = atomic_add(ctrl, 1 + s, 1)
-            if c >= nchunks:
-                break
-            lo = c * chunk
             hi = min(lo + chunk, n)
             for blk in range(Za.shape[0]):
                 a, b = rows_{W}(nbr, wts, src[blk], dst[blk], Bf[blk], floor, lo, hi)
@@ -142,16 +116,14 @@ def msteps_{W}(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, 
 
 """.splitlines()
 """``steps_W(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, ctrl, res)``: thread
-``tid`` of ``nthreads`` runs up to ``n_steps`` Jacobi steps on (N*W,) blocks, Za -> Zb -> Za ...
-Every step's rows are taken ``chunk`` at a time from the ticket counter ``ctrl[1 + s]`` (so a
-thread that the OS parks is made up for by the others), each thread writes its (max |Zn - Z|,
-max Zn) to ``res[s, tid]`` and all meet at the barrier ``ctrl[0]`` (arrivals, never reset);
-after it every thread sees the same residual and stops after the first step whose relative
-change is <= ``tol``. Returns the number of steps done.
-
-``msteps_W`` is the same over several class blocks at once: Za, Zb, Bf are (blocks, N*W), a
-claimed run of rows is done for every block before the next claim (the run's neighbours and
-weights stay in cache across the blocks) and the residual is the largest over all blocks."""
+``tid`` of ``nthreads`` runs up to ``n_steps`` Jacobi steps on class blocks Za, Zb, Bf (blocks, N*W)
+(one block: (1, N*W)), Za -> Zb -> Za ... Every step's rows are taken ``chunk`` at a time from the
+ticket counter ``ctrl[1 + s]`` (so a thread that the OS parks is made up for by the others) and
+done for every block before the next claim (the run's neighbours and weights stay in cache across
+the blocks); each thread writes its (max |Zn - Z|, max Zn) over all blocks to ``res[s, tid]`` and
+all meet at the barrier ``ctrl[0]`` (arrivals, never reset); after it every thread sees the same
+residual and stops after the first step whose relative change is <= ``tol``. Returns the number
+of steps done."""
 
 
 _GEN = Path(__file__).with_name("_unrolled.py")
@@ -163,8 +135,8 @@ def _step_kernels():
 
 
 def _multi_kernel():
-    """``msteps_W`` for W = :data:`MULTI_WIDTH` (see :data:`_STEPS_TEMPLATE`)."""
-    return getattr(_unrolled, f"msteps_{MULTI_WIDTH}")
+    """``steps_W`` for W = :data:`MULTI_WIDTH`, the width of several blocks (see :data:`_STEPS_TEMPLATE`)."""
+    return _step_kernels()[MULTI_WIDTH]
 
 
 class StepRunner:
@@ -211,7 +183,7 @@ class StepRunner:
         (entries below ``floor`` flushed to 0), stopping after the first step whose relative
         change max|Zn - Z| / max Zn is <= ``tol``. Returns (steps done, 2) float32: per step
         (max |Zn - Z|, max Zn); the last state is in ``Zb`` after an odd number, else ``Za``."""
-        args = (nbr, wts, Za.reshape(-1), Zb.reshape(-1), B.reshape(-1), np.float32(floor), float(tol))
+        args = (nbr, wts, Za.reshape(1, -1), Zb.reshape(1, -1), B.reshape(1, -1), np.float32(floor), float(tol))
         return self.launch(_step_kernels()[W], args, n_steps, 2).max(axis=1)
 
     def launch(self, f, args: tuple, n_steps: int, width: int, tickets: int = 1) -> np.ndarray:
@@ -356,7 +328,7 @@ class Block:
 class NumbaJacobi(JacobiBackend):
     """Jacobi steps in compiled code on :class:`StepRunner` threads. With one class block (up
     to 32 classes) all ``count`` steps, the stopping rule included, run in one compiled call per
-    thread; so do several blocks (``msteps``: every block of a run of rows before the next run),
+    thread; so do several blocks (every block of a run of rows before the next run),
     which share one residual.
 
     P and the neighbours are read where the system keeps them (no copy); B is copied into the
