@@ -314,3 +314,14 @@ def test_several_blocks_on_threads_equal_one_thread_exactly():
     np.testing.assert_array_equal(out[0][0], out[1][0])
     np.testing.assert_array_equal(out[0][1], out[1][1])
     assert out[0][0][..., 5:].max() == 0 and out[0][0].max() > 0
+
+
+@needs_numba
+def test_no_evidence_at_all_leaves_z_at_zero():
+    """No class has evidence (no frame sees a point): the numba path, like scipy's, stops at once
+    with Z = 0 and every point unlabeled."""
+    pts, nrm, mass = cloud(3000)
+    s = normalise(build_graph(pts, 12, nrm), np.zeros_like(mass), 1e-4)
+    for backend in ("numba", "scipy"):
+        r = diffuse(s, max_iter=50, tol=1e-3, backend=backend)
+        assert not r.Z.any() and (labels_from_scores(r.Z) < 0).all(), backend

@@ -396,6 +396,8 @@ class NumbaJacobi(JacobiBackend):
             if len(out) % 2:
                 b.Z, b.Zn = b.Zn, b.Z
             return out
+        if not self.blocks:  # no class has evidence: Z stays 0, one step that changes nothing
+            return np.zeros((1, 2), np.float32)
         B3, Z3, Zn3 = self._stack  # several blocks, one residual: all in one compiled call per thread
         nb = len(self.blocks)
         args = (self.nbr, self.wts, Z3.reshape(nb, -1), Zn3.reshape(nb, -1), B3.reshape(nb, -1),
