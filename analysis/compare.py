@@ -63,6 +63,7 @@ def _write_rrd(run_a: Path, run_b: Path, la: np.ndarray, lb: np.ndarray, rrd: Pa
 
     names, colors = _classes(summary, pcd, la)
     rec = rr.RecordingStream("diffuser-lab-compare")
+    rrd.parent.mkdir(parents=True, exist_ok=True)  # --rrd results/x.rrd on a fresh checkout
     rec.save(str(rrd))
     rec.log("world", annotation_context(names, colors), static=True)
     rec.log("world/a", rr.Points3D(pts, class_ids=class_ids(la)), static=True)
