@@ -8,7 +8,6 @@ import json
 import os
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
@@ -27,6 +26,25 @@ def _cold(env) -> bool:
     return out.stdout.strip() == "True"
 
 
+def _lock_released(lock, timeout: float) -> bool:
+    """Wait for the compiling process to let go of ``lock`` (it holds an exclusive flock while it
+    lives): a shared flock taken on a thread, no polling."""
+    import fcntl
+    import threading
+
+    try:
+        fd = os.open(lock, os.O_RDONLY)
+    except FileNotFoundError:  # done and removed already
+        return True
+    got = threading.Event()
+    threading.Thread(target=lambda: (fcntl.flock(fd, fcntl.LOCK_SH), got.set()), daemon=True).start()
+    if got.wait(timeout):
+        os.close(fd)
+        return True
+    return False
+
+
+@pytest.mark.slow  # the whole compile (~25 s) in a process of its own
 def test_cold_cache_runs_on_scipy_then_compiles_in_background(tmp_path):
     cache = tmp_path / "numba-cache"
     env = {k: v for k, v in os.environ.items() if k != "DIFFUSER_LAB_NUMBA"}
@@ -49,10 +67,8 @@ def test_cold_cache_runs_on_scipy_then_compiles_in_background(tmp_path):
     assert a.shape == b.shape and np.mean(a == b) >= 0.999
 
     lock = cache / "diffuser_lab_warm.lock"
-    deadline = time.time() + 240
-    while lock.exists() and time.time() < deadline:  # the background compile (~25 s on 2 cores)
-        time.sleep(1)
-    assert not lock.exists(), "the background compile did not finish in 240 s"
+    assert _lock_released(lock, timeout=240), "the background compile (~25 s on 2 cores) did not finish in 240 s"
+    assert not lock.exists()
     assert not _cold(env)
 
     second = run_cli(*SMALL_DEMO, f"hydra.run.dir={tmp_path / 'second'}", env={"NUMBA_CACHE_DIR": str(cache),
@@ -80,3 +96,24 @@ def test_forced_or_explicit_backend_compiles_in_the_foreground(tmp_path, monkeyp
     finally:
         nb.undefer()
     assert nb.available()
+
+
+def test_one_background_compile_at_a_time_and_no_stale_lock(tmp_path, monkeypatch):
+    """While a compile holds the lock (an exclusive flock) no second one starts; a lock file left
+    by a compile that died holds no flock and does not stop the next one."""
+    import fcntl
+    import subprocess
+
+    started = []
+    monkeypatch.setattr(nb, "_lock_path", lambda: tmp_path / "warm.lock")
+    monkeypatch.setattr(subprocess, "Popen", lambda argv, **kw: started.append((argv, kw)))
+    fd = os.open(tmp_path / "warm.lock", os.O_RDWR | os.O_CREAT)
+    fcntl.flock(fd, fcntl.LOCK_EX)  # a compile running
+    try:
+        assert nb.compile_in_background() is False and not started
+    finally:
+        os.close(fd)  # it died: the file stays, its lock does not
+    assert (tmp_path / "warm.lock").exists()
+    assert nb.compile_in_background() is True
+    (argv, kw), = started
+    assert argv[-2:] == ["diffuser_lab.cli.warm", str(tmp_path / "warm.lock")] and len(kw["pass_fds"]) == 1

@@ -80,24 +80,40 @@ def _lock_path():
 
 
 def compile_in_background() -> bool:
-    """Start ``python -m diffuser_lab.cli.warm`` detached (its output discarded) unless
-    one is already running; it fills numba's cache for the next runs. True if one was started."""
+    """Start ``python -m diffuser_lab.cli.warm`` detached (its output discarded) unless one is
+    already running; it fills numba's cache for the next runs. True if one was started.
+
+    The lock file (:func:`_lock_path`) is held with ``flock`` by the compiling process for as long as
+    it lives (it inherits the locked descriptor), so a compile that died leaves no stale lock, and
+    whoever wants to wait for the compile takes a shared ``flock`` on the file."""
     import subprocess
     import sys
-    import time
 
     lock = _lock_path()
     try:
+        import fcntl
+    except ImportError:  # not POSIX: no lock; the cache tolerates two compiles
+        fcntl = None
+    fd = -1
+    try:
         lock.parent.mkdir(parents=True, exist_ok=True)
-        if lock.exists() and time.time() - lock.stat().st_mtime < 300:  # one compiling already
-            return False
-        lock.write_text(str(os.getpid()))
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+        if fcntl is not None:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:  # one compiling already
+                return False
+        os.ftruncate(fd, 0)
+        os.write(fd, str(os.getpid()).encode())
         env = {k: v for k, v in os.environ.items() if k != "DIFFUSER_LAB_NUMBA"}
         subprocess.Popen([sys.executable, "-m", "diffuser_lab.cli.warm", str(lock)],
                          stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                         start_new_session=True, env=env, close_fds=True)
+                         start_new_session=True, env=env, close_fds=True, pass_fds=(fd,))
     except OSError:  # a read-only install: the next run compiles in the foreground
         return False
+    finally:
+        if fd >= 0:
+            os.close(fd)  # the lock stays with the child's copy of the descriptor
     return True
 
 
