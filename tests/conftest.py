@@ -12,8 +12,87 @@ SHARED = ROOT.parent / "shared"
 # take the numpy/scipy path while the cache is cold (tests/cli/test_first_run.py covers that path).
 os.environ.setdefault("DIFFUSER_LAB_NUMBA", "1")
 
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # Workers run side by side, as a sweep's jobs do: each gets its share of the cores for the compiled
+    # kernels and BLAS (two-thread barriers and OpenBLAS's spinning workers on a core the other worker
+    # is using cost more than they gain). BLAS through threadpoolctl in this process, so that a test can
+    # still raise it (tests/method/test_online.py); through the environment for the commands it starts.
+    import numpy  # noqa: F401 - loads OpenBLAS with the machine's thread count before the variables below
+
+    _share = str(max(1, len(os.sched_getaffinity(0)) // int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))))
+    for _var in ("NUMBA_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OMP_NUM_THREADS"):
+        os.environ.setdefault(_var, _share)
+    import threadpoolctl
+
+    threadpoolctl.threadpool_limits(int(_share))
+
 # Small demo settings for tests that only need the mechanics (seconds, not tens of seconds).
 SMALL_DEMO = ["scene.demo.n_views=10", "scene.demo.point_spacing=0.08", "solver.max_iter=60"]
+
+
+QUICK_BUDGET_S = 5.0
+"""A test without the ``slow`` marker should take at most this (its call, on 2 cores): the quick loop
+(``-m "not slow"``) stays under 90 s. The suite lists the ones over it at the end (docs/testing.md)."""
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_configure(config):
+    # benchmarks time one process: pytest-benchmark switches itself off under xdist
+    if config.getoption("benchmark_enable", False) and getattr(config.option, "numprocesses", None):
+        config.option.numprocesses = None
+        config.option.dist = "no"
+
+
+def work_unit(nodeid: str) -> str:
+    """What pytest-xdist hands a worker at once: a test module (its module-scoped fixtures, a run
+    many tests read, are made once), or one chain of the README's commands
+    (``readme_commands.chain``: commands reading each other's outputs)."""
+    path, _, rest = nodeid.partition("::")
+    if path.endswith("test_readme.py") and rest.startswith("test_readme_command["):
+        from readme_commands import readme_chains
+
+        cid = rest[len("test_readme_command["):-1]
+        return f"{path}::{readme_chains().get(cid, cid)}"
+    return path
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    """``--dist loadfile`` (pyproject.toml) with the README's chains as units of their own
+    (pytest 9's node ids cannot carry xdist_group's suffix, so loadgroup cannot group them)."""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class Units(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return work_unit(nodeid)
+
+    return Units(config, log)
+
+
+def pytest_collection_modifyitems(config, items):
+    """The work units (:func:`work_unit`) with a slow test first, stable otherwise (with
+    ``--no-loadscope-reorder`` xdist hands the units out in this order): the long ones start while
+    every worker still has short ones to fill in with, so the workers finish together."""
+    slow = {work_unit(item.nodeid) for item in items if item.get_closest_marker("slow") is not None}
+    items.sort(key=lambda item: work_unit(item.nodeid) not in slow)
+
+
+_over_budget: list[tuple[float, str]] = []
+
+
+def pytest_runtest_logreport(report):
+    if report.when == "call" and report.passed and report.duration > QUICK_BUDGET_S \
+            and "slow" not in report.keywords:
+        _over_budget.append((report.duration, report.nodeid))
+
+
+def pytest_terminal_summary(terminalreporter):
+    if _over_budget:
+        terminalreporter.write_sep("-", f"tests without the slow marker over {QUICK_BUDGET_S:g} s (docs/testing.md)")
+        for d, nodeid in sorted(_over_budget, reverse=True):
+            terminalreporter.write_line(f"{d:6.1f} s  {nodeid}")
 
 
 def run_cli(*args: str, cwd: Path | None = None, env: dict | None = None) -> subprocess.CompletedProcess:
@@ -45,3 +124,4 @@ def compose(*overrides):
     register()
     with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
         return to_object(hcompose("config", overrides=list(overrides)))
+

@@ -10,6 +10,7 @@ a temporary folder; a command that cannot run here prints why).
 """
 from __future__ import annotations
 
+import functools
 import os
 import re
 import shutil
@@ -133,6 +134,26 @@ def classify(c: Command) -> Command:
 
 
 
+
+
+def chain(c: Command) -> str:
+    """The chain a command runs in: the commands whose outputs it reads (its ``<...>`` placeholders
+    match the newest folder the chain made) run before it in the same scratch folder; any other
+    command is a chain of its own. tests/test_readme.py checks that every placeholder has its chain."""
+    t = c.text
+    if ("+experiment=k" in t and "scene=" not in t) or "logs/multirun/k/" in t:
+        return "k-demo"  # the basic and joblib sweeps (same metrics), then the analysis of the newest
+    if "_demo" in t or (c.key == "run" and not re.search(r"\b(scene|protocol)=", t)):
+        return "demo-runs"  # the demo's runs, then the commands reading the newest diffuser/ldls runs
+    if "_scannet0470" in t or ("scene=scannet0470" in t and "protocol=online" in t):
+        return "online-scannet0470"
+    return c.id
+
+
+@functools.lru_cache(maxsize=1)
+def readme_chains() -> dict[str, str]:
+    """Each README command's test id -> its :func:`chain` (what tests/conftest.py schedules)."""
+    return {c.id: chain(c) for c in readme_commands()}
 
 
 def _labelled_rgbd(root: Path, world: dict) -> Path:

@@ -39,6 +39,7 @@ def forced(monkeypatch):
     monkeypatch.setenv(progress.ENV, "1")
 
 
+@pytest.mark.slow
 def test_cli_shows_stages_only_when_forced(tmp_path):
     """Forced on: the stages and their counts are on stderr, the result table alone on stdout.
     Not a terminal (pytest's pipes): stderr stays empty. Same labels either way."""

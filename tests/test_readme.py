@@ -2,8 +2,10 @@
 
 The commands are read from README.md itself (tests/readme_commands.py), so the README and this
 test cannot drift apart: a new command in the README is run here, or this test fails until a
-rule there says why it cannot run. They run in README order in one scratch working directory
-laid out like a checkout (the venv, scripts/, analysis/ and ``../shared`` linked in), with no
+rule there says why it cannot run. They run in README order in scratch working directories laid
+out like a checkout (the venv, scripts/, analysis/ and ``../shared`` linked in), one per chain of
+commands that read each other's outputs (``readme_commands.chain``; chains run side by side on
+pytest-xdist's workers), with no
 ``hydra.run.dir`` or ``hydra.sweep.dir``: outputs land where a user finds them. Placeholders are
 filled from what the earlier commands made (``<stamp>``, ``<date>/<time>``: the newest match) or
 from small datasets this test writes (``MESH.ply``, ``SCANNET_SCENE``, ``RGBD_FOLDER``,
@@ -26,6 +28,7 @@ from readme_commands import (
     VENV,
     Command,
     _env,
+    chain,
     own_data,
     readme_commands,
     resolve,
@@ -34,24 +37,40 @@ from readme_commands import (
 COMMANDS = readme_commands()
 
 
-# ----------------------------------------------------------------------------- the working directory
+# ----------------------------------------------------------------------------- the working directories
 
-@pytest.fixture(scope="module")
-def work(tmp_path_factory):
-    """A scratch folder laid out as a user's checkout: repo/ (where the commands run) beside shared/."""
+@pytest.fixture(scope="session")
+def readme_data(tmp_path_factory):
+    """The own-data placeholders' small datasets, written once per test process."""
     if not (VENV / "bin" / "diffuser-lab").exists():
         pytest.skip(f"diffuser-lab is not installed in {VENV} (run bash scripts/dev.sh setup)")
-    base = tmp_path_factory.mktemp("readme")
-    repo = base / "repo"
-    repo.mkdir()
-    # no pyproject.toml: scripts/dev.sh must never reinstall the venv from this copy (it would
-    # point the editable install here); the package itself is imported from the checkout
-    for name in ("scripts", "analysis", "tests"):
-        (repo / name).symlink_to(ROOT / name)
-    (repo / ".venv").symlink_to(VENV)
-    if HAVE_SHARED:
-        (base / "shared").symlink_to(SHARED)
-    return {"repo": repo, "state": {}, "placeholders": own_data(base / "data")}
+    base = tmp_path_factory.mktemp("readme-data")
+    return own_data(base / "data")
+
+
+@pytest.fixture(scope="session")
+def works(tmp_path_factory, readme_data):
+    """One scratch folder per chain (:func:`readme_commands.chain`), laid out as a user's checkout:
+    repo/ (where the commands run) beside shared/. A chain's commands run in README order in its
+    folder; chains are independent, so pytest-xdist may run them on different workers."""
+    made: dict[str, dict] = {}
+
+    def get(chain: str) -> dict:
+        if chain not in made:
+            base = tmp_path_factory.mktemp("readme")
+            repo = base / "repo"
+            repo.mkdir()
+            # no pyproject.toml: scripts/dev.sh must never reinstall the venv from this copy (it would
+            # point the editable install here); the package itself is imported from the checkout
+            for name in ("scripts", "analysis", "tests"):
+                (repo / name).symlink_to(ROOT / name)
+            (repo / ".venv").symlink_to(VENV)
+            if HAVE_SHARED:
+                (base / "shared").symlink_to(SHARED)
+            made[chain] = {"repo": repo, "state": {}, "placeholders": readme_data}
+        return made[chain]
+
+    return get
 
 
 def execute(c: Command, work: dict) -> subprocess.CompletedProcess:
@@ -269,9 +288,20 @@ def test_readme_lists_every_experiment():
     assert any("+experiment=NAME" in c_text for c_text in text.splitlines())
 
 
+def test_every_placeholder_reads_its_own_chain():
+    """A command that names an earlier command's output (``<stamp>``, ``<date>/<time>_...``) runs in
+    the chain of a command before it, so that its folder holds what it reads."""
+    seen: set[str] = set()
+    for c in COMMANDS:
+        if "<" in c.text and c.key not in ("pip",):
+            assert chain(c) in seen, (c.text, chain(c))
+        seen.add(chain(c))
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("cmd", COMMANDS, ids=[c.id for c in COMMANDS])
-def test_readme_command(cmd: Command, work):
+def test_readme_command(cmd: Command, works):
+    work = works(chain(cmd))
     if cmd.key == "slurm":
         check_slurm(cmd, work)
         pytest.skip(cmd.skip + " (composed: ok)")

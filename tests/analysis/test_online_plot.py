@@ -55,6 +55,7 @@ def _runs(*folders):
     return online_runs([str(f) for f in folders])
 
 
+@pytest.mark.slow
 def test_lines_carry_frames_and_batch_references(summary, tmp_path):
     from analysis.online import online_figure
 
@@ -83,6 +84,7 @@ def test_lines_carry_frames_and_batch_references(summary, tmp_path):
         plt.close(fig)
 
 
+@pytest.mark.slow
 def test_skipped_frames_are_gaps_and_marks_growing_map_points(summary, tmp_path):
     from analysis.online import online_figure
 
@@ -109,6 +111,7 @@ def test_skipped_frames_are_gaps_and_marks_growing_map_points(summary, tmp_path)
         plt.close(fig)
 
 
+@pytest.mark.slow
 def test_without_ground_truth_latency_only_and_said(summary, tmp_path):
     from analysis.online import online_figure
 
@@ -130,6 +133,7 @@ def test_without_ground_truth_latency_only_and_said(summary, tmp_path):
         plt.close(fig)
 
 
+@pytest.mark.slow
 def test_cli_writes_png_and_errors_on_a_folder_without_online_runs(summary, tmp_path):
     batch = dict(summary, protocol="global")  # a batch run next to the online one is ignored
     _write(tmp_path / "runs" / "a_online", summary)
@@ -147,6 +151,7 @@ def test_cli_writes_png_and_errors_on_a_folder_without_online_runs(summary, tmp_
     assert len(lines) == 1 and lines[0].startswith("online: error: no online run"), res.stderr
 
 
+@pytest.mark.slow
 def test_make_plots_adds_online_png(summary, tmp_path):
     from analysis.plots import make_plots
 

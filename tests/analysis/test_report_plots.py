@@ -56,6 +56,7 @@ def _final_mious(runs):
 
 # --- convergence ---------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_convergence_has_one_legend_entry_per_k_in_order(sweeps):
     from analysis.plots import convergence_figure
 
@@ -76,6 +77,7 @@ def test_convergence_has_one_legend_entry_per_k_in_order(sweeps):
         plt.close(fig)
 
 
+@pytest.mark.slow
 def test_convergence_aggregates_seeds_mean_and_band(sweeps):
     from analysis.plots import convergence_figure
 
@@ -98,6 +100,7 @@ def test_convergence_aggregates_seeds_mean_and_band(sweeps):
         plt.close(fig)
 
 
+@pytest.mark.slow
 def test_convergence_second_parameter_as_line_style(sweeps):
     from analysis.plots import convergence_figure
 
@@ -117,6 +120,7 @@ def test_convergence_second_parameter_as_line_style(sweeps):
 
 # --- methods -------------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_methods_one_method_against_bayesian_per_k(sweeps):
     from analysis.plots import methods_figure
 
@@ -138,6 +142,7 @@ def test_methods_one_method_against_bayesian_per_k(sweeps):
         plt.close(fig)
 
 
+@pytest.mark.slow
 def test_methods_several_methods_one_bar_each_labels_above_error_bars(sweeps):
     from analysis.plots import methods_figure
 
@@ -171,6 +176,7 @@ def stripped(sweeps, tmp_path_factory):
     return dst
 
 
+@pytest.mark.slow
 def test_one_bar_methods_plot_is_skipped_and_not_referenced(stripped, tmp_path):
     from analysis.plots import make_plots, methods_figure
     from analysis.report import report
@@ -185,6 +191,7 @@ def test_one_bar_methods_plot_is_skipped_and_not_referenced(stripped, tmp_path):
 
 # --- report --------------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_report_title_names_the_experiment_and_scene(sweeps, tmp_path):
     from analysis.report import report
 
@@ -197,6 +204,7 @@ def test_report_title_names_the_experiment_and_scene(sweeps, tmp_path):
     assert md.splitlines()[0] == "# Experiment methods — scene demo"
 
 
+@pytest.mark.slow
 def test_experiment_from_hydra_yaml_when_overrides_do_not_say(sweeps, tmp_path):
     from analysis.runs import experiment_name
 
@@ -206,6 +214,7 @@ def test_experiment_from_hydra_yaml_when_overrides_do_not_say(sweeps, tmp_path):
     assert experiment_name(runs, [str(sweeps / "ksweep")]) == "k"  # hydra.runtime.choices.experiment
 
 
+@pytest.mark.slow
 def test_report_cli_default_out_is_named_after_the_experiment(sweeps, tmp_path):
     res = subprocess.run([sys.executable, "-m", "analysis.report", str(sweeps / "ksweep")], cwd=tmp_path,
                          capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=300)
@@ -220,6 +229,7 @@ def test_report_cli_default_out_is_named_after_the_experiment(sweeps, tmp_path):
 
 # --- the other plots -----------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_sweep_plot_axes_and_numeric_ticks(sweeps):
     from analysis.plots import sweep_figure
 
@@ -234,6 +244,7 @@ def test_sweep_plot_axes_and_numeric_ticks(sweeps):
         plt.close(fig)
 
 
+@pytest.mark.slow
 def test_class_heatmap_rows_in_numeric_order_with_labels(sweeps):
     from analysis.plots import class_heatmap_figure
 

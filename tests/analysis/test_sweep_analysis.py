@@ -17,6 +17,7 @@ def sweep(tmp_path_factory):
     return base
 
 
+@pytest.mark.slow
 def test_collect_table_has_the_sweep(sweep, tmp_path):
     from analysis.collect import collect
 
@@ -32,6 +33,7 @@ def test_collect_table_has_the_sweep(sweep, tmp_path):
     assert "graph.use_normals" in md and "±" in md
 
 
+@pytest.mark.slow
 def test_failed_job_shows_as_failed(sweep, tmp_path):
     from analysis.collect import collect
 
@@ -42,6 +44,7 @@ def test_failed_job_shows_as_failed(sweep, tmp_path):
     assert "Failed runs" in md and "graph.sigma_s" in md
 
 
+@pytest.mark.slow
 def test_plots_are_non_empty_pngs(sweep, tmp_path):
     from analysis.plots import make_plots
 
@@ -53,6 +56,7 @@ def test_plots_are_non_empty_pngs(sweep, tmp_path):
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000
 
 
+@pytest.mark.slow
 def test_report_and_compare(sweep, tmp_path):
     from analysis.compare import compare
     from analysis.report import report

@@ -21,6 +21,8 @@ from diffuser_lab.data.geometry import backproject
 from diffuser_lab.data.voxel_map import VoxelMap
 from diffuser_lab.method.growing import IncrementalKnnGraph
 
+pytestmark = pytest.mark.slow  # timing runs (also run once as tests): not the quick loop
+
 
 @pytest.fixture(scope="module")
 def enabled(request) -> bool:

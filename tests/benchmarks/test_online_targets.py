@@ -25,6 +25,8 @@ import numpy as np
 import pytest
 from conftest import SHARED
 
+pytestmark = pytest.mark.slow  # timing runs (also run once as tests): not the quick loop
+
 SCANNET = SHARED / "data" / "scannet" / "scene0470_00"
 SEVEN = SHARED / "data" / "7scenes_sample"
 ROUNDS = 3  # timed passes; the figures are the medians of theirs (a 2-core machine's noise is ~+-20%)

@@ -30,6 +30,8 @@ from diffuser_lab.method.evidence import Evidence, add_frame
 from diffuser_lab.method.graph import build_graph
 from diffuser_lab.runs.workloads import cycled_frames, room_workload
 
+pytestmark = pytest.mark.slow  # timing runs (also run once as tests): not the quick loop
+
 LARGE = os.environ.get("DIFFUSER_BENCH_LARGE", "") not in ("", "0")
 
 

@@ -24,6 +24,8 @@ import time
 import pytest
 from conftest import SHARED, run_cli
 
+pytestmark = pytest.mark.slow  # timing runs (also run once as tests): not the quick loop
+
 SCANNET = SHARED / "data" / "scannet" / "scene0470_00" / "scene0470_00_vh_clean_2.labels.ply"
 SMALL = ["scene.demo.n_views=10", "scene.demo.point_spacing=0.08", "solver.max_iter=60"]
 CASES = {

@@ -19,6 +19,8 @@ from diffuser_lab.config import default_config
 from diffuser_lab.recording import make_hooks
 from diffuser_lab.runs.pipeline import run
 
+pytestmark = pytest.mark.slow  # timing runs (also run once as tests): not the quick loop
+
 SMALL = {"scene.demo.n_views": 10, "scene.demo.point_spacing": 0.08, "solver.max_iter": 60}
 
 

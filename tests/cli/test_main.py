@@ -12,6 +12,7 @@ SUMMARY_KEYS = {"method", "scene", "n_points", "n_frames", "n_classes", "metrics
                 "diffusion", "timings_s", "records", "overrides", "status"}
 
 
+@pytest.mark.slow
 def test_run_writes_its_folder(tmp_path):
     run_dir = tmp_path / "run"
     p = run_cli(*SMALL_DEMO, f"hydra.run.dir={run_dir}")
@@ -36,6 +37,7 @@ def test_run_writes_its_folder(tmp_path):
     assert json.loads((run_dir / "summary.json").read_text()) == s
 
 
+@pytest.mark.slow
 def test_default_run_folders_are_distinct(tmp_path):
     dirs = []
     for _ in range(2):
@@ -78,6 +80,7 @@ def test_bad_input_at_run_time_is_one_line_and_recorded(tmp_path):
     assert s["status"] == "failed" and "method.view=999" in s["error"]
 
 
+@pytest.mark.slow
 def test_wheel_carries_the_configs(tmp_path):
     """Build the wheel, install it without an editable checkout, compose a config from it."""
     wheel_dir = tmp_path / "wheel"

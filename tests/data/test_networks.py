@@ -215,6 +215,7 @@ def test_config_errors_at_start_up(args, needle):
 
 # -------------------------------------------------------------------------- real 7-Scenes frames
 
+@pytest.mark.slow
 @needs_7scenes
 def test_model_ids_run_cached_and_reused(scene, mapping_csv, tmp_path):
     from diffuser_lab.runs.pipeline import run
@@ -281,6 +282,7 @@ def test_model_class_with_depth(scene, tmp_path):
     assert isinstance(build_callable(dict(cfg.predictions.model)), GreyWithDepth)
 
 
+@pytest.mark.slow
 @needs_7scenes
 def test_onnx_probabilities_cached_and_keyed(scene, mapping_csv, tmp_path):
     pytest.importorskip("onnxruntime")

@@ -348,6 +348,7 @@ SCANNET_FRAMES = SHARED / "data" / "scannet_frames" / "scene0014_00"
 @pytest.mark.shared_data
 @pytest.mark.skipif(not (SCANNET_FRAMES / "_info.txt").is_file(),
                     reason=f"the real ScanNet frames are absent ({SCANNET_FRAMES})")
+@pytest.mark.slow
 def test_hole_stats_of_the_real_scannet_frames(tmp_path, capsys):
     """The 27 real scene0014_00 frames: 15% of the pixels without depth (the data README's figure),
     a dead margin (27 left columns, 5 top rows), most holes in blobs, and many jumps with no hole

@@ -224,6 +224,7 @@ def test_demo_relabelled_into_another_taxonomy(small_demo_scene):
         relabel_scene(small_demo_scene, load_taxonomy("cityscapes19"))
 
 
+@pytest.mark.slow
 def test_cli_run_in_nyu40(tmp_path):
     import open3d as o3d
 
@@ -263,6 +264,7 @@ def test_plot_class_order_follows_the_runs_taxonomy(tmp_path):
     assert _class_order(runs) == list(ious)  # no shipped order: first seen
 
 
+@pytest.mark.slow
 def test_cli_ids_taxonomy_on_an_rgbd_folder(tmp_path):
     from datasets import write_label_predictions, write_rgbd
 

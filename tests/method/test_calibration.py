@@ -190,6 +190,7 @@ def _cal(path):
     return json.loads((path / "summary.json").read_text())["metrics"]["calibration"]
 
 
+@pytest.mark.slow
 def test_summary_has_calibration_for_the_global_protocol(runs):
     cal = _cal(runs["global"])
     assert set(cal) == {"diffuser", "bayesian"}
@@ -199,6 +200,7 @@ def test_summary_has_calibration_for_the_global_protocol(runs):
     assert cal["bayesian"]["n_uniform"] > cal["diffuser"]["n_uniform"]  # diffusion reaches unseen points
 
 
+@pytest.mark.slow
 def test_summary_has_calibration_for_every_single_frame_row(runs):
     s = json.loads((runs["single"] / "summary.json").read_text())
     cal = s["metrics"]["calibration"]
@@ -218,6 +220,7 @@ def test_summary_has_calibration_for_every_single_frame_row(runs):
     assert r.metric("metrics.calibration.{bayesian}.nll") == cal["bayesian_3v"]["nll"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("which", ["global", "single"])
 def test_reliability_plot_is_written(runs, which, tmp_path):
     from analysis.plots import make_plots, reliability_figure
@@ -233,6 +236,7 @@ def test_reliability_plot_is_written(runs, which, tmp_path):
     assert any(f"ECE {ece:.1f}%" in t for t in titles)
 
 
+@pytest.mark.slow
 def test_report_has_the_calibration_table(runs, tmp_path):
     from analysis.report import report
 
@@ -242,6 +246,7 @@ def test_report_has_the_calibration_table(runs, tmp_path):
     assert f"| {ece:.1f} |" in md
 
 
+@pytest.mark.slow
 def test_collect_has_calibration_columns(runs, tmp_path):
     from analysis.collect import collect
 

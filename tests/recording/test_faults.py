@@ -7,9 +7,11 @@ import subprocess
 import sys
 import time
 
+import pytest
 from conftest import ROOT
 
 
+@pytest.mark.slow
 def test_killed_run_leaves_running_summary_and_readable_mcap(tmp_path):
     run_dir = tmp_path / "run"
     env = dict(os.environ)

@@ -121,6 +121,7 @@ def _bytes_per_point(run_dir) -> float:
     return ((run_dir / "run.rrd").stat().st_size + (run_dir / "run.mcap").stat().st_size) / s["n_points_diffused"]
 
 
+@pytest.mark.slow
 def test_demo_records_at_most_300_bytes_per_point(tmp_path):
     p = run_cli("output.quiet=true", f"hydra.run.dir={tmp_path}")  # the default demo, default record
     assert p.returncode == 0, p.stderr
@@ -129,6 +130,7 @@ def test_demo_records_at_most_300_bytes_per_point(tmp_path):
     assert per_point <= BUDGET
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not SCANNET.is_file(), reason=f"real ScanNet data absent: {SCANNET} not found")
 def test_scannet0470_records_at_most_300_bytes_per_point(tmp_path):
     p = run_cli("scene=scannet0470", "output.quiet=true", f"hydra.run.dir={tmp_path}")

@@ -60,6 +60,7 @@ def cli_runs(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_round_trip_last_z_is_the_solvers_and_gives_the_labels(cli_runs):
     d = cli_runs["both"]
     s = json.loads((d / "summary.json").read_text())
@@ -238,6 +239,7 @@ def test_float16_and_voxel_grid(small_demo_scene, tmp_path):
     np.testing.assert_array_equal(ids[30], as_class_ids(labels_from_scores(Zs)))  # work cloud
 
 
+@pytest.mark.slow
 def test_rrd_reads_back_with_rerun_and_holds_class_ids_per_iteration(cli_runs):
     d = cli_runs["both"]
     ids = rrd_class_ids(d / "run.rrd")
@@ -271,6 +273,7 @@ def test_depth_mm():
     np.testing.assert_array_equal(out, [[0, 1234, 1235, 0], [0, 0, 65535, 0]])
 
 
+@pytest.mark.slow
 def test_rerun_reads_the_mcap(cli_runs):
     path = cli_runs["both"] / "run.mcap"
     p = subprocess.run([RERUN, "mcap", "info", str(path)], capture_output=True, text=True, timeout=120)
@@ -286,6 +289,7 @@ def test_rerun_reads_the_mcap(cli_runs):
     assert any("IterationMetrics" in c for c in cols["/diffuser_lab/metrics"])
 
 
+@pytest.mark.slow
 def test_schema_in_the_file_decodes_without_this_package(cli_runs):
     """What another tool does: build the message class from the schema record alone."""
     from google.protobuf import descriptor_pb2, descriptor_pool
@@ -310,6 +314,7 @@ def test_schema_in_the_file_decodes_without_this_package(cli_runs):
             pytest.fail("no Z message")
 
 
+@pytest.mark.slow
 def test_truncated_mcap_gives_its_leading_iterations_with_a_warning(cli_runs, tmp_path, capsys):
     full = cli_runs["both"] / "run.mcap"
     cut = tmp_path / "run.mcap"
@@ -330,6 +335,7 @@ def test_truncated_mcap_gives_its_leading_iterations_with_a_warning(cli_runs, tm
     np.testing.assert_array_equal(np.load(tmp_path / "z.npy"), log_full.z[last])
 
 
+@pytest.mark.slow
 def test_inspect_summary_table_and_z(cli_runs, tmp_path, capsys):
     d = cli_runs["both"]
     assert inspect_main([str(d)]) == 0
@@ -345,6 +351,7 @@ def test_inspect_summary_table_and_z(cli_runs, tmp_path, capsys):
     assert inspect_main([str(tmp_path / "nothing")]) == 2
 
 
+@pytest.mark.slow
 def test_to_rrd_relogs_the_run_from_its_mcap_alone(cli_runs, tmp_path):
     src = cli_runs["both"]
     only = tmp_path / "mcap_only"
@@ -358,6 +365,7 @@ def test_to_rrd_relogs_the_run_from_its_mcap_alone(cli_runs, tmp_path):
         np.testing.assert_array_equal(live[it], replay[it])
 
 
+@pytest.mark.slow
 def test_record_off_writes_nothing_and_labels_match(cli_runs):
     off, both = cli_runs["off"], cli_runs["both"]
     assert not (off / "run.rrd").exists() and not (off / "run.mcap").exists()
@@ -400,6 +408,7 @@ def test_make_hooks_off_is_harmless(tmp_path):
     assert not (tmp_path / "x").exists()
 
 
+@pytest.mark.slow
 def test_view_opens_the_rrd_or_a_relogged_mcap(cli_runs, tmp_path, monkeypatch):
     from diffuser_lab.cli import inspect as inspect_run
 

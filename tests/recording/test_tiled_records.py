@@ -54,6 +54,7 @@ def cli_run(tmp_path_factory):
     return d
 
 
+@pytest.mark.slow
 def test_a_tiled_run_records_its_labels_and_tiles(cli_run):
     d = cli_run
     summary = json.loads((d / "summary.json").read_text())
@@ -77,6 +78,7 @@ def test_a_tiled_run_records_its_labels_and_tiles(cli_run):
     assert len(boxes.column("Boxes3D:centers").to_pylist()[0]) == len(tiles)
 
 
+@pytest.mark.slow
 def test_inspect_lists_the_tiles(cli_run, capsys):
     assert inspect.main([str(cli_run)]) == 0
     out = capsys.readouterr().out
@@ -85,6 +87,7 @@ def test_inspect_lists_the_tiles(cli_run, capsys):
     assert inspect.main([str(cli_run), "--at", "last"]) == 2  # no iterations: a usage error, no crash
 
 
+@pytest.mark.slow
 def test_record_off_writes_nothing_and_the_same_labels(cli_run, tmp_path, monkeypatch):
     conf = compose(*ARGS, "record=off")
     proto = PROTOCOLS["tiled"]

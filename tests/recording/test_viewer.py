@@ -106,6 +106,7 @@ def test_shown_follows_rerun_rules():
     assert shown(["- /world/**", "/world/a"], "/world/a") and not shown(["/world/a"], "/world/b")
 
 
+@pytest.mark.slow
 def test_cameras_tab_shows_frustums_and_label_images_not_the_depth_clouds(small_run):
     rrd = small_run / "run.rrd"
     cols = columns(rrd)
@@ -127,6 +128,7 @@ def test_cameras_tab_shows_frustums_and_label_images_not_the_depth_clouds(small_
     assert {"Pinhole:image_from_camera", "Transform3D:translation", "DepthImage:buffer"} <= cols[e]
 
 
+@pytest.mark.slow
 def test_wrong_points_have_a_colour_no_class_has_and_right_ones_are_grey(small_run):
     from diffuser_lab.data.taxonomy import load_taxonomy, shipped_taxonomies
 
@@ -149,6 +151,7 @@ def test_wrong_points_have_a_colour_no_class_has_and_right_ones_are_grey(small_r
     assert np.ptp(g) == 0 and np.linalg.norm(_lab(g) - _lab(np.asarray(rgb))) > 40
 
 
+@pytest.mark.slow
 def test_changed_and_residual_are_logged_as_log10_per_iteration(small_run):
     log = read_run(small_run / "run.mcap")
     rrd = small_run / "run.rrd"
@@ -164,6 +167,7 @@ def test_changed_and_residual_are_logged_as_log10_per_iteration(small_run):
     assert residual[1][0] == pytest.approx(0.0)  # relative residual 1 at the first iteration
 
 
+@pytest.mark.slow
 def test_scores_layers_are_the_row_normalised_z(small_run, tmp_path, capsys):
     out = tmp_path / "scores.rrd"
     assert inspect_main([str(small_run), "--to-rrd", str(out), "--scores", "chair,table"]) == 0
@@ -191,6 +195,7 @@ def test_scores_layers_are_the_row_normalised_z(small_run, tmp_path, capsys):
     assert len(pos.to_record_batch().column("Points3D:positions").to_pylist()[0]) == log.info.n_work_points
 
 
+@pytest.mark.slow
 def test_scores_bad_class_name_is_one_clear_error(small_run, tmp_path, capsys):
     out = tmp_path / "x.rrd"
     assert inspect_main([str(small_run), "--to-rrd", str(out), "--scores", "chair,chiar"]) == 2
@@ -282,6 +287,7 @@ def stop(proc: subprocess.Popen, saved: Path) -> None:
     proc.wait(10)
 
 
+@pytest.mark.slow
 def test_live_stream_reaches_a_running_viewer_and_run_rrd_is_still_written(small_demo_scene, tmp_path, rerun_server):
     from diffuser_lab.recording import make_hooks
     from diffuser_lab.runs.pipeline import run
@@ -306,10 +312,14 @@ def test_live_stream_reaches_a_running_viewer_and_run_rrd_is_still_written(small
     assert not missing  # the static part too: cameras, scene, evidence
 
 
-def test_live_to_a_viewer_that_is_not_there_keeps_the_run_and_its_file(small_demo_scene, tmp_path, caplog):
-    from diffuser_lab.recording import make_hooks
+@pytest.mark.slow
+def test_live_to_a_viewer_that_is_not_there_keeps_the_run_and_its_file(small_demo_scene, tmp_path, caplog,
+                                                                       monkeypatch):
+    from diffuser_lab.recording import make_hooks, rerun_log
     from diffuser_lab.runs.pipeline import run
 
+    # closing waits LIVE_FLUSH_S (60 s) for a viewer that never comes: the same path, waiting 2 s
+    monkeypatch.setattr(rerun_log, "LIVE_FLUSH_S", 2.0)
     url = f"rerun+http://127.0.0.1:{_free_port()}/proxy"
     cfg = default_config(**{"solver.max_iter": 10, "record.mode": "rerun", "record.live": url})
     hooks = make_hooks(cfg, tmp_path)
@@ -322,6 +332,7 @@ def test_live_to_a_viewer_that_is_not_there_keeps_the_run_and_its_file(small_dem
     assert any("record.live" in r.getMessage() and url in r.getMessage() for r in caplog.records)
 
 
+@pytest.mark.slow
 def test_live_spawn_starts_a_viewer_and_streams_to_it(tmp_path, rerun_server, monkeypatch):
     """record.live=spawn: rerun's spawn (here replaced: no display to open a window on) starts
     the viewer on LIVE_PORT, without a sink of its own; the recorder streams to it."""

@@ -52,6 +52,7 @@ def test_carry_rule_on_two_frames():
     assert abs(st["vote_agreement"] - 5 / 6) < 1e-9  # chosen-label votes 2+1+1+1 of 6
 
 
+@pytest.mark.slow
 @needs_scannet
 def test_real_frames_global_protocol():
     """Global protocol, all 27 frames, seed 0: Diffuser above Bayesian (measured 44.1 vs 41.6, +2.5;
@@ -68,6 +69,7 @@ def test_real_frames_global_protocol():
     assert cal["diffuser"]["nll"] < cal["bayesian"]["nll"] / 2, cal  # measured 0.7 vs 3.8 nats
 
 
+@pytest.mark.slow
 @needs_scannet
 def test_real_frames_single_frame_orderings():
     """Single-frame protocol on the first 8 target frames, seed 0: Diffuser-1 beats direct projection

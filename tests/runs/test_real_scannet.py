@@ -5,7 +5,8 @@ import pytest
 from conftest import SHARED
 
 MESH = SHARED / "data" / "scannet" / "scene0470_00" / "scene0470_00_vh_clean_2.labels.ply"
-pytestmark = pytest.mark.skipif(not MESH.is_file(), reason=f"real ScanNet data absent: {MESH} not found")
+pytestmark = [pytest.mark.slow,  # runs of the real scene
+              pytest.mark.skipif(not MESH.is_file(), reason=f"real ScanNet data absent: {MESH} not found")]
 
 
 def compose(*overrides):

@@ -10,7 +10,8 @@ import pytest
 from conftest import SHARED, run_cli
 
 MESH = SHARED / "data" / "scannet" / "scene0470_00" / "scene0470_00_vh_clean_2.labels.ply"
-pytestmark = pytest.mark.skipif(not MESH.is_file(), reason=f"the real ScanNet scene is not at {MESH}")
+pytestmark = [pytest.mark.slow,  # runs of the real scene
+              pytest.mark.skipif(not MESH.is_file(), reason=f"the real ScanNet scene is not at {MESH}")]
 REGIME = ["scene=scannet0470", "depth=sensor", "predictions=realistic", "seed=0", "record=off"]
 
 

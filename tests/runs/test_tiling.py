@@ -143,6 +143,7 @@ def test_a_failing_tile_is_reported_and_the_others_kept(untiled, local_tiled, tm
     assert f"tile {bad} failed: MemoryError" in tiled.table(out, tmp_path)
 
 
+@pytest.mark.slow
 def test_the_command_line_writes_the_tiles_and_their_records(tmp_path):
     p = run_cli(*SMALL_DEMO, "protocol=tiled", "record=off", "output.labels_ply=false", f"hydra.run.dir={tmp_path}")
     assert p.returncode == 0, p.stderr

@@ -252,6 +252,7 @@ def test_real_7scenes_through_renamed_links(tmp_path):
     np.testing.assert_array_equal(w2c.frames[1].T_cw, np.loadtxt(SEVEN_SCENES / "frame-000250.pose.txt"))
 
 
+@pytest.mark.slow
 def test_cli_end_to_end_on_the_issue_layout(tmp_path, world):
     """The issue's layout (frame-XXXXXX.color.png / .depth.png as (raw >> 3) / 1e3 here / .pose.txt /
     .segm.png network ids, camera-intrinsics.color.txt) through conf/scene/my_rgbd_lab.yaml."""

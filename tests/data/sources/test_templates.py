@@ -206,6 +206,7 @@ def _edge_offset(images) -> tuple[tuple[int, int], float, float]:
     return best, scores[best], scores[(0, 0)]
 
 
+@pytest.mark.slow
 @needs_scannet
 def test_scannet_frames_both_protocols_and_alignment():
     over = ["scene=scannet_frames", f"scene.options.root={SCANNET}", "scene.options.max_frames=6",
