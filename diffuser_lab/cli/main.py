@@ -18,6 +18,7 @@ from diffuser_lab.config import RecordMode, SolverBackend, register, to_object
 from diffuser_lab.recording import make_hooks, record_result
 from diffuser_lab.recording.heap import retain_freed_memory
 from diffuser_lab.runs import launchers, report
+from diffuser_lab.runs.pipeline import reuse_scenes
 from diffuser_lab.runs.protocols import PROTOCOLS
 from diffuser_lab.runs.resolve import resolve
 from diffuser_lab.runs.sweep import job_line, job_tag, print_table, say
@@ -122,6 +123,7 @@ def _task(cfg: Any) -> Optional[float]:
 
     warnings.showwarning = keep
     deferred = False
+    reuse_scenes(multirun)  # a sweep's jobs in this process load each scene once
     try:
         summary = report.SummaryFile(run_dir, hc.overrides.task)
         conf = resolve(to_object(cfg), PROTOCOLS)

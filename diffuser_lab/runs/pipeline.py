@@ -4,10 +4,12 @@ Nothing here writes files; :mod:`diffuser_lab.cli.main` turns a :class:`RunResul
 """
 from __future__ import annotations
 
+import collections
+import dataclasses
 import time
 import warnings
 from dataclasses import dataclass, field
-from typing import Optional, Sequence
+from typing import Callable, Optional, Sequence
 
 import numpy as np
 
@@ -33,13 +35,81 @@ from diffuser_lab.method.metrics import confusion_matrix, score, scores_from_con
 from .resolve import resolve
 
 
+class _SceneReuse:
+    """The scenes :func:`load_scene` made last, kept for the next calls with the same keys while
+    :func:`reuse_scenes` is on: a sweep's jobs in one process (seed the innermost of its loops)
+    load each scene once per seed, not once per job. At most :attr:`MAX_SCENES` scenes of
+    :attr:`MAX_POINTS` points in all (the least recently used goes first; a larger one is not kept)."""
+
+    MAX_SCENES = 4
+    MAX_POINTS = 4_000_000
+
+    def __init__(self) -> None:
+        self.on = False
+        self.kept: collections.OrderedDict[tuple, Scene] = collections.OrderedDict()
+
+    @staticmethod
+    def key_of(cfg: SceneConfig, taxonomy: Taxonomy, depth: Optional[DepthNoiseConfig]) -> tuple:
+        return (repr(cfg), taxonomy.name, taxonomy.names, taxonomy.colors.tobytes(), taxonomy.ids,
+                taxonomy.ignore_ids, repr(depth))
+
+    def get(self, key: tuple, load: Callable[[], Scene]) -> Scene:
+        scene = self.kept.get(key)
+        if scene is None:
+            scene = load()
+            if scene.n_points <= self.MAX_POINTS:
+                self._keep(key, scene)
+        else:
+            self.kept.move_to_end(key)
+        return self._handout(scene)
+
+    def _keep(self, key: tuple, scene: Scene) -> None:
+        # read-only: a job that wrote into the shared arrays would change a later job's scene
+        arrays = [scene.points, scene.normals, scene.colors, scene.gt_labels]
+        if isinstance(scene.frames, list):
+            arrays += [a for f in scene.frames for a in (f.K, f.T_cw, f.depth, f.labels, f.probs, f.gt_labels, f.rgb)]
+        for a in arrays:
+            if isinstance(a, np.ndarray):
+                a.setflags(write=False)
+        self.kept[key] = scene
+        while len(self.kept) > self.MAX_SCENES or sum(x.n_points for x in self.kept.values()) > self.MAX_POINTS:
+            self.kept.popitem(last=False)
+
+    @staticmethod
+    def _handout(s: Scene) -> Scene:
+        """A new Scene (and new Frames when they are a list) over the scene's arrays: a job may set
+        their attributes without touching the kept one."""
+        frames = [dataclasses.replace(f) for f in s.frames] if isinstance(s.frames, list) else s.frames
+        return dataclasses.replace(s, frames=frames)
+
+
+_REUSE = _SceneReuse()
+
+
+def reuse_scenes(on: bool = True) -> None:
+    """Keep the scenes loaded last for the next :func:`load_scene` calls with the same scene,
+    taxonomy and depth keys (the command line turns this on for a multirun's jobs; results are the
+    same: a scene is a function of those keys). Their arrays are read-only while kept. Off: they are dropped."""
+    _REUSE.on = bool(on)
+    if not on:
+        _REUSE.kept.clear()
+
+
 def load_scene(cfg: SceneConfig, taxonomy: Taxonomy = SCANNET20, depth: Optional[DepthNoiseConfig] = None) -> Scene:
     """The configured source (the scene sources' registry entry ``cfg.source``) -> :class:`Scene`
     in ``taxonomy`` (the run's: ``resolve_taxonomy(cfg)``) whose frames carry ground-truth labels
     when known. Relative paths are taken from the current directory.
 
     ``depth`` (the run's ``cfg.depth``; None = perfect): the sensor model applied to rendered depth
-    (demo, mesh_views) and, with ``depth.apply_to_real``, to the real sources' depth frames."""
+    (demo, mesh_views) and, with ``depth.apply_to_real``, to the real sources' depth frames.
+    With :func:`reuse_scenes` on, the same keys give the scene loaded last (new Scene and Frame
+    objects over the same, read-only arrays)."""
+    if _REUSE.on:
+        return _REUSE.get(_REUSE.key_of(cfg, taxonomy, depth), lambda: _load_scene(cfg, taxonomy, depth))
+    return _load_scene(cfg, taxonomy, depth)
+
+
+def _load_scene(cfg: SceneConfig, taxonomy: Taxonomy, depth: Optional[DepthNoiseConfig]) -> Scene:
     source, sensor = sources.get(cfg.source), sensor_model(depth) if depth is not None else None
     with progress.stage(f"loading scene ({cfg.source})"):  # its own steps show inside
         scene = source.load(cfg, taxonomy, sensor)
