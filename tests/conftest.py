@@ -41,6 +41,21 @@ def pytest_configure(config):
     if config.getoption("benchmark_enable", False) and getattr(config.option, "numprocesses", None):
         config.option.numprocesses = None
         config.option.dist = "no"
+    config.prewarm = _start_prewarm(config)
+
+
+def _start_prewarm(config) -> list:
+    """In xdist's controller, on an empty numba cache: tests/prewarm.py's two halves, started now;
+    the scheduler hands out work once they are done (:func:`pytest_xdist_make_scheduler`)."""
+    if hasattr(config, "workerinput") or not getattr(config.option, "numprocesses", None) \
+            or config.getoption("collectonly"):
+        return []
+    from diffuser_lab.backends import numba as nb
+
+    if not nb.available() or not nb.cold():
+        return []
+    return [subprocess.Popen([sys.executable, str(ROOT / "tests" / "prewarm.py"), part], cwd=ROOT,
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL) for part in ("graph", "rest")]
 
 
 def work_unit(nodeid: str) -> str:
@@ -67,6 +82,12 @@ def pytest_xdist_make_scheduler(config, log):
     class Units(LoadScopeScheduling):
         def _split_scope(self, nodeid: str) -> str:
             return work_unit(nodeid)
+
+        def schedule(self) -> None:
+            for proc in getattr(config, "prewarm", []):  # the kernels compiled once, on both cores
+                proc.wait()
+            config.prewarm = []
+            super().schedule()
 
     return Units(config, log)
 
