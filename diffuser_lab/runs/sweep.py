@@ -39,14 +39,15 @@ def say(line: str, file=None) -> None:
 
 def count_jobs(config: Any) -> Optional[int]:
     """Number of jobs Hydra's basic sweeper makes of ``hydra.sweeper.params`` and the command
-    line (the same parsing and precedence as ``BasicSweeper.sweep``); None for other sweepers."""
+    line (the same parsing and precedence as ``BasicSweeper.sweep``; ours makes the same jobs); None
+    for other sweepers."""
     try:
         from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
         from hydra.core.override_parser.overrides_parser import OverridesParser
         from omegaconf import OmegaConf
 
-        if "BasicSweeper" not in str(config.hydra.sweeper.get("_target_", "")):
-            return None
+        if not str(config.hydra.sweeper.get("_target_", "")).endswith(("BasicSweeper", "CoveringSweeper")):
+            return None  # CoveringSweeper: hydra_plugins/diffuser_lab_sweeper, the basic one's jobs
         params = config.hydra.sweeper.get("params") or {}
         items = [f"{k}={v}" for k, v in params.items()]
         items += list(OmegaConf.to_container(config.hydra.overrides.task, resolve=False))

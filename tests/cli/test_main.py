@@ -94,6 +94,7 @@ def test_wheel_carries_the_configs(tmp_path):
     confs = sorted(n for n in names if n.startswith("diffuser_lab/conf/"))
     expected = sorted("diffuser_lab/" + str(p.relative_to(ROOT)) for p in (ROOT / "conf").rglob("*.yaml"))
     assert confs == expected
+    assert "hydra_plugins/diffuser_lab_sweeper/sweeper.py" in names  # conf/config.yaml's sweeper
     target = tmp_path / "site"
     i = subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--target", str(target), str(wheel)],
                        capture_output=True, text=True, timeout=600)

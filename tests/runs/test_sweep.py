@@ -123,3 +123,28 @@ def test_kernel_threads_follow_the_launchers_cpus(env, expected):
     cores = len(os.sched_getaffinity(0))
     assert int(out[0]) == (expected if expected is not None else cores) or cores == 1
     assert int(out[1]) == 1
+
+
+def test_the_sweeper_checks_every_swept_value_once_at_start_up():
+    """hydra/sweeper=diffuser_lab (the default): the basic sweeper's jobs, with a start-up check that
+    composes only the jobs bringing an override not seen yet, which together hold every override."""
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra_plugins.diffuser_lab_sweeper.sweeper import CoveringSweeper, covering
+
+    cfg = _compose(["+experiment=k"])
+    assert cfg.hydra.sweeper._target_.endswith("CoveringSweeper") and issubclass(CoveringSweeper, BasicSweeper)
+    items = [f"{k}={v}" for k, v in cfg.hydra.sweeper.params.items()]
+    batch = BasicSweeper.split_arguments(OverridesParser.create().parse_overrides(items), None)[0]
+    checked = covering(batch)
+    assert len(batch) == 15 and len(checked) == 5  # 5 values of k x 3 seeds: each value once
+    assert {o for job in checked for o in job} == {o for job in batch for o in job}
+    assert [batch.index(job) for job in checked] == sorted(batch.index(job) for job in checked)
+
+
+def test_a_bad_value_in_the_last_job_stops_the_sweep_before_any_job(tmp_path):
+    from conftest import run_cli
+
+    p = run_cli("-m", "graph.k=8,16,abc", "seed=0,1", "record=off", f"hydra.sweep.dir={tmp_path / 'sweep'}")
+    assert p.returncode != 0 and "graph.k=abc" in p.stderr, p.stderr[-2000:]
+    assert not list((tmp_path / "sweep").glob("*/summary.json"))  # no job ran
