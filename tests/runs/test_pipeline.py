@@ -89,3 +89,35 @@ def test_empty_cloud_is_refused(small_demo_scene):
     empty = dataclasses.replace(small_demo_scene, points=np.zeros((0, 3), np.float32), normals=None, gt_labels=None)
     with pytest.raises(ValueError, match="empty"):
         run(default_config(), scene=empty)
+
+
+def test_a_sweeps_jobs_reuse_their_scenes_and_get_the_same_results():
+    """reuse_scenes (a multirun's jobs in one process): the same scene keys give the kept scene's
+    arrays (read-only) in new Scene and Frame objects; another seed or taxonomy loads anew; a run
+    on a kept scene labels as one on a fresh load; off drops them."""
+    from diffuser_lab.data.taxonomy import resolve_taxonomy
+    from diffuser_lab.runs import pipeline
+
+    small = {"scene.demo.n_views": 4, "scene.demo.point_spacing": 0.1, "solver.max_iter": 30}
+    cfg, other = default_config(**small), default_config(**small, **{"scene.demo.seed": 1})
+    fresh = run(cfg)
+    pipeline.reuse_scenes(True)
+    try:
+        a = pipeline.load_scene(cfg.scene, resolve_taxonomy(cfg), cfg.depth)
+        b = pipeline.load_scene(cfg.scene, resolve_taxonomy(cfg), cfg.depth)
+        assert a is not b and a.frames is not b.frames and a.frames[0] is not b.frames[0]
+        assert np.shares_memory(a.points, b.points) and np.shares_memory(a.frames[0].depth, b.frames[0].depth)
+        with pytest.raises(ValueError, match="read-only"):
+            a.points[0, 0] = 1.0
+        b.name = "renamed"  # a job's own Scene object
+        assert pipeline.load_scene(cfg.scene, resolve_taxonomy(cfg), cfg.depth).name == a.name
+        c = pipeline.load_scene(other.scene, resolve_taxonomy(other), other.depth)
+        assert not np.shares_memory(a.points, c.points)
+        nyu = default_config(**small, **{"taxonomy.name": "nyu40"})
+        assert not np.shares_memory(a.points, pipeline.load_scene(nyu.scene, resolve_taxonomy(nyu), nyu.depth).points)
+        again = run(cfg)
+        np.testing.assert_array_equal(again.labels, fresh.labels)
+        assert again.metrics == fresh.metrics
+    finally:
+        pipeline.reuse_scenes(False)
+    assert not pipeline._REUSE.kept and pipeline.load_scene(cfg.scene, resolve_taxonomy(cfg), cfg.depth).points.flags.writeable
