@@ -180,6 +180,11 @@ def check_sweep(c: Command, p, work):
     assert n == _readme_jobs(name) // (_seeds(name) if "seed=0" in c.append else 1)
     launcher = re.search(r"hydra/launcher=(\w+)", c.text)
     metrics = {s["_dir"]: s["metrics"]["miou"] for s in summaries}
+    # the small scene still shows the effect: more 2D noise, or iterating towards the fixed point, costs mIoU
+    for key, first, last in (("predictions.strength", "0", "2"), ("solver.max_iter", "10", "20000")):
+        if name in ("noise", "iterations") and any(o.startswith(key + "=") for s in summaries for o in s["overrides"]):
+            by = {v: [s["metrics"]["miou"] for s in summaries if f"{key}={v}" in s["overrides"]] for v in (first, last)}
+            assert sum(by[first]) / len(by[first]) > sum(by[last]) / len(by[last]) + 5, (name, by)
     if launcher is None:
         work["state"].setdefault("basic", {})[(name, scene)] = metrics
     else:  # the same jobs give the same metrics as with the basic launcher
