@@ -12,6 +12,8 @@ import numpy as np
 from scipy.ndimage import uniform_filter
 from scipy.spatial import cKDTree
 
+from .o3d import open3d
+
 
 def project(points: np.ndarray, K: np.ndarray, T_cw: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Eq. 2: pi(x) = K (R x + t).
@@ -130,7 +132,7 @@ def nearest_transfer(src_points: np.ndarray, src_values: np.ndarray, dst_points:
 
 def estimate_normals(points: np.ndarray, knn: int = 16) -> np.ndarray:
     """(N, 3) points -> (N, 3) float32 unit normals by local PCA (open3d); sign arbitrary."""
-    import open3d as o3d
+    o3d = open3d()
 
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=knn))

@@ -14,6 +14,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .geometry import project
+from .o3d import open3d
 from .render import MeshRenderer
 
 __all__ = ["CloudDepth", "MeshDepth"]
@@ -75,7 +76,7 @@ class MeshDepth:
     @classmethod
     def from_file(cls, path: str | Path) -> "MeshDepth":
         """A triangle mesh file open3d reads (PLY, OBJ, ...); one line naming it otherwise."""
-        import open3d as o3d
+        o3d = open3d()
 
         path = Path(path)
         if not path.is_file():

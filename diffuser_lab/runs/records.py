@@ -16,6 +16,7 @@ from omegaconf import OmegaConf
 
 from diffuser_lab import progress
 from diffuser_lab.data.clouds import write_las
+from diffuser_lab.data.o3d import open3d
 from diffuser_lab.data.scene import Taxonomy
 from diffuser_lab.data.sources.rosbag import write_pointcloud2_bag
 
@@ -101,7 +102,7 @@ def _write_labels(run_dir: Path, points: np.ndarray, labels: np.ndarray, taxonom
     np.save(run_dir / "labels.npy", labels.astype(np.int16))
     out = {"labels": "labels.npy"}
     if ply:
-        import open3d as o3d
+        o3d = open3d()
 
         pcd = o3d.t.geometry.PointCloud(o3d.core.Tensor(np.asarray(points, np.float32)))
         pcd.point.colors = o3d.core.Tensor(taxonomy.colorize(labels))

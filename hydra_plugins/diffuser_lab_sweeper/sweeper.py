@@ -4,7 +4,8 @@ bad override early, then the launcher composes each job again (~0.16 s a compose
 a small job's time). This one composes only jobs that together hold every override of the sweep:
 every value of every swept key is still checked before any job runs (a typo, an unknown key, a
 value of the wrong type stops the sweep at start-up), and a 5 x 3 sweep composes 5 configs up
-front, not 15.
+front, not 15. The jobs' composes then share one cache of the config files (a fifth of a small
+sweep's time).
 
 No ``from __future__ import annotations`` here: Hydra's plugin scan runs this file outside
 ``sys.modules``, where a dataclass needs evaluated annotations.
@@ -40,8 +41,40 @@ def covering(batch: Sequence[Sequence[str]]) -> List[Sequence[str]]:
     return [batch[i] for i in sorted(picked)]
 
 
+class _OneRepository:
+    """Stands in for ``ConfigLoaderImpl._parse_overrides_and_create_caching_repo``, which deep-copies
+    the config repository and reads every YAML file again for each job's compose (~a third of it):
+    the jobs of one sweep share one caching repository per search path (results unchanged: Hydra
+    copies what it loads before changing it). A picklable object, for the launchers that ship the
+    loader to other processes."""
+
+    def __init__(self, loader) -> None:
+        from hydra.core.override_parser.overrides_parser import OverridesParser
+
+        self.loader, self.parser, self.repos = loader, OverridesParser.create(), {}
+
+    def __call__(self, config_name, overrides):
+        from hydra._internal.config_repository import CachingConfigRepository
+
+        parsed = self.parser.parse_overrides(overrides=overrides)
+        key = tuple(o for o in overrides if o.lstrip("+~").startswith("hydra.searchpath"))
+        if key not in self.repos:
+            self.repos[key] = CachingConfigRepository(self.loader.repository)
+        self.loader._process_config_searchpath(config_name, parsed, self.repos[key])
+        return parsed, self.repos[key]
+
+
 class CoveringSweeper(BasicSweeper):
-    """:class:`BasicSweeper` whose :meth:`validate_batch_is_legal` composes :func:`covering`'s jobs."""
+    """:class:`BasicSweeper` whose :meth:`validate_batch_is_legal` composes :func:`covering`'s jobs
+    and whose jobs' composes share one config repository (:class:`_OneRepository`)."""
+
+    def setup(self, *, hydra_context, task_function, config) -> None:
+        super().setup(hydra_context=hydra_context, task_function=task_function, config=config)
+        loader = hydra_context.config_loader
+        if all(hasattr(loader, a) for a in ("_parse_overrides_and_create_caching_repo",
+                                            "_process_config_searchpath", "repository")):
+            loader._parse_overrides_and_create_caching_repo = _OneRepository(loader)  # else: Hydra's own
 
     def validate_batch_is_legal(self, batch: Sequence[Sequence[str]]) -> None:
         super().validate_batch_is_legal(covering(batch))
+

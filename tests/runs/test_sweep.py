@@ -148,3 +148,33 @@ def test_a_bad_value_in_the_last_job_stops_the_sweep_before_any_job(tmp_path):
     p = run_cli("-m", "graph.k=8,16,abc", "seed=0,1", "record=off", f"hydra.sweep.dir={tmp_path / 'sweep'}")
     assert p.returncode != 0 and "graph.k=abc" in p.stderr, p.stderr[-2000:]
     assert not list((tmp_path / "sweep").glob("*/summary.json"))  # no job ran
+
+
+def test_a_sweeps_jobs_share_one_config_repository_and_compose_the_same_configs():
+    from hydra._internal.config_loader_impl import ConfigLoaderImpl
+    from hydra._internal.utils import create_config_search_path
+    from hydra.types import RunMode
+    from hydra_plugins.diffuser_lab_sweeper.sweeper import _OneRepository
+    from omegaconf import OmegaConf
+
+    from diffuser_lab.config import register
+    from diffuser_lab.runs import launchers
+
+    register()
+    launchers.register()
+    jobs = [["graph.k=8", "seed=0"], ["graph.k=32", "seed=2", "hydra.searchpath=[file://" + str(ROOT / "conf") + "]"],
+            ["graph.k=8", "seed=1"]]
+
+    def composed(share: bool) -> list[str]:
+        loader = ConfigLoaderImpl(config_search_path=create_config_search_path(str(ROOT / "conf")))
+        master = loader.load_configuration("config", ["+experiment=k"], RunMode.MULTIRUN)
+        if share:
+            loader._parse_overrides_and_create_caching_repo = _OneRepository(loader)
+        out = [OmegaConf.to_yaml(loader.load_sweep_config(master, job)) for job in jobs]
+        if share:  # one repository per search path; the loader still travels to joblib's processes
+            assert len(loader._parse_overrides_and_create_caching_repo.repos) == 2
+            cloudpickle = pytest.importorskip("joblib.externals.cloudpickle")
+            cloudpickle.loads(cloudpickle.dumps(loader))
+        return out
+
+    assert composed(True) == composed(False)

@@ -42,6 +42,7 @@ from diffuser_lab import progress
 from diffuser_lab.config import SceneConfig
 from diffuser_lab.data.frames import LazyFrames
 from diffuser_lab.data.geometry import estimate_normals, scaled_intrinsics
+from diffuser_lab.data.o3d import open3d
 from diffuser_lab.data.mapping import ClassMapping, identity_mapping, load_mapping, native_mapping
 from diffuser_lab.data.prediction_files import label_ids_in, read_label_png, resize_nearest
 from diffuser_lab.data.scene import SCANNET20, Frame, Scene, Taxonomy
@@ -117,7 +118,7 @@ def read_labelled_mesh(path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None,
 def _vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """(V, 3) float32 unit area-weighted vertex normals (open3d), oriented by the mesh
     winding; vertices in no triangle get a local-PCA normal instead of zero."""
-    import open3d as o3d
+    o3d = open3d()
 
     mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices.astype(np.float64)),
                                      o3d.utility.Vector3iVector(triangles.astype(np.int32)))
