@@ -98,7 +98,9 @@ def readme_commands() -> list[Command]:
 def classify(c: Command) -> Command:
     """How each kind of README command runs here (first rule that matches)."""
     t = c.text
-    if t.startswith("bash scripts/dev.sh test"):
+    if t.startswith("bash scripts/dev.sh test") and " -m " in t:
+        c.key, c.append = "quick", ["--collect-only", "-q"]  # the quick loop: what it selects
+    elif t.startswith("bash scripts/dev.sh test"):
         c.skip = "the test command itself: CI runs it, this is that run"
     elif re.match(r"^\.venv/bin/rerun \S+\.(rrd|mcap)$", t) or " --view" in t:
         c.skip, c.key = "opens the Rerun viewer window (no display here); the file it opens is checked", "viewer"

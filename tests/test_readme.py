@@ -80,6 +80,8 @@ def execute(c: Command, work: dict) -> subprocess.CompletedProcess:
         argv = [str(VENV / "bin" / "python"), "-c", text]
     else:
         argv = ["bash", "-c", " ".join([text, *c.append])]
+    if c.key == "quick":  # the checkout's own suite (its pyproject.toml's options)
+        cwd = ROOT
     if c.key == "pip":  # installs `.`: the checkout itself (a dry run changes nothing)
         cwd = ROOT
         argv = ["bash", "-c", " ".join([text.replace(".venv/bin/pip", f"{VENV}/bin/pip"), *c.append])]
@@ -270,7 +272,20 @@ def check_pip(c: Command, p, work):
     assert "conflict" not in (p.stdout + p.stderr).lower(), p.stderr[-3000:]
 
 
-CHECKS = {"run": check_run, "sweep": check_sweep, "multirun": check_multirun, "analysis": check_analysis,
+def check_quick(c: Command, p, work):
+    """The quick loop selects the equations, loaders, config checks and bad-input tests (most of the
+    suite's tests) and none with the slow marker (docs/testing.md)."""
+    m = re.search(r"^(\d+)/(\d+) tests collected \((\d+) deselected\)", p.stdout, re.M)
+    assert m, p.stdout[-2000:]
+    quick, total, slow = map(int, m.groups())
+    assert quick + slow == total and quick > total // 2 and slow > 100, m.group(0)
+    for module in ("tests/method/test_diffusion.py", "tests/data/test_prediction_files.py",
+                   "tests/cli/test_bad_input.py", "tests/test_config.py"):
+        assert f"{module}::" in p.stdout, module
+    assert "tests/test_readme.py::test_readme_command[" not in p.stdout
+
+
+CHECKS = {"run": check_run, "quick": check_quick, "sweep": check_sweep, "multirun": check_multirun, "analysis": check_analysis,
           "inspect": check_inspect, "bench": check_bench, "pip": check_pip,
           "cfg": lambda c, p, w: "graph:" in p.stdout or pytest.fail(p.stdout[-1000:])}
 
