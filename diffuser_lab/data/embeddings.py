@@ -193,8 +193,8 @@ def simulate_features(labels: np.ndarray | None, prototypes: np.ndarray, rng: np
         f = _normalise(np.where((n > 0)[..., None], (1 - boundary_mix) * f + boundary_mix * around, f))
     if rotation_deg and rotation_dims >= 2:
         q, R = _subspace_rotation(D, rotation_dims, rotation_deg, rng)
-        c = f @ q
-        f = f + (c @ (R.T - np.eye(len(R)))).astype(np.float32) @ q.T.astype(np.float32)
+        q = q.astype(np.float32)
+        f = f + ((f @ q) @ (R.T - np.eye(len(R))).astype(np.float32)) @ q.T
     if noise:
         f = f + rng.standard_normal(f.shape, dtype=np.float32) * np.float32(noise / np.sqrt(D))
     f = _normalise(f)
