@@ -549,6 +549,22 @@ class PredictionsConfig(Section):
     pass_depth: bool = False  # model: call model(rgb, depth) instead of model(rgb)
     onnx: Optional[OnnxConfig] = None  # onnx: set by conf/predictions/onnx.yaml
     cache_dir: Optional[str] = "~/.cache/diffuser-lab/predictions"  # model / onnx outputs; null = no cache
+    # features (predictions=features): per-pixel embeddings instead of labels, queried with words (docs/features.md)
+    embeddings: str = key("simulated", rule("simulated or files", lambda v: v in ("simulated", "files")))  # features: the simulated network, or files in predictions.folder
+    dim: int = key(512, within(8, 1024))  # features, simulated: the embedding's dimension D
+    stride: int = key(8, within(1, 64, steps=True))  # features, simulated: pixels per patch of the network's grid
+    embedding_seed: int = 0  # features, simulated: the class prototypes' seed (the default queries are the prototypes)
+    boundary_mix: float = key(0.5, within(0, 1))  # features, simulated: weight of the neighbouring patches' classes
+    rotation_deg: float = key(20.0, within(0, 90))  # features, simulated: per-view rotation of a random subspace, degrees
+    rotation_dims: int = key(16, within(2, 1024))  # features, simulated: that subspace's dimension
+    noise: float = key(0.3, at_least(0))  # features, simulated: Gaussian noise, relative to a unit feature
+    npz_key: str = "features"  # features, files: the .npz array holding the map (else its only array)
+    layout: str = key("auto", rule("auto, hwd or dhw", lambda v: v in ("auto", "hwd", "dhw")))  # features, files: (h, w, D), (D, h, w) or either
+    queries: Optional[str] = None  # features: a query set .npz (names, embeddings); null: the taxonomy's names
+    encoder: Optional[str] = None  # features: a text encoder module.fn(list[str]) -> (Q, D) for the taxonomy's names
+    query_mapping: Optional[str] = None  # features: CSV query,class (default: a query names its class)
+    threshold: Optional[float] = None  # features: a point whose best cosine is below this gets ``background``
+    background: Optional[str] = None  # features: that class's name; null = unlabeled
 
     def _check_keys(self) -> None:
         if isinstance(self.pattern, str):

@@ -5,6 +5,7 @@
     on_frame(index, frame)                           for every frame, with its predictions attached
     on_evidence(points, grid, evidence, bayesian)    once, on the cloud the diffusion runs on
     wants(iteration) -> bool, observe(iteration, Z, stats)   during the diffusion
+        (a features run: observe_features(iteration, F) first, then observe with class scores)
     on_result(result)                                once, at the end (also gets the final Z)
 :func:`diffuser_lab.runs.online.online` (protocol=online) calls on_scene, then per frame taken
 on_frame(index, frame) and on_online_frame(frame, update), then on_result(online result).
@@ -37,6 +38,13 @@ class RunHooks:
     def observe(self, iteration: int, Z: np.ndarray, stats: dict) -> None:
         """Z: (M, C) float32 read-only scores after ``iteration``, valid during this call only (the
         solver reuses the memory for the next observed iteration); stats: ``residual``."""
+
+    def observe_features(self, iteration: int, F: np.ndarray) -> None:
+        """A features run (predictions=features) only, before :meth:`observe` of the same iteration:
+        F (M, D) float32 read-only per-point feature sums after ``iteration`` (valid during this call
+        only); :meth:`observe` then gets the queries' class scores (M, C) of them
+        (:meth:`~diffuser_lab.runs.pipeline.FeatureLift.scores`), and ``on_result``'s
+        ``result.diffusion.Z`` is those of the final features (``result.lifted.method``)."""
 
     def on_online_frame(self, frame: Any, update: Any) -> None:
         """protocol=online, after each frame's update: ``update`` is a

@@ -26,6 +26,7 @@ __all__ = [
     "load_label_prediction",
     "load_probability_prediction",
     "find_prediction",
+    "load_feature_prediction",
     "DEFAULT_PATTERNS",
 ]
 
@@ -167,3 +168,59 @@ def find_prediction(folder: str | Path, frame_name: str, patterns=DEFAULT_PATTER
             return p
     raise FileNotFoundError(f"no prediction for frame {frame_name!r} in {folder} "
                             f"(tried {', '.join(t.relative_to(folder).as_posix() for t in tried)}; predictions.pattern)")
+
+
+FEATURE_LAYOUTS = ("auto", "hwd", "dhw")
+
+
+def load_feature_prediction(path: str | Path, *, key: str = "features", layout: str = "auto",
+                            dim: int | None = None, mask_key: str = "mask") -> np.ndarray:
+    """A network's per-pixel embeddings for one frame, at the network's resolution.
+
+    Args:
+        path: ``.npy`` or ``.npz`` (the array ``key``, else the only array), float16 or float32.
+        layout: ``hwd`` (h, w, D), ``dhw`` (D, h, w, channel first) or ``auto``: the axis that is
+            not spatial is the one of size ``dim`` when given, else the last unless the first is
+            smaller than both others (a (512, 60, 80) map is channel first).
+        dim: the expected D (e.g. the first frame's), or None.
+        mask_key: in an ``.npz``, an optional (h, w) bool array: False cells have no feature.
+    Returns:
+        (h, w, D) float16/float32 as stored (NaN cells: no feature; masked cells set to NaN).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"feature file {path} does not exist")
+    if layout not in FEATURE_LAYOUTS:
+        raise ValueError(f"predictions.layout={layout}: expected one of {', '.join(FEATURE_LAYOUTS)}")
+    mask = None
+    try:
+        if path.suffix == ".npy":
+            arr = np.load(path, allow_pickle=False)
+        elif path.suffix == ".npz":
+            with np.load(path, allow_pickle=False) as z:
+                names = [n for n in z.files if n != mask_key]
+                if key in z.files:
+                    arr = z[key]
+                elif len(names) == 1:
+                    arr = z[names[0]]
+                else:
+                    raise ValueError(f"{path}: no array {key!r} (predictions.key) among {', '.join(z.files) or 'none'}")
+                mask = z[mask_key] if mask_key in z.files else None
+        else:
+            raise ValueError(f"{path}: feature file must be .npy or .npz, got {path.suffix or 'no suffix'}")
+    except (OSError, EOFError) as exc:  # truncated, not a numpy file
+        raise ValueError(f"{path}: unreadable feature file ({type(exc).__name__}: {exc})") from None
+    if arr.ndim != 3 or arr.dtype not in (np.float16, np.float32):
+        raise ValueError(f"{path}: features of shape {arr.shape} dtype {arr.dtype}, expected float16/float32 "
+                         f"(h, w, D) or (D, h, w)")
+    first = layout == "dhw" or (layout == "auto" and (arr.shape[0] == dim if dim is not None and arr.shape[2] != dim
+                                                      else arr.shape[0] < min(arr.shape[1:])))
+    if first:
+        arr = np.moveaxis(arr, 0, 2)
+    if dim is not None and arr.shape[2] != dim:
+        raise ValueError(f"{path}: features of shape {arr.shape} ({layout}), expected D = {dim} like the first frame")
+    if mask is not None:
+        if mask.shape != arr.shape[:2]:
+            raise ValueError(f"{path}: mask of shape {mask.shape}, expected {arr.shape[:2]}")
+        arr = np.where(np.asarray(mask, bool)[..., None], arr, np.nan).astype(arr.dtype)
+    return np.ascontiguousarray(arr)

@@ -25,7 +25,8 @@ from diffuser_lab.registry import Registry
 from .frames import LazyFrames
 from .mapping import load_mapping, native_mapping
 from .networks import model_predictions, onnx_predictions
-from .prediction_files import find_prediction, label_ids_in, load_label_prediction, load_probability_prediction
+from .prediction_files import (find_prediction, label_ids_in, load_feature_prediction, load_label_prediction,
+                               load_probability_prediction)
 from .scene import Frame, Taxonomy
 from .simulate import simulate_predictions, surface_regions
 
@@ -129,6 +130,48 @@ def file_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy: 
     return LazyFrames.mapped(frames, fn, stats=stats)
 
 
+def feature_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy: Taxonomy,
+                        scene_name: str = "") -> LazyFrames:
+    """Per-pixel embeddings (``Frame.features``, (h, w, D) at the network's resolution) instead of
+    labels: the simulated embedding network (:mod:`diffuser_lab.data.embeddings`) on the configured
+    simulated mistakes (predictions=features starts from predictions=realistic's), or a network's
+    ``.npy`` / ``.npz`` files in ``predictions.folder`` (``predictions.npz_key``, ``predictions.layout``)."""
+    if cfg.embeddings == "files":
+        if not cfg.folder:
+            raise ValueError("predictions.folder is required for predictions.embeddings=files")
+        folder = Path(cfg.folder)
+        if not folder.is_dir():
+            raise FileNotFoundError(f"predictions.folder={folder}: no such folder")
+        dim: list[int] = []
+
+        def from_file(i: int, f: Frame) -> Frame:
+            fmap = load_feature_prediction(find_prediction(folder, f.name, cfg.pattern), key=cfg.npz_key,
+                                           layout=cfg.layout, dim=dim[0] if dim else None)
+            dim[:] = [fmap.shape[2]]
+            return dataclasses.replace(f, labels=None, probs=None, features=fmap)
+
+        return LazyFrames.mapped(frames, from_file)
+    from .embeddings import prototypes, simulate_features
+
+    protos = prototypes(taxonomy.names, dim=cfg.dim, seed=cfg.embedding_seed)
+    labelled = simulated_predictions(frames, cfg, taxonomy, scene_name)
+
+    def simulated(i: int, f: Frame) -> Frame:
+        g = labelled[i]
+        fmap = simulate_features(g.labels, protos, np.random.default_rng([cfg.seed, i, 37]), stride=cfg.stride,
+                                 boundary_mix=cfg.boundary_mix, rotation_deg=cfg.rotation_deg,
+                                 rotation_dims=min(cfg.rotation_dims, cfg.dim), noise=cfg.noise)
+        return dataclasses.replace(f, labels=None, probs=None, features=fmap)
+
+    return LazyFrames.mapped(frames, simulated)
+
+
+def _describe_features(cfg: PredictionsConfig) -> str:
+    if cfg.embeddings == "files":
+        return f"2D features from {cfg.folder}"
+    return f"simulated {cfg.dim}-D features"
+
+
 def file_label_ids(cfg: PredictionsConfig, n: int) -> list[tuple[np.ndarray, str]]:
     """``taxonomy=ids``: the first ``n`` label images of ``predictions.folder`` (predictions.pattern's images)."""
     if not cfg.folder:
@@ -155,6 +198,8 @@ SOURCES: Registry = Registry("predictions.source", "prediction source", [
                      lambda cfg: f"2D predictions of {(cfg.model or {}).get('_target_')}"),
     PredictionSource("onnx", "an exported ONNX segmentation network run with onnxruntime on the CPU",
                      onnx_predictions, lambda cfg: f"2D predictions of {Path(cfg.onnx.path).name} (onnx)"),
+    PredictionSource("features", "per-pixel embeddings (simulated, or a network's .npy/.npz maps), queried with words",
+                     feature_predictions, _describe_features),
 ])
 """The prediction sources by name (``predictions.source``)."""
 

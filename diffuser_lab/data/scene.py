@@ -78,6 +78,9 @@ class Frame:
             When both are given, ``probs`` is used as evidence.
         gt_labels: (H, W) int16 ground-truth class ids when known, else None.
         rgb: (H, W, 3) uint8 colour image registered to depth, or None.
+        features: (h, w, D) float16/float32 a network's per-pixel embeddings over the same field
+            of view (h, w: its patch grid or the image's size; NaN = no feature), or None. When
+            set, it is the evidence (features runs: :mod:`diffuser_lab.method.features`).
     """
 
     name: str
@@ -88,6 +91,7 @@ class Frame:
     probs: np.ndarray | None = None
     gt_labels: np.ndarray | None = None
     rgb: np.ndarray | None = None
+    features: np.ndarray | None = None
 
     @property
     def shape(self) -> tuple[int, int]:

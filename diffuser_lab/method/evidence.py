@@ -9,6 +9,12 @@ probabilities (Eq. 8), so ``mass[i, c]`` is the number of linked pixels voting f
 class c: Sum_k Z^{I_k->X} of Eq. 12 divided by lambda, which the diffusion applies
 (Eqs. 14-15). Frames are consumed one at a time, so memory does not grow with their number.
 
+Features (:mod:`diffuser_lab.method.features`): a frame whose ``features`` map (H', W', D) is set links
+each point to the feature bilinearly sampled at its pixel's centre (the map may be a network's
+coarser patch grid), L2-normalised; ``mass[i]`` is then the sum of the point's linked unit features
+(D columns) and ``links[i]`` their number, which replaces the row sum of class masses in Eqs. 14-15.
+A pixel whose feature is missing (NaN in the map, a masked cell) gives no evidence.
+
 Speed: hard labels with ``pixel_radius`` 0 (the paper's setting) go through one fused compiled
 pass per frame when numba is installed (:func:`diffuser_lab.backends.evidence.hard_votes`: projection
 in float64, bounds, depth check and the vote, no temporaries); everything else, and the pure
@@ -29,6 +35,8 @@ from diffuser_lab.backends.evidence import hard_votes
 from diffuser_lab.config import BayesianMode
 from diffuser_lab.data.geometry import visible_projection
 from diffuser_lab.data.scene import IGNORE, Frame
+
+from .features import normalised
 
 
 @dataclass
@@ -51,8 +59,8 @@ class Evidence:
 
     @property
     def seen(self) -> np.ndarray:
-        """(N,) bool: the point received pixel mass."""
-        return self.mass.sum(1) > 0
+        """(N,) bool: the point received pixel mass (a link)."""
+        return self.links > 0
 
 
 def _class_vectors(frame: Frame, num_classes: int, hard: bool) -> tuple[np.ndarray | None, np.ndarray | None]:
@@ -76,12 +84,105 @@ def _class_vectors(frame: Frame, num_classes: int, hard: bool) -> tuple[np.ndarr
     return frame.labels, None
 
 
+FEATURE_CHUNK = 16384
+"""Points whose features are sampled at once (bounds the (chunk, D) float32 temporaries)."""
+
+
+def sample_features(fmap: np.ndarray, rows: np.ndarray, cols: np.ndarray, shape: tuple[int, int],
+                    valid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Bilinear samples of a feature map at pixel centres of a (H, W) image.
+
+    Args:
+        fmap: (h, w, D) float16/float32 features covering the same field of view as the (H, W)
+            image (a network's patch grid, or the image's own resolution); NaN = no feature.
+        rows, cols: (M,) int pixel coordinates in the (H, W) image.
+        valid: (h, w) bool cells with a feature (default: all channels finite).
+    Returns:
+        (M, D) float32 unit features (0 rows where unusable) and (M,) bool usable: the pixel centre
+        ``(c + 0.5) w / W - 0.5`` (align_corners=False, as torch and OpenCV resize) interpolated from
+        the valid ones of its four cells, renormalised; no valid cell, or a zero feature: unusable.
+    """
+    h, w, D = fmap.shape
+    H, W = shape
+    if valid is None:
+        valid = np.isfinite(fmap).all(axis=2)
+    y = np.clip((rows + 0.5) * (h / H) - 0.5, 0, h - 1)
+    x = np.clip((cols + 0.5) * (w / W) - 0.5, 0, w - 1)
+    y0, x0 = np.floor(y).astype(np.int64), np.floor(x).astype(np.int64)
+    y1, x1 = np.minimum(y0 + 1, h - 1), np.minimum(x0 + 1, w - 1)
+    wy, wx = (y - y0).astype(np.float32), (x - x0).astype(np.float32)
+    acc = np.zeros((rows.size, D), np.float32)
+    total = np.zeros(rows.size, np.float32)
+    for yy, xx, wt in ((y0, x0, (1 - wy) * (1 - wx)), (y0, x1, (1 - wy) * wx),
+                       (y1, x0, wy * (1 - wx)), (y1, x1, wy * wx)):
+        wt = np.where(valid[yy, xx], wt, np.float32(0))
+        use = np.flatnonzero(wt > 0)
+        acc[use] += wt[use, None] * np.nan_to_num(fmap[yy[use], xx[use]].astype(np.float32))
+        total += wt
+    f, ok = normalised(acc)
+    return f, ok & (total > 0)
+
+
+class BestView:
+    """The most confident view's feature of every point (a baseline of features runs): the unit
+    feature of the linked pixel (the projected one; not a window's) whose ``confidence`` is the
+    highest over the frames seen so far.
+
+    Args:
+        n, dim: points and D. confidence: (M, D) unit features -> (M,) float32 (e.g. the top
+            query's softmax probability; :meth:`~diffuser_lab.runs.pipeline.FeatureLift.confidence`).
+    Attributes:
+        features: (n, D) float16 (0 rows: never seen); score: (n,) float32 (-inf: never seen).
+    """
+
+    def __init__(self, n: int, dim: int, confidence):
+        self.features = np.zeros((n, dim), np.float16)
+        self.score = np.full(n, -np.inf, np.float32)
+        self.confidence = confidence
+
+    def offer(self, idx: np.ndarray, f: np.ndarray) -> None:
+        """Points ``idx`` (M,) (each once) linked to unit features ``f`` (M, D) in one frame."""
+        c = self.confidence(f)
+        better = c > self.score[idx]
+        self.score[idx[better]] = c[better]
+        self.features[idx[better]] = f[better]
+
+
+def _add_features(ev: Evidence, points: np.ndarray, frame: Frame, depth_tol: float, pixel_radius: int,
+                  best: BestView | None = None) -> np.ndarray:
+    fmap = frame.features
+    D = ev.mass.shape[1]
+    if fmap.ndim != 3 or fmap.shape[2] != D:
+        raise ValueError(f"frame {frame.name}: feature map of shape {fmap.shape}, expected (h, w, {D})")
+    idx, rows, cols = visible_projection(points, frame, depth_tol)
+    ev.points_per_frame.append(int(idx.size))
+    h, w = frame.shape
+    valid = np.isfinite(fmap).all(axis=2)
+    r = pixel_radius
+    for dr in range(-r, r + 1):
+        for dc in range(-r, r + 1):
+            rr, cc = rows + dr, cols + dc
+            ok = (rr >= 0) & (rr < h) & (cc >= 0) & (cc < w)
+            i, rr, cc = idx[ok], rr[ok], cc[ok]
+            for lo in range(0, i.size, FEATURE_CHUNK):  # each point once per offset: no repeated rows
+                sl = slice(lo, lo + FEATURE_CHUNK)
+                f, good = sample_features(fmap, rr[sl], cc[sl], (h, w), valid)
+                ev.mass[i[sl][good]] += f[good]
+                ev.links[i[sl][good]] += 1
+                if best is not None and dr == 0 and dc == 0:
+                    best.offer(i[sl][good], f[good])
+    return idx
+
+
 def add_frame(ev: Evidence, points: np.ndarray, frame: Frame, *, depth_tol: float = 0.05,
-              pixel_radius: int = 0, hard: bool = False) -> np.ndarray:
-    """Add one frame's pixel-to-point links to ``ev`` in place (Eq. 12, one term of Eq. 11).
+              pixel_radius: int = 0, hard: bool = False, best: BestView | None = None) -> np.ndarray:
+    """Add one frame's pixel-to-point links to ``ev`` in place (Eq. 12, one term of Eq. 11):
+    class masses, or unit features when the frame has a feature map (module docstring).
 
     Returns (M,) int64 sorted indices of the points that passed the visibility check (their
     rows of ``ev`` may have changed; the others did not)."""
+    if getattr(frame, "features", None) is not None:
+        return _add_features(ev, points, frame, depth_tol, pixel_radius, best)
     n, num_classes = ev.mass.shape
     labels, probs = _class_vectors(frame, num_classes, hard)
     if probs is None and pixel_radius == 0:
@@ -149,6 +250,7 @@ class RunEvidence:
         self._base_mass, self._base_links = self._mass, self._links
         self._ppf: list[int] = []
         self._base_ppf: list[int] = []
+        self.best: BestView | None = None  # set by a features run: the most confident view's feature
         self.grow(n, max(n, capacity))
 
     @classmethod
@@ -196,8 +298,10 @@ class RunEvidence:
         the baseline's evidence (the same array when shared)."""
         hi = lo + points.shape[0]
         ev = Evidence(mass=self._mass[lo:hi], links=self._links[lo:hi], points_per_frame=self._ppf)
-        seen = lo + add_frame(ev, points, frame, depth_tol=self.depth_tol, pixel_radius=self.pixel_radius)
+        best = self.best if lo == 0 and self.best is not None and hi <= self.best.score.size else None
+        seen = lo + add_frame(ev, points, frame, depth_tol=self.depth_tol, pixel_radius=self.pixel_radius,
+                              best=None if self.separate else best)
         if not self.separate:
             return seen, seen
         base = Evidence(mass=self._base_mass[lo:hi], links=self._base_links[lo:hi], points_per_frame=self._base_ppf)
-        return seen, lo + add_frame(base, points, frame, depth_tol=self.depth_tol, hard=self.votes)
+        return seen, lo + add_frame(base, points, frame, depth_tol=self.depth_tol, hard=self.votes, best=best)

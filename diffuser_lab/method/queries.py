@@ -128,7 +128,8 @@ def _chunks(features: np.ndarray, E: np.ndarray) -> Iterator[tuple[slice, np.nda
         x = np.asarray(features[rows], dtype=np.float32)
         norm = np.sqrt(np.einsum("ij,ij->i", x, x))
         ok = np.isfinite(norm) & (norm > 0)
-        x[~ok] = 0
+        if not ok.all():  # never write into the caller's array (a float32 input is not copied)
+            x = np.where(ok[:, None], x, np.float32(0))
         sim = x @ Et
         sim *= np.divide(1.0, norm, out=np.zeros_like(norm), where=ok)[:, None]
         yield rows, sim, ok

@@ -27,6 +27,7 @@ from diffuser_lab.data.taxonomy import resolve_taxonomy
 from diffuser_lab.hooks import RunHooks
 from diffuser_lab.method import calibration, fusion
 from diffuser_lab.method import evidence as evidence_mod
+from diffuser_lab.method import features as features_mod
 from diffuser_lab.method.diffusion import DiffusionResult, Observer, labels_from_scores, normalise, sparse_by_size
 from diffuser_lab.method.evidence import RunEvidence
 from diffuser_lab.method.graph import KnnGraph, graph_stage, make_graph
@@ -156,6 +157,8 @@ class RunResult:
     predictions_2d: Optional[dict] = None
     predictions_stats: dict = field(default_factory=dict)  # e.g. unmapped pixels of file predictions
     timings_s: dict = field(default_factory=dict)
+    rows: Optional[np.ndarray] = None  # (N,) int64 each original point's work point
+    lifted: Optional["FeatureLift"] = None  # a features run's queries and per-point features
 
 
 def _work_cloud(scene: Scene, voxel_size: float) -> tuple[np.ndarray, Optional[np.ndarray], Optional[VoxelGrid]]:
@@ -177,19 +180,97 @@ def _to_original(scene: Scene, grid: Optional[VoxelGrid], work_labels: np.ndarra
 
 
 class _Observe:
-    """Adapts :class:`RunHooks` (and a plain observer callable) to the diffusion's observer."""
+    """Adapts :class:`RunHooks` (and a plain observer callable) to the diffusion's observer; in a
+    features run both see (M, C) class scores (:meth:`FeatureLift.scores` of the decoded Z)."""
 
-    def __init__(self, hooks: RunHooks, fn: Optional[Observer]):
-        self.hooks, self.fn = hooks, fn
+    def __init__(self, hooks: RunHooks, fn: Optional[Observer], lift: Optional[FeatureLift] = None):
+        self.hooks, self.fn, self.lift = hooks, fn, lift
 
     def wants(self, it: int) -> bool:
         return self.fn is not None or self.hooks.wants(it)
 
     def __call__(self, it: int, Z: np.ndarray, stats: dict) -> None:
+        if self.lift is not None:
+            F = features_mod.decode(Z)
+            F.flags.writeable = False
+            if self.hooks.wants(it):
+                self.hooks.observe_features(it, F)
+            Z = self.lift.scores(F)
+            Z.flags.writeable = False
         if self.fn is not None:
             self.fn(it, Z, stats)
         if self.hooks.wants(it):
             self.hooks.observe(it, Z, stats)
+
+
+@dataclass
+class FeatureLift:
+    """How a features run (frames with feature maps: :mod:`diffuser_lab.method.features`) turns
+    per-point features into labels: the query set, each query's class, the background rule; and
+    the work points' features it produced.
+
+    Attributes:
+        queries: :class:`~diffuser_lab.method.queries.Queries` (Q names, (Q, D) unit embeddings).
+        to_class: (Q,) int64 the taxonomy class of each query (-1: none).
+        threshold, background: a point whose best cosine is below ``threshold`` gets ``background``.
+        method: (M, D) float32 the method's per-point feature sums (Diffuser: diffused), set by the run.
+        average: (M, D) float32 the averaging baseline's (the sum of the depth-checked pixels' features).
+        best_view: (M, D) float16 the most confident view's feature (:class:`~diffuser_lab.method.evidence.BestView`).
+    """
+
+    queries: object
+    to_class: np.ndarray
+    num_classes: int
+    threshold: Optional[float] = None
+    background: int = IGNORE
+    method: Optional[np.ndarray] = None
+    average: Optional[np.ndarray] = None
+    best_view: Optional[np.ndarray] = None
+
+    def confidence(self, features: np.ndarray) -> np.ndarray:
+        """(M, D) unit features -> (M,) float32 the top class's probability (softmax over the
+        classes' best cosines at :data:`~diffuser_lab.method.features.CLIP_TEMPERATURE`): what
+        picks a point's most confident view."""
+        s = self.scores(features)
+        total = s.sum(1)
+        return np.divide(s.max(1), total, out=np.zeros_like(total), where=total > 0)
+
+    def labels(self, features: np.ndarray) -> np.ndarray:
+        """(M, D) features -> (M,) int16 class ids (IGNORE where nothing reached a point)."""
+        from diffuser_lab.method.queries import query_labels
+
+        return query_labels(features, self.queries, self.to_class, threshold=self.threshold,
+                            background=self.background)
+
+    def scores(self, features: np.ndarray) -> np.ndarray:
+        """(M, D) features -> (M, C) class scores (:func:`~diffuser_lab.method.features.class_scores`)."""
+        from diffuser_lab.method.queries import similarity
+
+        return features_mod.class_scores(similarity(features, self.queries), self.to_class, self.num_classes)
+
+    def encoded_labels(self, Z: np.ndarray) -> np.ndarray:
+        """Labels of the diffusion core's encoded (M, D + 1) scores."""
+        return self.labels(features_mod.decode(Z))
+
+
+def feature_lift(cfg: Config, taxonomy: Taxonomy, dim: int) -> FeatureLift:
+    """The run's queries (``predictions.queries``: a file; ``predictions.encoder``: a text encoder
+    on the taxonomy's names; neither: the simulated network's prototypes of them) and their classes."""
+    from diffuser_lab.data.embeddings import prototypes
+    from diffuser_lab.method.queries import Queries, query_classes
+
+    pc = cfg.predictions
+    if pc.queries:
+        q = Queries.from_file(pc.queries)
+    elif pc.encoder:
+        q = Queries.from_encoder(list(taxonomy.names), pc.encoder)
+    else:
+        q = Queries(tuple(taxonomy.names), prototypes(taxonomy.names, dim=dim, seed=pc.embedding_seed))
+    if q.embeddings.shape[1] != dim:
+        raise ValueError(f"the queries have D = {q.embeddings.shape[1]}, the frames' features D = {dim}")
+    to_class = np.asarray(query_classes(q.names, taxonomy.names, pc.query_mapping), np.int64)
+    background = IGNORE if pc.background is None else taxonomy.names.index(pc.background)
+    return FeatureLift(q, to_class, taxonomy.num_classes, pc.threshold, background)
 
 
 def _sparse_classes(solver, n_work: int, num_classes: int) -> int:
@@ -231,7 +312,8 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
         raise ValueError(f"graph.k={cfg.graph.k} must be smaller than the number of points ({pts.shape[0]})")
     centres, inverted = [], []
     ev_kw = dict(depth_tol=cfg.evidence.depth_tol, pixel_radius=cfg.evidence.pixel_radius)
-    evidence = RunEvidence.of(cfg, pts.shape[0], tax.num_classes)
+    evidence: Optional[RunEvidence] = None  # made at the first frame: D columns for feature maps
+    feats, lift = False, None
     conf2d = None
     t["predictions"] = t["evidence"] = 0.0
     loop = FrameLoop(frames, f"frames: {describe_predictions(cfg.predictions)} + evidence")
@@ -244,7 +326,15 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
             validate.check_depth_unit(f)
         centres.append(validate.camera_centre(f))
         inverted.append(np.asarray(f.T_cw, float)[:3, 3])  # the centre if T_cw were camera-to-world
-        if f.gt_labels is not None:
+        if evidence is None:
+            feats = f.features is not None
+            evidence = RunEvidence.of(cfg, pts.shape[0], f.features.shape[2] if feats else tax.num_classes)
+            if feats:
+                lift = feature_lift(cfg, tax, f.features.shape[2])
+                evidence.best = evidence_mod.BestView(pts.shape[0], f.features.shape[2], lift.confidence)
+        elif (f.features is not None) != feats:
+            raise ValueError(f"frame {f.name}: {'no ' if feats else ''}feature map, unlike the first frame")
+        if f.gt_labels is not None and not feats:
             pred = f.labels if f.labels is not None else np.argmax(f.probs, axis=2)
             c = confusion_matrix(pred, f.gt_labels, tax.num_classes)
             conf2d = c if conf2d is None else conf2d + c
@@ -254,25 +344,33 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
         t["predictions"] += te - tp
         t["evidence"] += time.perf_counter() - te
     t["predictions"] += loop.read_s
+    if evidence is None:
+        evidence = RunEvidence.of(cfg, pts.shape[0], tax.num_classes)
     ev, ev_base = evidence.method, evidence.baseline
     pred2d = None if conf2d is None else scores_from_confusion(conf2d, tax.names)
     validate.check_pose_convention(pts, np.array(centres).reshape(-1, 3), np.array(inverted).reshape(-1, 3))
     if not ev.seen.any():
         warnings.warn(f"no frame sees any point ({len(frames)} frames): nothing is labelled; check the poses "
                       f"(world-to-camera), intrinsics and evidence.depth_tol", stacklevel=2)
-    bayes_work = labels_from_scores(ev_base.mass)
+    bayes_work = labels_from_scores(ev_base.mass) if lift is None else lift.labels(ev_base.mass)
     hooks.on_evidence(pts, grid, ev, bayes_work)
 
     graph = diff = system = None
     if method.evidence == fusion.BASELINE:
-        mass = ev_base.mass
+        chosen = ev_base
     elif method.evidence == fusion.ONE_VIEW:
         n_frames = len(frames)
         if not -n_frames <= cfg.method.view < n_frames:
             raise ValueError(f"method.view={cfg.method.view}: the scene has {n_frames} frames")
-        mass = evidence_mod.accumulate(pts, [frames[cfg.method.view]], tax.num_classes, **ev_kw).mass
+        chosen = evidence_mod.accumulate(pts, [frames[cfg.method.view]], ev.mass.shape[1], **ev_kw)
     else:
-        mass = ev.mass
+        chosen = ev
+    # a features run hands the core its features encoded as class-like masses (method/features.py)
+    mass = chosen.mass if lift is None else features_mod.encode(chosen.mass, chosen.links)
+    solver, to_labels = cfg.solver, labels_from_scores
+    if lift is not None:  # every column is a feature's: no per-point class set
+        solver, to_labels = dataclasses.replace(cfg.solver, sparse_classes=SparseClasses.off), lift.encoded_labels
+        validate.check_memory(scene.n_points, pts.shape[0], mass.shape[1], cfg.graph.k, cfg.memory_budget_gb, 0)
     if method.graph:
         tg = time.perf_counter()
         with graph_stage(pts.shape[0], cfg.graph, cfg.graph.use_normals and nrm is None):
@@ -280,7 +378,14 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
             system = normalise(graph, mass, cfg.evidence.pixel_weight)
         t["graph"] = time.perf_counter() - tg
     td = time.perf_counter()
-    work_labels, diff = method.label(mass, system=system, solver=cfg.solver, observer=_Observe(hooks, observer))
+    work_labels, diff = method.label(mass, system=system, solver=solver, observer=_Observe(hooks, observer, lift),
+                                     labels=to_labels)
+    if lift is not None:  # the result's Z: the queries' class scores, as its observers saw
+        lift.method = features_mod.decode(diff.Z) if diff is not None else chosen.mass
+        lift.average = ev_base.mass
+        lift.best_view = evidence.best.features
+        if diff is not None:
+            diff = dataclasses.replace(diff, Z=lift.scores(lift.method))
     if method.graph:
         t["diffusion"] = time.perf_counter() - td
 
@@ -293,7 +398,8 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
 
     res = RunResult(scene=scene, frames=frames, method=method.name, labels=labels, bayesian_labels=bayes,
                     work_points=pts, work_normals=nrm, evidence=ev, voxels=grid, graph=graph, diffusion=diff,
-                    predictions_2d=pred2d, predictions_stats=dict(getattr(frames, "stats", {})))
+                    predictions_2d=pred2d, predictions_stats=dict(getattr(frames, "stats", {})), rows=rows,
+                    lifted=lift)
     if scene.gt_labels is not None:
         tm = time.perf_counter()
         res.metrics = score(labels, scene.gt_labels, tax.names)
@@ -302,6 +408,12 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
         post = {method.name: diff.Z if diff is not None else mass}
         if method.name != "bayesian":
             post["bayesian"] = ev_base.mass
+        if lift is not None:  # class distributions from the queries' cosines
+            post = {method.name: diff.Z if diff is not None else lift.scores(lift.method)}
+            if method.name != "bayesian":
+                post["bayesian"] = lift.scores(lift.average)
+            post["best_view"] = lift.scores(lift.best_view)
+            res.baseline["best_view"] = score(lift.labels(lift.best_view)[rows], scene.gt_labels, tax.names)
         res.metrics["calibration"] = calibration.of_methods(post, scene.gt_labels, rows, tax.num_classes,
                                                             cfg.calibration.temperature, cfg.calibration.bins)
         t["metrics"] = time.perf_counter() - tm

@@ -111,3 +111,25 @@ def _write_labels(run_dir: Path, points: np.ndarray, labels: np.ndarray, taxonom
             raise OSError(f"could not write {run_dir / 'labels.ply'}")
         out["labels_ply"] = "labels.ply"
     return out
+
+
+def write_features(run_dir: Path, result) -> dict:
+    """A features run's per-point features on the scene's original points, (N, D) float16 unit rows
+    (an all-zero row: nothing reached the point): ``features.npy`` (the method's), ``features_average.npy``
+    (the averaging baseline's), ``features_best_view.npy`` (the most confident view's); ``queries.npz`` (the run's query set) and ``gt_labels.npy`` (when the
+    scene has ground truth), so that ``diffuser-lab-query`` relabels the run without it."""
+    from diffuser_lab.data.embeddings import write_queries
+    from diffuser_lab.method.features import normalised
+
+    lf, rows = result.lifted, result.rows
+    out = {}
+    for name, work in (("features", lf.method), ("features_average", lf.average), ("features_best_view", lf.best_view)):
+        unit, _ = normalised(work)
+        np.save(run_dir / f"{name}.npy", unit.astype(np.float16)[rows])
+        out[name] = f"{name}.npy"
+    write_queries(run_dir / "queries.npz", list(lf.queries.names), lf.queries.embeddings)
+    out["queries"] = "queries.npz"
+    if result.scene.gt_labels is not None:
+        np.save(run_dir / "gt_labels.npy", np.asarray(result.scene.gt_labels, np.int16))
+        out["gt_labels"] = "gt_labels.npy"
+    return out

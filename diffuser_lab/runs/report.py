@@ -32,7 +32,7 @@ def summary(res: RunResult, cfg: Config) -> dict:
         "coverage_evidence": float(100.0 * res.evidence.seen.mean()),
         "n_unlabeled": int((res.labels == IGNORE).sum()),
         "metrics": res.metrics,
-        "baseline": {"bayesian": res.baseline.get("bayesian")},
+        "baseline": {"bayesian": res.baseline.get("bayesian"), **{k: v for k, v in res.baseline.items() if k != "bayesian"}},
         "predictions_2d": res.predictions_2d,
         "predictions_stats": res.predictions_stats,
         "timings_s": {k: round(v, 4) for k, v in res.timings_s.items()},
@@ -49,6 +49,11 @@ def summary(res: RunResult, cfg: Config) -> dict:
     if res.graph is not None:
         out["graph"] = {"k": int(res.graph.neighbors.shape[1]), "rho_m": res.graph.rho,
                         "sigma_d_m": res.graph.sigma_d, "normals": cfg.graph.use_normals}
+    if res.lifted is not None:  # a features run: the bayesian baseline is the averaging of features
+        lf = res.lifted
+        out["class_names"] = list(scene.taxonomy.names)
+        out["features"] = {"dim": int(lf.method.shape[1]), "queries": list(lf.queries.names),
+                           "threshold": lf.threshold, "baseline": "average"}
     return out
 
 
@@ -92,8 +97,11 @@ def table(res: RunResult, run_dir: Path | None = None) -> str:
     else:
         lines.append(f"{'':22s}{'mIoU':>7s}{'acc':>7s}{'cover':>7s}")
         rows = [(res.method, res.metrics)]
-        if res.method != "bayesian":
-            rows.append(("bayesian (baseline)", res.baseline.get("bayesian")))
+        if res.method != "bayesian":  # a features run's bayesian baseline is the features' average
+            rows.append(("bayesian (baseline)" if res.lifted is None else "average (baseline)",
+                         res.baseline.get("bayesian")))
+        if "best_view" in res.baseline:
+            rows.append(("best view (baseline)", res.baseline["best_view"]))
         for name, m in rows:
             m = m or {}
             lines.append(f"{name:22s}{_fmt(m.get('miou')):>7s}{_fmt(m.get('accuracy')):>7s}"

@@ -13,6 +13,7 @@ Bayesian rows read the baseline's evidence (single pixel), as in global runs.
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import Optional
@@ -20,7 +21,7 @@ from typing import Optional
 import numpy as np
 from scipy.ndimage import distance_transform_edt
 
-from diffuser_lab.config import Config, FrameNormals
+from diffuser_lab.config import Config, FrameNormals, SparseClasses
 from diffuser_lab.data.frames import FrameLoop
 from diffuser_lab.data.geometry import backproject, normals_from_depth, voxel_downsample
 from diffuser_lab.data.predictions import with_predictions
@@ -28,11 +29,12 @@ from diffuser_lab.data.scene import IGNORE, Frame, Scene
 from diffuser_lab.data.taxonomy import resolve_taxonomy
 from diffuser_lab.method import calibration, fusion
 from diffuser_lab.method import evidence as evidence_mod
-from diffuser_lab.method.diffusion import normalise
+from diffuser_lab.method import features as features_mod
+from diffuser_lab.method.diffusion import labels_from_scores, normalise
 from diffuser_lab.method.graph import graph_stage, make_graph
 from diffuser_lab.method.metrics import confusion_matrix, scores_from_confusion
 
-from .pipeline import load_scene
+from .pipeline import FeatureLift, feature_lift, load_scene
 from .resolve import resolve, with_method
 
 
@@ -119,7 +121,11 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None, on_frame=None) -> S
 
     loop = FrameLoop(frames, f"single-frame protocol: target frames (window {W})", targets=targets, window=W,
                      check=need_gt)
+    lift: Optional[FeatureLift] = None  # a features run (predictions=features): its queries
     for i, f in loop:
+        if lift is None and f.features is not None:
+            lift = feature_lift(cfg, tax, f.features.shape[2])
+            solver = dataclasses.replace(solver, sparse_classes=SparseClasses.off)
         ta = time.perf_counter()
         pts, pix = backproject(f.depth, f.K, f.T_cw)
         if pts.shape[0] <= cfg.graph.k:
@@ -130,8 +136,9 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None, on_frame=None) -> S
         else:
             work, to_work = pts, np.arange(pts.shape[0])
         n_points.append(work.shape[0])
-        pred = f.labels if f.labels is not None else np.argmax(f.probs, axis=2)
-        pred2d.add(pred, f.gt_labels, names)
+        if lift is None:
+            pred = f.labels if f.labels is not None else np.argmax(f.probs, axis=2)
+            pred2d.add(pred, f.gt_labels, names)
         win_frames = loop.window_frames(i)
         t["frames"] += time.perf_counter() - ta
 
@@ -143,7 +150,8 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None, on_frame=None) -> S
             ekey = (views, radius)
             if ekey not in evidence:
                 te = time.perf_counter()
-                evidence[ekey] = evidence_mod.accumulate(work, win_frames if views > 1 else [f], tax.num_classes,
+                evidence[ekey] = evidence_mod.accumulate(work, win_frames if views > 1 else [f],
+                                                         tax.num_classes if lift is None else lift.queries.dim,
                                                          pixel_radius=radius, **ev_kw)
                 t["evidence"] += time.perf_counter() - te
             system = None
@@ -156,10 +164,17 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None, on_frame=None) -> S
                     with graph_stage(work.shape[0], mc.graph, mc.graph.use_normals):
                         graphs[mc.graph.use_normals] = make_graph(work, nrm, mc.graph)[1]
                     t["graph"] += time.perf_counter() - tg
-                system = normalise(graphs[mc.graph.use_normals], evidence[ekey].mass, lam)
+            ev = evidence[ekey]
+            mass = ev.mass if lift is None else features_mod.encode(ev.mass, ev.links)  # method/features.py
+            if m.graph:
+                system = normalise(graphs[mc.graph.use_normals], mass, lam)
             td = time.perf_counter()
-            work_labels[(name, views)], diff = m.label(evidence[ekey].mass, system=system, solver=solver)
-            work_scores[(name, views)] = diff.Z if diff is not None else evidence[ekey].mass
+            work_labels[(name, views)], diff = m.label(
+                mass, system=system, solver=solver, labels=labels_from_scores if lift is None
+                else lift.encoded_labels)
+            work_scores[(name, views)] = diff.Z if diff is not None else mass
+            if lift is not None:  # class distributions from the queries' cosines
+                work_scores[(name, views)] = lift.scores(features_mod.decode(work_scores[(name, views)]))
             if m.graph:
                 t["diffusion"] += time.perf_counter() - td
 

@@ -75,7 +75,7 @@ def test_registry_names_are_checked_in_one_line(tiny):
     with pytest.raises(ConfigError, match=rf"^scene\.source='nope': expected one of {names}$"):
         default_config(**{"scene.source": "nope"})
     with pytest.raises(ConfigError, match=r"^predictions\.source='nope': expected one of simulated, gt, files, "
-                                          r"model, onnx, oracle$"):
+                                          r"model, onnx, features, oracle$"):
         default_config(**{"predictions.source": "nope"})
     with pytest.raises(ValueError, match="already registered"):
         sources.register(sources.SceneSource("demo", "another demo", sources.SOURCES["demo"].load))

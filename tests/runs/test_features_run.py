@@ -1,0 +1,97 @@
+"""A features run (predictions=features): per-pixel embeddings diffused on the point graph and
+queried with the taxonomy's names."""
+import numpy as np
+import pytest
+
+from diffuser_lab.config import default_config
+from diffuser_lab.data.predictions import with_predictions
+from diffuser_lab.runs.pipeline import run
+
+SMALL = {"scene.demo.n_views": 12, "scene.demo.point_spacing": 0.07}
+CLEAN = {"predictions.source": "features", "predictions.strength": 0.0, "predictions.noise": 0.0,
+         "predictions.rotation_deg": 0.0, "predictions.boundary_mix": 0.0, "predictions.stride": 1,
+         "predictions.dim": 64}
+
+
+@pytest.mark.slow
+def test_prototypes_as_queries_reproduce_the_label_paths_labels_on_clean_input(small_demo_scene):
+    labels = run(default_config(**SMALL, **{"predictions.source": "gt"}), scene=small_demo_scene)
+    feats = run(default_config(**SMALL, **CLEAN), scene=small_demo_scene)
+    assert feats.lifted is not None and feats.lifted.method.shape == (feats.work_points.shape[0], 64)
+    assert (feats.labels == labels.labels).mean() >= 0.995  # 99.93 % measured: near-ties of mixed points
+    assert (feats.bayesian_labels == labels.bayesian_labels).mean() >= 0.995
+    assert abs(feats.metrics["miou"] - labels.metrics["miou"]) < 0.5
+    assert feats.diffusion.iterations == labels.diffusion.iterations
+
+
+@pytest.mark.slow
+def test_feature_files_give_the_simulated_networks_run(small_demo_scene, tmp_path):
+    """The same maps from .npz files (channel first, float16, a mask) as from the simulated network."""
+    cfg = default_config(**SMALL, **{"predictions.source": "features", "predictions.dim": 32})
+    sim = run(cfg, scene=small_demo_scene)
+    frames = with_predictions(small_demo_scene.frames, cfg.predictions, small_demo_scene.taxonomy)
+    for f in frames:
+        fmap = np.moveaxis(f.features, 2, 0)  # (D, h, w)
+        mask = np.isfinite(fmap).all(0)
+        np.savez(tmp_path / f"{f.name}.npz", features=np.nan_to_num(fmap).astype(np.float16), mask=mask)
+    files = run(default_config(**SMALL, **{"predictions.source": "features", "predictions.embeddings": "files",
+                                           "predictions.folder": str(tmp_path), "predictions.layout": "dhw",
+                                           "predictions.pattern": ["{name}.npz"], "predictions.dim": 32}),
+                scene=small_demo_scene)
+    np.testing.assert_array_equal(files.labels, sim.labels)
+    np.testing.assert_allclose(files.lifted.method, sim.lifted.method, rtol=1e-5, atol=1e-12)
+
+
+def test_a_frame_without_a_feature_map_in_a_features_run_is_one_error(small_demo_scene, tmp_path):
+    cfg = default_config(**SMALL, **{"predictions.source": "features", "predictions.embeddings": "files",
+                                     "predictions.folder": str(tmp_path), "predictions.dim": 32})
+    np.save(tmp_path / f"{small_demo_scene.frames[0].name}.npy", np.zeros((4, 5, 8), np.float32))
+    with pytest.raises(FileNotFoundError, match=small_demo_scene.frames[1].name):
+        run(cfg, scene=small_demo_scene)
+
+
+@pytest.mark.slow
+def test_baselines_side_by_side_and_the_single_frame_protocol(small_demo_scene):
+    cfg = default_config(**SMALL, **{"predictions.source": "features", "predictions.dim": 64})
+    res = run(cfg, scene=small_demo_scene)
+    assert {"bayesian", "best_view"} <= set(res.baseline)  # the average of features is the bayesian row
+    assert res.metrics["miou"] > res.baseline["bayesian"]["miou"] > 0
+    assert res.baseline["best_view"]["miou"] > 0
+    assert set(res.metrics["calibration"]) == {"diffuser", "bayesian", "best_view"}
+    seen = res.evidence.links > 0
+    assert np.abs(res.lifted.best_view[~seen].astype(np.float32)).max() == 0
+    np.testing.assert_allclose(np.linalg.norm(res.lifted.best_view[seen].astype(np.float32), axis=1), 1, atol=2e-3)
+
+    from diffuser_lab.runs.single_frame import single_frame
+
+    sf = single_frame(default_config(**SMALL, **{"predictions.source": "features", "predictions.dim": 64,
+                                                 "protocol.name": "single_frame", "protocol.max_targets": 3}),
+                      scene=small_demo_scene)
+    rows = {(r["method"], r["views"]): r["miou"] for r in sf.rows}
+    assert rows[("diffuser", 5)] > rows[("bayesian", 5)] and rows[("diffuser", 5)] > rows[("direct", 1)]
+    assert sf.predictions_2d is None  # no 2D labels to score in a features run
+
+
+@pytest.mark.slow
+def test_the_command_line_writes_features_and_the_query_command_relabels_the_run(tmp_path):
+    import json
+    import subprocess
+    import sys
+
+    from conftest import SMALL_DEMO, run_cli
+
+    run_dir = tmp_path / "run"
+    p = run_cli("predictions=features", "predictions.dim=32", *SMALL_DEMO, "record=off", f"hydra.run.dir={run_dir}")
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert "average (baseline)" in p.stdout and "best view (baseline)" in p.stdout
+    s = json.loads((run_dir / "summary.json").read_text())
+    F = np.load(run_dir / "features.npy")
+    assert F.shape == (s["n_points"], 32) and F.dtype == np.float16 and s["features"]["dim"] == 32
+    assert s["class_names"][0] == "wall" and {"bayesian", "best_view"} <= set(s["baseline"])
+    q = subprocess.run([sys.executable, "-m", "diffuser_lab.cli.query", str(run_dir), "--queries",
+                        str(run_dir / "queries.npz")], capture_output=True, text=True)
+    assert q.returncode == 0, q.stderr
+    same = np.load(run_dir / "query_labels.npy") == np.load(run_dir / "labels.npy")
+    assert same.mean() > 0.999  # float16 features: a near-tie may flip
+    assert json.loads((run_dir / "query.json").read_text())["metrics"]["diffuser"]["miou"] == \
+        pytest.approx(s["metrics"]["miou"], abs=0.2)
