@@ -88,15 +88,25 @@ FEATURE_CHUNK = 16384
 """Points whose features are sampled at once (bounds the (chunk, D) float32 temporaries)."""
 
 
+def prepare_features(fmap: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A feature map (h, w, D) (NaN = no feature) -> ((h * w, D) float32 with 0 for missing cells,
+    (h, w) bool cells with a feature): what :func:`sample_features` reads, made once per frame."""
+    valid = np.isfinite(fmap).all(axis=2)
+    flat = np.asarray(fmap, np.float32).reshape(-1, fmap.shape[2])
+    if not valid.all():
+        flat = np.where(valid.reshape(-1, 1), flat, np.float32(0))
+    return flat, valid
+
+
 def sample_features(fmap: np.ndarray, rows: np.ndarray, cols: np.ndarray, shape: tuple[int, int],
-                    valid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                    prepared: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Bilinear samples of a feature map at pixel centres of a (H, W) image.
 
     Args:
         fmap: (h, w, D) float16/float32 features covering the same field of view as the (H, W)
             image (a network's patch grid, or the image's own resolution); NaN = no feature.
         rows, cols: (M,) int pixel coordinates in the (H, W) image.
-        valid: (h, w) bool cells with a feature (default: all channels finite).
+        prepared: :func:`prepare_features` of ``fmap`` (made here when None).
     Returns:
         (M, D) float32 unit features (0 rows where unusable) and (M,) bool usable: the pixel centre
         ``(c + 0.5) w / W - 0.5`` (align_corners=False, as torch and OpenCV resize) interpolated from
@@ -104,8 +114,7 @@ def sample_features(fmap: np.ndarray, rows: np.ndarray, cols: np.ndarray, shape:
     """
     h, w, D = fmap.shape
     H, W = shape
-    if valid is None:
-        valid = np.isfinite(fmap).all(axis=2)
+    flat, valid = prepare_features(fmap) if prepared is None else prepared
     y = np.clip((rows + 0.5) * (h / H) - 0.5, 0, h - 1)
     x = np.clip((cols + 0.5) * (w / W) - 0.5, 0, w - 1)
     y0, x0 = np.floor(y).astype(np.int64), np.floor(x).astype(np.int64)
@@ -116,8 +125,9 @@ def sample_features(fmap: np.ndarray, rows: np.ndarray, cols: np.ndarray, shape:
     for yy, xx, wt in ((y0, x0, (1 - wy) * (1 - wx)), (y0, x1, (1 - wy) * wx),
                        (y1, x0, wy * (1 - wx)), (y1, x1, wy * wx)):
         wt = np.where(valid[yy, xx], wt, np.float32(0))
-        use = np.flatnonzero(wt > 0)
-        acc[use] += wt[use, None] * np.nan_to_num(fmap[yy[use], xx[use]].astype(np.float32))
+        part = np.take(flat, yy * w + xx, axis=0)
+        part *= wt[:, None]
+        acc += part
         total += wt
     f, ok = normalised(acc)
     return f, ok & (total > 0)
@@ -157,7 +167,7 @@ def _add_features(ev: Evidence, points: np.ndarray, frame: Frame, depth_tol: flo
     idx, rows, cols = visible_projection(points, frame, depth_tol)
     ev.points_per_frame.append(int(idx.size))
     h, w = frame.shape
-    valid = np.isfinite(fmap).all(axis=2)
+    prepared = prepare_features(fmap)
     r = pixel_radius
     for dr in range(-r, r + 1):
         for dc in range(-r, r + 1):
@@ -166,7 +176,7 @@ def _add_features(ev: Evidence, points: np.ndarray, frame: Frame, depth_tol: flo
             i, rr, cc = idx[ok], rr[ok], cc[ok]
             for lo in range(0, i.size, FEATURE_CHUNK):  # each point once per offset: no repeated rows
                 sl = slice(lo, lo + FEATURE_CHUNK)
-                f, good = sample_features(fmap, rr[sl], cc[sl], (h, w), valid)
+                f, good = sample_features(fmap, rr[sl], cc[sl], (h, w), prepared)
                 ev.mass[i[sl][good]] += f[good]
                 ev.links[i[sl][good]] += 1
                 if best is not None and dr == 0 and dc == 0:
