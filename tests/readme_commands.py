@@ -121,6 +121,8 @@ def classify(c: Command) -> Command:
             c.append = SINGLE_FRAME_SMALL
     elif "diffuser-lab-inspect" in t:
         c.key = "inspect"
+    elif "diffuser-lab-query" in t:
+        c.key = "query"
     elif "diffuser-lab-bench" in t:
         c.key = "bench"
     elif "-m analysis." in t:

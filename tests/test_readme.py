@@ -127,6 +127,9 @@ def check_run(c: Command, p, work):
         assert re.search(r"^diffuser-lab \| scene ", p.stdout, re.M)
         if s["metrics"] is None:  # no ground truth: what was labelled, as the README says
             assert "no ground truth: no mIoU; diffuser labelled" in p.stdout, p.stdout[-2000:]
+        elif "features" in s:  # a features run: its baselines, the files diffuser-lab-query reads
+            assert "average (baseline)" in p.stdout and "best view (baseline)" in p.stdout, p.stdout[-2000:]
+            assert {"features", "features_average", "queries", "gt_labels"} <= set(s["files"]), s["files"]
         else:
             assert "bayesian (baseline)" in p.stdout, p.stdout[-2000:]
     if "LAB_FOLDER" in c.text:
@@ -285,7 +288,15 @@ def check_quick(c: Command, p, work):
     assert "tests/test_readme.py::test_readme_command[" not in p.stdout
 
 
-CHECKS = {"run": check_run, "quick": check_quick, "sweep": check_sweep, "multirun": check_multirun, "analysis": check_analysis,
+def check_query(c: Command, p, work):
+    """The relabelled run's table (Diffuser and both baselines) and its files, next to the run's."""
+    assert re.search(r"^diffuser\s+[\d.]+\s+[\d.]+", p.stdout, re.M), p.stdout[-2000:]
+    assert "average (baseline)" in p.stdout and "best view (baseline)" in p.stdout
+    run_dir = work["repo"] / resolve(c.text, work).split()[1]
+    assert (run_dir / "query_labels.npy").is_file() and (run_dir / "query.json").is_file()
+
+
+CHECKS = {"run": check_run, "quick": check_quick, "query": check_query, "sweep": check_sweep, "multirun": check_multirun, "analysis": check_analysis,
           "inspect": check_inspect, "bench": check_bench, "pip": check_pip,
           "cfg": lambda c, p, w: "graph:" in p.stdout or pytest.fail(p.stdout[-1000:])}
 
