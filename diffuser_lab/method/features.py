@@ -26,9 +26,11 @@ and it is what keeps the encoding non-negative.
 """
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
-__all__ = ["encode", "decode", "normalised", "class_scores", "CLIP_TEMPERATURE"]
+__all__ = ["encode", "decode", "normalised", "diffuse_features", "class_scores", "CLIP_TEMPERATURE"]
 
 
 def normalised(f: np.ndarray, axis: int = -1) -> tuple[np.ndarray, np.ndarray]:
@@ -41,31 +43,78 @@ def normalised(f: np.ndarray, axis: int = -1) -> tuple[np.ndarray, np.ndarray]:
     return out, ok
 
 
-def encode(F: np.ndarray, n: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-    """(N, D) sums of unit pixel features and (N,) their counts -> (N, D + 1) float32 non-negative
-    pixel mass for the diffusion core (module docstring); ``out`` (N, D + 1) float32 may be given."""
+def encode(F: np.ndarray, n: np.ndarray, out: np.ndarray | None = None, dim: int | None = None) -> np.ndarray:
+    """(N, B) sums of unit pixel features and (N,) their counts -> (N, B + 1) float32 non-negative
+    pixel mass for the diffusion core (module docstring), whose rows sum to the counts.
+
+    ``dim``: the features' D when ``F`` holds B of its columns (a block, :func:`diffuse_features`):
+    the B columns are scaled by 1 / 2D and the last column is the balance ``n - sum``, so a block's
+    rows still sum to the counts and it diffuses through the same system. ``out`` (N, B + 1) float32
+    may be given."""
     F = np.asarray(F, np.float32)
-    N, D = F.shape
+    N, B = F.shape
+    D = B if dim is None else int(dim)
     n = np.asarray(n, np.float32).reshape(N, 1)
-    out = np.empty((N, D + 1), np.float32) if out is None else out
+    out = np.empty((N, B + 1), np.float32) if out is None else out
     s = np.float32(1.0 / (2 * D))
-    np.add(F, n, out=out[:, :D])
-    out[:, :D] *= s
-    out[:, D] = 0.5 * n[:, 0] - F.sum(1, dtype=np.float64).astype(np.float32) * s
+    np.add(F, n, out=out[:, :B])
+    out[:, :B] *= s
+    out[:, B] = n[:, 0] - out[:, :B].sum(1, dtype=np.float64).astype(np.float32)
     np.maximum(out, 0, out=out)  # float rounding only: exact values are >= 0
     return out
 
 
-def decode(Z: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-    """(N, D + 1) diffused encoded mass -> (N, D) float32 diffused feature sums (module docstring)."""
+def decode(Z: np.ndarray, out: np.ndarray | None = None, dim: int | None = None) -> np.ndarray:
+    """(N, B + 1) diffused encoded mass -> (N, B) float32 diffused feature sums (module docstring;
+    ``dim``: D when the columns are a block of it, as :func:`encode`'s)."""
     Z = np.asarray(Z, np.float32)
-    D = Z.shape[1] - 1
+    B = Z.shape[1] - 1
+    D = B if dim is None else int(dim)
     total = Z.sum(1, dtype=np.float64).astype(np.float32)
-    out = np.empty((Z.shape[0], D), np.float32) if out is None else out
-    np.multiply(Z[:, :D], np.float32(2 * D), out=out)
+    out = np.empty((Z.shape[0], B), np.float32) if out is None else out
+    np.multiply(Z[:, :B], np.float32(2 * D), out=out)
     out -= total[:, None]
     return out
 
+
+STATE_BYTES = 1 << 30
+"""A features diffusion runs all D columns at once while its state (B, Z and Z's next step:
+3 x N x (D + 1) float32) fits this; beyond it, in blocks of :data:`BLOCK` columns."""
+BLOCK = 128
+
+
+def diffuse_features(graph, F: np.ndarray, n: np.ndarray, pixel_weight: float, solver, observer=None,
+                     block: int | None = None):
+    """Diffuse (N, D) feature sums ``F`` (pixel counts ``n`` (N,)) over ``graph`` with the solver
+    config ``solver`` (:func:`diffuser_lab.method.solvers.solve`), through the unchanged core.
+
+    All columns at once when the state fits :data:`STATE_BYTES` and no ``block`` is given
+    (``observer`` sees every recorded iteration, encoded); otherwise in blocks of ``block`` (default
+    :data:`BLOCK`) columns, each with its balance column (:func:`encode` ``dim``): the same system,
+    so a column diffuses as it would at once; the first block runs the early stop and the others
+    the same number of iterations (``observer`` is not called: the intermediate state never exists
+    whole), and ``F`` is overwritten block by block with the result (the peak memory: ~F plus one block).
+
+    Returns (N, D) float32 the diffused feature sums and the (first) DiffusionResult (its ``Z``:
+    the encoded scores of all columns at once, or None in blocks)."""
+    from .diffusion import normalise
+    from .solvers import solve
+
+    N, D = F.shape
+    if block is None and 3 * 4 * N * (D + 1) <= STATE_BYTES:
+        res = solve(normalise(graph, encode(F, n), pixel_weight), solver, observer=observer)
+        return decode(res.Z), res
+    block = int(block or BLOCK)
+    F = np.ascontiguousarray(F, np.float32)
+    first = None
+    for lo in range(0, D, block):
+        hi = min(D, lo + block)
+        cfg = solver if first is None else dataclasses.replace(solver, max_iter=max(first.iterations, 1), tol=0.0)
+        res = solve(normalise(graph, encode(F[:, lo:hi], n, dim=D), pixel_weight), cfg)
+        F[:, lo:hi] = decode(res.Z, dim=D)
+        first = first or res
+    first = dataclasses.replace(first, Z=None, info={**first.info, "feature_blocks": -(-D // block), "block": block})
+    return F, first
 
 CLIP_TEMPERATURE = 0.07
 """The temperature that turns cosines into class probabilities (CLIP's learned logit scale, 1/100

@@ -366,26 +366,29 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
     else:
         chosen = ev
     # a features run hands the core its features encoded as class-like masses (method/features.py)
-    mass = chosen.mass if lift is None else features_mod.encode(chosen.mass, chosen.links)
-    solver, to_labels = cfg.solver, labels_from_scores
+    solver = cfg.solver
     if lift is not None:  # every column is a feature's: no per-point class set
-        solver, to_labels = dataclasses.replace(cfg.solver, sparse_classes=SparseClasses.off), lift.encoded_labels
-        validate.check_memory(scene.n_points, pts.shape[0], mass.shape[1], cfg.graph.k, cfg.memory_budget_gb, 0)
+        solver = dataclasses.replace(cfg.solver, sparse_classes=SparseClasses.off)
+        lift.average = features_mod.normalised(ev_base.mass)[0].astype(np.float16)  # before F is diffused in place
+        lift.best_view = evidence.best.features
     if method.graph:
         tg = time.perf_counter()
         with graph_stage(pts.shape[0], cfg.graph, cfg.graph.use_normals and nrm is None):
             nrm, graph = make_graph(pts, nrm, cfg.graph)
-            system = normalise(graph, mass, cfg.evidence.pixel_weight)
+            if lift is None:
+                system = normalise(graph, chosen.mass, cfg.evidence.pixel_weight)
         t["graph"] = time.perf_counter() - tg
     td = time.perf_counter()
-    work_labels, diff = method.label(mass, system=system, solver=solver, observer=_Observe(hooks, observer, lift),
-                                     labels=to_labels)
-    if lift is not None:  # the result's Z: the queries' class scores, as its observers saw
-        lift.method = features_mod.decode(diff.Z) if diff is not None else chosen.mass
-        lift.average = ev_base.mass
-        lift.best_view = evidence.best.features
-        if diff is not None:
-            diff = dataclasses.replace(diff, Z=lift.scores(lift.method))
+    if lift is None:
+        work_labels, diff = method.label(chosen.mass, system=system, solver=solver, observer=_Observe(hooks, observer))
+    elif method.graph:  # through the unchanged core, encoded (method/features.py), in blocks when large
+        lift.method, diff = features_mod.diffuse_features(graph, chosen.mass, chosen.links, cfg.evidence.pixel_weight,
+                                                          solver, observer=_Observe(hooks, observer, lift))
+        work_labels = lift.labels(lift.method)
+        diff = dataclasses.replace(diff, Z=lift.scores(lift.method))  # the class scores its observers saw
+    else:
+        lift.method = chosen.mass
+        work_labels, diff = lift.labels(chosen.mass), None
     if method.graph:
         t["diffusion"] = time.perf_counter() - td
 

@@ -93,3 +93,26 @@ def test_normalised_drops_nan_and_zero_features():
     f, ok = normalised(np.array([[3.0, 4.0], [0, 0], [np.nan, 1]]))
     assert ok.tolist() == [True, False, False]
     np.testing.assert_allclose(f, [[0.6, 0.8], [0, 0], [0, 0]])
+
+
+def test_features_in_blocks_diffuse_as_all_columns_at_once():
+    """Each block carries its balance column, so its rows' masses are the pixel counts: the same
+    system; with the first block's iteration count the result is the all-at-once one."""
+    from diffuser_lab.config import SolverConfig
+    from diffuser_lab.method.features import diffuse_features
+
+    rng = np.random.default_rng(4)
+    pts = rng.random((2000, 3)).astype(np.float32)
+    graph = build_graph(pts, 12, None)
+    D = 40
+    n = (rng.random(2000) < 0.4) * rng.integers(1, 4, 2000)
+    F = np.stack([_unit(rng, (3, D))[:k].sum(0) for k in n]).astype(np.float32)
+    solver = SolverConfig(max_iter=300, tol=1e-4, backend="scipy", sparse_classes="off")
+    whole, r1 = diffuse_features(graph, F.copy(), n, 1e-4, solver)
+    parts, r2 = diffuse_features(graph, F.copy(), n, 1e-4, solver, block=16)
+    assert r2.info["feature_blocks"] == 3 and r2.Z is None
+    exact, _ = diffuse_features(graph, F.copy(), n, 1e-4,
+                                SolverConfig(max_iter=r2.iterations, tol=0.0, backend="scipy", sparse_classes="off"))
+    scale = np.abs(exact).max()
+    assert np.abs(parts - exact).max() <= 1e-4 * scale  # float32: rounding of the encodings differs
+    assert abs(r1.iterations - r2.iterations) <= 0.1 * r1.iterations  # the first block's stop is the whole one's, near enough
