@@ -160,6 +160,7 @@ class OnnxOutput(Enum):
     logits = "logits"  # class scores, softmax applied here
     probs = "probs"  # class probabilities (softmax inside the graph)
     ids = "ids"  # class ids (argmax inside the graph), (1, H, W) or (H, W)
+    features = "features"  # per-pixel embeddings (1, D, h, w) or (1, h, w, D): predictions=features
 
 
 class NormalSign(Enum):
@@ -550,7 +551,8 @@ class PredictionsConfig(Section):
     onnx: Optional[OnnxConfig] = None  # onnx: set by conf/predictions/onnx.yaml
     cache_dir: Optional[str] = "~/.cache/diffuser-lab/predictions"  # model / onnx outputs; null = no cache
     # features (predictions=features): per-pixel embeddings instead of labels, queried with words (docs/features.md)
-    embeddings: str = key("simulated", rule("simulated or files", lambda v: v in ("simulated", "files")))  # features: the simulated network, or files in predictions.folder
+    embeddings: str = key("simulated", rule("simulated, files, model or onnx", lambda v: v in (
+        "simulated", "files", "model", "onnx")))  # features: the simulated network, files in predictions.folder, a callable or ONNX network (predictions.model / predictions.onnx)
     dim: int = key(512, within(8, 1024))  # features, simulated: the embedding's dimension D
     stride: int = key(8, within(1, 64, steps=True))  # features, simulated: pixels per patch of the network's grid
     embedding_seed: int = 0  # features, simulated: the class prototypes' seed (the default queries are the prototypes)
@@ -573,12 +575,15 @@ class PredictionsConfig(Section):
         for p in self.pattern:
             _check(_FILE_NAME.ok(p), "predictions.pattern", p, _FILE_NAME.expected)
         _check(len(self.pattern) >= 1, "predictions.pattern", self.pattern, "at least one file name")
-        if self.source == "model":
+        if self.source == "model" or (self.source == "features" and self.embeddings == "model"):
             target = (self.model or {}).get("_target_")
             _check(isinstance(target, str) and bool(target.strip()), "predictions.model._target_", target,
                    "a Python callable's import path (pkg.module.name) for predictions=model")
         if self.source == "onnx" and self.onnx is None:
             raise ConfigError("predictions.onnx.path is required for predictions=onnx (pass predictions.onnx.path=...)")
+        if self.source == "features" and self.embeddings == "onnx" and self.onnx is None:
+            raise ConfigError("predictions.onnx.path is required for predictions.embeddings=onnx "
+                              "(predictions=features_onnx predictions.onnx.path=FILE.onnx)")
 
 
 @dataclass

@@ -42,3 +42,19 @@ class GreyWithDepth:
 def make_grey(cuts=(60, 120, 180)):
     """A factory target: needs no frame, returns the per-frame callable."""
     return lambda rgb: grey_levels(rgb, cuts)
+
+
+def grey_embeddings(rgb, dim=16, stride=4):
+    """Embeddings (dim, H/stride, W/stride) float32, channel first like a CNN's: the soft grey
+    classes of :func:`soft_grey` times fixed random unit prototypes (a toy feature network)."""
+    CALLS["n"] += 1
+    p = soft_grey(rgb[::stride // 2, ::stride // 2])  # (H/stride, W/stride, 4)
+    E = np.random.default_rng(7).normal(size=(4, dim)).astype(np.float32)
+    E /= np.linalg.norm(E, axis=1, keepdims=True)
+    return np.moveaxis(p @ E, 2, 0)
+
+
+def grey_embedding_queries(names):
+    """The prototypes of :func:`grey_embeddings` for the first four names (a toy text encoder)."""
+    E = np.random.default_rng(7).normal(size=(4, 16)).astype(np.float32)
+    return (E / np.linalg.norm(E, axis=1, keepdims=True))[: len(names)]

@@ -30,6 +30,7 @@ that is not cached. What is NOT in the key: the content of weight files a callab
 """
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import inspect
 import json
@@ -227,6 +228,8 @@ class OnnxModel:
         if cfg.output_layout == TensorLayout.nchw:
             out = np.moveaxis(out, 0, 2)
         out = out.astype(np.float32)
+        if cfg.output == OnnxOutput.features:  # embeddings: as they are (predictions=features)
+            return out
         if cfg.output == OnnxOutput.logits:
             out = np.exp(out - out.max(axis=2, keepdims=True))
             out /= out.sum(axis=2, keepdims=True)
@@ -274,6 +277,24 @@ def as_output(raw: Any, what: str) -> np.ndarray:
         return arr.astype(np.float16).astype(np.float32)
     raise ValueError(f"{what}: output of shape {arr.shape} dtype {arr.dtype}, expected (H, W) integer class ids "
                      f"or (H, W, C) float class probabilities")
+
+
+def as_features(raw: Any, what: str, layout: str = "auto") -> np.ndarray:
+    """A network's raw embedding output -> (h, w, D) float16 (what the cache keeps; NaN = no
+    feature): (h, w, D) or (D, h, w) as ``layout`` (``predictions.layout``: auto, hwd, dhw) says."""
+    try:
+        arr = np.asarray(raw)
+    except Exception as exc:  # noqa: BLE001 - e.g. a CUDA tensor
+        raise ValueError(f"{what}: output of type {type(raw).__name__} is not an array "
+                         f"({type(exc).__name__}; return a numpy array or CPU tensor)") from None
+    if arr.ndim == 4 and arr.shape[0] == 1:
+        arr = arr[0]
+    if arr.ndim != 3 or arr.dtype.kind != "f":
+        raise ValueError(f"{what}: output of shape {arr.shape} dtype {arr.dtype}, expected (h, w, D) or (D, h, w) "
+                         f"float embeddings (predictions=features)")
+    if layout == "dhw" or (layout == "auto" and arr.shape[0] < min(arr.shape[1:])):
+        arr = np.moveaxis(arr, 0, 2)
+    return np.ascontiguousarray(arr, np.float16)
 
 
 def translate(out: np.ndarray, mapping: Optional[ClassMapping], taxonomy: Taxonomy,
@@ -384,6 +405,8 @@ class _DiskCache:
             return None
         try:
             with np.load(path, allow_pickle=False) as z:
+                if "features" in z.files:
+                    return z["features"].astype(np.float16)
                 arr = z["ids"] if "ids" in z.files else z["probs"]
                 return arr.astype(np.int64) if "ids" in z.files else arr.astype(np.float32)
         except Exception:  # noqa: BLE001 - a torn or foreign file: computed again and replaced
@@ -392,7 +415,9 @@ class _DiskCache:
     def save(self, path: Optional[Path], out: np.ndarray) -> None:
         if path is None:
             return
-        if out.ndim == 2:
+        if out.dtype == np.float16:  # a feature map (predictions=features)
+            arrays = {"features": out}
+        elif out.ndim == 2:
             lo, hi = (int(out.min()), int(out.max())) if out.size else (0, 0)
             dtype = next(t for t in (np.uint8, np.int16, np.int32, np.int64)
                          if np.iinfo(t).min <= lo and hi <= np.iinfo(t).max)
@@ -430,8 +455,9 @@ class NetworkPredictor:
 
     def __init__(self, build: Callable[[], Callable], key: str, ident: dict, label: str, *,
                  cache_dir: Optional[str], scene_name: str, pass_depth: bool,
-                 mapping: Optional[ClassMapping], taxonomy: Taxonomy):
+                 mapping: Optional[ClassMapping], taxonomy: Taxonomy, features: Optional[str] = None):
         self._build, self.label, self._model = build, label, None
+        self.features = features  # predictions=features: the output's layout (auto, hwd, dhw); None: labels
         self.cache = _DiskCache(cache_dir, key, ident)
         self.scene_name, self.pass_depth = scene_name, pass_depth
         self.mapping, self.taxonomy = mapping, taxonomy
@@ -447,8 +473,6 @@ class NetworkPredictor:
         return self._model
 
     def __call__(self, i: int, f):
-        import dataclasses
-
         if f.rgb is None:
             raise ValueError(f"frame {f.name}: no colour image for the network ({self.label}); the scene's "
                              f"frames need RGB (e.g. scene.rgbd_folder.color_suffix)")
@@ -471,11 +495,13 @@ class NetworkPredictor:
                     raise
                 raise ValueError(f"{what} failed ({type(exc).__name__}: "
                                  f"{str(exc).splitlines()[0] if str(exc) else ''})") from exc
-            out = as_output(raw, what)
+            out = as_output(raw, what) if self.features is None else as_features(raw, what, self.features)
             self.cache.save(path, out)
             self.stats["model_calls"] += 1
         elif first:
             self.stats["cached_frames"] += 1
+        if self.features is not None:
+            return dataclasses.replace(f, labels=None, probs=None, features=out)
         labels, probs, n_unmapped = translate(out, self.mapping, self.taxonomy, f.shape, what)
         if first:
             self.stats["label_frames" if probs is None else "probability_frames"] += 1
@@ -484,29 +510,36 @@ class NetworkPredictor:
 
 
 def model_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy: Taxonomy,
-                      scene_name: str = "") -> LazyFrames:
+                      scene_name: str = "", features: bool = False) -> LazyFrames:
     """``predictions=model``: frames whose labels or probabilities are the Python callable's
-    (lazily, per frame; see the module doc)."""
+    (lazily, per frame; see the module doc); ``features``: its (h, w, D) / (D, h, w) embeddings
+    (``predictions=features predictions.embeddings=model``)."""
     spec = cfg.model if isinstance(cfg.model, dict) else OmegaConf.to_container(cfg.model, resolve=True)
     spec = dict(spec)
     check_target(spec)  # a wrong import path stops here, before any frame
     key, ident = model_key(spec, cfg.pass_depth)
     return _predicted(frames, cfg, taxonomy, scene_name, lambda: build_callable(spec), key, ident,
-                      f"model {spec['_target_']}", cfg.pass_depth)
+                      f"model {spec['_target_']}", cfg.pass_depth, features)
 
 
 def onnx_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy: Taxonomy,
-                     scene_name: str = "") -> LazyFrames:
+                     scene_name: str = "", features: bool = False) -> LazyFrames:
     """``predictions=onnx``: frames whose labels or probabilities are the ONNX network's (lazily,
-    per frame; see the module doc)."""
-    key, ident = onnx_key(cfg.onnx)
-    return _predicted(frames, cfg, taxonomy, scene_name, lambda: OnnxModel(cfg.onnx), key, ident,
-                      f"ONNX network {Path(cfg.onnx.path).name}", False)
+    per frame; see the module doc); ``features``: its embeddings (``predictions.onnx.output`` is
+    then taken as ``features``)."""
+    onnx = dataclasses.replace(cfg.onnx, output=OnnxOutput.features) if features else cfg.onnx
+    key, ident = onnx_key(onnx)
+    return _predicted(frames, cfg, taxonomy, scene_name, lambda: OnnxModel(onnx), key, ident,
+                      f"ONNX network {Path(cfg.onnx.path).name}", False, features)
 
 
 def _predicted(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy: Taxonomy, scene_name: str,
-               build: Callable[[], Callable], key: str, ident: dict, label: str, pass_depth: bool) -> LazyFrames:
-    mapping = load_mapping(cfg.mapping, taxonomy) if cfg.mapping else None
+               build: Callable[[], Callable], key: str, ident: dict, label: str, pass_depth: bool,
+               features: bool = False) -> LazyFrames:
+    mapping = load_mapping(cfg.mapping, taxonomy) if cfg.mapping and not features else None
+    if features:  # a feature map is another cache entry than the same network's labels
+        key, ident = _digest(key.encode(), b"features")[:20], {**ident, "features": True}
     pred = NetworkPredictor(build, key, ident, label, cache_dir=cfg.cache_dir, scene_name=scene_name,
-                            pass_depth=pass_depth, mapping=mapping, taxonomy=taxonomy)
+                            pass_depth=pass_depth, mapping=mapping, taxonomy=taxonomy,
+                            features=cfg.layout if features else None)
     return LazyFrames.mapped(frames, pred, stats=pred.stats)

@@ -134,8 +134,10 @@ def feature_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonom
                         scene_name: str = "") -> LazyFrames:
     """Per-pixel embeddings (``Frame.features``, (h, w, D) at the network's resolution) instead of
     labels: the simulated embedding network (:mod:`diffuser_lab.data.embeddings`) on the configured
-    simulated mistakes (predictions=features starts from predictions=realistic's), or a network's
-    ``.npy`` / ``.npz`` files in ``predictions.folder`` (``predictions.npz_key``, ``predictions.layout``)."""
+    simulated mistakes (predictions=features starts from predictions=realistic's), a network's
+    ``.npy`` / ``.npz`` files in ``predictions.folder`` (``predictions.npz_key``, ``predictions.layout``),
+    or a network run on each frame's RGB (``predictions.model`` / ``predictions.onnx``; cached per
+    model and frame as float16, :mod:`diffuser_lab.data.networks`)."""
     if cfg.embeddings == "files":
         if not cfg.folder:
             raise ValueError("predictions.folder is required for predictions.embeddings=files")
@@ -151,6 +153,10 @@ def feature_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonom
             return dataclasses.replace(f, labels=None, probs=None, features=fmap)
 
         return LazyFrames.mapped(frames, from_file)
+    if cfg.embeddings == "model":
+        return model_predictions(frames, cfg, taxonomy, scene_name, features=True)
+    if cfg.embeddings == "onnx":
+        return onnx_predictions(frames, cfg, taxonomy, scene_name, features=True)
     from .embeddings import prototypes, simulate_features
 
     protos = prototypes(taxonomy.names, dim=cfg.dim, seed=cfg.embedding_seed)
@@ -169,6 +175,10 @@ def feature_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonom
 def _describe_features(cfg: PredictionsConfig) -> str:
     if cfg.embeddings == "files":
         return f"2D features from {cfg.folder}"
+    if cfg.embeddings == "model":
+        return f"2D features of {(cfg.model or {}).get('_target_')}"
+    if cfg.embeddings == "onnx":
+        return f"2D features of {Path(cfg.onnx.path).name} (onnx)"
     return f"simulated {cfg.dim}-D features"
 
 

@@ -369,3 +369,39 @@ def test_onnx_nhwc_bgr(scene, mapping_csv, tmp_path):
     f = frames[3]
     ref = numpy_net(f.rgb[..., ::-1], np.array(mean, np.float32), np.array(std, np.float32))
     np.testing.assert_allclose(f.probs, map_columns(ref), atol=2e-3)
+
+
+@needs_7scenes
+def test_features_of_a_callable_and_of_an_onnx_network_cached_per_frame(scene, tmp_path):
+    """predictions=features with embeddings=model / onnx: the network's (D, h, w) output is the frame's
+    feature map (float16, as cached), a second run reads the cache, the labels come from the queries."""
+    from diffuser_lab.data.embeddings import write_queries
+    from diffuser_lab.runs.pipeline import run
+    from toy_networks import grey_embedding_queries
+
+    names = ["chair", "wall", "floor", "table"]
+    queries = write_queries(tmp_path / "q.npz", names, grey_embedding_queries(names))
+    cache = tmp_path / "cache"
+    ov = [*scene_overrides(), "predictions=features_model", "predictions.model._target_=toy_networks.grey_embeddings",
+          f"predictions.queries={queries}",
+          f"predictions.cache_dir={cache}"]
+    frames, st = frames_of(scene, *ov[len(scene_overrides()):])
+    f0 = frames[0]
+    assert f0.features.dtype == np.float16 and f0.features.shape[2] == 16 and f0.labels is None
+    assert f0.features.shape[:2] == (-(-f0.shape[0] // 4), -(-f0.shape[1] // 4))
+    n0 = CALLS["n"]
+    res = run(compose(*ov), scene=scene)
+    assert CALLS["n"] == n0 and res.predictions_stats["cached_frames"] == 5  # all from the cache
+    labelled = res.labels[res.labels != IGNORE]
+    assert labelled.size > 0.9 * scene.n_points
+    assert set(np.unique(labelled)) <= {SCANNET20.names.index(n) for n in names}
+
+    W8 = np.concatenate([W4, -W4]) * 0.5
+    path = tiny_onnx(tmp_path / "feat.onnx", W8, np.zeros(8, np.float32), head="none")
+    frames, st = frames_of(scene, "predictions=features_onnx", f"predictions.onnx.path={path}",
+                           f"predictions.cache_dir={cache}", f"predictions.queries={queries}")
+    fmap = frames[0].features
+    assert fmap.shape == frames[0].shape + (8,) and fmap.dtype == np.float16 and st["model_calls"] == 5
+    rgb = frames[0].rgb.astype(np.float32) / 255.0
+    want = ((rgb - MEAN) / STD) @ W8.T
+    np.testing.assert_allclose(fmap.astype(np.float32), want, rtol=2e-3, atol=2e-3)
