@@ -80,6 +80,11 @@ def gt_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy: Ta
 def simulated_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy: Taxonomy,
                           scene_name: str = "") -> LazyFrames:
     """Simulated 2D-network mistakes on the ground-truth label images (:mod:`diffuser_lab.data.simulate`)."""
+    return LazyFrames.mapped(frames, _simulated(cfg, taxonomy))
+
+
+def _simulated(cfg: PredictionsConfig, taxonomy: Taxonomy) -> Callable[[int, Frame], Frame]:
+    """``fn(i, frame)``: the frame with the simulated network's labels (frame ``i`` of the sequence)."""
     correlated = cfg.correlation == MistakeCorrelation.regions
 
     def fn(i: int, f: Frame) -> Frame:
@@ -96,7 +101,7 @@ def simulated_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxon
             view_gain=cfg.view_gain, output_stride=cfg.output_stride)
         return dataclasses.replace(f, labels=pred, probs=None)
 
-    return LazyFrames.mapped(frames, fn)
+    return fn
 
 
 def file_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy: Taxonomy,
@@ -160,10 +165,10 @@ def feature_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonom
     from .embeddings import prototypes, simulate_features
 
     protos = prototypes(taxonomy.names, dim=cfg.dim, seed=cfg.embedding_seed)
-    labelled = simulated_predictions(frames, cfg, taxonomy, scene_name)
+    labelled = _simulated(cfg, taxonomy)
 
     def simulated(i: int, f: Frame) -> Frame:
-        g = labelled[i]
+        g = labelled(i, f)
         fmap = simulate_features(g.labels, protos, np.random.default_rng([cfg.seed, i, 37]), stride=cfg.stride,
                                  boundary_mix=cfg.boundary_mix, rotation_deg=cfg.rotation_deg,
                                  rotation_dims=min(cfg.rotation_dims, cfg.dim), noise=cfg.noise)
