@@ -101,6 +101,7 @@ def _finish_tiled(result, cfg: Config, run_dir: Path, summary: report.SummaryFil
     t = time.perf_counter()
     files = write_labels(run_dir, result.scene.points, result.labels, result.scene.taxonomy, ply=cfg.output.labels_ply,
                          clouds=cfg.output.clouds)
+    files.update(result.files)
     result.timings_s["write"] = time.perf_counter() - t
     summary.data.update(tiled.summary(result, cfg))
     summary.update(records=records, files=files, status="incomplete" if result.failed else "ok")

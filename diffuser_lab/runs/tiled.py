@@ -44,6 +44,7 @@ from diffuser_lab.data.scene import IGNORE, Scene
 from diffuser_lab.data.taxonomy import resolve_taxonomy
 from diffuser_lab.hooks import RunHooks
 from diffuser_lab.method import fusion
+from diffuser_lab.method.features import normalised
 from diffuser_lab.method.graph import spacing_sum
 from diffuser_lab.method.metrics import score
 
@@ -92,6 +93,7 @@ class TiledResult:
     timings_s: dict = field(default_factory=dict)
     resumed_from: Optional[str] = None
     rho: Optional[float] = None  # the whole cloud's mean point spacing (sigma_d of every tile's graph from it)
+    files: dict = field(default_factory=dict)  # what the run wrote beside the tiles (a features run: features.npy)
 
     @property
     def failed(self) -> list[dict]:
@@ -247,8 +249,9 @@ def _specs(cfg: Config, scene: Scene, cells: _Cells, boxes: np.ndarray) -> list[
 
 
 def diffuse_tile(cfg: Config, inp: TileInput, frames, taxonomy, name: str, spec: TileSpec
-                 ) -> tuple[np.ndarray, np.ndarray, dict]:
-    """The pipeline on one tile: its own points' labels and Bayesian labels, and its record.
+                 ) -> tuple[np.ndarray, np.ndarray, dict, Optional[np.ndarray]]:
+    """The pipeline on one tile: its own points' labels and Bayesian labels, its record, and (a
+    features run) its own points' features, (own, D) float16 unit rows, else None.
     ``frames`` is the whole scene's frame sequence: the tile reads only ``spec.frames`` of it."""
     t0 = time.perf_counter()
     own, rows = inp.own, inp.rows
@@ -256,6 +259,7 @@ def diffuse_tile(cfg: Config, inp: TileInput, frames, taxonomy, name: str, spec:
            "frames_read": len(spec.frames), "iterations": 0}
     labels = np.full(own.size, IGNORE, np.int16)
     bayes = labels.copy()
+    feats = None
     if spec.frames:
         sub = Scene(name=f"{name} tile {spec.id}", points=inp.points, taxonomy=taxonomy,
                     frames=LazyFrames.subset(frames, spec.frames), normals=inp.normals)
@@ -264,13 +268,15 @@ def diffuse_tile(cfg: Config, inp: TileInput, frames, taxonomy, name: str, spec:
             res = pipeline.run(cfg, scene=sub)
         pos = np.searchsorted(rows, own)
         labels, bayes = res.labels[pos], res.bayesian_labels[pos]
+        if res.lifted is not None:  # a features run (method/features.py)
+            feats = normalised(res.lifted.method[res.rows[pos]])[0].astype(np.float16)
         rec["iterations"] = int(res.diffusion.iterations) if res.diffusion is not None else 0
         msgs = sorted({first_line(w.message) for w in caught})
         if msgs:
             rec["warnings"] = msgs
     rec.update(time_s=round(time.perf_counter() - t0, 3), node=socket.gethostname(), pid=os.getpid(),
                status="done", peak_rss_gb=round(_peak_rss_gb(), 3))
-    return labels, bayes, rec
+    return labels, bayes, rec, feats
 
 
 def _peak_rss_gb() -> float:
@@ -287,12 +293,14 @@ def _crc(own: np.ndarray) -> int:
 
 
 def write_tile(tiles_dir: Path, spec: TileSpec, own: np.ndarray, labels: np.ndarray, bayes: np.ndarray,
-               rec: dict) -> Path:
-    """``tiles/<id>.npz`` through a temporary file and os.replace (never half-written under its name)."""
+               rec: dict, features: Optional[np.ndarray] = None) -> Path:
+    """``tiles/<id>.npz`` through a temporary file and os.replace (never half-written under its name);
+    a features run's tile also keeps its points' features."""
     path = Path(tiles_dir) / f"{spec.id}.npz"
     buf = io.BytesIO()
+    extra = {} if features is None else {"features": features}
     np.savez(buf, labels=labels.astype(np.int16), bayesian=bayes.astype(np.int16), crc=np.int64(_crc(own)),
-             record=np.array(json.dumps(rec)))
+             record=np.array(json.dumps(rec)), **extra)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     with open(tmp, "wb") as fh:
         fh.write(buf.getvalue())
@@ -319,8 +327,8 @@ def read_tile(tiles_dir: Path, spec: TileSpec, own: np.ndarray) -> Optional[tupl
 
 
 def _run_tile(cfg: Config, inp: TileInput, frames, taxonomy, name: str, spec: TileSpec, tiles_dir: str) -> dict:
-    labels, bayes, rec = diffuse_tile(cfg, inp, frames, taxonomy, name, spec)
-    write_tile(Path(tiles_dir), spec, inp.own, labels, bayes, rec)
+    labels, bayes, rec, feats = diffuse_tile(cfg, inp, frames, taxonomy, name, spec)
+    write_tile(Path(tiles_dir), spec, inp.own, labels, bayes, rec, feats)
     return rec
 
 
@@ -442,9 +450,14 @@ def tiled(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHook
             records[spec.id] = dict(records[spec.id], status="error", error="its tile file is missing or damaged")
         if got is not None:
             labels[owns[spec.id]], bayes[owns[spec.id]] = got[0], got[1]
+    if run_dir is not None and cfg.predictions.source == "features":
+        res_files = _write_features(Path(run_dir), tiles_dir, specs, owns, scene.n_points)
+    else:
+        res_files = {}
     t["labels"] = time.perf_counter() - tl
     res = TiledResult(scene=scene, method=cfg.method.name, labels=labels, bayesian_labels=bayes, grid=shape,
-                      tiles=[records[s.id] for s in specs], tiles_dir=tiles_dir, resumed_from=tc.resume, rho=rho)
+                      tiles=[records[s.id] for s in specs], tiles_dir=tiles_dir, resumed_from=tc.resume, rho=rho,
+                      files=res_files)
     if scene.gt_labels is not None:
         tm = time.perf_counter()
         res.metrics = score(labels, scene.gt_labels, scene.taxonomy.names)
@@ -453,6 +466,31 @@ def tiled(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHook
     t["total"] = time.perf_counter() - t0
     res.timings_s = t
     return res
+
+
+def _write_features(run_dir: Path, tiles_dir: Path, specs, owns: dict, n: int) -> dict:
+    """A features run's ``features.npy`` (N, D) float16 from its tiles' files, written through a
+    memory map tile by tile (3M x 512: 3 GB on disk, one tile in memory); a point of a failed tile
+    keeps a zero row (unlabeled)."""
+    out = None
+    for spec in specs:  # loop over tiles: their features -> the file
+        path = Path(tiles_dir) / f"{spec.id}.npz"
+        try:
+            with np.load(path) as z:
+                feats = z["features"] if "features" in z.files else None
+        except Exception:  # noqa: BLE001 - a failed tile's file: its rows stay zero
+            feats = None
+        if feats is None or feats.shape[0] != owns[spec.id].size:
+            continue
+        if out is None:
+            out = np.lib.format.open_memmap(run_dir / "features.npy", mode="w+", dtype=np.float16,
+                                            shape=(n, feats.shape[1]))
+        out[owns[spec.id]] = feats
+    if out is None:
+        return {}
+    out.flush()
+    del out
+    return {"features": "features.npy"}
 
 
 def _error(spec: TileSpec, own: np.ndarray, exc: BaseException) -> dict:

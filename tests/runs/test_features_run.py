@@ -95,3 +95,23 @@ def test_the_command_line_writes_features_and_the_query_command_relabels_the_run
     assert same.mean() > 0.999  # float16 features: a near-tie may flip
     assert json.loads((run_dir / "query.json").read_text())["metrics"]["diffuser"]["miou"] == \
         pytest.approx(s["metrics"]["miou"], abs=0.2)
+
+
+@pytest.mark.slow
+def test_a_tiled_features_run_writes_the_whole_scenes_features(small_demo_scene, tmp_path):
+    """protocol=tiled with features: each tile's points' features go into one features.npy through a
+    memory map; labels as the untiled run's (the halo gives the tiles' borders their neighbours)."""
+    from diffuser_lab.runs.tiled import tiled
+
+    cfg = default_config(**SMALL, **{"predictions.source": "features", "predictions.dim": 32})
+    whole = run(cfg, scene=small_demo_scene)
+    t = tiled(default_config(**SMALL, **{"predictions.source": "features", "predictions.dim": 32,
+                                         "protocol.name": "tiled", "tiling.size": 2.0}),
+              scene=small_demo_scene, run_dir=tmp_path)
+    assert t.files == {"features": "features.npy"} and not t.failed
+    F = np.load(tmp_path / "features.npy")
+    assert F.shape == (small_demo_scene.n_points, 32) and F.dtype == np.float16
+    assert (t.labels == whole.labels).mean() > 0.98  # 98.9 % measured: each tile stops early on its own
+    unit = whole.lifted.method / np.maximum(np.linalg.norm(whole.lifted.method, axis=1, keepdims=True), 1e-30)
+    cos = (F.astype(np.float32) * unit[whole.rows]).sum(1)
+    assert np.median(cos) > 0.999
