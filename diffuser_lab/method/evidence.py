@@ -224,16 +224,17 @@ def add_frame(ev: Evidence, points: np.ndarray, frame: Frame, *, depth_tol: floa
 
 
 def accumulate(points: np.ndarray, frames: Iterable[Frame], num_classes: int, *, depth_tol: float = 0.05,
-               pixel_radius: int = 0, hard: bool = False) -> Evidence:
+               pixel_radius: int = 0, hard: bool = False, best: BestView | None = None) -> Evidence:
     """Evidence of all ``frames`` for (N, 3) world ``points``.
 
     Args:
         hard: use each pixel's argmax label even when probabilities are given
             (Bayesian fusion by votes).
+        best: feature maps: also track each point's most confident view (:class:`BestView`).
     """
     ev = Evidence.empty(points.shape[0], num_classes)
     for frame in frames:
-        add_frame(ev, points, frame, depth_tol=depth_tol, pixel_radius=pixel_radius, hard=hard)
+        add_frame(ev, points, frame, depth_tol=depth_tol, pixel_radius=pixel_radius, hard=hard, best=best)
     return ev
 
 

@@ -126,6 +126,10 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None, on_frame=None) -> S
         if lift is None and f.features is not None:
             lift = feature_lift(cfg, tax, f.features.shape[2])
             solver = dataclasses.replace(solver, sparse_classes=SparseClasses.off)
+            if W > 1:  # a features run's other baseline: each point's most confident view of the window
+                order.append(("best_view", W))
+                rows[("best_view", W)] = Row("best_view", W, cal=calibration.Calibration(tax.num_classes,
+                                                                                          cfg.calibration.bins))
         ta = time.perf_counter()
         pts, pix = backproject(f.depth, f.K, f.T_cw)
         if pts.shape[0] <= cfg.graph.k:
@@ -146,6 +150,8 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None, on_frame=None) -> S
         # graph built once per target frame and shared between the rows that use them
         evidence, graphs, work_labels, work_scores = {}, {}, {}, {}
         for name, views in order:
+            if name not in settings:  # best_view (below)
+                continue
             m, mc, radius = settings[name]
             ekey = (views, radius)
             if ekey not in evidence:
@@ -177,6 +183,14 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None, on_frame=None) -> S
                 work_scores[(name, views)] = lift.scores(features_mod.decode(work_scores[(name, views)]))
             if m.graph:
                 t["diffusion"] += time.perf_counter() - td
+
+        if lift is not None and W > 1:
+            te = time.perf_counter()
+            best = evidence_mod.BestView(work.shape[0], lift.queries.dim, lift.confidence)
+            evidence_mod.accumulate(work, win_frames, lift.queries.dim, best=best, **ev_kw)
+            work_labels[("best_view", W)] = lift.labels(best.features)
+            work_scores[("best_view", W)] = lift.scores(best.features)
+            t["evidence"] += time.perf_counter() - te
 
         at = np.full(f.shape, -1, np.int64)  # each pixel's work point (-1: no depth, uniform)
         at[pix[:, 0], pix[:, 1]] = to_work

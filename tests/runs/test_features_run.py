@@ -69,6 +69,7 @@ def test_baselines_side_by_side_and_the_single_frame_protocol(small_demo_scene):
                       scene=small_demo_scene)
     rows = {(r["method"], r["views"]): r["miou"] for r in sf.rows}
     assert rows[("diffuser", 5)] > rows[("bayesian", 5)] and rows[("diffuser", 5)] > rows[("direct", 1)]
+    assert rows[("diffuser", 5)] > rows[("best_view", 5)] > 0  # the most confident of the window's views
     assert sf.predictions_2d is None  # no 2D labels to score in a features run
 
 
