@@ -30,7 +30,7 @@ import dataclasses
 
 import numpy as np
 
-__all__ = ["encode", "decode", "normalised", "diffuse_features", "class_scores", "CLIP_TEMPERATURE"]
+__all__ = ["encode", "decode", "normalised", "unit_float16", "diffuse_features", "class_scores", "CLIP_TEMPERATURE"]
 
 
 def normalised(f: np.ndarray, axis: int = -1) -> tuple[np.ndarray, np.ndarray]:
@@ -41,6 +41,15 @@ def normalised(f: np.ndarray, axis: int = -1) -> tuple[np.ndarray, np.ndarray]:
     ok = np.isfinite(norm) & (norm > 0)
     out = np.where(ok[..., None], f / np.where(ok, norm, 1)[..., None], 0).astype(np.float32)
     return out, ok
+
+
+def unit_float16(F: np.ndarray, chunk: int = 32768) -> np.ndarray:
+    """(N, D) features -> (N, D) float16 unit rows (0 rows where unusable), normalised a chunk of
+    rows at a time: no (N, D) float32 temporaries (what runs keep and write of 300k x 512 features)."""
+    out = np.empty(F.shape, np.float16)
+    for lo in range(0, F.shape[0], chunk):
+        out[lo:lo + chunk] = normalised(F[lo:lo + chunk])[0]
+    return out
 
 
 def encode(F: np.ndarray, n: np.ndarray, out: np.ndarray | None = None, dim: int | None = None) -> np.ndarray:

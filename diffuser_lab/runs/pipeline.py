@@ -369,7 +369,7 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
     solver = cfg.solver
     if lift is not None:  # every column is a feature's: no per-point class set
         solver = dataclasses.replace(cfg.solver, sparse_classes=SparseClasses.off)
-        lift.average = features_mod.normalised(ev_base.mass)[0].astype(np.float16)  # before F is diffused in place
+        lift.average = features_mod.unit_float16(ev_base.mass)  # before F is diffused in place
         lift.best_view = evidence.best.features
     if method.graph:
         tg = time.perf_counter()

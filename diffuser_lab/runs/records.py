@@ -119,13 +119,14 @@ def write_features(run_dir: Path, result) -> dict:
     (the averaging baseline's), ``features_best_view.npy`` (the most confident view's); ``queries.npz`` (the run's query set) and ``gt_labels.npy`` (when the
     scene has ground truth), so that ``diffuser-lab-query`` relabels the run without it."""
     from diffuser_lab.data.embeddings import write_queries
-    from diffuser_lab.method.features import normalised
+    from diffuser_lab.method.features import unit_float16
 
     lf, rows = result.lifted, result.rows
     out = {}
     for name, work in (("features", lf.method), ("features_average", lf.average), ("features_best_view", lf.best_view)):
-        unit, _ = normalised(work)
-        np.save(run_dir / f"{name}.npy", unit.astype(np.float16)[rows])
+        unit = work if work.dtype == np.float16 else unit_float16(work)  # the baselines' are unit float16 already
+        np.save(run_dir / f"{name}.npy", unit if rows is None or np.array_equal(rows, np.arange(rows.size))
+                else unit[rows])
         out[name] = f"{name}.npy"
     write_queries(run_dir / "queries.npz", list(lf.queries.names), lf.queries.embeddings)
     out["queries"] = "queries.npz"

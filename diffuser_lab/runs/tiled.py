@@ -44,7 +44,7 @@ from diffuser_lab.data.scene import IGNORE, Scene
 from diffuser_lab.data.taxonomy import resolve_taxonomy
 from diffuser_lab.hooks import RunHooks
 from diffuser_lab.method import fusion
-from diffuser_lab.method.features import normalised
+from diffuser_lab.method.features import unit_float16
 from diffuser_lab.method.graph import spacing_sum
 from diffuser_lab.method.metrics import score
 
@@ -269,7 +269,7 @@ def diffuse_tile(cfg: Config, inp: TileInput, frames, taxonomy, name: str, spec:
         pos = np.searchsorted(rows, own)
         labels, bayes = res.labels[pos], res.bayesian_labels[pos]
         if res.lifted is not None:  # a features run (method/features.py)
-            feats = normalised(res.lifted.method[res.rows[pos]])[0].astype(np.float16)
+            feats = unit_float16(res.lifted.method[res.rows[pos]])
         rec["iterations"] = int(res.diffusion.iterations) if res.diffusion is not None else 0
         msgs = sorted({first_line(w.message) for w in caught})
         if msgs:
