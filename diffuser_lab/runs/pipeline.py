@@ -408,7 +408,7 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
         res.metrics = score(labels, scene.gt_labels, tax.names)
         res.baseline["bayesian"] = score(bayes, scene.gt_labels, tax.names)
         # each method's class distribution (Diffuser, LDLS: Z; the others: their pixel mass) per point
-        post = {method.name: diff.Z if diff is not None else mass}
+        post = {method.name: diff.Z if diff is not None else chosen.mass}
         if method.name != "bayesian":
             post["bayesian"] = ev_base.mass
         if lift is not None:  # class distributions from the queries' cosines
