@@ -126,6 +126,15 @@ def project(view: FeatureView, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return rgb, sim
 
 
+def feature_view_of(msg) -> FeatureView:
+    """The :class:`FeatureView` of run.mcap's ``diffuser_lab.FeatureView`` message."""
+    def f32(b: bytes) -> np.ndarray:
+        return np.frombuffer(b, "<f4").astype(np.float32)
+
+    return FeatureView(f32(msg.basis).reshape(3, -1), f32(msg.mean), f32(msg.lo), f32(msg.hi), msg.query,
+                       f32(msg.embedding), float(msg.sim_lo), float(msg.sim_hi), int(msg.n_fit))
+
+
 def similarity_values(view: FeatureView, sim: np.ndarray) -> np.ndarray:
     """The (M,) uint8 similarity bytes back to cosines (float32; NaN where no feature)."""
     sim = np.asarray(sim)
@@ -134,5 +143,5 @@ def similarity_values(view: FeatureView, sim: np.ndarray) -> np.ndarray:
     return out.astype(np.float32)
 
 
-__all__ = ["FeatureView", "fit_view", "project", "pick_query", "similarity_values", "PCA_ROWS", "GREY",
+__all__ = ["FeatureView", "feature_view_of", "fit_view", "project", "pick_query", "similarity_values", "PCA_ROWS", "GREY",
            "NO_FEATURE", "SIM_STEPS"]

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from conftest import run_cli
 
+from diffuser_lab.cli.inspect import main as inspect_main
 from diffuser_lab.config import default_config
 from diffuser_lab.recording import make_hooks
 from diffuser_lab.recording import features as fv
@@ -85,11 +86,7 @@ def test_a_features_run_records_its_projection_and_labels_do_not_change(small_de
     assert view is not None and view.query == "chair" and view.dim == 64
     assert sorted(steps) == list(hooks.recorded) and hooks.recorded[-1] == res.diffusion.iterations
     last = steps[res.diffusion.iterations]
-    basis = np.frombuffer(view.basis, "<f4").reshape(3, 64)
-    v = fv.FeatureView(basis, np.frombuffer(view.mean, "<f4"), np.frombuffer(view.lo, "<f4"),
-                       np.frombuffer(view.hi, "<f4"), view.query, np.frombuffer(view.embedding, "<f4"),
-                       view.sim_lo, view.sim_hi)
-    rgb, sim = fv.project(v, res.lifted.method)  # the basis in the file reproduces the last colours
+    rgb, sim = fv.project(fv.feature_view_of(view), res.lifted.method)  # the basis in the file reproduces the last colours
     assert np.abs(np.frombuffer(last.rgb, np.uint8).reshape(M, 3).astype(int) - rgb).max() <= 1
     assert np.abs(np.frombuffer(last.similarity, np.uint8).astype(int) - sim).max() <= 1
     pca = rrd_colors(tmp_path / "run.rrd", "/world/features")
@@ -97,6 +94,10 @@ def test_a_features_run_records_its_projection_and_labels_do_not_change(small_de
     assert sorted(pca) == sorted(heat) == list(hooks.recorded)
     red = pca[res.diffusion.iterations] >> 24  # 0xRRGGBBAA
     assert len(red) == M and np.abs(red.astype(int) - rgb[:, 0]).max() <= 1
+    assert inspect_main([str(tmp_path), "--to-rrd", str(tmp_path / "re.rrd")]) == 0  # re-logged from run.mcap
+    again = rrd_colors(tmp_path / "re.rrd", "/world/features")
+    assert sorted(again) == sorted(pca) and all((again[k] == pca[k]).all() for k in pca)
+    assert sorted(rrd_colors(tmp_path / "re.rrd", "/world/query/chair")) == sorted(pca)
 
 
 def test_an_unknown_query_is_one_error_before_the_run(small_demo_scene, tmp_path):
