@@ -788,6 +788,9 @@ class RecordConfig(Section):
     retain_heap_mb: int = key(256, within(0, 1024, steps=True))  # diffuser-lab (the CLI) has glibc keep this much freed memory for reuse (0: its defaults)
     # also stream run.rrd's content to a Rerun viewer as the run goes: null/off, spawn (start one),
     # or a viewer's gRPC URL (rerun+http://127.0.0.1:9876/proxy); run.rrd is written all the same
+    # a features run (predictions=features): the query whose cosine similarity run.rrd shows as a
+    # heat map (world/query/<name>) and run.mcap keeps; null: the run's first query
+    query: Optional[str] = None
     live: Optional[str] = key(None, rule("null, off, spawn or a Rerun gRPC URL: rerun+http://HOST:PORT/proxy "
                                          "(or rerun+https://, rerun://)", live_is_valid, null=True))
 

@@ -3,6 +3,7 @@
 :func:`diffuser_lab.runs.pipeline.run` calls, in order:
     on_scene(scene)                                  once, after loading
     on_frame(index, frame)                           for every frame, with its predictions attached
+        (a features run: on_queries(names, embeddings) once, before its first frame)
     on_evidence(points, grid, evidence, bayesian)    once, on the cloud the diffusion runs on
     wants(iteration) -> bool, observe(iteration, Z, stats)   during the diffusion
         (a features run: observe_features(iteration, F) first, then observe with class scores)
@@ -26,6 +27,10 @@ class RunHooks:
 
     def on_frame(self, index: int, frame: Any) -> None:
         """frame: :class:`~diffuser_lab.data.scene.Frame` with ``labels``/``probs`` set (predictions)."""
+
+    def on_queries(self, names: Any, embeddings: np.ndarray) -> None:
+        """A features run (predictions=features) only, once, before the first ``on_frame``: the
+        queries' names (Q,) and (Q, D) float32 unit embeddings (read-only)."""
 
     def on_evidence(self, points: np.ndarray, grid: Optional[Any], evidence: Any, bayesian: np.ndarray) -> None:
         """points: (M, 3) work cloud (world m); grid: VoxelGrid mapping original -> work points or

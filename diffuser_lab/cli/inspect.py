@@ -33,9 +33,12 @@ import numpy as np
 
 from diffuser_lab.method.diffusion import labels_from_scores
 from diffuser_lab.recording import schema
+from diffuser_lab.recording.features import feature_view_of
 from diffuser_lab.recording.mcap_encode import (
     TOPIC_CALIBRATION,
     TOPIC_CAMERA_LABELS,
+    TOPIC_FEATURE_VIEW,
+    TOPIC_FEATURES,
     TOPIC_METRICS,
     TOPIC_ONLINE_FRAME,
     TOPIC_RUN,
@@ -336,6 +339,12 @@ def mcap_to_rrd(mcap_path: Path | str, rrd_path: Path | str, *, max_image_side: 
                 d = metrics_dict(data)
                 log.metrics.append(d)
                 residual[d["iteration"]] = d["residual"]
+            elif topic == TOPIC_FEATURE_VIEW:  # a features run: its projection, then its colours
+                rec.log_feature_view(feature_view_of(schema.FeatureView.FromString(data)))
+            elif topic == TOPIC_FEATURES:
+                fc = schema.FeatureColors.FromString(data)
+                rec.log_features(int(fc.iteration), np.frombuffer(fc.rgb, np.uint8).reshape(-1, 3),
+                                 np.frombuffer(fc.similarity, np.uint8))
             elif topic == TOPIC_Z and tracker is not None:
                 msg = schema.ZState.FromString(data)
                 it = int(msg.iteration)

@@ -14,6 +14,7 @@ from typing import Any, Optional
 
 import numpy as np
 
+from . import features as feature_view
 from .hooks import RecordingHooks, slim_scene
 from .online import OnlineHooks
 from .schedule import recorded
@@ -28,6 +29,16 @@ class BatchHooks(RecordingHooks):
         self.interval = None if conf.record.interval is None else int(conf.record.interval)
         self.max_iter = int(conf.solver.max_iter)
         self._online: Optional[OnlineHooks] = None  # online() called with a config whose protocol is not online
+        # a features run: its queries (on_queries), the projection fitted on the evidence
+        # (:mod:`.features`) and the last iteration projected with it
+        self.query = getattr(conf.record, "query", None)
+        self._queries: Optional[tuple] = None
+        self._view: Optional[feature_view.FeatureView] = None
+        self._projected = 0
+
+    def on_queries(self, names: Any, embeddings: np.ndarray) -> None:
+        feature_view.pick_query(names, self.query)  # an unknown record.query: an error now, not after the run
+        self._queries = (tuple(names), embeddings)
 
     def on_frame(self, index: int, frame: Any) -> None:
         if self._online is None:  # an online run's frame comes again with its update
@@ -35,6 +46,20 @@ class BatchHooks(RecordingHooks):
 
     def on_evidence(self, points: np.ndarray, grid: Optional[Any], evidence: Any, bayesian: np.ndarray) -> None:
         self.lane.send("batch.evidence", points, grid is not None, evidence.seen, bayesian)
+        mass = getattr(evidence, "mass", None)
+        if self._queries is not None and mass is not None and mass.shape[1] == self._queries[1].shape[1] \
+                and self.recording():
+            self._view = feature_view.fit_view(mass, *self._queries, self.query)
+            self.lane.send("batch.feature_view", self._view)
+
+    def observe_features(self, iteration: int, F: np.ndarray) -> None:
+        if self._view is not None:
+            self._send_features(iteration, F)
+
+    def _send_features(self, iteration: int, F: np.ndarray) -> None:
+        rgb, sim = feature_view.project(self._view, F)
+        self.lane.send("batch.features", iteration, rgb, sim)
+        self._projected = iteration
 
     def wants(self, iteration: int) -> bool:
         # what was asked for and has not failed: the recorders may still be opening where they
@@ -55,6 +80,11 @@ class BatchHooks(RecordingHooks):
             if self._online is not None:
                 self._online.on_result(result)
             return
+        d, lifted = result.diffusion, getattr(result, "lifted", None)
+        if self._view is not None and d is not None and self._projected != d.iterations \
+                and getattr(lifted, "method", None) is not None:
+            # the last iteration's features were not observed (early stop, or diffused in blocks)
+            self._send_features(d.iterations, lifted.method)
         self.lane.send("batch.result", slim_result(result))
 
     def files(self) -> dict:
@@ -94,6 +124,16 @@ class BatchRecorder:
         self.tracker = StepTracker(len(points), scene.taxonomy.names, scene.gt_labels, to_work)
         r.each(lambda: r.rerun.log_evidence(points, seen, bayesian),
                lambda: r.mcap.log_evidence(scene, self.method, points, self.tracker.to_work, seen, bayesian))
+
+    def feature_view(self, view: Any) -> None:
+        """A features run's projection (:class:`~.features.FeatureView`), once, after the evidence."""
+        r = self.recs
+        r.each(lambda: r.rerun.log_feature_view(view), lambda: r.mcap.log_feature_view(view))
+
+    def features(self, iteration: int, rgb: np.ndarray, sim: np.ndarray) -> None:
+        """A recorded iteration's features as (M, 3) uint8 RGB and (M,) uint8 query similarity."""
+        r = self.recs
+        r.each(lambda: r.rerun.log_features(iteration, rgb, sim), lambda: r.mcap.log_features(iteration, rgb, sim))
 
     def step(self, iteration: int, Z: np.ndarray, residual: float) -> None:
         """A recorded iteration (Z valid during the call only)."""

@@ -28,6 +28,8 @@ TOPIC_ONLINE_LABELS = "/online/labels"
 TOPIC_TILED_LABELS = "/tiled/labels"
 TOPIC_TILED_TILES = "/tiled/tiles"
 TOPIC_TILED_RECORDS = "/diffuser_lab/tiles"
+TOPIC_FEATURE_VIEW = "/diffuser_lab/features/pca"
+TOPIC_FEATURES = "/diffuser_lab/features"
 FRAME_ID = "world"
 FRAME_STEP_NS = 100_000_000
 """run.mcap's timeline of an online run: frame i at the run's start + (i + 1) x 100 ms."""

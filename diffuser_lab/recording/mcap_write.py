@@ -62,6 +62,8 @@ from .mcap_encode import (
     TOPIC_CALIBRATION,
     TOPIC_CAMERA_LABELS,
     TOPIC_EVIDENCE,
+    TOPIC_FEATURE_VIEW,
+    TOPIC_FEATURES,
     TOPIC_LABELS,
     TOPIC_METRICS,
     TOPIC_ONLINE_FRAME,
@@ -354,6 +356,31 @@ class McapRecorder:
     def _write_pooled(self, topic: str, mv: memoryview, sequence: int) -> None:
         """Queue a serialized message whose buffer returns to ``topic``'s pool once written."""
         self._write(topic, _RawMessage(mv, functools.partial(self._free[topic].put, mv.obj)), sequence)
+
+    # -- a features run (predictions=features) ------------------------------------------------------
+    def log_feature_view(self, view: Any) -> None:
+        """A features run's projection (:class:`~.features.FeatureView`), once, at the evidence's
+        time; registers the features topics."""
+        msg = schema.FeatureView(dim=view.dim, basis=np.asarray(view.basis, "<f4").tobytes(),
+                                 mean=np.asarray(view.mean, "<f4").tobytes(), lo=np.asarray(view.lo, "<f4").tobytes(),
+                                 hi=np.asarray(view.hi, "<f4").tobytes(), query=view.query,
+                                 embedding=np.asarray(view.embedding, "<f4").tobytes(), sim_lo=float(view.sim_lo),
+                                 sim_hi=float(view.sim_hi), n_fit=int(view.n_fit))
+
+        def start():
+            for topic, cls in ((TOPIC_FEATURE_VIEW, schema.FeatureView), (TOPIC_FEATURES, schema.FeatureColors)):
+                self._channels[topic] = self.w.register_channel(topic=topic, message_encoding="protobuf",
+                                                                schema_id=self._schema(cls))
+
+        self._submit(start)
+        self._write(TOPIC_FEATURE_VIEW, msg, t=self._time("evidence"))
+
+    def log_features(self, iteration: int, rgb: np.ndarray, sim: np.ndarray) -> None:
+        """One recorded iteration's (M, 3) uint8 RGB projection and (M,) uint8 query similarity."""
+        msg = schema.FeatureColors(iteration=int(iteration), n_points=len(sim),
+                                   rgb=np.ascontiguousarray(rgb, np.uint8).tobytes(),
+                                   similarity=np.ascontiguousarray(sim, np.uint8).tobytes())
+        self._write(TOPIC_FEATURES, msg, int(iteration))
 
     # -- protocol=online ------------------------------------------------------------------------
     def log_online_start(self, meta: dict) -> None:

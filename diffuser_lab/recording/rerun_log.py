@@ -77,6 +77,11 @@ _CONFIDENCE_RGBA = ((CONFIDENCE_LUT[:, 0].astype(np.uint32) << 24) | (CONFIDENCE
                     | (CONFIDENCE_LUT[:, 2].astype(np.uint32) << 8) | np.uint32(255))
 """CONFIDENCE_LUT packed as 0xRRGGBBAA (the --scores layers' colours: Rerun takes these as they are)."""
 CONFIDENCE_BINS = 64
+FEATURES_ENTITY = "world/features"
+"""A features run's PCA-to-RGB view (:mod:`.features`); its query heat map is ``world/query/<query>``."""
+_SIMILARITY_RGBA = np.concatenate([_CONFIDENCE_RGBA[np.round(np.linspace(0, 255, 255)).astype(int)],
+                                   np.asarray([(128 << 24) | (128 << 16) | (128 << 8) | 255], np.uint32)])
+"""The query similarity byte -> viridis 0xRRGGBBAA (0..254), grey for 255 (no feature)."""
 """Confidence is logged as a class id 0..63 (bin of max_c Z / sum_c Z) whose colour and label an
 AnnotationContext on the entity gives: 2 bytes a point per iteration instead of 4 for a colour,
 and far fewer after compression (a colour map of 64 steps shows no banding on a point cloud)."""
@@ -125,11 +130,11 @@ def wrong_color(class_colors: np.ndarray) -> tuple[tuple[int, int, int], float]:
     return tuple(int(x) for x in cand[best]), float(d[best])
 
 
-def score_entity(name: str, taken: Sequence[str] = ()) -> str:
-    """world/scores/<name> with the name reduced to [A-Za-z0-9_-] (a suffix if already taken)."""
+def score_entity(name: str, taken: Sequence[str] = (), under: str = "world/scores") -> str:
+    """<under>/<name> with the name reduced to [A-Za-z0-9_-] (a suffix if already taken)."""
     import re
 
-    base = "world/scores/" + (re.sub(r"[^A-Za-z0-9_-]+", "_", str(name)).strip("_") or "class")
+    base = f"{under}/" + (re.sub(r"[^A-Za-z0-9_-]+", "_", str(name)).strip("_") or "class")
     path, k = base, 2
     while path in taken:
         path, k = f"{base}_{k}", k + 1
@@ -172,10 +177,11 @@ def point_radius(points: np.ndarray) -> float:
     return float(max(0.5 * np.mean(d[:, 1]), 1e-4))
 
 
-def blueprint(score_layers: Sequence[tuple[str, str]] = (), eye=None):
+def blueprint(score_layers: Sequence[tuple[str, str]] = (), eye=None, feature_tabs: Sequence[tuple[str, str]] = ()):
     """The default layout: the labelled points in 3D beside the time series; other 3D views
     (confidence, errors, ground truth, input + cameras, depth, evidence, and one per
-    ``score_layers`` (class name, entity path)) in tabs behind it. Every 3D view opens on ``eye``
+    ``score_layers`` (class name, entity path), and a features run's ``feature_tabs`` (tab name,
+    entity path)) in tabs behind it. Every 3D view opens on ``eye``
     (:func:`~.eyes.overview_eye`: from above one side, looking down into the scene), None:
     Rerun's own (from outside the scene's box, which in a room shows the walls' backs).
 
@@ -192,11 +198,13 @@ def blueprint(score_layers: Sequence[tuple[str, str]] = (), eye=None):
     # the wrong points are the only colour in it
     dim = {"/world/diffusion/labels": rr.Points3D.from_fields(colors=RIGHT_RGB).visualizer()}
     scores = [view3d(f"scores: {name}", [f"/{path}"]) for name, path in score_layers]
+    feats = [view3d(name, [f"/{path}"]) for name, path in feature_tabs]
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Tabs(
                 view3d("diffusion: labels", ["/world/diffusion/labels"]),
                 view3d("confidence", ["/world/diffusion/confidence"]),
+                *feats,
                 view3d("errors", ["/world/diffusion/labels", "/world/diffusion/wrong"], overrides=dim),
                 view3d("ground truth", ["/world/scene/ground_truth"]),
                 view3d("input + cameras", ["/world/scene/points", "/world/cameras/**"]),
@@ -300,6 +308,9 @@ class RerunRecorder:
         self._layers = [(str(n), p) for (n, _), p in zip(score_classes, self.score_paths)]
         self._eye_up: Optional[np.ndarray] = None  # the up of the batch blueprint sent; None: none sent
         self._poses: list[np.ndarray] = []  # a batch run's cameras (T_cw), for the up of its eye
+        self._feature_tabs: list[tuple[str, str]] = []  # a features run's (tab, entity): log_feature_view
+        self._query_path = ""
+        self._work_points: Optional[np.ndarray] = None
         bp = None
         batcher = rr.ChunkBatcherConfig(flush_tick=BATCH_SECONDS, flush_num_bytes=BATCH_BYTES)
         self.rec = rr.RecordingStream(application_id, recording_id=recording_id or str(uuid.uuid4()),
@@ -350,7 +361,7 @@ class RerunRecorder:
         (F, 4, 4) where given (else +z, as ``world``'s ViewCoordinates say)."""
         pts = getattr(self, "_scene_points", None)
         eye = overview_eye(pts, T_cw) if pts is not None else None
-        self.rec.send_blueprint(blueprint(self._layers, eye), make_active=False, make_default=True)
+        self.rec.send_blueprint(blueprint(self._layers, eye, self._feature_tabs), make_active=False, make_default=True)
         self._eye_up = scene_up(T_cw)
 
     def log_scene(self, points: np.ndarray, colors: Optional[np.ndarray], gt: Optional[np.ndarray]) -> None:
@@ -418,6 +429,7 @@ class RerunRecorder:
                 self._send_batch_blueprint(T)
         same = work_points is getattr(self, "_scene_points", None)
         self._work_radius = self.radius if same else point_radius(work_points)
+        self._work_points = work_points
         r = self._work_radius
         seen = np.asarray(seen, bool)
         self.rec.log("world/evidence/bayesian",
@@ -453,6 +465,37 @@ class RerunRecorder:
         if step.miou is not None:
             rec.log("metrics/miou", rr.Scalars(step.miou))
             rec.log("metrics/accuracy", rr.Scalars(step.accuracy))
+
+    # -- a features run (predictions=features) ------------------------------------------------------
+    def log_feature_view(self, view) -> None:
+        """A features run's projection (:class:`~.features.FeatureView`): the static positions of
+        ``world/features`` (PCA to RGB) and ``world/query/<query>`` (the query's cosine, viridis
+        over the run's fixed range), their tabs, and the basis itself as static values."""
+        rr = self.rr
+        pts, r = self._work_points, self._work_radius
+        self._query_path = score_entity(view.query, under="world/query")
+        if pts is not None:
+            self.rec.log(FEATURES_ENTITY, rr.Points3D(pts, radii=r), static=True)
+            self.rec.log(self._query_path, rr.Points3D(pts, radii=r), static=True)
+        self.rec.log(f"{FEATURES_ENTITY}/pca", rr.AnyValues(
+            basis=view.basis.ravel(), mean=view.mean, lo=view.lo, hi=view.hi,
+            query_cosine_range=np.asarray([view.sim_lo, view.sim_hi], np.float32)), static=True)
+        self._feature_tabs = [("features: PCA to RGB", FEATURES_ENTITY),
+                              (f"query: {view.query}", self._query_path)]
+        if not self.online:
+            self._send_batch_blueprint(np.stack(self._poses) if self._poses else None)
+
+    def log_features(self, iteration: int, rgb: np.ndarray, sim: np.ndarray) -> None:
+        """One recorded iteration's (M, 3) uint8 RGB projection and (M,) uint8 query similarity
+        (:func:`~.features.project`) as the colours of ``world/features`` and ``world/query/<query>``."""
+        if not self._query_path:
+            return
+        rr = self.rr
+        self.rec.set_time(TIMELINE, sequence=int(iteration))
+        rgb = np.asarray(rgb, np.uint32)
+        packed = (rgb[:, 0] << 24) | (rgb[:, 1] << 16) | (rgb[:, 2] << 8) | np.uint32(255)
+        self.rec.log(FEATURES_ENTITY, rr.Points3D.from_fields(colors=packed))
+        self.rec.log(self._query_path, rr.Points3D.from_fields(colors=_SIMILARITY_RGBA[np.asarray(sim)]))
 
     # -- protocol=online ------------------------------------------------------------------------
     def log_online_start(self, has_gt: bool, growing: bool, points: Optional[np.ndarray] = None,
@@ -541,7 +584,8 @@ class RerunRecorder:
             return
         self._closed = True
         if not self.online and self._eye_up is None:  # no scene came (a run that failed early): the layout
-            self.rec.send_blueprint(blueprint(self._layers), make_active=False, make_default=True)
+            self.rec.send_blueprint(blueprint(self._layers, feature_tabs=self._feature_tabs), make_active=False,
+                                    make_default=True)
         if self.live is None:
             self.rec.flush()
         else:

@@ -66,6 +66,22 @@ The schemas travel inside every run.mcap (a ``FileDescriptorSet`` per schema rec
       string state = 21;             // how /diffuser_lab/z keeps this frame's Z: "" (not kept), q8, ..., float32
       string extra = 22;             // other metrics so far, JSON
     }
+    message FeatureView {            // a features run, once after the evidence: the fixed projection
+      uint32 dim = 1;                // D
+      bytes basis = 2;               // (3, D) float32: the PCA's axes (fitted on the seen points' unit average features)
+      bytes mean = 3;                // (D,) float32: the fitted rows' mean
+      bytes lo = 4;  bytes hi = 5;   // (3,) float32: the component values mapped to 0 and 255
+      string query = 6;              // the query of the similarity
+      bytes embedding = 7;           // (D,) float32 its unit embedding
+      double sim_lo = 8;  double sim_hi = 9;   // the cosines mapped to 0 and 254
+      uint32 n_fit = 10;             // rows the PCA was fitted on
+    }
+    message FeatureColors {          // a features run, every recorded iteration
+      uint32 iteration = 1;
+      uint32 n_points = 2;           // M
+      bytes rgb = 3;                 // (M, 3) uint8: ((unit feature - mean) . basis - lo) * 255 / (hi - lo), 128 grey: no feature
+      bytes similarity = 4;          // (M,) uint8: cosine = sim_lo + s * (sim_hi - sim_lo) / 254; 255: no feature
+    }
 """
 from __future__ import annotations
 
@@ -110,6 +126,12 @@ _MESSAGES = [
                      ("diffuser_accuracy", 16, "double", False), ("bayesian_miou", 17, "double", False),
                      ("bayesian_accuracy", 18, "double", False), ("coverage", 19, "double", False),
                      ("count", 20, "uint32", False), ("state", 21, "string", False), ("extra", 22, "string", False)]),
+    ("FeatureView", [("dim", 1, "uint32", False), ("basis", 2, "bytes", False), ("mean", 3, "bytes", False),
+                     ("lo", 4, "bytes", False), ("hi", 5, "bytes", False), ("query", 6, "string", False),
+                     ("embedding", 7, "bytes", False), ("sim_lo", 8, "double", False), ("sim_hi", 9, "double", False),
+                     ("n_fit", 10, "uint32", False)]),
+    ("FeatureColors", [("iteration", 1, "uint32", False), ("n_points", 2, "uint32", False),
+                       ("rgb", 3, "bytes", False), ("similarity", 4, "bytes", False)]),
 ]
 
 
@@ -136,6 +158,8 @@ RunInfo = GetMessageClass(_POOL.FindMessageTypeByName(f"{PACKAGE}.RunInfo"))
 ZState = GetMessageClass(_POOL.FindMessageTypeByName(f"{PACKAGE}.ZState"))
 IterationMetrics = GetMessageClass(_POOL.FindMessageTypeByName(f"{PACKAGE}.IterationMetrics"))
 OnlineFrame = GetMessageClass(_POOL.FindMessageTypeByName(f"{PACKAGE}.OnlineFrame"))
+FeatureView = GetMessageClass(_POOL.FindMessageTypeByName(f"{PACKAGE}.FeatureView"))
+FeatureColors = GetMessageClass(_POOL.FindMessageTypeByName(f"{PACKAGE}.FeatureColors"))
 
 
 def file_descriptor_set(message_class) -> bytes:
@@ -155,4 +179,4 @@ def file_descriptor_set(message_class) -> bytes:
     return fds.SerializeToString()
 
 
-__all__ = ["Camera", "RunInfo", "ZState", "IterationMetrics", "OnlineFrame", "file_descriptor_set", "file_descriptor_proto"]
+__all__ = ["Camera", "RunInfo", "ZState", "IterationMetrics", "OnlineFrame", "FeatureView", "FeatureColors", "file_descriptor_set", "file_descriptor_proto"]

@@ -331,6 +331,7 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
             evidence = RunEvidence.of(cfg, pts.shape[0], f.features.shape[2] if feats else tax.num_classes)
             if feats:
                 lift = feature_lift(cfg, tax, f.features.shape[2])
+                hooks.on_queries(lift.queries.names, lift.queries.embeddings)
                 evidence.best = evidence_mod.BestView(pts.shape[0], f.features.shape[2], lift.confidence)
         elif (f.features is not None) != feats:
             raise ValueError(f"frame {f.name}: {'no ' if feats else ''}feature map, unlike the first frame")
