@@ -22,6 +22,7 @@ import numpy as np
 from diffuser_lab.config import MistakeCorrelation, PredictionsConfig
 from diffuser_lab.registry import Registry
 
+from .embeddings import prototypes, simulate_features
 from .frames import LazyFrames
 from .mapping import load_mapping, native_mapping
 from .networks import model_predictions, onnx_predictions
@@ -162,8 +163,6 @@ def feature_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonom
         return model_predictions(frames, cfg, taxonomy, scene_name, features=True)
     if cfg.embeddings == "onnx":
         return onnx_predictions(frames, cfg, taxonomy, scene_name, features=True)
-    from .embeddings import prototypes, simulate_features
-
     protos = prototypes(taxonomy.names, dim=cfg.dim, seed=cfg.embedding_seed)
     labelled = _simulated(cfg, taxonomy)
 
@@ -213,7 +212,8 @@ SOURCES: Registry = Registry("predictions.source", "prediction source", [
                      lambda cfg: f"2D predictions of {(cfg.model or {}).get('_target_')}"),
     PredictionSource("onnx", "an exported ONNX segmentation network run with onnxruntime on the CPU",
                      onnx_predictions, lambda cfg: f"2D predictions of {Path(cfg.onnx.path).name} (onnx)"),
-    PredictionSource("features", "per-pixel embeddings (simulated, or a network's .npy/.npz maps), queried with words",
+    PredictionSource("features", "per-pixel embeddings (simulated, a network's .npy/.npz maps, a callable or ONNX "
+                     "network), queried with words",
                      feature_predictions, _describe_features),
 ])
 """The prediction sources by name (``predictions.source``)."""

@@ -30,6 +30,9 @@ import dataclasses
 
 import numpy as np
 
+from .diffusion import normalise
+from .solvers import solve
+
 __all__ = ["encode", "decode", "normalised", "unit_float16", "diffuse_features", "class_scores", "CLIP_TEMPERATURE"]
 
 
@@ -106,9 +109,6 @@ def diffuse_features(graph, F: np.ndarray, n: np.ndarray, pixel_weight: float, s
 
     Returns (N, D) float32 the diffused feature sums and the (first) DiffusionResult (its ``Z``:
     the encoded scores of all columns at once, or None in blocks)."""
-    from .diffusion import normalise
-    from .solvers import solve
-
     N, D = F.shape
     if block is None and 3 * 4 * N * (D + 1) <= STATE_BYTES:
         res = solve(normalise(graph, encode(F, n), pixel_weight), solver, observer=observer)

@@ -19,6 +19,7 @@ from diffuser_lab.config import Config, DepthNoiseConfig, SceneConfig, SolverNam
 from diffuser_lab.data import sources, validate
 from diffuser_lab.data.frames import FrameLoop
 from diffuser_lab.data.geometry import VoxelGrid, nearest_transfer, voxel_downsample
+from diffuser_lab.data.embeddings import prototypes
 from diffuser_lab.data.predictions import describe as describe_predictions
 from diffuser_lab.data.predictions import with_predictions
 from diffuser_lab.data.scene import IGNORE, SCANNET20, Frame, Scene, Taxonomy
@@ -30,6 +31,7 @@ from diffuser_lab.method import evidence as evidence_mod
 from diffuser_lab.method import features as features_mod
 from diffuser_lab.method.diffusion import DiffusionResult, Observer, labels_from_scores, normalise, sparse_by_size
 from diffuser_lab.method.evidence import RunEvidence
+from diffuser_lab.method.queries import Queries, query_classes, query_labels, similarity
 from diffuser_lab.method.graph import KnnGraph, graph_stage, make_graph
 from diffuser_lab.method.metrics import confusion_matrix, score, scores_from_confusion
 
@@ -214,11 +216,12 @@ class FeatureLift:
         to_class: (Q,) int64 the taxonomy class of each query (-1: none).
         threshold, background: a point whose best cosine is below ``threshold`` gets ``background``.
         method: (M, D) float32 the method's per-point feature sums (Diffuser: diffused), set by the run.
-        average: (M, D) float32 the averaging baseline's (the sum of the depth-checked pixels' features).
-        best_view: (M, D) float16 the most confident view's feature (:class:`~diffuser_lab.method.evidence.BestView`).
+        average: (M, D) float16 unit rows: the averaging baseline's (the mean of the depth-checked pixels'
+            features, normalised).
+        best_view: (M, D) float16 the most confident view's unit feature (:class:`~diffuser_lab.method.evidence.BestView`).
     """
 
-    queries: object
+    queries: Queries
     to_class: np.ndarray
     num_classes: int
     threshold: Optional[float] = None
@@ -237,15 +240,11 @@ class FeatureLift:
 
     def labels(self, features: np.ndarray) -> np.ndarray:
         """(M, D) features -> (M,) int16 class ids (IGNORE where nothing reached a point)."""
-        from diffuser_lab.method.queries import query_labels
-
         return query_labels(features, self.queries, self.to_class, threshold=self.threshold,
                             background=self.background)
 
     def scores(self, features: np.ndarray) -> np.ndarray:
         """(M, D) features -> (M, C) class scores (:func:`~diffuser_lab.method.features.class_scores`)."""
-        from diffuser_lab.method.queries import similarity
-
         return features_mod.class_scores(similarity(features, self.queries), self.to_class, self.num_classes)
 
     def encoded_labels(self, Z: np.ndarray) -> np.ndarray:
@@ -256,9 +255,6 @@ class FeatureLift:
 def feature_lift(cfg: Config, taxonomy: Taxonomy, dim: int) -> FeatureLift:
     """The run's queries (``predictions.queries``: a file; ``predictions.encoder``: a text encoder
     on the taxonomy's names; neither: the simulated network's prototypes of them) and their classes."""
-    from diffuser_lab.data.embeddings import prototypes
-    from diffuser_lab.method.queries import Queries, query_classes
-
     pc = cfg.predictions
     if pc.queries:
         q = Queries.from_file(pc.queries)
@@ -408,11 +404,13 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
         tm = time.perf_counter()
         res.metrics = score(labels, scene.gt_labels, tax.names)
         res.baseline["bayesian"] = score(bayes, scene.gt_labels, tax.names)
-        # each method's class distribution (Diffuser, LDLS: Z; the others: their pixel mass) per point
-        post = {method.name: diff.Z if diff is not None else chosen.mass}
-        if method.name != "bayesian":
-            post["bayesian"] = ev_base.mass
-        if lift is not None:  # class distributions from the queries' cosines
+        # each method's class distribution (Diffuser, LDLS: Z; the others: their pixel mass) per point;
+        # a features run's from the queries' cosines (its diff.Z already is)
+        if lift is None:
+            post = {method.name: diff.Z if diff is not None else chosen.mass}
+            if method.name != "bayesian":
+                post["bayesian"] = ev_base.mass
+        else:
             post = {method.name: diff.Z if diff is not None else lift.scores(lift.method)}
             if method.name != "bayesian":
                 post["bayesian"] = lift.scores(lift.average)

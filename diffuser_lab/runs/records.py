@@ -16,9 +16,11 @@ from omegaconf import OmegaConf
 
 from diffuser_lab import progress
 from diffuser_lab.data.clouds import write_las
+from diffuser_lab.data.embeddings import write_queries
 from diffuser_lab.data.o3d import open3d
 from diffuser_lab.data.scene import Taxonomy
 from diffuser_lab.data.sources.rosbag import write_pointcloud2_bag
+from diffuser_lab.method.features import unit_float16
 
 
 def config_yaml(conf: Any) -> str:
@@ -116,11 +118,8 @@ def _write_labels(run_dir: Path, points: np.ndarray, labels: np.ndarray, taxonom
 def write_features(run_dir: Path, result) -> dict:
     """A features run's per-point features on the scene's original points, (N, D) float16 unit rows
     (an all-zero row: nothing reached the point): ``features.npy`` (the method's), ``features_average.npy``
-    (the averaging baseline's), ``features_best_view.npy`` (the most confident view's); ``queries.npz`` (the run's query set) and ``gt_labels.npy`` (when the
-    scene has ground truth), so that ``diffuser-lab-query`` relabels the run without it."""
-    from diffuser_lab.data.embeddings import write_queries
-    from diffuser_lab.method.features import unit_float16
-
+    (the averaging baseline's), ``features_best_view.npy`` (the most confident view's); ``queries.npz``
+    (the run's query set) and ``gt_labels.npy`` (when the scene has ground truth), so that ``diffuser-lab-query`` relabels the run without it."""
     lf, rows = result.lifted, result.rows
     out = {}
     for name, work in (("features", lf.method), ("features_average", lf.average), ("features_best_view", lf.best_view)):

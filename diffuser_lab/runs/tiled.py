@@ -310,20 +310,25 @@ def write_tile(tiles_dir: Path, spec: TileSpec, own: np.ndarray, labels: np.ndar
     return path
 
 
-def read_tile(tiles_dir: Path, spec: TileSpec, own: np.ndarray) -> Optional[tuple[np.ndarray, np.ndarray, dict]]:
-    """A tile's finished file, or None when it is missing or not complete (unreadable, another shape,
-    another set of points)."""
+def read_tile(tiles_dir: Path, spec: TileSpec, own: np.ndarray, features: bool = False
+              ) -> Optional[tuple[np.ndarray, np.ndarray, dict, Optional[np.ndarray]]]:
+    """A tile's finished file (labels, Bayesian labels, record and, with ``features``, a features
+    run's (own, D) float16 features or None), or None when it is missing or not complete
+    (unreadable, another shape, another set of points)."""
     path = Path(tiles_dir) / f"{spec.id}.npz"
     if not path.is_file():
         return None
     try:
         with np.load(path) as z:
             labels, bayes, crc, rec = z["labels"], z["bayesian"], int(z["crc"]), json.loads(str(z["record"]))
+            feats = z["features"] if features and "features" in z.files else None
     except Exception:  # noqa: BLE001 - a truncated or foreign file: the tile is computed again
         return None
     if labels.shape != (own.size,) or bayes.shape != (own.size,) or crc != _crc(own):
         return None
-    return labels, bayes, rec
+    if feats is not None and feats.shape[0] != own.size:
+        return None
+    return labels, bayes, rec, feats
 
 
 def _run_tile(cfg: Config, inp: TileInput, frames, taxonomy, name: str, spec: TileSpec, tiles_dir: str) -> dict:
@@ -444,16 +449,24 @@ def tiled(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHook
     tl = time.perf_counter()
     labels = np.full(scene.n_points, IGNORE, np.int16)
     bayes = labels.copy()
-    for spec in specs:  # loop over tiles: their files -> the scene's labels
-        got = read_tile(tiles_dir, spec, owns[spec.id]) if records[spec.id]["status"] != "error" else None
+    features = None  # a features run's (N, D) float16 features.npy, a memory map filled tile by tile
+    for spec in specs:  # loop over tiles: their files -> the scene's labels (and features)
+        got = (read_tile(tiles_dir, spec, owns[spec.id], features=run_dir is not None)
+               if records[spec.id]["status"] != "error" else None)
         if got is None and records[spec.id]["status"] != "error":
             records[spec.id] = dict(records[spec.id], status="error", error="its tile file is missing or damaged")
         if got is not None:
             labels[owns[spec.id]], bayes[owns[spec.id]] = got[0], got[1]
-    if run_dir is not None and cfg.predictions.source == "features":
-        res_files = _write_features(Path(run_dir), tiles_dir, specs, owns, scene.n_points)
-    else:
-        res_files = {}
+            if got[3] is not None:
+                if features is None:
+                    features = np.lib.format.open_memmap(Path(run_dir) / "features.npy", mode="w+", dtype=np.float16,
+                                                         shape=(scene.n_points, got[3].shape[1]))
+                features[owns[spec.id]] = got[3]  # a failed tile's points keep zero rows (unlabeled)
+    res_files = {}
+    if features is not None:
+        features.flush()
+        del features
+        res_files["features"] = "features.npy"
     t["labels"] = time.perf_counter() - tl
     res = TiledResult(scene=scene, method=cfg.method.name, labels=labels, bayesian_labels=bayes, grid=shape,
                       tiles=[records[s.id] for s in specs], tiles_dir=tiles_dir, resumed_from=tc.resume, rho=rho,
@@ -466,31 +479,6 @@ def tiled(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHook
     t["total"] = time.perf_counter() - t0
     res.timings_s = t
     return res
-
-
-def _write_features(run_dir: Path, tiles_dir: Path, specs, owns: dict, n: int) -> dict:
-    """A features run's ``features.npy`` (N, D) float16 from its tiles' files, written through a
-    memory map tile by tile (3M x 512: 3 GB on disk, one tile in memory); a point of a failed tile
-    keeps a zero row (unlabeled)."""
-    out = None
-    for spec in specs:  # loop over tiles: their features -> the file
-        path = Path(tiles_dir) / f"{spec.id}.npz"
-        try:
-            with np.load(path) as z:
-                feats = z["features"] if "features" in z.files else None
-        except Exception:  # noqa: BLE001 - a failed tile's file: its rows stay zero
-            feats = None
-        if feats is None or feats.shape[0] != owns[spec.id].size:
-            continue
-        if out is None:
-            out = np.lib.format.open_memmap(run_dir / "features.npy", mode="w+", dtype=np.float16,
-                                            shape=(n, feats.shape[1]))
-        out[owns[spec.id]] = feats
-    if out is None:
-        return {}
-    out.flush()
-    del out
-    return {"features": "features.npy"}
 
 
 def _error(spec: TileSpec, own: np.ndarray, exc: BaseException) -> dict:
