@@ -51,15 +51,14 @@ class FusionMethod:
         if self.pixel_radius is not None:
             cfg.evidence.pixel_radius = self.pixel_radius
 
-    def label(self, mass: np.ndarray, *, system=None, solver=None, observer=None, labels=labels_from_scores):
+    def label(self, mass: np.ndarray, *, system=None, solver=None, observer=None):
         """(M,) int16 labels (IGNORE where no evidence reaches a point) and the DiffusionResult
         (None for methods without a graph). ``mass``: (M, C) the evidence the method reads;
-        ``system``: the normalised graph system of Eqs. 14-15 for graph methods; ``labels``: (M, C)
-        scores -> labels (Eq. 16; a features run's queries)."""
+        ``system``: the normalised graph system of Eqs. 14-15 for graph methods."""
         if not self.graph:
-            return labels(mass), None
+            return labels_from_scores(mass), None
         diff = solve(system, solver, observer=observer)
-        return labels(diff.Z), diff
+        return labels_from_scores(diff.Z), diff
 
     def single_frame_rows(self, window: int) -> list[int]:
         """Views of this method's rows in the single-frame protocol."""

@@ -247,10 +247,6 @@ class FeatureLift:
         """(M, D) features -> (M, C) class scores (:func:`~diffuser_lab.method.features.class_scores`)."""
         return features_mod.class_scores(similarity(features, self.queries), self.to_class, self.num_classes)
 
-    def encoded_labels(self, Z: np.ndarray) -> np.ndarray:
-        """Labels of the diffusion core's encoded (M, D + 1) scores."""
-        return self.labels(features_mod.decode(Z))
-
 
 def feature_lift(cfg: Config, taxonomy: Taxonomy, dim: int) -> FeatureLift:
     """The run's queries (``predictions.queries``: a file; ``predictions.encoder``: a text encoder

@@ -30,7 +30,7 @@ from diffuser_lab.data.taxonomy import resolve_taxonomy
 from diffuser_lab.method import calibration, fusion
 from diffuser_lab.method import evidence as evidence_mod
 from diffuser_lab.method import features as features_mod
-from diffuser_lab.method.diffusion import labels_from_scores, normalise
+from diffuser_lab.method.diffusion import normalise
 from diffuser_lab.method.graph import graph_stage, make_graph
 from diffuser_lab.method.metrics import confusion_matrix, scores_from_confusion
 
@@ -170,17 +170,17 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None, on_frame=None) -> S
                     with graph_stage(work.shape[0], mc.graph, mc.graph.use_normals):
                         graphs[mc.graph.use_normals] = make_graph(work, nrm, mc.graph)[1]
                     t["graph"] += time.perf_counter() - tg
-            ev = evidence[ekey]
-            mass = ev.mass if lift is None else features_mod.encode(ev.mass, ev.links)  # method/features.py
-            if m.graph:
-                system = normalise(graphs[mc.graph.use_normals], mass, lam)
+            ev, key = evidence[ekey], (name, views)
+            if lift is None and m.graph:
+                system = normalise(graphs[mc.graph.use_normals], ev.mass, lam)
             td = time.perf_counter()
-            work_labels[(name, views)], diff = m.label(
-                mass, system=system, solver=solver, labels=labels_from_scores if lift is None
-                else lift.encoded_labels)
-            work_scores[(name, views)] = diff.Z if diff is not None else mass
-            if lift is not None:  # class distributions from the queries' cosines
-                work_scores[(name, views)] = lift.scores(features_mod.decode(work_scores[(name, views)]))
+            if lift is None:
+                work_labels[key], diff = m.label(ev.mass, system=system, solver=solver)
+                work_scores[key] = diff.Z if diff is not None else ev.mass
+            else:  # a features run, as the global protocol's (method/features.py; the rows share ev: a copy)
+                F = (features_mod.diffuse_features(graphs[mc.graph.use_normals], ev.mass.copy(), ev.links, lam,
+                                                   solver)[0] if m.graph else ev.mass)
+                work_labels[key], work_scores[key] = lift.labels(F), lift.scores(F)
             if m.graph:
                 t["diffusion"] += time.perf_counter() - td
 
