@@ -702,6 +702,10 @@ class OnlineConfig(Section):
     revisit: int = key(5, within(0, 1000, steps=True, note="(0 = none)"))  # growing: a new point also gets the evidence of this many frames before the one that added it
     bad_frames: BadFrame = BadFrame.skip
     compare_batch: bool = True  # after the last frame, run the batch Diffuser on the same frames (and final cloud)
+    # the sensor's frame rate: what a frame's update leaves of its 1 / rate seconds goes to extra steps
+    # (idle time; reported apart from the latency); 0 = none: each frame's `steps` only (reproducible)
+    rate: float = key(30.0, at_least(0, "Hz", note="(0 = no idle steps)"))
+    finish: int = key(5000, within(0, 1_000_000, steps=True, note="(0 = none)"))  # after the last frame: up to this many steps until one changes Z by <= solver.tol
 
 
 @dataclass

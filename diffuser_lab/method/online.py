@@ -98,6 +98,8 @@ class FrameStats:
     residual: float = 0.0  # the last step's max |Z_t - Z_{t-1}| / max Z_t
     changed: int = 0  # points whose label changed
     skipped: Optional[str] = None  # why the frame was skipped (a bad frame), else None
+    idle_steps: int = 0  # extra steps in the time the sensor left before the next frame (not in latency_ms)
+    idle_ms: float = 0.0
 
 
 class OnlineDiffuser:
@@ -140,6 +142,7 @@ class OnlineDiffuser:
         self._labels = np.zeros(0, np.int16)
         self._pos = np.zeros(0, np.int64)
         self._final: Optional[np.ndarray] = None  # Z after close()
+        self._settled = False  # a step has changed Z by <= solver.tol since the last frame's evidence
         self.ev = RunEvidence.of(cfg, 0, self.C)  # the method's and the Bayesian baseline's evidence
         self._alloc(0)
         k = int(cfg.graph.k)
@@ -287,6 +290,7 @@ class OnlineDiffuser:
             self.system.renormalise(rows)
         t2 = time.perf_counter()
         if rows.size:  # a frame that adds nothing (no evidence, no point) changes nothing
+            self._settled = False
             st.steps, st.residual, st.changed = self._diffuse()
         t3 = time.perf_counter()
         if self.growing and n >= RESORT_GROWTH * max(self._sorted_at, RESORT_MIN):
@@ -399,8 +403,55 @@ class OnlineDiffuser:
             # iteration, discounted), stopping once a step changes Z by <= solver.tol of its largest entry
             out = self.system.steps(self.steps)
             done = len(out)
+            self._settled = done < self.steps
             r = float(out[-1, 0] / out[-1, 1]) if out[-1, 1] > 0 else 0.0
         return done, r, self.system.labels(self._labels[:n])
+
+    def idle(self, budget_s: float, chunk: int = 4) -> int:
+        """Extra Jacobi steps in the time the sensor leaves before its next frame: ``chunk`` steps
+        at a time while another chunk fits in ``budget_s`` seconds (at the last chunk's pace) and
+        Z still moves by more than ``solver.tol``; then the labels. Counted in the last frame's
+        :class:`FrameStats` (``idle_steps``, ``idle_ms``), not in its latency. Returns the steps
+        done (none with ``online.solver=gmres``, before any evidence, or once settled)."""
+        t0 = time.perf_counter()
+        if budget_s <= 0 or self.solver != OnlineSolver.jacobi or self._settled or len(self.system.active) == 0:
+            return 0
+        done, pace = 0, 0.0
+        while time.perf_counter() - t0 + pace <= budget_s:
+            ts = time.perf_counter()
+            out = self.system.steps(chunk)
+            done += len(out)
+            pace = time.perf_counter() - ts
+            if len(out) < chunk:  # a step changed Z by <= solver.tol
+                self._settled = True
+                break
+        if done:
+            changed = self.system.labels(self._labels[: self._n])
+            if self.history:
+                st = self.history[-1]
+                st.idle_steps += done
+                st.idle_ms += (time.perf_counter() - t0) * 1e3
+                st.changed += changed
+        return done
+
+    def finish(self, max_steps: int, chunk: int = 50) -> dict:
+        """After the last frame: Jacobi steps until one changes Z by <= ``solver.tol`` of its
+        largest entry, at most ``max_steps`` (the online iteration's fixed point, which the frames'
+        few steps only track). Returns {steps, ms, residual, changed} (steps 0 with
+        ``online.solver=gmres``, before any evidence, or when already settled)."""
+        t0 = time.perf_counter()
+        done, r = 0, 0.0
+        if self.solver == OnlineSolver.jacobi and len(self.system.active) and not self._settled:
+            while done < max_steps:
+                k = min(chunk, max_steps - done)
+                out = self.system.steps(k)
+                done += len(out)
+                r = float(out[-1, 0] / out[-1, 1]) if out[-1, 1] > 0 else 0.0
+                if len(out) < k:
+                    self._settled = True
+                    break
+        changed = self.system.labels(self._labels[: self._n]) if done else 0
+        return {"steps": done, "ms": (time.perf_counter() - t0) * 1e3, "residual": r, "changed": int(changed)}
 
     def close(self) -> None:
         """Release the working memory and threads (the state stays readable)."""

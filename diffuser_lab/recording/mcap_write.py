@@ -415,8 +415,8 @@ class McapRecorder:
 
     def log_online_final(self, index: int, Z: np.ndarray, labels: np.ndarray, points: np.ndarray,
                          cloud: bool) -> None:
-        """The last frame taken was not the sequence's last (frames after it skipped): its Z
-        again, exact (readers take the later copy), and its cloud if it had none."""
+        """The run's end at the last frame taken (frames after it skipped, or the finishing pass
+        after it): its Z again, exact (readers take the later copy), and its cloud if asked."""
         t = self._frame_time(index)
         if cloud:
             self._online_cloud(index, points, labels, t)

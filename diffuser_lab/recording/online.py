@@ -158,13 +158,18 @@ class OnlineFrames:
         log.warning("recording switched off: %s", self.off)
 
     def final_state(self, result: Any) -> Optional[tuple]:
-        """(frame index, Z, labels, cloud) of the run's last frame taken when its Z was not kept
-        exactly (frames after it were skipped), else None. Z comes from the last update's
-        callable: the map does not change after the last frame."""
-        if self.last is None or self.last[1] or self.last_scores is None:
+        """(frame index, Z, labels, cloud) of the run's end where the last frame's record does not
+        hold it exactly: its Z was not kept exactly (frames after it were skipped), or the finishing
+        pass (``online.finish``) moved Z after it; else None. Z comes from the last update's
+        callable (the final state once the run is over): the map does not change after the last frame."""
+        if self.last is None or self.last_scores is None:
             return None
-        index, _, cloud = self.last
-        return index, np.asarray(self.last_scores(), np.float32), np.array(result.labels, np.int16), not cloud
+        index, exact, cloud = self.last
+        finished = bool((getattr(result, "settings", None) or {}).get("finish", {}).get("steps"))
+        if exact and not finished:
+            return None
+        return (index, np.asarray(self.last_scores(), np.float32), np.array(result.labels, np.int16),
+                finished or not cloud)
 
     def finish(self, result: Any, final, summary) -> None:
         """Hand on the final exact Z (``final(index, Z, labels, cloud)``, where needed) and the run's
@@ -251,7 +256,7 @@ class OnlineRecorder:
             r.recorded.append(rec.index)
 
     def final(self, index: int, Z: np.ndarray, labels: np.ndarray, cloud: bool) -> None:
-        """The last frame taken was not the sequence's last: keep its Z exactly."""
+        """The run's end (:meth:`OnlineFrames.final_state`): its Z exactly, at the last frame taken."""
         r = self.recs
         if r.mcap is not None:
             pts = self.mirror.points

@@ -165,6 +165,9 @@ def online(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHoo
                      warn_prefix="online: ", on_skip=skipped)
     blas = contextlib.ExitStack()  # BLAS's spinning workers would take the Jacobi threads' core between frames
     blas.enter_context(blas_one_thread())
+    slot = 1.0 / cfg.online.rate if cfg.online.rate > 0 else 0.0  # the sensor's time between frames, s
+    t["idle"] = 0.0
+    finished: dict = {}
     try:
         for i, f in loop:
             tf = time.perf_counter()
@@ -195,7 +198,16 @@ def online(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHoo
                                                   bayesian=od.bayesian_labels,
                                                   gt=gt_map if growing else None, metrics=m,
                                                   scores=od.scores))
+            if slot:  # what the frame left of the sensor's frame time: extra steps (the next frame sees them)
+                ti = time.perf_counter()
+                od.idle(slot - (ti - tf))
+                rec.update(idle_steps=st.idle_steps, idle_ms=st.idle_ms, changed=st.changed)
+                t["idle"] += time.perf_counter() - ti
         t["frames"] += loop.read_s
+        tq = time.perf_counter()
+        if kept and cfg.online.finish:
+            finished = od.finish(cfg.online.finish)
+        t["finish"] = time.perf_counter() - tq
     finally:
         od.close()
         blas.close()
@@ -206,6 +218,7 @@ def online(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHoo
                        gt=(gt_map.copy() if gt_map is not None else None) if growing else None,
                        frames=history, metrics=None, bayesian=None,
                        settings={"steps": od.steps, "gamma": od.gamma, "horizon": od.horizon,
+                                 "rate_hz": float(cfg.online.rate), "finish": finished,
                                  "backend": od.backend_name, "rho_m": float(od.rho),
                                  "sigma_d_m": float(od.sigma_d)},
                        latency_ms=latency_summary(history))
@@ -304,6 +317,12 @@ def table(res: OnlineResult) -> str:
     lines.append(f"per frame [ms]  median {_f(L.get('median'))}  p95 {_f(L.get('p95'))}  max {_f(L.get('max'))}  "
                  f"(map {part('map_ms'):.1f}, evidence {part('evidence_ms'):.1f}, steps {part('steps_ms'):.1f}; "
                  f"<= {st['steps']} steps, gamma {st['gamma']:.4f})")
+    fin = st.get("finish") or {}
+    if st.get("rate_hz") or fin:
+        idle = f"idle steps at {st['rate_hz']:g} Hz: median {part('idle_steps'):.0f} a frame" if st.get("rate_hz") \
+            else "no idle steps (online.rate=0)"
+        lines.append(idle + (f"; finishing pass {fin['steps']} steps ({fin['ms'] / 1e3:.2f} s, relative change "
+                             f"{fin['residual']:.1e})" if fin else ""))
     b = res.batch or {}
     if res.metrics is not None:
         lines.append(f"{'':22s}{'mIoU':>7s}{'acc':>7s}{'cover':>7s}")

@@ -6,7 +6,9 @@ the batch Diffuser, on three sequences:
                                                            mIoU within 0.5 of batch, >= 99% labels equal
     7-Scenes sample, growing map (100 frames, 640x480)     median <= 40 ms, p95 <= 120 ms, >= 97% equal
     demo room, growing map (30 frames)                     median <= 40 ms, p95 <= 120 ms, >= 97% equal,
-                                                           mIoU within 1.0 of the batch run on the final cloud
+                                                           mIoU within 0.5 of the batch run on the final cloud
+                                                           (issue 38: idle steps at online.rate and the
+                                                           finishing pass; it was 1.0 before them)
     (growing maps at the default online.voxel_size=0.03; the 7-Scenes frames labelled by the tests'
     toy network tests.toy_networks.grey_levels: the sample has no ground truth)
 
@@ -35,7 +37,7 @@ CASES = {
     "7scenes-growing": (["scene=rgbd_folder", f"scene.rgbd_folder.root={SEVEN}", "online.map=growing",
                          "predictions=model", "predictions.model._target_=tests.toy_networks.grey_levels",
                          "predictions.cache_dir=null"], 40.0, 120.0, 97.0, None, SEVEN),
-    "demo-growing": (["online.map=growing"], 40.0, 120.0, 97.0, 1.0, None),
+    "demo-growing": (["online.map=growing"], 40.0, 120.0, 97.0, 0.5, None),
 }
 
 

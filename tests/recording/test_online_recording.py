@@ -24,10 +24,11 @@ from diffuser_lab.recording.rerun_log import class_ids
 from diffuser_lab.runs.online import online
 
 SMALL = {"protocol.name": "online", "scene.demo.n_views": 6, "scene.demo.image_width": 64,
-         "scene.demo.image_height": 48, "online.compare_batch": False}
+         "scene.demo.image_height": 48, "online.compare_batch": False, "online.rate": 0.0, "online.finish": 0}
+# per-frame records compared bit for bit between runs: no idle steps (they follow the wall clock), no finishing pass
 SMALL_CLI = ["protocol=online", "scene.demo.n_views=6", "scene.demo.image_width=64", "scene.demo.image_height=48",
-             "online.compare_batch=false"]
-TIMING = {"latency_ms", "map_ms", "evidence_ms", "steps_ms"}
+             "online.compare_batch=false", "online.rate=0", "online.finish=0"]
+TIMING = {"latency_ms", "map_ms", "evidence_ms", "steps_ms", "idle_ms"}
 RERUN = str(Path(sys.executable).with_name("rerun"))
 HAS_GROWING = importlib.util.find_spec("diffuser_lab.method.growing") is not None
 
@@ -355,6 +356,22 @@ def test_last_frame_skipped_keeps_the_last_taken_frames_state_exact(tmp_path):
     assert log.z_iterations == [0, 1, 2] and log.z_dtype[2] == "float32"
     np.testing.assert_array_equal(log.z[2], Z)
     assert log.frames[0]["diffuser_miou"] is None  # no ground truth: NaN -> None
+
+
+@pytest.mark.slow
+def test_the_finishing_pass_is_recorded_as_the_runs_end(tmp_path):
+    """online.finish moves Z after the last frame: run.mcap ends with that state, exact, and its cloud."""
+    from diffuser_lab.method.diffusion import labels_from_scores
+
+    cfg = default_config(**{**SMALL, "online.finish": 5000})
+    res, hooks, cap = recorded_online(cfg, tmp_path)
+    fin = res.settings["finish"]
+    assert fin["steps"] > 0, fin
+    log = read_run(tmp_path / "run.mcap", z="all")
+    last = log.z_iterations[-1]
+    assert last == cap.index[-1] and log.z_dtype[last] == "float32"
+    assert not np.array_equal(log.z[last], cap.Z)  # not the last frame's state: the finished one
+    np.testing.assert_array_equal(labels_from_scores(log.z[last]), res.labels)
 
 
 @pytest.mark.slow
