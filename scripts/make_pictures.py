@@ -35,9 +35,21 @@ import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.patches import Patch  # noqa: E402
 from PIL import Image  # noqa: E402
 
-from diffuser_lab import run  # noqa: E402
-from diffuser_lab.data.render import intrinsics, look_at  # noqa: E402
 from diffuser_lab.data.scene import IGNORE  # noqa: E402
+
+# the runs' modules (and open3d, under data.render) are imported where they run: drawing alone stays light
+
+
+def intrinsics(*args, **kw):
+    from diffuser_lab.data.render import intrinsics
+
+    return intrinsics(*args, **kw)
+
+
+def look_at(*args, **kw):
+    from diffuser_lab.data.render import look_at
+
+    return look_at(*args, **kw)
 
 SEED = 0
 GREY = np.array([200, 200, 200], np.uint8)  # unlabeled points / pixels
@@ -184,6 +196,8 @@ def demo_run():
             lab[Z.max(1) <= 0] = IGNORE  # no evidence reached the point yet
             seen[it] = lab
 
+    from diffuser_lab import run
+
     res = run(config(), observer=observer)
     return res, seen
 
@@ -304,6 +318,7 @@ def _line(ax, seg, K, T):
 
 def feature_query(out: Path) -> Path:
     """predictions=features: a word's cosine similarity with every point's diffused feature."""
+    from diffuser_lab import run
     from diffuser_lab.method.queries import similarity
 
     res = run(config("predictions=features"))

@@ -71,3 +71,32 @@ def test_mkdocs_build_strict(tmp_path):
     assert "RunResult" in api and "Frame" in api, "the API page has no docstrings (mkdocstrings)"
     for page in ("results/index.html", "config/index.html", "index.html"):
         assert (tmp_path / "site" / page).is_file(), page
+
+
+def _make_pictures():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("make_pictures", ROOT / "scripts" / "make_pictures.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_pictures_splat_keeps_the_nearest_point():
+    """The pictures' 3D views (scripts/make_pictures.py): a point hides the ones behind it in its
+    pixel, whatever their order; each covers a (2 radius + 1)^2 square; points behind the camera
+    are not drawn."""
+    import numpy as np
+
+    mp = _make_pictures()
+    K = np.array([[4.0, 0, 4], [0, 4.0, 3], [0, 0, 1]])
+    T = np.eye(4)
+    points = np.array([[0, 0, 2.0], [0, 0, 1.0], [0.5, 0, 1.0], [0, 0, -1.0]])  # far, near, right, behind
+    colors = np.array([[0, 0, 255], [255, 0, 0], [0, 255, 0], [9, 9, 9]], np.uint8)
+    for order in ([0, 1, 2, 3], [3, 2, 1, 0]):
+        img = mp.splat(points[order], colors[order], K, T, (7, 9), radius=0)
+        assert img[3, 4].tolist() == [255, 0, 0]  # the near point, not the far one behind it
+        assert img[3, 6].tolist() == [0, 255, 0]
+        assert (img != 255).any(2).sum() == 2  # the far point is hidden, the one behind the camera absent
+    img = mp.splat(points[1:2], colors[1:2], K, T, (7, 9), radius=1)
+    assert (img[2:5, 3:6] == [255, 0, 0]).all() and (img != 255).any(2).sum() == 9
