@@ -227,7 +227,8 @@ def iterations(res, seen: dict, out: Path) -> Path:
     """The labels after 1, 5, 20 and 200 iterations of Z <- P Z + B."""
     pal = np.asarray(res.scene.taxonomy.colors)
     cam = Dollhouse(res.work_points)
-    fig, axes = plt.subplots(1, len(seen), figsize=(3.4 * len(seen), 2.9))
+    fig, axes = plt.subplots(2, 2, figsize=(9.5, 7.4))
+    axes = axes.ravel()
     gt = res.scene.gt_labels if res.voxels is None else None  # the demo diffuses its own points
     for ax, it in zip(axes, sorted(seen)):
         lab = seen[it]
@@ -256,9 +257,9 @@ def online_map(out: Path) -> Path:
     cfg = config("protocol=online", "online.map=growing")
     res = online(cfg, hooks=Shots())
     pal = np.asarray(res.scene.taxonomy.colors)
-    cam = Dollhouse(res.points)
-    fig, axes = plt.subplots(1, len(at), figsize=(3.4 * len(at), 2.9))
-    for ax, i in zip(axes, at):
+    cam = Dollhouse(res.scene.points)  # the room's box: the map grows inside it
+    fig, axes = plt.subplots(2, 2, figsize=(9.5, 7.4))
+    for ax, i in zip(axes.ravel(), at):
         pts, lab, miou = shots[i]
         title = f"after frame {i + 1}: {pts.shape[0]:,} points"
         imshow(ax, cam(pts, label_colors(lab, pal)), title + (f", mIoU {miou:.1f}" if miou is not None else ""))
