@@ -35,21 +35,11 @@ import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.patches import Patch  # noqa: E402
 from PIL import Image  # noqa: E402
 
+from diffuser_lab.data.geometry import project  # noqa: E402
+from diffuser_lab.data.render import intrinsics, look_at  # noqa: E402
 from diffuser_lab.data.scene import IGNORE  # noqa: E402
 
-# the runs' modules (and open3d, under data.render) are imported where they run: drawing alone stays light
-
-
-def intrinsics(*args, **kw):
-    from diffuser_lab.data.render import intrinsics
-
-    return intrinsics(*args, **kw)
-
-
-def look_at(*args, **kw):
-    from diffuser_lab.data.render import look_at
-
-    return look_at(*args, **kw)
+# the runs (diffuser_lab.run and the protocols) are imported where they run: drawing alone stays light
 
 SEED = 0
 GREY = np.array([200, 200, 200], np.uint8)  # unlabeled points / pixels
@@ -64,16 +54,15 @@ def splat(points: np.ndarray, colors: np.ndarray, K: np.ndarray, T_cw: np.ndarra
     the pinhole camera ``K`` (3, 3), ``T_cw`` (4, 4) world-to-camera: each point covers a square of
     (2 radius + 1)^2 pixels, the nearest point wins (z-buffer by sorting), white elsewhere."""
     h, w = shape
-    pc = points @ T_cw[:3, :3].T + T_cw[:3, 3]
-    front = pc[:, 2] > 1e-3
-    pc, colors = pc[front], colors[front]
-    uv = np.rint(pc[:, :2] / pc[:, 2:3] @ K[:2, :2].T + K[:2, 2]).astype(np.int64)
+    u, v, z = project(points, K, T_cw)  # Eq. 2; NaN behind the camera
+    front = np.flatnonzero(np.isfinite(u) & np.isfinite(v))
+    u0, v0 = np.rint(u[front]).astype(np.int64), np.rint(v[front]).astype(np.int64)
     d = np.arange(-radius, radius + 1)
     du, dv = (a.ravel() for a in np.meshgrid(d, d))
-    u = (uv[:, 0:1] + du).ravel()
-    v = (uv[:, 1:2] + dv).ravel()
-    z = np.repeat(pc[:, 2], du.size)
-    src = np.repeat(np.arange(pc.shape[0]), du.size)
+    u = (u0[:, None] + du).ravel()
+    v = (v0[:, None] + dv).ravel()
+    z = np.repeat(z[front], du.size)
+    src = np.repeat(front, du.size)
     inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
     flat, z, src = (v * w + u)[inside], z[inside], src[inside]
     order = np.lexsort((z, flat))  # per pixel, nearest first
@@ -131,9 +120,7 @@ class Dollhouse:
         R, t = T_cw[:3, :3], T_cw[:3, 3]
         world = (rays - t) @ R  # camera -> world
         centre = -R.T @ t
-        pts = np.vstack([centre, world])
-        pc = pts @ self.T_cw[:3, :3].T + self.T_cw[:3, 3]
-        uv = pc[:, :2] / pc[:, 2:3] @ self.K[:2, :2].T + self.K[:2, 2]
+        uv = np.stack(project(np.vstack([centre, world]), self.K, self.T_cw)[:2], 1)
         for i in range(1, 5):
             ax.plot(uv[[0, i], 0], uv[[0, i], 1], color=color, lw=1.2)
         ring = [1, 2, 3, 4, 1]
@@ -309,8 +296,7 @@ def city_tiles(out: Path, tmp: Path) -> Path:
 
 
 def _line(ax, seg, K, T):
-    pc = seg @ T[:3, :3].T + T[:3, 3]
-    uv = pc[:, :2] / pc[:, 2:3] @ K[:2, :2].T + K[:2, 2]
+    uv = np.stack(project(seg, K, T)[:2], 1)
     lim = ax.get_xlim(), ax.get_ylim()
     ax.plot(uv[:, 0], uv[:, 1], color="black", lw=1.3, ls="--")
     ax.set_xlim(*lim[0]), ax.set_ylim(*lim[1])  # the image's extent, not the lines'
