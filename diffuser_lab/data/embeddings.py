@@ -207,7 +207,7 @@ def check_queries(names: Sequence[str], embeddings, where: str, dim: int | None 
 
     Raises:
         ValueError: one line starting with ``where``: no names, names not unique or empty, embeddings
-        not (Q, D) with one row a name, a row not finite or all zero, D not ``dim`` (when given).
+            not (Q, D) with one row a name, a row not finite or all zero, D not ``dim`` (when given).
     """
     names = [str(n) for n in names]
     e = np.asarray(embeddings)

@@ -71,7 +71,7 @@ class Queries:
 
         Raises:
             ValueError: one line naming ``target``: not ``module.fn``, the module does not import,
-            no such function, not callable, it raised, or its output is not (Q, D).
+                no such function, not callable, it raised, or its output is not (Q, D).
         """
         fn = load_encoder(target)
         names = [str(n) for n in names]
