@@ -18,7 +18,7 @@ from . import features as feature_view
 from .hooks import RecordingHooks, slim_scene
 from .online import OnlineHooks
 from .schedule import recorded
-from .steps import StepTracker, original_to_work
+from .steps import StepTracker, original_to_work, scalar_metrics
 
 
 class BatchHooks(RecordingHooks):
@@ -35,6 +35,9 @@ class BatchHooks(RecordingHooks):
         self._queries: Optional[tuple] = None
         self._view: Optional[feature_view.FeatureView] = None
         self._projected = 0
+        # run.rrd's scalars at every iteration (cheap; the Z states stay on the schedule): the
+        # labels of the last iteration seen, ground truth and each original point's work row
+        self._dense: Optional[SimpleNamespace] = None
 
     def on_queries(self, names: Any, embeddings: np.ndarray) -> None:
         feature_view.pick_query(names, self.query)  # an unknown record.query: an error now, not after the run
@@ -46,6 +49,14 @@ class BatchHooks(RecordingHooks):
 
     def on_evidence(self, points: np.ndarray, grid: Optional[Any], evidence: Any, bayesian: np.ndarray) -> None:
         self.lane.send("batch.evidence", points, grid is not None, evidence.seen, bayesian)
+        if "rerun" in self.lane.wanted and self._queries is None and self.scene is not None:
+            # (a features run is left out: its class scores cost a decode of F per iteration)
+            gt = self.scene.gt_labels
+            to_work = None
+            if gt is not None and (grid is not None or len(points) != self.scene.n_points):
+                to_work = original_to_work(points, self.scene.points)
+            self._dense = SimpleNamespace(prev=np.full(len(points), -1, np.int16), gt=gt, to_work=to_work,
+                                          names=list(self.scene.taxonomy.names))
         mass = getattr(evidence, "mass", None)
         if self._queries is not None and mass is not None and mass.shape[1] == self._queries[1].shape[1] \
                 and self.recording():
@@ -53,7 +64,7 @@ class BatchHooks(RecordingHooks):
             self.lane.send("batch.feature_view", self._view)
 
     def observe_features(self, iteration: int, F: np.ndarray) -> None:
-        if self._view is not None:
+        if self._view is not None and self._scheduled(iteration):
             self._send_features(iteration, F)
 
     def _send_features(self, iteration: int, F: np.ndarray) -> None:
@@ -61,13 +72,24 @@ class BatchHooks(RecordingHooks):
         self.lane.send("batch.features", iteration, rgb, sim)
         self._projected = iteration
 
+    def _scheduled(self, iteration: int) -> bool:
+        return recorded(iteration, self.interval, self.max_iter)
+
     def wants(self, iteration: int) -> bool:
         # what was asked for and has not failed: the recorders may still be opening where they
         # are written, and what is sent now is written once they are
-        return self.recording() and recorded(iteration, self.interval, self.max_iter)
+        if self._dense is not None and self.lane.live("rerun"):
+            return True
+        return self.recording() and self._scheduled(iteration)
 
     def observe(self, iteration: int, Z: np.ndarray, stats: dict) -> None:
-        self.lane.send_z("batch.step", iteration, Z, float(stats.get("residual", float("nan"))))
+        residual = float(stats.get("residual", float("nan")))
+        if self._dense is not None and self.lane.live("rerun"):
+            d = self._dense
+            m, d.prev = scalar_metrics(Z, d.prev, d.gt, d.to_work, d.names)
+            self.lane.send("batch.metrics", iteration, residual, m)
+        if self.recording() and self._scheduled(iteration):
+            self.lane.send_z("batch.step", iteration, Z, residual)
 
     def on_online_frame(self, frame: Any, update: Any) -> None:
         if self._online is None:  # the run is online after all: its frames are recorded from here
@@ -101,6 +123,7 @@ class BatchRecorder:
         self.max_iter = int(recs.conf.solver.max_iter)
         self.tracker: Optional[StepTracker] = None
         self._last_step = None
+        self._dense_last = 0  # the last iteration whose run.rrd scalars the run's side sent (batch.metrics)
 
     def frame(self, index: int, frame: Any) -> None:
         r = self.recs
@@ -135,6 +158,12 @@ class BatchRecorder:
         r = self.recs
         r.each(lambda: r.rerun.log_features(iteration, rgb, sim), lambda: r.mcap.log_features(iteration, rgb, sim))
 
+    def metrics(self, iteration: int, residual: float, m: dict) -> None:
+        """run.rrd's scalars of one iteration (:func:`~.steps.scalar_metrics`), every iteration."""
+        r = self.recs
+        self._dense_last = int(iteration)
+        r.each(lambda: r.rerun.log_metrics(iteration, residual, **m), None)
+
     def step(self, iteration: int, Z: np.ndarray, residual: float) -> None:
         """A recorded iteration (Z valid during the call only)."""
         self._record(iteration, Z, residual, final=iteration == self.max_iter)
@@ -148,7 +177,8 @@ class BatchRecorder:
         step = self.tracker.step(iteration, Z, residual)
         self._last_step = step
         pts = r.scene.points
-        r.each(lambda: r.rerun.log_step(step, pts), lambda: r.mcap.log_step(step, final=final))
+        scalars = step.iteration > self._dense_last  # not sent by the run's side (a solver that observes none)
+        r.each(lambda: r.rerun.log_step(step, pts, metrics=scalars), lambda: r.mcap.log_step(step, final=final))
         r.recorded.append(step.iteration)
 
     def result(self, result: Any) -> None:

@@ -96,7 +96,9 @@ def confidence_context():
         rr.AnnotationInfo(id=i, label=f"confidence {i / CONFIDENCE_BINS:.3f}-{(i + 1) / CONFIDENCE_BINS:.3f}",
                           color=tuple(int(x) for x in lut[i])) for i in range(CONFIDENCE_BINS)])
 
-UNLABELED_RGB = (70, 70, 70)
+UNLABELED_RGB = (200, 200, 200)
+"""Unlabelled points (class id 65535): a light grey that reads on the viewer's black background
+(the (70, 70, 70) of before looked like holes in the cloud; it was also cityscapes' ``building``)."""
 RIGHT_RGB = (95, 95, 95)
 """The errors tab draws every diffused point in this grey (a view override: no extra data)."""
 LIVE_PORT = 9876
@@ -177,6 +179,74 @@ def point_radius(points: np.ndarray) -> float:
     return float(max(0.5 * np.mean(d[:, 1]), 1e-4))
 
 
+LEGEND = "legend"
+"""The legend's entity: ``legend/classes`` (each class present, ``unlabeled`` and, with ground
+truth, ``wrong label``, its name written in its colour), ``legend/confidence`` (the viridis scale
+of the confidence tab, 0 to 1) and ``legend/confidence/ticks`` (its numbers), Points2D drawn in
+the layout's ``legend`` 2D view, a strip under the 3D tabs."""
+LEGEND_ROWS = 4
+"""Names per column of the legend."""
+
+
+def legend_entries(names: Sequence[str], colors: np.ndarray, present: Optional[np.ndarray] = None,
+                   wrong_rgb: Optional[tuple] = None) -> tuple[list[str], np.ndarray]:
+    """(labels, (K, 3) uint8 colours) of the legend: the classes ``present`` (class ids, e.g. those
+    of the ground truth and the labels; None: all), ``unlabeled`` and, given ``wrong_rgb``,
+    ``wrong label``."""
+    ids = np.arange(len(names)) if present is None else np.unique(np.asarray(present, np.int64))
+    ids = ids[(ids >= 0) & (ids < len(names))]
+    labels = [str(names[i]) for i in ids] + ["unlabeled"]
+    cols = [np.asarray(colors, np.uint8).reshape(-1, 3)[ids], np.asarray([UNLABELED_RGB], np.uint8)]
+    if wrong_rgb is not None:
+        labels.append("wrong label")
+        cols.append(np.asarray([wrong_rgb], np.uint8))
+    return labels, np.concatenate(cols)
+
+
+def log_legend(rec, names: Sequence[str], colors: np.ndarray, present: Optional[np.ndarray] = None,
+               wrong_rgb: Optional[tuple] = None, confidence: bool = True) -> None:
+    """Static ``legend/classes`` (:func:`legend_entries`, columns of :data:`LEGEND_ROWS` names, each
+    written in its class colour: Rerun centres a label on its point) and, with ``confidence``, the
+    confidence colour scale right of them, on the recording stream ``rec`` (one row = 1 unit)."""
+    import rerun as rr
+
+    labels, cols = legend_entries(names, colors, present, wrong_rgb)
+    k = np.arange(len(labels))
+    col_w = 0.42 * max(len(s) for s in labels) + 0.8  # ~ a name's width in rows (the view fits them all)
+    n_cols = -(-len(labels) // LEGEND_ROWS)
+    pos = np.stack([(k // LEGEND_ROWS) * col_w, k % LEGEND_ROWS], 1).astype(np.float32)
+    rec.log(f"{LEGEND}/classes", rr.Points2D(pos, colors=cols, radii=0.05, labels=labels, show_labels=True),
+            static=True)
+    if confidence:
+        v = np.linspace(0.0, 1.0, 11)
+        x0 = n_cols * col_w + 0.5
+        pos = np.stack([x0 + np.arange(11) * 0.5, np.full(11, 1.0)], 1).astype(np.float32)
+        rec.log(f"{LEGEND}/confidence", rr.Points2D(pos, colors=CONFIDENCE_LUT[np.round(v * 255).astype(int)],
+                                                    radii=0.25), static=True)
+        ticks = pos[[0, 5, 10]] + np.float32([0.0, 0.9])
+        rec.log(f"{LEGEND}/confidence/ticks", rr.Points2D(ticks, radii=0.01, colors=(220, 220, 220),
+                                                          labels=["conf. 0", "0.5", "1"], show_labels=True),
+                static=True)
+
+
+def legend_view():
+    """The ``legend`` 2D view of every layout."""
+    import rerun.blueprint as rrb
+
+    return rrb.Spatial2DView(name="legend", origin=f"/{LEGEND}")
+
+
+def plot(name: str, contents: Sequence[str], y_range: Optional[tuple] = None, legend: bool = False,
+         corner: str = "RightBottom", origin: str = "/metrics"):
+    """A time series view with ``y_range`` (lo, hi) fixed (None: Rerun's, fitted to the data)
+    and, with ``legend``, its legend in ``corner`` (off the curves: where they end)."""
+    import rerun.blueprint as rrb
+
+    kw = {} if y_range is None else {"axis_y": rrb.ScalarAxis(range=y_range, zoom_lock=False)}
+    return rrb.TimeSeriesView(name=name, origin=origin, contents=list(contents),
+                              plot_legend=rrb.PlotLegend(corner=corner, visible=bool(legend)), **kw)
+
+
 def blueprint(score_layers: Sequence[tuple[str, str]] = (), eye=None, feature_tabs: Sequence[tuple[str, str]] = ()):
     """The default layout: the labelled points in 3D beside the time series; other 3D views
     (confidence, errors, ground truth, input + cameras, depth, evidence, and one per
@@ -201,7 +271,7 @@ def blueprint(score_layers: Sequence[tuple[str, str]] = (), eye=None, feature_ta
     feats = [view3d(name, [f"/{path}"]) for name, path in feature_tabs]
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Tabs(
+            rrb.Vertical(rrb.Tabs(
                 view3d("diffusion: labels", ["/world/diffusion/labels"]),
                 view3d("confidence", ["/world/diffusion/confidence"]),
                 *feats,
@@ -212,17 +282,16 @@ def blueprint(score_layers: Sequence[tuple[str, str]] = (), eye=None, feature_ta
                 view3d("evidence (Bayesian)", ["/world/evidence/**", "/world/cameras/**"]),
                 *scores,
                 active_tab="diffusion: labels",
-            ),
+            ), legend_view(), row_shares=[4, 1]),
             rrb.Vertical(
-                rrb.TimeSeriesView(name="mIoU so far [%]", origin="/metrics", contents=["/metrics/miou"]),
-                rrb.TimeSeriesView(name="labels changed per iteration, log10", origin="/metrics",
-                                   contents=["/metrics/changed_per_iter_log10"]),
-                rrb.TimeSeriesView(name="relative residual |Z_t - Z_t-1|, log10", origin="/metrics",
-                                   contents=["/metrics/residual_log10"]),
+                plot("mIoU and accuracy so far [%]", ["/metrics/miou", "/metrics/accuracy"], legend=True),
+                plot("mean confidence", ["/metrics/confidence"], legend=False),
+                plot("labels changed per iteration, log10", ["/metrics/changed_per_iter_log10"]),
+                plot("relative residual |Z_t - Z_t-1|, log10", ["/metrics/residual_log10"]),
             ),
             column_shares=[3, 2],
         ),
-        rrb.TimePanel(state="expanded"),
+        rrb.TimePanel(state="expanded", timeline=TIMELINE, play_state="following"),
         collapse_panels=True,
     )
 
@@ -236,6 +305,11 @@ ONLINE_MAX_BLOCKS = 64
 1M map points). The Rerun 0.41 viewer refuses a blueprint with 128 such overrides ("Data source
 finished without loading a recording"); 64 load."""
 
+
+APP_BATCH, APP_ONLINE, APP_TILED = "diffuser_lab_batch", "diffuser_lab_online", "diffuser_lab_tiled"
+"""run.rrd's application id per kind of run (Rerun turns a dot in one into a hash). The viewer keeps one layout per application id, so a
+record of another kind opened into a running viewer gets its own layout, not the last one's; each
+record also makes its layout the active one as it loads (``send_blueprint(make_active=True)``)."""
 
 FOLLOW_CAMERA = "/world/online/camera"
 """The entity of an online run's moving camera, which the "through the camera" tab's eye tracks."""
@@ -264,15 +338,16 @@ def online_blueprint(has_gt: bool, growing: bool, eye=None):
         dim = {f"/world/online/labels/{b:04d}": grey for b in range(ONLINE_MAX_BLOCKS if growing else 1)}
         tabs.append(view3d("errors", ["/world/online/labels/**", "/world/online/wrong"], overrides=dim))
         tabs.append(view3d("ground truth", ["/world/online/ground_truth/**" if growing else "/world/scene/ground_truth"]))
-    plots = [rrb.TimeSeriesView(name="mIoU so far [%]", origin="/metrics",
-                                contents=["/metrics/diffuser_miou", "/metrics/bayesian_miou"])] if has_gt else []
-    plots += [rrb.TimeSeriesView(name="latency [ms]", origin="/metrics", contents=["/metrics/latency_ms"]),
-              rrb.TimeSeriesView(name="labels changed", origin="/metrics", contents=["/metrics/changed"]),
-              rrb.TimeSeriesView(name="map points", origin="/metrics", contents=["/metrics/points"]),
+    plots = [plot("mIoU so far [%]", ["/metrics/diffuser_miou", "/metrics/bayesian_miou"], legend=True)] if has_gt else []
+    plots += [plot("latency [ms]", ["/metrics/latency_ms"]),
+              plot("labels changed", ["/metrics/changed"]),
+              plot("map points [thousands]", ["/metrics/points_k"]),
               rrb.Spatial2DView(name="camera: 2D labels", origin="/world/online/camera")]
+    shares = [2] * (len(plots) - 1) + [4]
     return rrb.Blueprint(
-        rrb.Horizontal(rrb.Tabs(*tabs, active_tab="online: labels"), rrb.Vertical(*plots), column_shares=[3, 2]),
-        rrb.TimePanel(state="expanded"),
+        rrb.Horizontal(rrb.Vertical(rrb.Tabs(*tabs, active_tab="online: labels"), legend_view(), row_shares=[4, 1]),
+                       rrb.Vertical(*plots, row_shares=shares), column_shares=[3, 2]),
+        rrb.TimePanel(state="expanded", timeline=FRAME_TIMELINE, play_state="following"),
         collapse_panels=True,
     )
 
@@ -289,7 +364,7 @@ class RerunRecorder:
 
     file_key = "rrd"
 
-    def __init__(self, path: Path, *, application_id: str = "diffuser_lab", recording_id: Optional[str] = None,
+    def __init__(self, path: Path, *, application_id: Optional[str] = None, recording_id: Optional[str] = None,
                  max_image_side: int = 320, max_depth_side: int = 160, live: Optional[str] = None,
                  score_classes: Sequence[tuple[str, int]] = (), online: bool = False):
         import rerun as rr
@@ -311,8 +386,11 @@ class RerunRecorder:
         self._feature_tabs: list[tuple[str, str]] = []  # a features run's (tab, entity): log_feature_view
         self._query_path = ""
         self._work_points: Optional[np.ndarray] = None
+        self._taxonomy: Optional[tuple[list, np.ndarray]] = None  # (names, (C, 3) colours): log_taxonomy
         bp = None
         batcher = rr.ChunkBatcherConfig(flush_tick=BATCH_SECONDS, flush_num_bytes=BATCH_BYTES)
+        if application_id is None:
+            application_id = APP_ONLINE if online else APP_BATCH
         self.rec = rr.RecordingStream(application_id, recording_id=recording_id or str(uuid.uuid4()),
                                       batcher_config=batcher)
         target = live_target(live)
@@ -349,6 +427,7 @@ class RerunRecorder:
         rr = self.rr
         self.rec.log("world", annotation_context(names, colors), rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         self.wrong_rgb = wrong_color(colors)[0]
+        self._taxonomy = (list(names), np.asarray(colors, np.uint8))
         rr_series = [("miou", "mIoU so far [%]", (31, 119, 180)), ("accuracy", "accuracy [%]", (44, 160, 44)),
                      ("changed_per_iter_log10", "log10 labels changed per iteration", (214, 39, 40)),
                      ("residual_log10", "log10 relative residual", (148, 103, 189)),
@@ -361,7 +440,7 @@ class RerunRecorder:
         (F, 4, 4) where given (else +z, as ``world``'s ViewCoordinates say)."""
         pts = getattr(self, "_scene_points", None)
         eye = overview_eye(pts, T_cw) if pts is not None else None
-        self.rec.send_blueprint(blueprint(self._layers, eye, self._feature_tabs), make_active=False, make_default=True)
+        self.rec.send_blueprint(blueprint(self._layers, eye, self._feature_tabs), make_active=True, make_default=True)
         self._eye_up = scene_up(T_cw)
 
     def log_scene(self, points: np.ndarray, colors: Optional[np.ndarray], gt: Optional[np.ndarray]) -> None:
@@ -376,6 +455,18 @@ class RerunRecorder:
         if gt is not None:
             self.rec.log("world/scene/ground_truth",
                          rr.Points3D(points, class_ids=class_ids(gt), radii=self.radius), static=True)
+        self._gt_present = None if gt is None else np.unique(np.asarray(gt))
+        self.log_legend()
+
+    def log_legend(self, labels: Optional[np.ndarray] = None) -> None:
+        """The static ``legend`` (:func:`log_legend`): the classes of the ground truth and of
+        ``labels`` (class ids; both None: all classes), the wrong colour where there is ground truth."""
+        if self._taxonomy is None:
+            return
+        gt = getattr(self, "_gt_present", None)
+        parts = [np.asarray(a).ravel() for a in (gt, labels) if a is not None]
+        present = np.unique(np.concatenate(parts)) if parts else None
+        log_legend(self.rec, *self._taxonomy, present, self.wrong_rgb if gt is not None else None)
 
     def _shrink(self, img: np.ndarray, K: np.ndarray, side: int = 0) -> tuple[np.ndarray, np.ndarray]:
         h, w = img.shape[:2]
@@ -434,16 +525,35 @@ class RerunRecorder:
         seen = np.asarray(seen, bool)
         self.rec.log("world/evidence/bayesian",
                      rr.Points3D(work_points[seen], class_ids=class_ids(bayesian[seen]), radii=r), static=True)
+        self.log_legend(bayesian[seen])
         self.rec.log("world/evidence/unseen",
-                     rr.Points3D(work_points[~seen], colors=(90, 90, 90), radii=r), static=True)
+                     rr.Points3D(work_points[~seen], colors=UNLABELED_RGB, radii=r), static=True)
         self.rec.log("world/diffusion/labels", rr.Points3D(work_points, radii=r), static=True)
         self.rec.log("world/diffusion/confidence", confidence_context(), rr.Points3D(work_points, radii=r), static=True)
         for p in self.score_paths:
             self.rec.log(p, rr.Points3D(work_points, radii=r), static=True)
 
     # -- per iteration -------------------------------------------------------------------------
-    def log_step(self, step: Step, points: Optional[np.ndarray] = None) -> None:
-        """One recorded iteration; ``points`` (N, 3) are the original points (for ``wrong``)."""
+    def log_metrics(self, iteration: int, residual: float, changed: int, confidence: float,
+                    miou: Optional[float] = None, accuracy: Optional[float] = None, per: int = 1) -> None:
+        """The scalars of one iteration (``metrics/*``); ``changed``: labels changed over the
+        last ``per`` iterations (logged per iteration, log10)."""
+        rr, rec = self.rr, self.rec
+        rec.set_time(TIMELINE, sequence=int(iteration))
+        # log10: after the first iteration (~all labels change, residual 1) both fall by orders of
+        # magnitude, which a linear axis shows as a flat line (Rerun 0.41's plots have no log axis)
+        if residual > 0 and np.isfinite(residual):
+            rec.log("metrics/residual_log10", rr.Scalars(np.log10(residual)))
+        if changed > 0:
+            rec.log("metrics/changed_per_iter_log10", rr.Scalars(np.log10(changed / max(int(per), 1))))
+        rec.log("metrics/confidence", rr.Scalars(float(confidence)))
+        if miou is not None:
+            rec.log("metrics/miou", rr.Scalars(float(miou)))
+            rec.log("metrics/accuracy", rr.Scalars(float(accuracy)))
+
+    def log_step(self, step: Step, points: Optional[np.ndarray] = None, metrics: bool = True) -> None:
+        """One recorded iteration; ``points`` (N, 3) are the original points (for ``wrong``);
+        ``metrics``: also its scalars (False: the run's side sends them every iteration)."""
         rr = self.rr
         rec = self.rec
         rec.set_time(TIMELINE, sequence=step.iteration)
@@ -453,18 +563,9 @@ class RerunRecorder:
         if step.wrong is not None and points is not None:
             rec.log("world/diffusion/wrong", rr.Points3D(points[step.wrong], colors=self.wrong_rgb,
                                                          radii=1.2 * self.radius))
-        # log10: after the first iteration (~all labels change, residual 1) both fall by orders of
-        # magnitude, which a linear axis shows as a flat line (Rerun 0.41's plots have no log axis);
-        # per iteration, as recorded iterations need not be evenly spaced
-        if step.residual > 0 and np.isfinite(step.residual):
-            rec.log("metrics/residual_log10", rr.Scalars(np.log10(step.residual)))
-        if step.n_changed > 0:
-            per_iter = step.n_changed / max(step.iteration - step.previous, 1)
-            rec.log("metrics/changed_per_iter_log10", rr.Scalars(np.log10(per_iter)))
-        rec.log("metrics/confidence", rr.Scalars(step.mean_confidence))
-        if step.miou is not None:
-            rec.log("metrics/miou", rr.Scalars(step.miou))
-            rec.log("metrics/accuracy", rr.Scalars(step.accuracy))
+        if metrics:  # per iteration, as recorded iterations need not be evenly spaced
+            self.log_metrics(step.iteration, step.residual, step.n_changed, step.mean_confidence, step.miou,
+                             step.accuracy, per=step.iteration - step.previous)
 
     # -- a features run (predictions=features) ------------------------------------------------------
     def log_feature_view(self, view) -> None:
@@ -505,12 +606,12 @@ class RerunRecorder:
         ``spacing``: a growing map's voxel size, m (its points are drawn with half of it as radius)."""
         rr = self.rr
         eye = overview_eye(points) if points is not None and len(points) else None
-        self.rec.send_blueprint(online_blueprint(has_gt, growing, eye), make_active=False, make_default=True)
+        self.rec.send_blueprint(online_blueprint(has_gt, growing, eye), make_active=True, make_default=True)
         for key, name, color in (("diffuser_miou", "online Diffuser mIoU so far [%]", (31, 119, 180)),
                                  ("bayesian_miou", "online Bayesian mIoU so far [%]", (255, 127, 14)),
                                  ("latency_ms", "latency [ms]", (214, 39, 40)),
                                  ("changed", "labels changed", (148, 103, 189)),
-                                 ("points", "map points", (44, 160, 44))):
+                                 ("points_k", "map points [thousands]", (44, 160, 44))):
             self.rec.log(f"metrics/{key}", rr.SeriesLines(names=name, colors=color), static=True)
         # a growing map's points are its voxels' centroids: half the voxel touch. (Estimated from
         # the first frame's map, the radius came out 3x that: its points are far sparser than the
@@ -553,7 +654,7 @@ class RerunRecorder:
             log("world/online/camera/labels", rr.SegmentationImage(class_ids(rec.image)))
         st, m = rec.stats, rec.metrics or {}
         log("metrics/latency_ms", rr.Scalars(float(st["latency_ms"])))
-        log("metrics/points", rr.Scalars(float(rec.n)))
+        log("metrics/points_k", rr.Scalars(float(rec.n) / 1000.0))  # thousands: the axis' numbers fit
         log("metrics/changed", rr.Scalars(float(st["changed"])))
         for key in ("diffuser_miou", "bayesian_miou"):
             if m.get(key) is not None:
@@ -584,7 +685,7 @@ class RerunRecorder:
             return
         self._closed = True
         if not self.online and self._eye_up is None:  # no scene came (a run that failed early): the layout
-            self.rec.send_blueprint(blueprint(self._layers, feature_tabs=self._feature_tabs), make_active=False,
+            self.rec.send_blueprint(blueprint(self._layers, feature_tabs=self._feature_tabs), make_active=True,
                                     make_default=True)
         if self.live is None:
             self.rec.flush()
@@ -597,5 +698,5 @@ class RerunRecorder:
         self.rec.disconnect()
 
 
-__all__ = ["RerunRecorder", "blueprint", "online_blueprint", "class_ids", "wrong_color", "score_entity", "UNLABELED_ID", "TIMELINE",
+__all__ = ["RerunRecorder", "blueprint", "log_legend", "legend_entries", "LEGEND", "APP_BATCH", "APP_ONLINE", "APP_TILED", "online_blueprint", "class_ids", "wrong_color", "score_entity", "UNLABELED_ID", "TIMELINE",
            "CONFIDENCE_LUT"]
