@@ -20,7 +20,10 @@ Entity tree (``world`` is z-up, metres; class colours come from the AnnotationCo
     world/scores/<class>           Points3D: positions static, colour = Z_ic / sum_c Z_ic (viridis) and
                                    the value (component ``score``) per iteration; only in a re-logged
                                    .rrd (``diffuser-lab-inspect RUN --to-rrd OUT --scores chair,table``)
-    metrics/miou|accuracy|confidence       Scalars per iteration
+    legend/classes             Points2D, static: the classes present (ground truth, labels), unlabeled,
+                               wrong label, each name in its colour; legend/confidence(/ticks): the scale
+    metrics/miou|accuracy|confidence       Scalars at every iteration (the run's side computes them:
+                                           :func:`~.steps.scalar_metrics`), the clouds above on the schedule
     metrics/residual_log10                 log10 of the relative residual (none where it is 0)
     metrics/changed_per_iter_log10         log10 of the labels changed per iteration since the previous
                                            recorded one, n_changed / (iteration - previous) (none where 0)
@@ -39,7 +42,9 @@ An online run (protocol=online, :meth:`RerunRecorder.log_online_frame`) has, bes
     world/online/wrong             Points3D: annotated points whose label is wrong (given map: scene points)
     world/online/camera            Transform3D + Pinhole: the frame's camera (one entity that moves),
                                    child labels (SegmentationImage, the 2D predictions)
-    metrics/latency_ms|points|changed|diffuser_miou|bayesian_miou   Scalars per frame
+    metrics/latency_ms|points_k|changed|diffuser_miou|bayesian_miou   Scalars per frame (points_k: thousands)
+
+Application ids: :data:`APP_BATCH`, :data:`APP_ONLINE` (and :data:`APP_TILED`, :mod:`.tiled`).
 """
 from __future__ import annotations
 

@@ -6,17 +6,22 @@ intermediate Z (a tile's diffusion is not observed; the scenes tiling is for are
 per-iteration clouds). The clouds are thinned for display: every n-th point, n = ceil(N /
 :data:`MAX_DISPLAY_POINTS`) (:func:`display_index`), the same points in both files.
 
-run.rrd (blueprint: labels, errors, ground truth and the tile grid in tabs beside the tiles' plots)::
+run.rrd (application id ``diffuser_lab_tiled``; blueprint: labels, tiles, errors and ground truth
+in tabs over the legend, beside the tiles' table and bar charts; the boxes only in the tiles tab,
+the cloud in grey there and in the errors tab)::
 
     world                       AnnotationContext (taxonomy names + colours; 65535 = unlabeled)
     world/tiled/labels          Points3D, static: final labels of the displayed points
     world/tiled/ground_truth    Points3D, static: ground-truth class ids (when known)
     world/tiled/wrong           Points3D, static: displayed points whose label is wrong (when known)
-    world/tiled/tiles           Boxes3D, static: one box per tile (x-y cell, z of the cloud), coloured
-                                by status (green done, red failed, grey kept from tiling.resume),
-                                labelled "<id> <status>"
-    tiles                       TextDocument, static: the tiles' table (markdown)
-    tile/points|frames_read|iterations|time_s    Scalars on the ``tile`` timeline (= tile index)
+    world/tiled/tiles           Boxes3D, static, outlines: one box per tile (x-y cell cut to its
+                                points' extent, z of the cloud), coloured by status (green done,
+                                red failed, grey kept from tiling.resume), labelled "<id> <status>"
+    legend/classes              Points2D, static: the classes present, unlabeled, wrong label
+    tiles                       TextDocument, static: the tiles' table (markdown, ``#`` = row)
+    tile/<figure>/<tile id>     BarChart, static: one bar at x = the tile's row (accuracy [%] with
+                                ground truth, iterations, points, frames_read, time_s); beyond
+                                :data:`MAX_KEYED_TILES` tiles one chart ``tile/<figure>``
 
 run.mcap::
 
@@ -56,7 +61,6 @@ log = logging.getLogger("diffuser_lab.recording")
 
 MAX_DISPLAY_POINTS = 2_000_000
 """The most points a tiled run's clouds hold in run.rrd and run.mcap (every n-th point beyond)."""
-TIMELINE = "tile"
 STATUS_RGB = {"done": (40, 190, 70), "error": (220, 40, 40), "resumed": (150, 150, 150)}
 """A tile box's colour by its status (done, failed, kept from tiling.resume)."""
 _FIGURES = ("points", "frames_read", "iterations", "time_s")
@@ -154,7 +158,7 @@ def blueprint(has_gt: bool, points: Optional[np.ndarray] = None, miou: Optional[
               for k in _CHARTS if k != "accuracy" or has_gt]
     return rrb.Blueprint(
         rrb.Horizontal(rrb.Vertical(rrb.Tabs(*tabs, active_tab="tiled: labels"), legend_view(), row_shares=[4, 1]),
-                       rrb.Vertical(rrb.TextDocumentView(name="tiles", origin="/tiles"), *charts,
+                       rrb.Vertical(rrb.TextDocumentView(name="table of tiles", origin="/tiles"), *charts,
                                     row_shares=[3] + [2] * len(charts)),
                        column_shares=[3, 2]),
         rrb.TimePanel(state="collapsed"), collapse_panels=True)
