@@ -51,13 +51,23 @@ def run_kind(kind: str, run_dir: Path, timeout: float = 600.0) -> Path:
     return rrd
 
 
-def screenshot(rrd: Path, png: Path, window: str = WINDOW, wait_s: float = 12.0, display: int = 97) -> Path:
+def free_display(first: int = 90) -> int:
+    """An X display number no server holds (no /tmp/.X<n>-lock): a viewer of an earlier shot
+    still on a reused display would be in the picture."""
+    n = first
+    while Path(f"/tmp/.X{n}-lock").exists() or Path(f"/tmp/.X11-unix/X{n}").exists():
+        n += 1
+    return n
+
+
+def screenshot(rrd: Path, png: Path, window: str = WINDOW, wait_s: float = 12.0, display: int | None = None) -> Path:
     """The viewer's window on ``rrd`` (its default blueprint), ``wait_s`` after it started, as ``png``,
     shrunk and quantised: the real viewer in an X server of its own (Xvfb), as a user opens it
     (``rerun --headless --screenshot-to`` shoots before a recording with a timeline has loaded)."""
     png.parent.mkdir(parents=True, exist_ok=True)
     raw = png.with_suffix(".raw.png")
     w, h = window.split("x")
+    display = free_display() if display is None else display
     env = dict(os.environ, DISPLAY=f":{display}", WGPU_BACKEND="vulkan")
     # -extension Composite: without it the viewer gets a 32-bit visual and draws black
     xvfb = subprocess.Popen(["Xvfb", f":{display}", "-screen", "0", f"{w}x{h}x24", "-extension", "Composite"],

@@ -20,8 +20,8 @@ Entity tree (``world`` is z-up, metres; class colours come from the AnnotationCo
     world/scores/<class>           Points3D: positions static, colour = Z_ic / sum_c Z_ic (viridis) and
                                    the value (component ``score``) per iteration; only in a re-logged
                                    .rrd (``diffuser-lab-inspect RUN --to-rrd OUT --scores chair,table``)
-    legend/classes             Points2D, static: the classes present (ground truth, labels), unlabeled,
-                               wrong label, each name in its colour; legend/confidence(/ticks): the scale
+    legend                     Image + values (classes, colors), static: the classes present (ground
+                               truth, labels), unlabeled, wrong label; the confidence scale
     metrics/miou|accuracy|confidence       Scalars at every iteration (the run's side computes them:
                                            :func:`~.steps.scalar_metrics`), the clouds above on the schedule
     metrics/residual_log10                 log10 of the relative residual (none where it is 0)
@@ -185,12 +185,16 @@ def point_radius(points: np.ndarray) -> float:
 
 
 LEGEND = "legend"
-"""The legend's entity: ``legend/classes`` (each class present, ``unlabeled`` and, with ground
-truth, ``wrong label``, its name written in its colour), ``legend/confidence`` (the viridis scale
-of the confidence tab, 0 to 1) and ``legend/confidence/ticks`` (its numbers), Points2D drawn in
-the layout's ``legend`` 2D view, a strip under the 3D tabs."""
-LEGEND_ROWS = 4
-"""Names per column of the legend."""
+"""The legend's entity (every kind of run): an Image (:func:`legend_image`: a swatch and the
+name of each class present, ``unlabeled``, ``wrong label`` with ground truth, and the
+confidence colour scale) with the same entries as values (``classes``: names, ``colors``:
+0xRRGGBBAA), drawn in the layout's ``legend`` 2D view, a strip under the 3D tabs. A picture:
+Rerun's 2D labels keep their size in pixels while the view scales the positions, so
+labelled points overlapped or fell apart with the view's size; an image scales as a whole."""
+LEGEND_ROWS = 5
+"""Entries per column of the legend."""
+LEGEND_BG = (18, 18, 18)
+"""The legend's background: the viewer's."""
 
 
 def legend_entries(names: Sequence[str], colors: np.ndarray, present: Optional[np.ndarray] = None,
@@ -208,55 +212,94 @@ def legend_entries(names: Sequence[str], colors: np.ndarray, present: Optional[n
     return labels, np.concatenate(cols)
 
 
+def legend_image(labels: Sequence[str], colors: np.ndarray, confidence: bool = True,
+                 rows: int = LEGEND_ROWS) -> np.ndarray:
+    """(H, W, 3) uint8 picture of the legend: ``labels`` with their (K, 3) uint8 ``colors`` as
+    swatches in columns of ``rows``, and with ``confidence`` the viridis scale 0..1 right of them
+    (matplotlib's Agg canvas, no pyplot: safe in the recording thread)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Rectangle
+
+    row_px, font = 34, 13  # points at 100 dpi: ~10 px a character
+    n_cols = -(-len(labels) // rows)
+    col_px = 44 + 10 * max(len(s) for s in labels)
+    cbar_px = 320 if confidence else 0
+    W, H = n_cols * col_px + cbar_px + 20, rows * row_px + 16
+    fig = Figure(figsize=(W / 100, H / 100), dpi=100, facecolor=np.asarray(LEGEND_BG) / 255)
+    FigureCanvasAgg(fig)
+    ax = fig.add_axes((0, 0, 1, 1))
+    ax.set_xlim(0, W)
+    ax.set_ylim(H, 0)
+    ax.axis("off")
+    cols = np.asarray(colors, np.float64).reshape(-1, 3) / 255
+    for k, name in enumerate(labels):  # a few dozen entries
+        x, y = 12 + (k // rows) * col_px, 8 + (k % rows) * row_px
+        ax.add_patch(Rectangle((x, y + 4), 22, 22, facecolor=cols[k], edgecolor=(0.85, 0.85, 0.85), linewidth=0.6))
+        ax.text(x + 32, y + 15, name, color=(0.9, 0.9, 0.9), fontsize=font, va="center")
+    if confidence:
+        x0, w = W - cbar_px + 20, cbar_px - 60
+        ax.imshow(CONFIDENCE_LUT[None, np.linspace(0, 255, w).astype(int)], extent=(x0, x0 + w, 66, 42),
+                  aspect="auto", interpolation="nearest")
+        ax.text(x0, 28, "confidence max_c Z / sum_c Z", color=(0.9, 0.9, 0.9), fontsize=font, va="center")
+        for v in (0.0, 0.5, 1.0):
+            ax.text(x0 + v * w, 84, f"{v:g}", color=(0.9, 0.9, 0.9), fontsize=font, va="center", ha="center")
+    fig.canvas.draw()
+    return np.ascontiguousarray(np.asarray(fig.canvas.buffer_rgba())[..., :3])
+
+
 def log_legend(rec, names: Sequence[str], colors: np.ndarray, present: Optional[np.ndarray] = None,
                wrong_rgb: Optional[tuple] = None, confidence: bool = True) -> None:
-    """Static ``legend/classes`` (:func:`legend_entries`, columns of :data:`LEGEND_ROWS` names, each
-    written in its class colour: Rerun centres a label on its point) and, with ``confidence``, the
-    confidence colour scale right of them, on the recording stream ``rec`` (one row = 1 unit)."""
+    """Static :data:`LEGEND` on the recording stream ``rec``: :func:`legend_image` of
+    :func:`legend_entries` and the entries as values (``classes``, ``colors`` 0xRRGGBBAA)."""
     import rerun as rr
 
     labels, cols = legend_entries(names, colors, present, wrong_rgb)
-    k = np.arange(len(labels))
-    col_w = 0.42 * max(len(s) for s in labels) + 0.8  # ~ a name's width in rows (the view fits them all)
-    n_cols = -(-len(labels) // LEGEND_ROWS)
-    pos = np.stack([(k // LEGEND_ROWS) * col_w, k % LEGEND_ROWS], 1).astype(np.float32)
-    rec.log(f"{LEGEND}/classes", rr.Points2D(pos, colors=cols, radii=0.05, labels=labels, show_labels=True),
-            static=True)
-    if confidence:
-        v = np.linspace(0.0, 1.0, 11)
-        x0 = n_cols * col_w + 0.5
-        pos = np.stack([x0 + np.arange(11) * 0.5, np.full(11, 1.0)], 1).astype(np.float32)
-        rec.log(f"{LEGEND}/confidence", rr.Points2D(pos, colors=CONFIDENCE_LUT[np.round(v * 255).astype(int)],
-                                                    radii=0.25), static=True)
-        ticks = pos[[0, 5, 10]] + np.float32([0.0, 0.9])
-        rec.log(f"{LEGEND}/confidence/ticks", rr.Points2D(ticks, radii=0.01, colors=(220, 220, 220),
-                                                          labels=["conf. 0", "0.5", "1"], show_labels=True),
-                static=True)
+    c = cols.astype(np.uint32)
+    packed = (c[:, 0] << 24) | (c[:, 1] << 16) | (c[:, 2] << 8) | np.uint32(255)
+    rec.log(LEGEND, rr.Image(legend_image(labels, cols, confidence)),
+            rr.AnyValues(classes=labels, colors=packed), static=True)
 
 
 def legend_view():
     """The ``legend`` 2D view of every layout."""
     import rerun.blueprint as rrb
 
-    return rrb.Spatial2DView(name="legend", origin=f"/{LEGEND}")
+    return rrb.Spatial2DView(name="legend", origin=f"/{LEGEND}", contents=[f"/{LEGEND}"])
 
 
-def plot(name: str, contents: Sequence[str], y_range: Optional[tuple] = None, legend: bool = False,
+def y_range(ranges: Optional[dict], contents: Sequence[str], pad: float = 0.12) -> Optional[tuple]:
+    """(lo, hi) over the ``ranges`` {entity: (lo, hi)} of the ``contents`` with ``pad`` of their
+    span (at least 5% of the largest magnitude, and 0.5 for spans of 1 or more, else 0.02) on
+    both sides: the tick labels at the ends stay inside the plot (fitted to the data, Rerun cut
+    its end ticks in half); None where none has values (Rerun's own fit)."""
+    got = [ranges[c] for c in contents if ranges and c in ranges]
+    if not got:
+        return None
+    lo, hi = min(g[0] for g in got), max(g[1] for g in got)
+    p = max(pad * (hi - lo), 0.05 * max(abs(lo), abs(hi)), 0.5 if hi - lo >= 1 else 0.02)
+    return (float(lo - p), float(hi + p))
+
+
+def plot(name: str, contents: Sequence[str], ranges: Optional[dict] = None, legend: bool = False,
          corner: str = "RightBottom", origin: str = "/metrics"):
-    """A time series view with ``y_range`` (lo, hi) fixed (None: Rerun's, fitted to the data)
-    and, with ``legend``, its legend in ``corner`` (off the curves: where they end)."""
+    """A time series view, its y axis over :func:`y_range` of ``ranges`` (None: Rerun's, fitted to
+    the data) and, with ``legend``, its legend in ``corner`` (off the curves: where they end)."""
     import rerun.blueprint as rrb
 
-    kw = {} if y_range is None else {"axis_y": rrb.ScalarAxis(range=y_range, zoom_lock=False)}
+    yr = y_range(ranges, contents)
+    kw = {} if yr is None else {"axis_y": rrb.ScalarAxis(range=yr, zoom_lock=False)}
     return rrb.TimeSeriesView(name=name, origin=origin, contents=list(contents),
                               plot_legend=rrb.PlotLegend(corner=corner, visible=bool(legend)), **kw)
 
 
-def blueprint(score_layers: Sequence[tuple[str, str]] = (), eye=None, feature_tabs: Sequence[tuple[str, str]] = ()):
+def blueprint(score_layers: Sequence[tuple[str, str]] = (), eye=None, feature_tabs: Sequence[tuple[str, str]] = (),
+              ranges: Optional[dict] = None):
     """The default layout: the labelled points in 3D beside the time series; other 3D views
     (confidence, errors, ground truth, input + cameras, depth, evidence, and one per
     ``score_layers`` (class name, entity path), and a features run's ``feature_tabs`` (tab name,
-    entity path)) in tabs behind it. Every 3D view opens on ``eye``
+    entity path)) in tabs behind it; ``ranges`` {entity: (lo, hi)}: the plotted scalars' (the
+    layout is sent again at the end with them, :func:`y_range`). Every 3D view opens on ``eye``
     (:func:`~.eyes.overview_eye`: from above one side, looking down into the scene), None:
     Rerun's own (from outside the scene's box, which in a room shows the walls' backs).
 
@@ -289,14 +332,14 @@ def blueprint(score_layers: Sequence[tuple[str, str]] = (), eye=None, feature_ta
                 active_tab="diffusion: labels",
             ), legend_view(), row_shares=[4, 1]),
             rrb.Vertical(
-                plot("mIoU and accuracy so far [%]", ["/metrics/miou", "/metrics/accuracy"], legend=True),
-                plot("mean confidence", ["/metrics/confidence"], legend=False),
-                plot("labels changed per iteration, log10", ["/metrics/changed_per_iter_log10"]),
-                plot("relative residual |Z_t - Z_t-1|, log10", ["/metrics/residual_log10"]),
+                plot("mIoU and accuracy so far [%]", ["/metrics/miou", "/metrics/accuracy"], ranges, legend=True),
+                plot("mean confidence", ["/metrics/confidence"], ranges),
+                plot("labels changed per iteration, log10", ["/metrics/changed_per_iter_log10"], ranges),
+                plot("relative residual |Z_t - Z_t-1|, log10", ["/metrics/residual_log10"], ranges),
             ),
             column_shares=[3, 2],
         ),
-        rrb.TimePanel(state="expanded", timeline=TIMELINE, play_state="following"),
+        rrb.TimePanel(state="collapsed", timeline=TIMELINE, play_state="following"),
         collapse_panels=True,
     )
 
@@ -320,7 +363,7 @@ FOLLOW_CAMERA = "/world/online/camera"
 """The entity of an online run's moving camera, which the "through the camera" tab's eye tracks."""
 
 
-def online_blueprint(has_gt: bool, growing: bool, eye=None):
+def online_blueprint(has_gt: bool, growing: bool, eye=None, ranges: Optional[dict] = None):
     """The layout of an online run: the map's labels (with the moving camera) seen from ``eye``
     (:func:`~.eyes.overview_eye`; None: Rerun's own), the same labels through the moving camera
     (its eye tracks :data:`FOLLOW_CAMERA`: pose and field of view of the frame shown), the
@@ -343,16 +386,17 @@ def online_blueprint(has_gt: bool, growing: bool, eye=None):
         dim = {f"/world/online/labels/{b:04d}": grey for b in range(ONLINE_MAX_BLOCKS if growing else 1)}
         tabs.append(view3d("errors", ["/world/online/labels/**", "/world/online/wrong"], overrides=dim))
         tabs.append(view3d("ground truth", ["/world/online/ground_truth/**" if growing else "/world/scene/ground_truth"]))
-    plots = [plot("mIoU so far [%]", ["/metrics/diffuser_miou", "/metrics/bayesian_miou"], legend=True)] if has_gt else []
-    plots += [plot("latency [ms]", ["/metrics/latency_ms"]),
-              plot("labels changed", ["/metrics/changed"]),
-              plot("map points [thousands]", ["/metrics/points_k"]),
+    plots = [plot("mIoU so far [%]", ["/metrics/diffuser_miou", "/metrics/bayesian_miou"], ranges,
+                  legend=True)] if has_gt else []
+    plots += [plot("latency [ms]", ["/metrics/latency_ms"], ranges),
+              plot("labels changed", ["/metrics/changed"], ranges),
+              plot("map points [thousands]", ["/metrics/points_k"], ranges),
               rrb.Spatial2DView(name="camera: 2D labels", origin="/world/online/camera")]
-    shares = [2] * (len(plots) - 1) + [4]
+    shares = [2] * (len(plots) - 1) + [3]
     return rrb.Blueprint(
         rrb.Horizontal(rrb.Vertical(rrb.Tabs(*tabs, active_tab="online: labels"), legend_view(), row_shares=[4, 1]),
                        rrb.Vertical(*plots, row_shares=shares), column_shares=[3, 2]),
-        rrb.TimePanel(state="expanded", timeline=FRAME_TIMELINE, play_state="following"),
+        rrb.TimePanel(state="collapsed", timeline=FRAME_TIMELINE, play_state="following"),
         collapse_panels=True,
     )
 
@@ -392,6 +436,9 @@ class RerunRecorder:
         self._query_path = ""
         self._work_points: Optional[np.ndarray] = None
         self._taxonomy: Optional[tuple[list, np.ndarray]] = None  # (names, (C, 3) colours): log_taxonomy
+        self._extent: dict[str, list[float]] = {}  # /metrics/<key> -> [min, max] logged: the plots' y ranges
+        self._bp_args: Optional[tuple] = None  # the layout's arguments, sent again with the ranges at close
+        self._online_bp: Optional[tuple] = None
         bp = None
         batcher = rr.ChunkBatcherConfig(flush_tick=BATCH_SECONDS, flush_num_bytes=BATCH_BYTES)
         if application_id is None:
@@ -445,8 +492,16 @@ class RerunRecorder:
         (F, 4, 4) where given (else +z, as ``world``'s ViewCoordinates say)."""
         pts = getattr(self, "_scene_points", None)
         eye = overview_eye(pts, T_cw) if pts is not None else None
-        self.rec.send_blueprint(blueprint(self._layers, eye, self._feature_tabs), make_active=True, make_default=True)
+        self._bp_args = (self._layers, eye, self._feature_tabs)
+        self.rec.send_blueprint(blueprint(*self._bp_args), make_active=True, make_default=True)
         self._eye_up = scene_up(T_cw)
+
+    def _scalar(self, key: str, value: float) -> None:
+        """``metrics/<key>`` at the current time, its extent kept for the plots' ranges."""
+        v = float(value)
+        self.rec.log(f"metrics/{key}", self.rr.Scalars(v))
+        e = self._extent.setdefault(f"/metrics/{key}", [v, v])
+        e[0], e[1] = min(e[0], v), max(e[1], v)
 
     def log_scene(self, points: np.ndarray, colors: Optional[np.ndarray], gt: Optional[np.ndarray]) -> None:
         """points (N, 3) world m; colors (N, 3) uint8 or None; gt (N,) int class ids or None."""
@@ -461,7 +516,8 @@ class RerunRecorder:
             self.rec.log("world/scene/ground_truth",
                          rr.Points3D(points, class_ids=class_ids(gt), radii=self.radius), static=True)
         self._gt_present = None if gt is None else np.unique(np.asarray(gt))
-        self.log_legend()
+        if self.online:  # a batch run's comes with its evidence (the classes of its Bayesian labels too)
+            self.log_legend()
 
     def log_legend(self, labels: Optional[np.ndarray] = None) -> None:
         """The static ``legend`` (:func:`log_legend`): the classes of the ground truth and of
@@ -548,13 +604,13 @@ class RerunRecorder:
         # log10: after the first iteration (~all labels change, residual 1) both fall by orders of
         # magnitude, which a linear axis shows as a flat line (Rerun 0.41's plots have no log axis)
         if residual > 0 and np.isfinite(residual):
-            rec.log("metrics/residual_log10", rr.Scalars(np.log10(residual)))
+            self._scalar("residual_log10", np.log10(residual))
         if changed > 0:
-            rec.log("metrics/changed_per_iter_log10", rr.Scalars(np.log10(changed / max(int(per), 1))))
-        rec.log("metrics/confidence", rr.Scalars(float(confidence)))
+            self._scalar("changed_per_iter_log10", np.log10(changed / max(int(per), 1)))
+        self._scalar("confidence", confidence)
         if miou is not None:
-            rec.log("metrics/miou", rr.Scalars(float(miou)))
-            rec.log("metrics/accuracy", rr.Scalars(float(accuracy)))
+            self._scalar("miou", miou)
+            self._scalar("accuracy", accuracy)
 
     def log_step(self, step: Step, points: Optional[np.ndarray] = None, metrics: bool = True) -> None:
         """One recorded iteration; ``points`` (N, 3) are the original points (for ``wrong``);
@@ -611,7 +667,8 @@ class RerunRecorder:
         ``spacing``: a growing map's voxel size, m (its points are drawn with half of it as radius)."""
         rr = self.rr
         eye = overview_eye(points) if points is not None and len(points) else None
-        self.rec.send_blueprint(online_blueprint(has_gt, growing, eye), make_active=True, make_default=True)
+        self._online_bp = (has_gt, growing, eye)
+        self.rec.send_blueprint(online_blueprint(*self._online_bp), make_active=True, make_default=True)
         for key, name, color in (("diffuser_miou", "online Diffuser mIoU so far [%]", (31, 119, 180)),
                                  ("bayesian_miou", "online Bayesian mIoU so far [%]", (255, 127, 14)),
                                  ("latency_ms", "latency [ms]", (214, 39, 40)),
@@ -658,12 +715,12 @@ class RerunRecorder:
         if rec.image is not None:
             log("world/online/camera/labels", rr.SegmentationImage(class_ids(rec.image)))
         st, m = rec.stats, rec.metrics or {}
-        log("metrics/latency_ms", rr.Scalars(float(st["latency_ms"])))
-        log("metrics/points_k", rr.Scalars(float(rec.n) / 1000.0))  # thousands: the axis' numbers fit
-        log("metrics/changed", rr.Scalars(float(st["changed"])))
+        self._scalar("latency_ms", st["latency_ms"])
+        self._scalar("points_k", rec.n / 1000.0)  # thousands: the axis' numbers fit
+        self._scalar("changed", st["changed"])
         for key in ("diffuser_miou", "bayesian_miou"):
             if m.get(key) is not None:
-                log(f"metrics/{key}", rr.Scalars(float(m[key])))
+                self._scalar(key, m[key])
 
     def score_values(self, Z: np.ndarray) -> np.ndarray:
         """(M, C) scores -> (M, k) float32 Z_ic / sum_c Z_ic of the score classes, 0 where the row is 0."""
@@ -692,6 +749,11 @@ class RerunRecorder:
         if not self.online and self._eye_up is None:  # no scene came (a run that failed early): the layout
             self.rec.send_blueprint(blueprint(self._layers, feature_tabs=self._feature_tabs), make_active=True,
                                     make_default=True)
+        elif self._extent:  # the layout again with the plots' y ranges, now known
+            bp = (blueprint(*self._bp_args, ranges=self._extent) if self._bp_args and not self.online
+                  else online_blueprint(*self._online_bp, ranges=self._extent) if self._online_bp else None)
+            if bp is not None:
+                self.rec.send_blueprint(bp, make_active=True, make_default=True)
         if self.live is None:
             self.rec.flush()
         else:

@@ -20,7 +20,8 @@ the cloud in grey there and in the errors tab)::
     legend/classes              Points2D, static: the classes present, unlabeled, wrong label
     tiles                       TextDocument, static: the tiles' table (markdown, ``#`` = row)
     tile/<figure>/<tile id>     BarChart, static: one bar at x = the tile's row (accuracy [%] with
-                                ground truth, iterations, points, frames_read, time_s); beyond
+                                ground truth, iterations, residual_log10 (the tile's last relative
+                                residual), points, frames_read, time_s); beyond
                                 :data:`MAX_KEYED_TILES` tiles one chart ``tile/<figure>``
 
 run.mcap::
@@ -64,10 +65,11 @@ MAX_DISPLAY_POINTS = 2_000_000
 STATUS_RGB = {"done": (40, 190, 70), "error": (220, 40, 40), "resumed": (150, 150, 150)}
 """A tile box's colour by its status (done, failed, kept from tiling.resume)."""
 _FIGURES = ("points", "frames_read", "iterations", "time_s")
-_CHARTS = ("accuracy", "iterations", "points", "time_s")
-"""The tiles' bar charts in the layout (frames_read is in the table and the record)."""
+_CHARTS = ("accuracy", "iterations", "residual_log10", "points")
+"""The tiles' bar charts in the layout (frames_read and time_s: in the table and the record)."""
 _FIGURE_NAMES = {"accuracy": "per tile: accuracy [%]", "iterations": "per tile: diffusion iterations",
-                 "points": "per tile: points", "time_s": "per tile: time [s]", "frames_read": "per tile: frames read"}
+                 "points": "per tile: points", "time_s": "per tile: time [s]", "frames_read": "per tile: frames read",
+                 "residual_log10": "per tile: last relative residual, log10"}
 
 
 def display_index(n: int, max_points: int = MAX_DISPLAY_POINTS) -> tuple[np.ndarray, int]:
@@ -155,11 +157,11 @@ def blueprint(has_gt: bool, points: Optional[np.ndarray] = None, miou: Optional[
     # row # of the table, and hovering it names its entity /tile/<figure>/<tile id>
     charts = [rrb.BarChartView(name=f"{names[k]}, x: table's #", origin=f"/tile/{k}",
                                plot_legend=rrb.PlotLegend(visible=False))
-              for k in _CHARTS if k != "accuracy" or has_gt]
+              for k in _CHARTS if k != "accuracy" or has_gt]  # (a chart without its entities stays empty)
     return rrb.Blueprint(
         rrb.Horizontal(rrb.Vertical(rrb.Tabs(*tabs, active_tab="tiled: labels"), legend_view(), row_shares=[4, 1]),
                        rrb.Vertical(rrb.TextDocumentView(name="table of tiles", origin="/tiles"), *charts,
-                                    row_shares=[3] + [2] * len(charts)),
+                                    row_shares=[4] + [3] * len(charts)),
                        column_shares=[3, 2]),
         rrb.TimePanel(state="collapsed"), collapse_panels=True)
 
@@ -196,6 +198,9 @@ def _rerun(path: Path, res: Any, idx: np.ndarray, centers: np.ndarray, half: np.
         rec.rec.log("world/tiled/labels", rr.Points3D(pts, class_ids=class_ids(lab), radii=r), static=True)
         tiles = res.tiles
         figures = {k: np.array([float(t.get(k) or 0) for t in tiles]) for k in _FIGURES}
+        res_t = np.array([float(t.get("residual") or np.nan) for t in tiles])
+        if np.isfinite(res_t).any():  # tiles recorded before the residual was kept have none
+            figures["residual_log10"] = np.log10(np.where(res_t > 0, res_t, np.nan))
         if has_gt:
             gt = scene.gt_labels[idx]
             rec.rec.log("world/tiled/ground_truth", rr.Points3D(pts, class_ids=class_ids(gt), radii=r), static=True)

@@ -1,6 +1,6 @@
 """What every run.rrd's layout must hold, read back from the file (issue 41): its kind's
-application id, a ``legend`` view over ``legend/classes`` (the classes present, ``unlabeled``,
-in the taxonomy's colours) and its plots' contents. Shared by the batch, online and tiled tests,
+application id, a ``legend`` view of the ``legend`` entity (a picture, and as values the classes
+present, ``unlabeled``, in the taxonomy's colours) and its plots' contents. Shared by the batch, online and tiled tests,
 on the runs they already record."""
 from pathlib import Path
 
@@ -27,9 +27,11 @@ def static_column(path: Path, entity: str, column: str):
 
 
 def legend(path: Path) -> dict:
-    """{name: (r, g, b)} of legend/classes."""
-    names = static_column(path, "/legend/classes", "Points2D:labels")
-    packed = static_column(path, "/legend/classes", "Points2D:colors")
+    """{name: (r, g, b)} of the legend's entries (its values beside its picture)."""
+    names = static_column(path, "/legend", "classes")
+    packed = static_column(path, "/legend", "colors")
+    img = static_column(path, "/legend", "Image:buffer")
+    assert np.asarray(img).size > 10_000  # the picture
     return {n: ((c >> 24) & 255, (c >> 16) & 255, (c >> 8) & 255) for n, c in zip(names, packed)}
 
 
@@ -38,7 +40,7 @@ def check_layout(path: Path, app: str, taxonomy, present, plots: dict) -> dict:
     {view name: [entity paths]} that the blueprint must hold. Returns :func:`views`."""
     assert app_id(path) == app
     v = views(path)
-    assert v["legend"]["query"] == ["$origin/**"]
+    assert v["legend"]["query"] == ["/legend"]
     leg = legend(path)
     assert leg.pop("unlabeled") == UNLABELED_RGB
     leg.pop("wrong label", None)

@@ -105,14 +105,21 @@ def test_tiled_layout_outlines_on_the_tiles_tab_only_grey_errors_bars_per_tile(c
     h = np.asarray(st["/world/tiled/tiles"].column("Boxes3D:half_sizes").to_pylist()[0])
     np.testing.assert_allclose((c + h)[:, :2].max(0), pts[:, :2].max(0), atol=1e-4)
     # a bar per tile and figure, keyed by the tile's id, at its table row
-    for k in ("accuracy", "iterations", "points", "time_s"):
+    for k in ("accuracy", "iterations", "residual_log10", "points", "time_s"):
         for i, t in enumerate(tiles):
             bar = st[f"/tile/{k}/{t['id']}"]
             assert bar.column("BarChart:abscissa").to_pylist()[0] is not None
     charts = sorted(n for n in v if n.startswith("per tile: "))
     assert [c.split(" [")[0].split(",")[0] for c in charts] == [
-        "per tile: accuracy", "per tile: diffusion iterations", "per tile: points", "per tile: time"]
+        "per tile: accuracy", "per tile: diffusion iterations", "per tile: last relative residual", "per tile: points"]
     assert f"(scene mIoU {summary['metrics']['miou']:.1f})" in charts[0]
+    def bar(k, t):  # a tensor of one value
+        return st[f"/tile/{k}/{t['id']}"].column("BarChart:values").to_pylist()[0][0]["buffer"][0]
+
+    for t in tiles:
+        assert bar("residual_log10", t) == pytest.approx(np.log10(t["residual"]), rel=1e-5)
+        assert bar("iterations", t) == t["iterations"] and bar("points", t) == t["points"]
+        assert 0 < bar("accuracy", t) <= 100
 
 
 @pytest.mark.slow
