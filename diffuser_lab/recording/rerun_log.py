@@ -612,6 +612,25 @@ class RerunRecorder:
             self._scalar("miou", miou)
             self._scalar("accuracy", accuracy)
 
+    def log_metrics_columns(self, rows: np.ndarray) -> None:
+        """The scalars of consecutive iterations at once: (k, 6) rows of iteration, residual,
+        labels changed per iteration since the one before, mean confidence, mIoU, accuracy (NaN: none),
+        as :meth:`log_metrics` logs them one by one."""
+        rr = self.rr
+        rows = np.asarray(rows, np.float64).reshape(-1, 6)
+        it = rows[:, 0].astype(np.int64)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            series = {"residual_log10": np.log10(rows[:, 1]), "changed_per_iter_log10": np.log10(rows[:, 2]),
+                      "confidence": rows[:, 3], "miou": rows[:, 4], "accuracy": rows[:, 5]}
+        for key, v in series.items():  # five series
+            ok = np.isfinite(v)
+            if not ok.any():
+                continue
+            rr.send_columns(f"metrics/{key}", indexes=[rr.TimeColumn(TIMELINE, sequence=it[ok])],
+                            columns=rr.Scalars.columns(scalars=v[ok]), recording=self.rec)
+            e = self._extent.setdefault(f"/metrics/{key}", [float(v[ok].min()), float(v[ok].max())])
+            e[0], e[1] = min(e[0], float(v[ok].min())), max(e[1], float(v[ok].max()))
+
     def log_step(self, step: Step, points: Optional[np.ndarray] = None, metrics: bool = True) -> None:
         """One recorded iteration; ``points`` (N, 3) are the original points (for ``wrong``);
         ``metrics``: also its scalars (False: the run's side sends them every iteration)."""
