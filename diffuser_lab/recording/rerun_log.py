@@ -26,7 +26,7 @@ Entity tree (``world`` is z-up, metres; class colours come from the AnnotationCo
                                            :func:`~.steps.scalar_metrics`), the clouds above on the schedule
     metrics/residual_log10                 log10 of the relative residual (none where it is 0)
     metrics/changed_per_iter_log10         log10 of the labels changed per iteration since the previous
-                                           recorded one, n_changed / (iteration - previous) (none where 0)
+                                           one logged, n_changed / (iteration - previous) (none where 0)
 
 Every per-iteration entity is on the ``diffusion_step`` sequence timeline.
 
@@ -355,9 +355,12 @@ finished without loading a recording"); 64 load."""
 
 
 APP_BATCH, APP_ONLINE, APP_TILED = "diffuser_lab_batch", "diffuser_lab_online", "diffuser_lab_tiled"
-"""run.rrd's application id per kind of run (Rerun turns a dot in one into a hash). The viewer keeps one layout per application id, so a
-record of another kind opened into a running viewer gets its own layout, not the last one's; each
-record also makes its layout the active one as it loads (``send_blueprint(make_active=True)``)."""
+"""run.rrd's application id per kind of run (Rerun turns a dot in one into a hash): the viewer keeps
+a layout per application id. What makes a record opened into a running viewer (``rerun run.rrd``
+with one on port 9876) show its own layout is the blueprint sent as the *active* one
+(``send_blueprint(make_active=True)``): checked in the viewer (Xvfb, 2026-12-04), an online record
+streamed into a viewer showing a tiled one got Rerun's automatic layout with its own application
+id and a default-only blueprint, and its layout with the active blueprint, with either id."""
 
 FOLLOW_CAMERA = "/world/online/camera"
 """The entity of an online run's moving camera, which the "through the camera" tab's eye tracks."""
