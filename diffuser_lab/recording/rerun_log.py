@@ -101,9 +101,12 @@ def confidence_context():
         rr.AnnotationInfo(id=i, label=f"confidence {i / CONFIDENCE_BINS:.3f}-{(i + 1) / CONFIDENCE_BINS:.3f}",
                           color=tuple(int(x) for x in lut[i])) for i in range(CONFIDENCE_BINS)])
 
-UNLABELED_RGB = (200, 200, 200)
-"""Unlabelled points (class id 65535): a light grey that reads on the viewer's black background
-(the (70, 70, 70) of before looked like holes in the cloud; it was also cityscapes' ``building``)."""
+UNLABELED_RGB = (230, 230, 230)
+"""Unlabelled points (class id 65535) where no class has a colour near it (:func:`unlabeled_color`):
+a light grey that reads on the viewer's black background (the (70, 70, 70) of before looked like
+holes in the cloud, and was cityscapes' ``building``)."""
+UNLABELED_MIN_DELTA_E = 15.0
+"""The least CIE76 distance of the unlabelled grey to every class colour (:func:`unlabeled_color`)."""
 RIGHT_RGB = (95, 95, 95)
 """The errors tab draws every diffused point in this grey (a view override: no extra data)."""
 LIVE_PORT = 9876
@@ -122,6 +125,22 @@ def _lab(rgb: np.ndarray) -> np.ndarray:
     return np.stack([116.0 * f[..., 1] - 16.0, 500.0 * (f[..., 0] - f[..., 1]), 200.0 * (f[..., 1] - f[..., 2])], -1)
 
 
+def unlabeled_color(class_colors: np.ndarray) -> tuple[int, int, int]:
+    """The unlabelled points' colour for a taxonomy's (C, 3) uint8 ``class_colors``:
+    :data:`UNLABELED_RGB` when no class is within :data:`UNLABELED_MIN_DELTA_E` (CIE76) of it, else
+    the light grey (levels 150 to 255) farthest from every class (ade20k150's ``windowpane`` is
+    (230, 230, 230))."""
+    lab = _lab(np.asarray(class_colors, np.float64).reshape(-1, 3))
+    d = np.linalg.norm(_lab(np.asarray(UNLABELED_RGB, np.float64)) - lab, axis=1)
+    if len(d) == 0 or d.min() >= UNLABELED_MIN_DELTA_E:
+        return UNLABELED_RGB
+    greys = np.arange(150, 256, dtype=np.float64)
+    g = _lab(np.repeat(greys[:, None], 3, 1))
+    far = np.linalg.norm(g[:, None, :] - lab[None, :, :], axis=2).min(1)
+    v = int(greys[int(np.argmax(far))])
+    return (v, v, v)
+
+
 def wrong_color(class_colors: np.ndarray) -> tuple[tuple[int, int, int], float]:
     """The colour of wrong points: of bright, saturated candidates (a 9-level RGB grid) the one
     farthest (CIE76 delta E, Lab units) from every class colour and from the greys the viewer
@@ -131,7 +150,8 @@ def wrong_color(class_colors: np.ndarray) -> tuple[tuple[int, int, int], float]:
     lab = _lab(cand)
     ok = (lab[:, 0] >= 55) & (np.hypot(lab[:, 1], lab[:, 2]) >= 40)  # visible on the dark background, not grey
     cand, lab = cand[ok], lab[ok]
-    avoid = np.concatenate([np.asarray(class_colors, np.float64).reshape(-1, 3), [UNLABELED_RGB, RIGHT_RGB]])
+    avoid = np.concatenate([np.asarray(class_colors, np.float64).reshape(-1, 3),
+                            [unlabeled_color(class_colors), RIGHT_RGB]])
     d = np.linalg.norm(lab[:, None, :] - _lab(avoid)[None, :, :], axis=2).min(1)
     best = int(np.argmax(d))
     return tuple(int(x) for x in cand[best]), float(d[best])
@@ -168,7 +188,7 @@ def annotation_context(names: Sequence[str], colors: np.ndarray):
 
     infos = [rr.AnnotationInfo(id=i, label=str(n), color=tuple(int(x) for x in colors[i]))
              for i, n in enumerate(names)]
-    infos.append(rr.AnnotationInfo(id=UNLABELED_ID, label="unlabeled", color=UNLABELED_RGB))
+    infos.append(rr.AnnotationInfo(id=UNLABELED_ID, label="unlabeled", color=unlabeled_color(colors)))
     return rr.AnnotationContext(infos)
 
 
@@ -205,7 +225,7 @@ def legend_entries(names: Sequence[str], colors: np.ndarray, present: Optional[n
     ids = np.arange(len(names)) if present is None else np.unique(np.asarray(present, np.int64))
     ids = ids[(ids >= 0) & (ids < len(names))]
     labels = [str(names[i]) for i in ids] + ["unlabeled"]
-    cols = [np.asarray(colors, np.uint8).reshape(-1, 3)[ids], np.asarray([UNLABELED_RGB], np.uint8)]
+    cols = [np.asarray(colors, np.uint8).reshape(-1, 3)[ids], np.asarray([unlabeled_color(colors)], np.uint8)]
     if wrong_rgb is not None:
         labels.append("wrong label")
         cols.append(np.asarray([wrong_rgb], np.uint8))
@@ -466,6 +486,7 @@ class RerunRecorder:
         self.radius = 0.01
         self._work_radius = 0.01
         self.wrong_rgb = (255, 0, 255)
+        self.unlabeled_rgb = UNLABELED_RGB
         self._closed = False
 
     def _spawn(self) -> str:
@@ -482,6 +503,7 @@ class RerunRecorder:
         rr = self.rr
         self.rec.log("world", annotation_context(names, colors), rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         self.wrong_rgb = wrong_color(colors)[0]
+        self.unlabeled_rgb = unlabeled_color(colors)
         self._taxonomy = (list(names), np.asarray(colors, np.uint8))
         rr_series = [("miou", "mIoU so far [%]", (31, 119, 180)), ("accuracy", "accuracy [%]", (44, 160, 44)),
                      ("changed_per_iter_log10", "log10 labels changed per iteration", (214, 39, 40)),
@@ -591,7 +613,7 @@ class RerunRecorder:
                      rr.Points3D(work_points[seen], class_ids=class_ids(bayesian[seen]), radii=r), static=True)
         self.log_legend(bayesian[seen])
         self.rec.log("world/evidence/unseen",
-                     rr.Points3D(work_points[~seen], colors=UNLABELED_RGB, radii=r), static=True)
+                     rr.Points3D(work_points[~seen], colors=self.unlabeled_rgb, radii=r), static=True)
         self.rec.log("world/diffusion/labels", rr.Points3D(work_points, radii=r), static=True)
         self.rec.log("world/diffusion/confidence", confidence_context(), rr.Points3D(work_points, radii=r), static=True)
         for p in self.score_paths:
@@ -787,5 +809,5 @@ class RerunRecorder:
         self.rec.disconnect()
 
 
-__all__ = ["RerunRecorder", "blueprint", "log_legend", "legend_entries", "LEGEND", "APP_BATCH", "APP_ONLINE", "APP_TILED", "online_blueprint", "class_ids", "wrong_color", "score_entity", "UNLABELED_ID", "TIMELINE",
+__all__ = ["RerunRecorder", "blueprint", "unlabeled_color", "log_legend", "legend_entries", "LEGEND", "APP_BATCH", "APP_ONLINE", "APP_TILED", "online_blueprint", "class_ids", "wrong_color", "score_entity", "UNLABELED_ID", "TIMELINE",
            "CONFIDENCE_LUT"]

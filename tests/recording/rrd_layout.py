@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 from test_viewer import chunks, views
 
-from diffuser_lab.recording.rerun_log import UNLABELED_RGB
+from diffuser_lab.recording.rerun_log import unlabeled_color
 
 
 def app_id(path: Path) -> str:
@@ -42,7 +42,7 @@ def check_layout(path: Path, app: str, taxonomy, present, plots: dict) -> dict:
     v = views(path)
     assert v["legend"]["query"] == ["/legend"]
     leg = legend(path)
-    assert leg.pop("unlabeled") == UNLABELED_RGB
+    assert leg.pop("unlabeled") == unlabeled_color(taxonomy.colors)
     leg.pop("wrong label", None)
     for c in np.unique(present):
         assert leg[taxonomy.names[c]] == tuple(int(x) for x in taxonomy.colors[c])

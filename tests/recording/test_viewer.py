@@ -387,3 +387,16 @@ def test_batch_layout_has_its_app_id_a_legend_and_plots_of_every_metric(small_ru
         "labels changed per iteration, log10": ["/metrics/changed_per_iter_log10"],
         "relative residual |Z_t - Z_t-1|, log10": ["/metrics/residual_log10"]})
     assert "legend" not in v["tabs"] and v["tabs"][0] == "diffusion: labels"
+
+
+def test_unlabeled_is_a_light_grey_apart_from_every_class_of_every_shipped_taxonomy():
+    from diffuser_lab.data.taxonomy import load_taxonomy, shipped_taxonomies
+    from diffuser_lab.recording.rerun_log import UNLABELED_RGB, unlabeled_color
+
+    for name in shipped_taxonomies():
+        t = load_taxonomy(name)
+        rgb = np.asarray(unlabeled_color(t.colors))
+        assert np.ptp(rgb) == 0 and _lab(rgb)[0] > 60, name  # a grey, light on the black background
+        assert np.linalg.norm(_lab(rgb) - _lab(t.colors), axis=1).min() > 10, name
+    assert unlabeled_color(load_taxonomy("scannet20").colors) == UNLABELED_RGB
+    assert unlabeled_color(load_taxonomy("ade20k150").colors) != UNLABELED_RGB  # its windowpane is (230, 230, 230)
