@@ -409,16 +409,17 @@ def online_blueprint(has_gt: bool, growing: bool, eye=None, ranges: Optional[dic
         dim = {f"/world/online/labels/{b:04d}": grey for b in range(ONLINE_MAX_BLOCKS if growing else 1)}
         tabs.append(view3d("errors", ["/world/online/labels/**", "/world/online/wrong"], overrides=dim))
         tabs.append(view3d("ground truth", ["/world/online/ground_truth/**" if growing else "/world/scene/ground_truth"]))
-    plots = [plot("mIoU so far [%]", ["/metrics/diffuser_miou", "/metrics/bayesian_miou"], ranges,
-                  legend=True)] if has_gt else []
-    plots += [plot("latency [ms]", ["/metrics/latency_ms"], ranges),
-              plot("labels changed", ["/metrics/changed"], ranges),
-              plot("map points [thousands]", ["/metrics/points_k"], ranges),
-              rrb.Spatial2DView(name="camera: 2D labels", origin="/world/online/camera")]
-    shares = [2] * (len(plots) - 1) + [3]
+    # two views a row: a plot needs ~25 px per labelled tick and egui's are decades (10, 20, ...
+    # of a 0-70 range), so five plots stacked showed no number on their y axes
+    rows = [plot("mIoU so far [%]", ["/metrics/diffuser_miou", "/metrics/bayesian_miou"], ranges,
+                 legend=True)] if has_gt else []
+    rows += [rrb.Horizontal(plot("latency [ms]", ["/metrics/latency_ms"], ranges),
+                            plot("labels changed", ["/metrics/changed"], ranges)),
+             rrb.Horizontal(plot("map points [thousands]", ["/metrics/points_k"], ranges),
+                            rrb.Spatial2DView(name="camera: 2D labels", origin="/world/online/camera"))]
     return rrb.Blueprint(
         rrb.Horizontal(rrb.Vertical(rrb.Tabs(*tabs, active_tab="online: labels"), legend_view(), row_shares=[4, 1]),
-                       rrb.Vertical(*plots, row_shares=shares), column_shares=[3, 2]),
+                       rrb.Vertical(*rows), column_shares=[3, 2]),
         rrb.TimePanel(state="collapsed", timeline=FRAME_TIMELINE, play_state="following"),
         collapse_panels=True,
     )

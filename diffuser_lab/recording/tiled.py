@@ -67,9 +67,9 @@ STATUS_RGB = {"done": (40, 190, 70), "error": (220, 40, 40), "resumed": (150, 15
 _FIGURES = ("points", "frames_read", "iterations", "time_s")
 _CHARTS = ("accuracy", "iterations", "residual_log10", "points")
 """The tiles' bar charts in the layout (frames_read and time_s: in the table and the record)."""
-_FIGURE_NAMES = {"accuracy": "per tile: accuracy [%]", "iterations": "per tile: diffusion iterations",
-                 "points": "per tile: points", "time_s": "per tile: time [s]", "frames_read": "per tile: frames read",
-                 "residual_log10": "per tile: last relative residual, log10"}
+_FIGURE_NAMES = {"accuracy": "accuracy [%]", "iterations": "iterations", "points": "points",
+                 "time_s": "time [s]", "frames_read": "frames read", "residual_log10": "last residual, log10"}
+"""The charts' names, short: a view's title is cut at its width (two charts a row)."""
 
 
 def display_index(n: int, max_points: int = MAX_DISPLAY_POINTS) -> tuple[np.ndarray, int]:
@@ -152,16 +152,17 @@ def blueprint(has_gt: bool, points: Optional[np.ndarray] = None, miou: Optional[
                  view3d("ground truth", ["/world/tiled/ground_truth"])]
     names = dict(_FIGURE_NAMES)
     if miou is not None:
-        names["accuracy"] = f"per tile: accuracy [%] (scene mIoU {miou:.1f})"
+        names["accuracy"] = f"accuracy [%], mIoU {miou:.1f}"
     # the bars' legend (the tiles' entity paths) would cover the bars: a bar stands over its tile's
     # row # of the table, and hovering it names its entity /tile/<figure>/<tile id>
-    charts = [rrb.BarChartView(name=f"{names[k]}, x: table's #", origin=f"/tile/{k}",
+    charts = [rrb.BarChartView(name=names[k], origin=f"/tile/{k}",
                                plot_legend=rrb.PlotLegend(visible=False))
               for k in _CHARTS if k != "accuracy" or has_gt]  # (a chart without its entities stays empty)
     return rrb.Blueprint(
         rrb.Horizontal(rrb.Vertical(rrb.Tabs(*tabs, active_tab="tiled: labels"), legend_view(), row_shares=[4, 1]),
-                       rrb.Vertical(rrb.TextDocumentView(name="table of tiles", origin="/tiles"), *charts,
-                                    row_shares=[4] + [3] * len(charts)),
+                       rrb.Vertical(rrb.TextDocumentView(name="tiles (the charts' bars in the order of #)", origin="/tiles"),
+                                    # two charts a row: high enough for the numbers on their y axes
+                                    *[rrb.Horizontal(*charts[i:i + 2]) for i in range(0, len(charts), 2)]),
                        column_shares=[3, 2]),
         rrb.TimePanel(state="collapsed"), collapse_panels=True)
 
