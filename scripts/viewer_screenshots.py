@@ -3,18 +3,19 @@
     PYTHONPATH=$PWD python scripts/viewer_screenshots.py OUT_DIR [--kinds batch,online] [--keep RUNS_DIR]
 
 The single-frame protocol writes no run.rrd (its records are summary.json's rows), so it has no
-screenshot. Each kind is run with the ``diffuser-lab`` command (its README line, plus ``hydra.run.dir`` into a
-scratch folder and ``output.quiet=true``), then its ``run.rrd`` is opened in the viewer of the
-environment (``rerun`` beside the Python that runs this) in Xvfb on Mesa's lavapipe Vulkan
-(``apt-get install xvfb mesa-vulkan-drivers imagemagick``); a screenshot of the screen gives ``OUT_DIR/viewer-<kind>.png`` at the
-recording's last time with the run's own default layout, shrunk to 1200 px wide and quantised to
-256 colours (ImageMagick) to keep the documentation small.
+screenshot. Each kind is run with the ``diffuser-lab`` command (its README line, plus
+``hydra.run.dir`` into a scratch folder and ``output.quiet=true``), then its ``run.rrd`` is opened
+in the viewer of the environment (``rerun`` beside the Python that runs this) in Xvfb on Mesa's
+lavapipe Vulkan (``apt-get install xvfb mesa-vulkan-drivers imagemagick``): a picture of the
+screen 12 s later gives ``OUT_DIR/viewer-<kind>.png``, the run's own layout at the recording's
+last time, shrunk to 1200 px wide and quantised to 256 colours (ImageMagick: ~270 KB each).
 ``scripts/make_pictures.py`` (the documentation's pictures) calls :func:`shoot_all`.
 """
 from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -64,6 +65,10 @@ def screenshot(rrd: Path, png: Path, window: str = WINDOW, wait_s: float = 12.0,
     """The viewer's window on ``rrd`` (its default blueprint), ``wait_s`` after it started, as ``png``,
     shrunk and quantised: the real viewer in an X server of its own (Xvfb), as a user opens it
     (``rerun --headless --screenshot-to`` shoots before a recording with a timeline has loaded)."""
+    missing = [f"{exe} ({pkg})" for exe, pkg in (("Xvfb", "xvfb"), ("import", "imagemagick"),
+                                                 ("convert", "imagemagick")) if shutil.which(exe) is None]
+    if missing:
+        raise RuntimeError(f"not installed: {', '.join(missing)}; apt-get install xvfb imagemagick mesa-vulkan-drivers")
     png.parent.mkdir(parents=True, exist_ok=True)
     raw = png.with_suffix(".raw.png")
     w, h = window.split("x")
@@ -118,10 +123,13 @@ def main(argv: list[str] | None = None) -> int:
     bad = [k for k in kinds if k not in KINDS]
     if bad:
         ap.error(f"--kinds: unknown {', '.join(bad)}; expected some of {', '.join(KINDS)}")
-    if a.rrd is not None:
-        print(screenshot(a.rrd, a.out_dir / f"viewer-{kinds[0]}.png"))
-        return 0
-    for p in shoot_all(a.out_dir, kinds, a.keep):
+    try:
+        shots = ([screenshot(a.rrd, a.out_dir / f"viewer-{kinds[0]}.png")] if a.rrd is not None
+                 else shoot_all(a.out_dir, kinds, a.keep))
+    except (RuntimeError, subprocess.SubprocessError, OSError) as exc:
+        print(f"viewer_screenshots: error: {exc}", file=sys.stderr)
+        return 1
+    for p in shots:
         print(p)
     return 0
 

@@ -400,3 +400,20 @@ def test_unlabeled_is_a_light_grey_apart_from_every_class_of_every_shipped_taxon
         assert np.linalg.norm(_lab(rgb) - _lab(t.colors), axis=1).min() > 10, name
     assert unlabeled_color(load_taxonomy("scannet20").colors) == UNLABELED_RGB
     assert unlabeled_color(load_taxonomy("ade20k150").colors) != UNLABELED_RGB  # its windowpane is (230, 230, 230)
+
+
+def test_viewer_screenshots_kinds_compose_and_a_bad_kind_is_one_line(capsys):
+    # scripts/viewer_screenshots.py (the documentation's viewer pictures): each kind's overrides
+    # make a valid config of the protocol it names; an unknown kind stops before running anything
+    import importlib.util
+
+    from conftest import ROOT, compose
+
+    spec = importlib.util.spec_from_file_location("viewer_screenshots", ROOT / "scripts" / "viewer_screenshots.py")
+    shots = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(shots)
+    assert {k: str(compose(*v).protocol.name) for k, v in shots.KINDS.items()} == {
+        "batch": "global_3d", "online": "online", "tiled": "tiled", "tiled-city": "tiled"}
+    with pytest.raises(SystemExit) as e:
+        shots.main(["/tmp/unused", "--kinds", "batch,nope"])
+    assert e.value.code == 2 and "unknown nope" in capsys.readouterr().err
