@@ -625,8 +625,7 @@ class RerunRecorder:
                     miou: Optional[float] = None, accuracy: Optional[float] = None, per: int = 1) -> None:
         """The scalars of one iteration (``metrics/*``); ``changed``: labels changed over the
         last ``per`` iterations (logged per iteration, log10)."""
-        rr, rec = self.rr, self.rec
-        rec.set_time(TIMELINE, sequence=int(iteration))
+        self.rec.set_time(TIMELINE, sequence=int(iteration))
         # log10: after the first iteration (~all labels change, residual 1) both fall by orders of
         # magnitude, which a linear axis shows as a flat line (Rerun 0.41's plots have no log axis)
         if residual > 0 and np.isfinite(residual):
