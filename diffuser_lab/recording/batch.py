@@ -18,7 +18,15 @@ from . import features as feature_view
 from .hooks import RecordingHooks, slim_scene
 from .online import OnlineHooks
 from .schedule import recorded
-from .steps import StepTracker, original_to_work
+from .steps import StepTracker, original_to_work, scalar_metrics
+
+MAX_SCALAR_ITERATIONS = 1000
+"""run.rrd's plots get the scalars of every iteration up to this many iterations; a longer run every
+ceil(max_iter / this)-th (and the recorded ones): each costs ~3 ms on the demo's 51k x 20 Z (Z in
+the paper's units, its labels and confusion counts), about twice an iteration's own time."""
+METRICS_BATCH = 64
+"""The run's side sends run.rrd's per-iteration scalars in batches of at most this many iterations
+(and at every recorded iteration, before its Z)."""
 
 
 class BatchHooks(RecordingHooks):
@@ -35,6 +43,10 @@ class BatchHooks(RecordingHooks):
         self._queries: Optional[tuple] = None
         self._view: Optional[feature_view.FeatureView] = None
         self._projected = 0
+        # run.rrd's scalars at every iteration (cheap; the Z states stay on the schedule): the
+        # labels of the last iteration seen, ground truth and each original point's work row
+        self._dense: Optional[SimpleNamespace] = None
+        self._pending: list[tuple] = []  # their rows not sent yet (sent in batches: a message per iteration cost more)
 
     def on_queries(self, names: Any, embeddings: np.ndarray) -> None:
         feature_view.pick_query(names, self.query)  # an unknown record.query: an error now, not after the run
@@ -46,6 +58,15 @@ class BatchHooks(RecordingHooks):
 
     def on_evidence(self, points: np.ndarray, grid: Optional[Any], evidence: Any, bayesian: np.ndarray) -> None:
         self.lane.send("batch.evidence", points, grid is not None, evidence.seen, bayesian)
+        if "rerun" in self.lane.wanted and self._queries is None and self.scene is not None:
+            # (a features run is left out: its class scores cost a decode of F per iteration)
+            gt = self.scene.gt_labels
+            to_work = None
+            if gt is not None and (grid is not None or len(points) != self.scene.n_points):
+                to_work = original_to_work(points, self.scene.points)
+            self._dense = SimpleNamespace(prev=np.full(len(points), -1, np.int16), prev_it=0, gt=gt, to_work=to_work,
+                                          names=list(self.scene.taxonomy.names),
+                                          stride=max(1, -(-self.max_iter // MAX_SCALAR_ITERATIONS)))
         mass = getattr(evidence, "mass", None)
         if self._queries is not None and mass is not None and mass.shape[1] == self._queries[1].shape[1] \
                 and self.recording():
@@ -53,7 +74,7 @@ class BatchHooks(RecordingHooks):
             self.lane.send("batch.feature_view", self._view)
 
     def observe_features(self, iteration: int, F: np.ndarray) -> None:
-        if self._view is not None:
+        if self._view is not None and self._scheduled(iteration):
             self._send_features(iteration, F)
 
     def _send_features(self, iteration: int, F: np.ndarray) -> None:
@@ -61,13 +82,42 @@ class BatchHooks(RecordingHooks):
         self.lane.send("batch.features", iteration, rgb, sim)
         self._projected = iteration
 
+    def _scheduled(self, iteration: int) -> bool:
+        return recorded(iteration, self.interval, self.max_iter)
+
     def wants(self, iteration: int) -> bool:
         # what was asked for and has not failed: the recorders may still be opening where they
         # are written, and what is sent now is written once they are
-        return self.recording() and recorded(iteration, self.interval, self.max_iter)
+        if self._dense is not None and iteration % self._dense.stride == 0 and self.lane.live("rerun"):
+            return True
+        return self.recording() and self._scheduled(iteration)
 
     def observe(self, iteration: int, Z: np.ndarray, stats: dict) -> None:
-        self.lane.send_z("batch.step", iteration, Z, float(stats.get("residual", float("nan"))))
+        residual = float(stats.get("residual", float("nan")))
+        scheduled = self._scheduled(iteration)
+        if self._dense is not None and self.lane.live("rerun"):
+            d = self._dense
+            m, d.prev = scalar_metrics(Z, d.prev, d.gt, d.to_work, d.names)
+            nan = float("nan")
+            per = m["changed"] / max(iteration - d.prev_it, 1)  # per iteration since the one seen before
+            d.prev_it = iteration
+            self._pending.append((iteration, residual, per, m["confidence"],
+                                  nan if m["miou"] is None else m["miou"], nan if m["accuracy"] is None else m["accuracy"]))
+            if scheduled or len(self._pending) >= METRICS_BATCH:
+                self._flush_metrics()
+        if self.recording() and scheduled:
+            self.lane.send_z("batch.step", iteration, Z, residual)
+
+    def _flush_metrics(self) -> None:
+        """Send the pending per-iteration scalars as one (k, 6) float64 array (see BatchRecorder.metrics)."""
+        if self._pending:
+            rows, self._pending = np.asarray(self._pending, np.float64), []
+            self.lane.send("batch.metrics", rows)
+
+    def close(self) -> None:
+        if not self._closed:  # a run that died: what it computed is still plotted
+            self._flush_metrics()
+        super().close()
 
     def on_online_frame(self, frame: Any, update: Any) -> None:
         if self._online is None:  # the run is online after all: its frames are recorded from here
@@ -85,6 +135,7 @@ class BatchHooks(RecordingHooks):
                 and getattr(lifted, "method", None) is not None:
             # the last iteration's features were not observed (early stop, or diffused in blocks)
             self._send_features(d.iterations, lifted.method)
+        self._flush_metrics()
         self.lane.send("batch.result", slim_result(result))
 
     def files(self) -> dict:
@@ -101,6 +152,7 @@ class BatchRecorder:
         self.max_iter = int(recs.conf.solver.max_iter)
         self.tracker: Optional[StepTracker] = None
         self._last_step = None
+        self._dense_last = 0  # the last iteration whose run.rrd scalars the run's side sent (batch.metrics)
 
     def frame(self, index: int, frame: Any) -> None:
         r = self.recs
@@ -135,6 +187,14 @@ class BatchRecorder:
         r = self.recs
         r.each(lambda: r.rerun.log_features(iteration, rgb, sim), lambda: r.mcap.log_features(iteration, rgb, sim))
 
+    def metrics(self, rows: np.ndarray) -> None:
+        """run.rrd's scalars of consecutive iterations, (k, 6) rows of iteration, residual, labels
+        changed per iteration since the one before, mean confidence, mIoU, accuracy (NaN: none)
+        (:func:`~.steps.scalar_metrics`, every iteration)."""
+        r = self.recs
+        self._dense_last = int(rows[-1, 0])
+        r.each(lambda: r.rerun.log_metrics_columns(rows), None)
+
     def step(self, iteration: int, Z: np.ndarray, residual: float) -> None:
         """A recorded iteration (Z valid during the call only)."""
         self._record(iteration, Z, residual, final=iteration == self.max_iter)
@@ -148,7 +208,8 @@ class BatchRecorder:
         step = self.tracker.step(iteration, Z, residual)
         self._last_step = step
         pts = r.scene.points
-        r.each(lambda: r.rerun.log_step(step, pts), lambda: r.mcap.log_step(step, final=final))
+        scalars = step.iteration > self._dense_last  # not sent by the run's side (a solver that observes none)
+        r.each(lambda: r.rerun.log_step(step, pts, metrics=scalars), lambda: r.mcap.log_step(step, final=final))
         r.recorded.append(step.iteration)
 
     def result(self, result: Any) -> None:

@@ -20,10 +20,13 @@ Entity tree (``world`` is z-up, metres; class colours come from the AnnotationCo
     world/scores/<class>           Points3D: positions static, colour = Z_ic / sum_c Z_ic (viridis) and
                                    the value (component ``score``) per iteration; only in a re-logged
                                    .rrd (``diffuser-lab-inspect RUN --to-rrd OUT --scores chair,table``)
-    metrics/miou|accuracy|confidence       Scalars per iteration
+    legend                     Image + values (classes, colors), static: the classes present (ground
+                               truth, labels), unlabeled, wrong label; the confidence scale
+    metrics/miou|accuracy|confidence       Scalars at every iteration (the run's side computes them:
+                                           :func:`~.steps.scalar_metrics`), the clouds above on the schedule
     metrics/residual_log10                 log10 of the relative residual (none where it is 0)
     metrics/changed_per_iter_log10         log10 of the labels changed per iteration since the previous
-                                           recorded one, n_changed / (iteration - previous) (none where 0)
+                                           one logged, n_changed / (iteration - previous) (none where 0)
 
 Every per-iteration entity is on the ``diffusion_step`` sequence timeline.
 
@@ -39,7 +42,9 @@ An online run (protocol=online, :meth:`RerunRecorder.log_online_frame`) has, bes
     world/online/wrong             Points3D: annotated points whose label is wrong (given map: scene points)
     world/online/camera            Transform3D + Pinhole: the frame's camera (one entity that moves),
                                    child labels (SegmentationImage, the 2D predictions)
-    metrics/latency_ms|points|changed|diffuser_miou|bayesian_miou   Scalars per frame
+    metrics/latency_ms|points_k|changed|diffuser_miou|bayesian_miou   Scalars per frame (points_k: thousands)
+
+Application ids: :data:`APP_BATCH`, :data:`APP_ONLINE` (and :data:`APP_TILED`, :mod:`.tiled`).
 """
 from __future__ import annotations
 
@@ -96,7 +101,12 @@ def confidence_context():
         rr.AnnotationInfo(id=i, label=f"confidence {i / CONFIDENCE_BINS:.3f}-{(i + 1) / CONFIDENCE_BINS:.3f}",
                           color=tuple(int(x) for x in lut[i])) for i in range(CONFIDENCE_BINS)])
 
-UNLABELED_RGB = (70, 70, 70)
+UNLABELED_RGB = (230, 230, 230)
+"""Unlabelled points (class id 65535) where no class has a colour near it (:func:`unlabeled_color`):
+a light grey that reads on the viewer's black background (the (70, 70, 70) of before looked like
+holes in the cloud, and was cityscapes' ``building``)."""
+UNLABELED_MIN_DELTA_E = 15.0
+"""The least CIE76 distance of the unlabelled grey to every class colour (:func:`unlabeled_color`)."""
 RIGHT_RGB = (95, 95, 95)
 """The errors tab draws every diffused point in this grey (a view override: no extra data)."""
 LIVE_PORT = 9876
@@ -115,6 +125,22 @@ def _lab(rgb: np.ndarray) -> np.ndarray:
     return np.stack([116.0 * f[..., 1] - 16.0, 500.0 * (f[..., 0] - f[..., 1]), 200.0 * (f[..., 1] - f[..., 2])], -1)
 
 
+def unlabeled_color(class_colors: np.ndarray) -> tuple[int, int, int]:
+    """The unlabelled points' colour for a taxonomy's (C, 3) uint8 ``class_colors``:
+    :data:`UNLABELED_RGB` when no class is within :data:`UNLABELED_MIN_DELTA_E` (CIE76) of it, else
+    the light grey (levels 150 to 255) farthest from every class (ade20k150's ``windowpane`` is
+    (230, 230, 230))."""
+    lab = _lab(np.asarray(class_colors, np.float64).reshape(-1, 3))
+    d = np.linalg.norm(_lab(np.asarray(UNLABELED_RGB, np.float64)) - lab, axis=1)
+    if len(d) == 0 or d.min() >= UNLABELED_MIN_DELTA_E:
+        return UNLABELED_RGB
+    greys = np.arange(150, 256, dtype=np.float64)
+    g = _lab(np.repeat(greys[:, None], 3, 1))
+    far = np.linalg.norm(g[:, None, :] - lab[None, :, :], axis=2).min(1)
+    v = int(greys[int(np.argmax(far))])
+    return (v, v, v)
+
+
 def wrong_color(class_colors: np.ndarray) -> tuple[tuple[int, int, int], float]:
     """The colour of wrong points: of bright, saturated candidates (a 9-level RGB grid) the one
     farthest (CIE76 delta E, Lab units) from every class colour and from the greys the viewer
@@ -124,7 +150,8 @@ def wrong_color(class_colors: np.ndarray) -> tuple[tuple[int, int, int], float]:
     lab = _lab(cand)
     ok = (lab[:, 0] >= 55) & (np.hypot(lab[:, 1], lab[:, 2]) >= 40)  # visible on the dark background, not grey
     cand, lab = cand[ok], lab[ok]
-    avoid = np.concatenate([np.asarray(class_colors, np.float64).reshape(-1, 3), [UNLABELED_RGB, RIGHT_RGB]])
+    avoid = np.concatenate([np.asarray(class_colors, np.float64).reshape(-1, 3),
+                            [unlabeled_color(class_colors), RIGHT_RGB]])
     d = np.linalg.norm(lab[:, None, :] - _lab(avoid)[None, :, :], axis=2).min(1)
     best = int(np.argmax(d))
     return tuple(int(x) for x in cand[best]), float(d[best])
@@ -161,7 +188,7 @@ def annotation_context(names: Sequence[str], colors: np.ndarray):
 
     infos = [rr.AnnotationInfo(id=i, label=str(n), color=tuple(int(x) for x in colors[i]))
              for i, n in enumerate(names)]
-    infos.append(rr.AnnotationInfo(id=UNLABELED_ID, label="unlabeled", color=UNLABELED_RGB))
+    infos.append(rr.AnnotationInfo(id=UNLABELED_ID, label="unlabeled", color=unlabeled_color(colors)))
     return rr.AnnotationContext(infos)
 
 
@@ -177,11 +204,122 @@ def point_radius(points: np.ndarray) -> float:
     return float(max(0.5 * np.mean(d[:, 1]), 1e-4))
 
 
-def blueprint(score_layers: Sequence[tuple[str, str]] = (), eye=None, feature_tabs: Sequence[tuple[str, str]] = ()):
+LEGEND = "legend"
+"""The legend's entity (every kind of run): an Image (:func:`legend_image`: a swatch and the
+name of each class present, ``unlabeled``, ``wrong label`` with ground truth, and the
+confidence colour scale) with the same entries as values (``classes``: names, ``colors``:
+0xRRGGBBAA), drawn in the layout's ``legend`` 2D view, a strip under the 3D tabs. A picture:
+Rerun's 2D labels keep their size in pixels while the view scales the positions, so
+labelled points overlapped or fell apart with the view's size; an image scales as a whole."""
+LEGEND_ROWS = 5
+"""Entries per column of the legend."""
+LEGEND_BG = (18, 18, 18)
+"""The legend's background: the viewer's."""
+
+
+def legend_entries(names: Sequence[str], colors: np.ndarray, present: Optional[np.ndarray] = None,
+                   wrong_rgb: Optional[tuple] = None) -> tuple[list[str], np.ndarray]:
+    """(labels, (K, 3) uint8 colours) of the legend: the classes ``present`` (class ids, e.g. those
+    of the ground truth and the labels; None: all), ``unlabeled`` and, given ``wrong_rgb``,
+    ``wrong label``."""
+    ids = np.arange(len(names)) if present is None else np.unique(np.asarray(present, np.int64))
+    ids = ids[(ids >= 0) & (ids < len(names))]
+    labels = [str(names[i]) for i in ids] + ["unlabeled"]
+    cols = [np.asarray(colors, np.uint8).reshape(-1, 3)[ids], np.asarray([unlabeled_color(colors)], np.uint8)]
+    if wrong_rgb is not None:
+        labels.append("wrong label")
+        cols.append(np.asarray([wrong_rgb], np.uint8))
+    return labels, np.concatenate(cols)
+
+
+def legend_image(labels: Sequence[str], colors: np.ndarray, confidence: bool = True,
+                 rows: int = LEGEND_ROWS) -> np.ndarray:
+    """(H, W, 3) uint8 picture of the legend: ``labels`` with their (K, 3) uint8 ``colors`` as
+    swatches in columns of ``rows``, and with ``confidence`` the viridis scale 0..1 right of them
+    (matplotlib's Agg canvas, no pyplot: safe in the recording thread)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Rectangle
+
+    row_px, font = 34, 13  # points at 100 dpi: ~10 px a character
+    n_cols = -(-len(labels) // rows)
+    col_px = 44 + 10 * max(len(s) for s in labels)
+    cbar_px = 320 if confidence else 0
+    W, H = n_cols * col_px + cbar_px + 20, rows * row_px + 16
+    fig = Figure(figsize=(W / 100, H / 100), dpi=100, facecolor=np.asarray(LEGEND_BG) / 255)
+    FigureCanvasAgg(fig)
+    ax = fig.add_axes((0, 0, 1, 1))
+    ax.set_xlim(0, W)
+    ax.set_ylim(H, 0)
+    ax.axis("off")
+    cols = np.asarray(colors, np.float64).reshape(-1, 3) / 255
+    for k, name in enumerate(labels):  # a few dozen entries
+        x, y = 12 + (k // rows) * col_px, 8 + (k % rows) * row_px
+        ax.add_patch(Rectangle((x, y + 4), 22, 22, facecolor=cols[k], edgecolor=(0.85, 0.85, 0.85), linewidth=0.6))
+        ax.text(x + 32, y + 15, name, color=(0.9, 0.9, 0.9), fontsize=font, va="center")
+    if confidence:
+        x0, w = W - cbar_px + 20, cbar_px - 60
+        ax.imshow(CONFIDENCE_LUT[None, np.linspace(0, 255, w).astype(int)], extent=(x0, x0 + w, 66, 42),
+                  aspect="auto", interpolation="nearest")
+        ax.text(x0, 28, "confidence max_c Z / sum_c Z", color=(0.9, 0.9, 0.9), fontsize=font, va="center")
+        for v in (0.0, 0.5, 1.0):
+            ax.text(x0 + v * w, 84, f"{v:g}", color=(0.9, 0.9, 0.9), fontsize=font, va="center", ha="center")
+    fig.canvas.draw()
+    return np.ascontiguousarray(np.asarray(fig.canvas.buffer_rgba())[..., :3])
+
+
+def log_legend(rec, names: Sequence[str], colors: np.ndarray, present: Optional[np.ndarray] = None,
+               wrong_rgb: Optional[tuple] = None, confidence: bool = True) -> None:
+    """Static :data:`LEGEND` on the recording stream ``rec``: :func:`legend_image` of
+    :func:`legend_entries` and the entries as values (``classes``, ``colors`` 0xRRGGBBAA)."""
+    import rerun as rr
+
+    labels, cols = legend_entries(names, colors, present, wrong_rgb)
+    c = cols.astype(np.uint32)
+    packed = (c[:, 0] << 24) | (c[:, 1] << 16) | (c[:, 2] << 8) | np.uint32(255)
+    rec.log(LEGEND, rr.Image(legend_image(labels, cols, confidence)),
+            rr.AnyValues(classes=labels, colors=packed), static=True)
+
+
+def legend_view():
+    """The ``legend`` 2D view of every layout."""
+    import rerun.blueprint as rrb
+
+    return rrb.Spatial2DView(name="legend", origin=f"/{LEGEND}", contents=[f"/{LEGEND}"])
+
+
+def y_range(ranges: Optional[dict], contents: Sequence[str], pad: float = 0.12) -> Optional[tuple]:
+    """(lo, hi) over the ``ranges`` {entity: (lo, hi)} of the ``contents`` with ``pad`` of their
+    span (at least 5% of the largest magnitude, and 0.5 for spans of 1 or more, else 0.02) on
+    both sides: the tick labels at the ends stay inside the plot (fitted to the data, Rerun cut
+    its end ticks in half); None where none has values (Rerun's own fit)."""
+    got = [ranges[c] for c in contents if ranges and c in ranges]
+    if not got:
+        return None
+    lo, hi = min(g[0] for g in got), max(g[1] for g in got)
+    p = max(pad * (hi - lo), 0.05 * max(abs(lo), abs(hi)), 0.5 if hi - lo >= 1 else 0.02)
+    return (float(lo - p), float(hi + p))
+
+
+def plot(name: str, contents: Sequence[str], ranges: Optional[dict] = None, legend: bool = False,
+         corner: str = "RightBottom", origin: str = "/metrics"):
+    """A time series view, its y axis over :func:`y_range` of ``ranges`` (None: Rerun's, fitted to
+    the data) and, with ``legend``, its legend in ``corner`` (off the curves: where they end)."""
+    import rerun.blueprint as rrb
+
+    yr = y_range(ranges, contents)
+    kw = {} if yr is None else {"axis_y": rrb.ScalarAxis(range=yr, zoom_lock=False)}
+    return rrb.TimeSeriesView(name=name, origin=origin, contents=list(contents),
+                              plot_legend=rrb.PlotLegend(corner=corner, visible=bool(legend)), **kw)
+
+
+def blueprint(score_layers: Sequence[tuple[str, str]] = (), eye=None, feature_tabs: Sequence[tuple[str, str]] = (),
+              ranges: Optional[dict] = None):
     """The default layout: the labelled points in 3D beside the time series; other 3D views
     (confidence, errors, ground truth, input + cameras, depth, evidence, and one per
     ``score_layers`` (class name, entity path), and a features run's ``feature_tabs`` (tab name,
-    entity path)) in tabs behind it. Every 3D view opens on ``eye``
+    entity path)) in tabs behind it; ``ranges`` {entity: (lo, hi)}: the plotted scalars' (the
+    layout is sent again at the end with them, :func:`y_range`). Every 3D view opens on ``eye``
     (:func:`~.eyes.overview_eye`: from above one side, looking down into the scene), None:
     Rerun's own (from outside the scene's box, which in a room shows the walls' backs).
 
@@ -201,7 +339,7 @@ def blueprint(score_layers: Sequence[tuple[str, str]] = (), eye=None, feature_ta
     feats = [view3d(name, [f"/{path}"]) for name, path in feature_tabs]
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Tabs(
+            rrb.Vertical(rrb.Tabs(
                 view3d("diffusion: labels", ["/world/diffusion/labels"]),
                 view3d("confidence", ["/world/diffusion/confidence"]),
                 *feats,
@@ -212,17 +350,16 @@ def blueprint(score_layers: Sequence[tuple[str, str]] = (), eye=None, feature_ta
                 view3d("evidence (Bayesian)", ["/world/evidence/**", "/world/cameras/**"]),
                 *scores,
                 active_tab="diffusion: labels",
-            ),
+            ), legend_view(), row_shares=[4, 1]),
             rrb.Vertical(
-                rrb.TimeSeriesView(name="mIoU so far [%]", origin="/metrics", contents=["/metrics/miou"]),
-                rrb.TimeSeriesView(name="labels changed per iteration, log10", origin="/metrics",
-                                   contents=["/metrics/changed_per_iter_log10"]),
-                rrb.TimeSeriesView(name="relative residual |Z_t - Z_t-1|, log10", origin="/metrics",
-                                   contents=["/metrics/residual_log10"]),
+                plot("mIoU and accuracy so far [%]", ["/metrics/miou", "/metrics/accuracy"], ranges, legend=True),
+                plot("mean confidence", ["/metrics/confidence"], ranges),
+                plot("labels changed per iteration, log10", ["/metrics/changed_per_iter_log10"], ranges),
+                plot("relative residual |Z_t - Z_t-1|, log10", ["/metrics/residual_log10"], ranges),
             ),
             column_shares=[3, 2],
         ),
-        rrb.TimePanel(state="expanded"),
+        rrb.TimePanel(state="collapsed", timeline=TIMELINE, play_state="following"),
         collapse_panels=True,
     )
 
@@ -237,11 +374,19 @@ ONLINE_MAX_BLOCKS = 64
 finished without loading a recording"); 64 load."""
 
 
+APP_BATCH, APP_ONLINE, APP_TILED = "diffuser_lab_batch", "diffuser_lab_online", "diffuser_lab_tiled"
+"""run.rrd's application id per kind of run (Rerun turns a dot in one into a hash): the viewer keeps
+a layout per application id. What makes a record opened into a running viewer (``rerun run.rrd``
+with one on port 9876) show its own layout is the blueprint sent as the *active* one
+(``send_blueprint(make_active=True)``): checked in the viewer (Xvfb, 2026-12-04), an online record
+streamed into a viewer showing a tiled one got Rerun's automatic layout with its own application
+id and a default-only blueprint, and its layout with the active blueprint, with either id."""
+
 FOLLOW_CAMERA = "/world/online/camera"
 """The entity of an online run's moving camera, which the "through the camera" tab's eye tracks."""
 
 
-def online_blueprint(has_gt: bool, growing: bool, eye=None):
+def online_blueprint(has_gt: bool, growing: bool, eye=None, ranges: Optional[dict] = None):
     """The layout of an online run: the map's labels (with the moving camera) seen from ``eye``
     (:func:`~.eyes.overview_eye`; None: Rerun's own), the same labels through the moving camera
     (its eye tracks :data:`FOLLOW_CAMERA`: pose and field of view of the frame shown), the
@@ -264,15 +409,18 @@ def online_blueprint(has_gt: bool, growing: bool, eye=None):
         dim = {f"/world/online/labels/{b:04d}": grey for b in range(ONLINE_MAX_BLOCKS if growing else 1)}
         tabs.append(view3d("errors", ["/world/online/labels/**", "/world/online/wrong"], overrides=dim))
         tabs.append(view3d("ground truth", ["/world/online/ground_truth/**" if growing else "/world/scene/ground_truth"]))
-    plots = [rrb.TimeSeriesView(name="mIoU so far [%]", origin="/metrics",
-                                contents=["/metrics/diffuser_miou", "/metrics/bayesian_miou"])] if has_gt else []
-    plots += [rrb.TimeSeriesView(name="latency [ms]", origin="/metrics", contents=["/metrics/latency_ms"]),
-              rrb.TimeSeriesView(name="labels changed", origin="/metrics", contents=["/metrics/changed"]),
-              rrb.TimeSeriesView(name="map points", origin="/metrics", contents=["/metrics/points"]),
-              rrb.Spatial2DView(name="camera: 2D labels", origin="/world/online/camera")]
+    # two views a row: a plot needs ~25 px per labelled tick and egui's are decades (10, 20, ...
+    # of a 0-70 range), so five plots stacked showed no number on their y axes
+    rows = [plot("mIoU so far [%]", ["/metrics/diffuser_miou", "/metrics/bayesian_miou"], ranges,
+                 legend=True)] if has_gt else []
+    rows += [rrb.Horizontal(plot("latency [ms]", ["/metrics/latency_ms"], ranges),
+                            plot("labels changed", ["/metrics/changed"], ranges)),
+             rrb.Horizontal(plot("map points [thousands]", ["/metrics/points_k"], ranges),
+                            rrb.Spatial2DView(name="camera: 2D labels", origin="/world/online/camera"))]
     return rrb.Blueprint(
-        rrb.Horizontal(rrb.Tabs(*tabs, active_tab="online: labels"), rrb.Vertical(*plots), column_shares=[3, 2]),
-        rrb.TimePanel(state="expanded"),
+        rrb.Horizontal(rrb.Vertical(rrb.Tabs(*tabs, active_tab="online: labels"), legend_view(), row_shares=[4, 1]),
+                       rrb.Vertical(*rows), column_shares=[3, 2]),
+        rrb.TimePanel(state="collapsed", timeline=FRAME_TIMELINE, play_state="following"),
         collapse_panels=True,
     )
 
@@ -289,7 +437,7 @@ class RerunRecorder:
 
     file_key = "rrd"
 
-    def __init__(self, path: Path, *, application_id: str = "diffuser_lab", recording_id: Optional[str] = None,
+    def __init__(self, path: Path, *, application_id: Optional[str] = None, recording_id: Optional[str] = None,
                  max_image_side: int = 320, max_depth_side: int = 160, live: Optional[str] = None,
                  score_classes: Sequence[tuple[str, int]] = (), online: bool = False):
         import rerun as rr
@@ -311,8 +459,14 @@ class RerunRecorder:
         self._feature_tabs: list[tuple[str, str]] = []  # a features run's (tab, entity): log_feature_view
         self._query_path = ""
         self._work_points: Optional[np.ndarray] = None
+        self._taxonomy: Optional[tuple[list, np.ndarray]] = None  # (names, (C, 3) colours): log_taxonomy
+        self._extent: dict[str, list[float]] = {}  # /metrics/<key> -> [min, max] logged: the plots' y ranges
+        self._bp_args: Optional[tuple] = None  # the layout's arguments, sent again with the ranges at close
+        self._online_bp: Optional[tuple] = None
         bp = None
         batcher = rr.ChunkBatcherConfig(flush_tick=BATCH_SECONDS, flush_num_bytes=BATCH_BYTES)
+        if application_id is None:
+            application_id = APP_ONLINE if online else APP_BATCH
         self.rec = rr.RecordingStream(application_id, recording_id=recording_id or str(uuid.uuid4()),
                                       batcher_config=batcher)
         target = live_target(live)
@@ -333,6 +487,7 @@ class RerunRecorder:
         self.radius = 0.01
         self._work_radius = 0.01
         self.wrong_rgb = (255, 0, 255)
+        self.unlabeled_rgb = UNLABELED_RGB
         self._closed = False
 
     def _spawn(self) -> str:
@@ -349,6 +504,8 @@ class RerunRecorder:
         rr = self.rr
         self.rec.log("world", annotation_context(names, colors), rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         self.wrong_rgb = wrong_color(colors)[0]
+        self.unlabeled_rgb = unlabeled_color(colors)
+        self._taxonomy = (list(names), np.asarray(colors, np.uint8))
         rr_series = [("miou", "mIoU so far [%]", (31, 119, 180)), ("accuracy", "accuracy [%]", (44, 160, 44)),
                      ("changed_per_iter_log10", "log10 labels changed per iteration", (214, 39, 40)),
                      ("residual_log10", "log10 relative residual", (148, 103, 189)),
@@ -361,8 +518,16 @@ class RerunRecorder:
         (F, 4, 4) where given (else +z, as ``world``'s ViewCoordinates say)."""
         pts = getattr(self, "_scene_points", None)
         eye = overview_eye(pts, T_cw) if pts is not None else None
-        self.rec.send_blueprint(blueprint(self._layers, eye, self._feature_tabs), make_active=False, make_default=True)
+        self._bp_args = (self._layers, eye, self._feature_tabs)
+        self.rec.send_blueprint(blueprint(*self._bp_args), make_active=True, make_default=True)
         self._eye_up = scene_up(T_cw)
+
+    def _scalar(self, key: str, value: float) -> None:
+        """``metrics/<key>`` at the current time, its extent kept for the plots' ranges."""
+        v = float(value)
+        self.rec.log(f"metrics/{key}", self.rr.Scalars(v))
+        e = self._extent.setdefault(f"/metrics/{key}", [v, v])
+        e[0], e[1] = min(e[0], v), max(e[1], v)
 
     def log_scene(self, points: np.ndarray, colors: Optional[np.ndarray], gt: Optional[np.ndarray]) -> None:
         """points (N, 3) world m; colors (N, 3) uint8 or None; gt (N,) int class ids or None."""
@@ -376,6 +541,19 @@ class RerunRecorder:
         if gt is not None:
             self.rec.log("world/scene/ground_truth",
                          rr.Points3D(points, class_ids=class_ids(gt), radii=self.radius), static=True)
+        self._gt_present = None if gt is None else np.unique(np.asarray(gt))
+        if self.online:  # a batch run's comes with its evidence (the classes of its Bayesian labels too)
+            self.log_legend()
+
+    def log_legend(self, labels: Optional[np.ndarray] = None) -> None:
+        """The static ``legend`` (:func:`log_legend`): the classes of the ground truth and of
+        ``labels`` (class ids; both None: all classes), the wrong colour where there is ground truth."""
+        if self._taxonomy is None:
+            return
+        gt = getattr(self, "_gt_present", None)
+        parts = [np.asarray(a).ravel() for a in (gt, labels) if a is not None]
+        present = np.unique(np.concatenate(parts)) if parts else None
+        log_legend(self.rec, *self._taxonomy, present, self.wrong_rgb if gt is not None else None)
 
     def _shrink(self, img: np.ndarray, K: np.ndarray, side: int = 0) -> tuple[np.ndarray, np.ndarray]:
         h, w = img.shape[:2]
@@ -434,16 +612,53 @@ class RerunRecorder:
         seen = np.asarray(seen, bool)
         self.rec.log("world/evidence/bayesian",
                      rr.Points3D(work_points[seen], class_ids=class_ids(bayesian[seen]), radii=r), static=True)
+        self.log_legend(bayesian[seen])
         self.rec.log("world/evidence/unseen",
-                     rr.Points3D(work_points[~seen], colors=(90, 90, 90), radii=r), static=True)
+                     rr.Points3D(work_points[~seen], colors=self.unlabeled_rgb, radii=r), static=True)
         self.rec.log("world/diffusion/labels", rr.Points3D(work_points, radii=r), static=True)
         self.rec.log("world/diffusion/confidence", confidence_context(), rr.Points3D(work_points, radii=r), static=True)
         for p in self.score_paths:
             self.rec.log(p, rr.Points3D(work_points, radii=r), static=True)
 
     # -- per iteration -------------------------------------------------------------------------
-    def log_step(self, step: Step, points: Optional[np.ndarray] = None) -> None:
-        """One recorded iteration; ``points`` (N, 3) are the original points (for ``wrong``)."""
+    def log_metrics(self, iteration: int, residual: float, changed: int, confidence: float,
+                    miou: Optional[float] = None, accuracy: Optional[float] = None, per: int = 1) -> None:
+        """The scalars of one iteration (``metrics/*``); ``changed``: labels changed over the
+        last ``per`` iterations (logged per iteration, log10)."""
+        self.rec.set_time(TIMELINE, sequence=int(iteration))
+        # log10: after the first iteration (~all labels change, residual 1) both fall by orders of
+        # magnitude, which a linear axis shows as a flat line (Rerun 0.41's plots have no log axis)
+        if residual > 0 and np.isfinite(residual):
+            self._scalar("residual_log10", np.log10(residual))
+        if changed > 0:
+            self._scalar("changed_per_iter_log10", np.log10(changed / max(int(per), 1)))
+        self._scalar("confidence", confidence)
+        if miou is not None:
+            self._scalar("miou", miou)
+            self._scalar("accuracy", accuracy)
+
+    def log_metrics_columns(self, rows: np.ndarray) -> None:
+        """The scalars of consecutive iterations at once: (k, 6) rows of iteration, residual,
+        labels changed per iteration since the one before, mean confidence, mIoU, accuracy (NaN: none),
+        as :meth:`log_metrics` logs them one by one."""
+        rr = self.rr
+        rows = np.asarray(rows, np.float64).reshape(-1, 6)
+        it = rows[:, 0].astype(np.int64)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            series = {"residual_log10": np.log10(rows[:, 1]), "changed_per_iter_log10": np.log10(rows[:, 2]),
+                      "confidence": rows[:, 3], "miou": rows[:, 4], "accuracy": rows[:, 5]}
+        for key, v in series.items():  # five series
+            ok = np.isfinite(v)
+            if not ok.any():
+                continue
+            rr.send_columns(f"metrics/{key}", indexes=[rr.TimeColumn(TIMELINE, sequence=it[ok])],
+                            columns=rr.Scalars.columns(scalars=v[ok]), recording=self.rec)
+            e = self._extent.setdefault(f"/metrics/{key}", [float(v[ok].min()), float(v[ok].max())])
+            e[0], e[1] = min(e[0], float(v[ok].min())), max(e[1], float(v[ok].max()))
+
+    def log_step(self, step: Step, points: Optional[np.ndarray] = None, metrics: bool = True) -> None:
+        """One recorded iteration; ``points`` (N, 3) are the original points (for ``wrong``);
+        ``metrics``: also its scalars (False: the run's side sends them every iteration)."""
         rr = self.rr
         rec = self.rec
         rec.set_time(TIMELINE, sequence=step.iteration)
@@ -453,18 +668,9 @@ class RerunRecorder:
         if step.wrong is not None and points is not None:
             rec.log("world/diffusion/wrong", rr.Points3D(points[step.wrong], colors=self.wrong_rgb,
                                                          radii=1.2 * self.radius))
-        # log10: after the first iteration (~all labels change, residual 1) both fall by orders of
-        # magnitude, which a linear axis shows as a flat line (Rerun 0.41's plots have no log axis);
-        # per iteration, as recorded iterations need not be evenly spaced
-        if step.residual > 0 and np.isfinite(step.residual):
-            rec.log("metrics/residual_log10", rr.Scalars(np.log10(step.residual)))
-        if step.n_changed > 0:
-            per_iter = step.n_changed / max(step.iteration - step.previous, 1)
-            rec.log("metrics/changed_per_iter_log10", rr.Scalars(np.log10(per_iter)))
-        rec.log("metrics/confidence", rr.Scalars(step.mean_confidence))
-        if step.miou is not None:
-            rec.log("metrics/miou", rr.Scalars(step.miou))
-            rec.log("metrics/accuracy", rr.Scalars(step.accuracy))
+        if metrics:  # per iteration, as recorded iterations need not be evenly spaced
+            self.log_metrics(step.iteration, step.residual, step.n_changed, step.mean_confidence, step.miou,
+                             step.accuracy, per=step.iteration - step.previous)
 
     # -- a features run (predictions=features) ------------------------------------------------------
     def log_feature_view(self, view) -> None:
@@ -505,12 +711,13 @@ class RerunRecorder:
         ``spacing``: a growing map's voxel size, m (its points are drawn with half of it as radius)."""
         rr = self.rr
         eye = overview_eye(points) if points is not None and len(points) else None
-        self.rec.send_blueprint(online_blueprint(has_gt, growing, eye), make_active=False, make_default=True)
+        self._online_bp = (has_gt, growing, eye)
+        self.rec.send_blueprint(online_blueprint(*self._online_bp), make_active=True, make_default=True)
         for key, name, color in (("diffuser_miou", "online Diffuser mIoU so far [%]", (31, 119, 180)),
                                  ("bayesian_miou", "online Bayesian mIoU so far [%]", (255, 127, 14)),
                                  ("latency_ms", "latency [ms]", (214, 39, 40)),
                                  ("changed", "labels changed", (148, 103, 189)),
-                                 ("points", "map points", (44, 160, 44))):
+                                 ("points_k", "map points [thousands]", (44, 160, 44))):
             self.rec.log(f"metrics/{key}", rr.SeriesLines(names=name, colors=color), static=True)
         # a growing map's points are its voxels' centroids: half the voxel touch. (Estimated from
         # the first frame's map, the radius came out 3x that: its points are far sparser than the
@@ -552,12 +759,12 @@ class RerunRecorder:
         if rec.image is not None:
             log("world/online/camera/labels", rr.SegmentationImage(class_ids(rec.image)))
         st, m = rec.stats, rec.metrics or {}
-        log("metrics/latency_ms", rr.Scalars(float(st["latency_ms"])))
-        log("metrics/points", rr.Scalars(float(rec.n)))
-        log("metrics/changed", rr.Scalars(float(st["changed"])))
+        self._scalar("latency_ms", st["latency_ms"])
+        self._scalar("points_k", rec.n / 1000.0)  # thousands: the axis' numbers fit
+        self._scalar("changed", st["changed"])
         for key in ("diffuser_miou", "bayesian_miou"):
             if m.get(key) is not None:
-                log(f"metrics/{key}", rr.Scalars(float(m[key])))
+                self._scalar(key, m[key])
 
     def score_values(self, Z: np.ndarray) -> np.ndarray:
         """(M, C) scores -> (M, k) float32 Z_ic / sum_c Z_ic of the score classes, 0 where the row is 0."""
@@ -584,8 +791,13 @@ class RerunRecorder:
             return
         self._closed = True
         if not self.online and self._eye_up is None:  # no scene came (a run that failed early): the layout
-            self.rec.send_blueprint(blueprint(self._layers, feature_tabs=self._feature_tabs), make_active=False,
+            self.rec.send_blueprint(blueprint(self._layers, feature_tabs=self._feature_tabs), make_active=True,
                                     make_default=True)
+        elif self._extent:  # the layout again with the plots' y ranges, now known
+            bp = (blueprint(*self._bp_args, ranges=self._extent) if self._bp_args and not self.online
+                  else online_blueprint(*self._online_bp, ranges=self._extent) if self._online_bp else None)
+            if bp is not None:
+                self.rec.send_blueprint(bp, make_active=True, make_default=True)
         if self.live is None:
             self.rec.flush()
         else:
@@ -597,5 +809,5 @@ class RerunRecorder:
         self.rec.disconnect()
 
 
-__all__ = ["RerunRecorder", "blueprint", "online_blueprint", "class_ids", "wrong_color", "score_entity", "UNLABELED_ID", "TIMELINE",
+__all__ = ["RerunRecorder", "blueprint", "unlabeled_color", "log_legend", "legend_entries", "LEGEND", "APP_BATCH", "APP_ONLINE", "APP_TILED", "online_blueprint", "class_ids", "wrong_color", "score_entity", "UNLABELED_ID", "TIMELINE",
            "CONFIDENCE_LUT"]

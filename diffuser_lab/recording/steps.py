@@ -88,4 +88,18 @@ class StepTracker:
         return st
 
 
-__all__ = ["Step", "StepTracker", "original_to_work"]
+def scalar_metrics(Z: np.ndarray, prev: np.ndarray, gt: Optional[np.ndarray], to_work: Optional[np.ndarray],
+                   names: Sequence[str]) -> tuple[dict, np.ndarray]:
+    """run.rrd's scalars of one iteration, on the run's side: Z (M, C) float32, ``prev`` (M,) the
+    labels of the iteration before, ``gt`` (N,) or None, ``to_work`` (N,) or None (as
+    :class:`StepTracker`). Returns ({changed, confidence, miou, accuracy}, the (M,) labels);
+    miou and accuracy percent (None without ground truth), changed: labels changed since ``prev``."""
+    s = step_stats(Z, prev, gt, to_work)
+    miou = acc = None
+    if s.counts is not None:
+        sc = scores_from_confusion(s.counts, list(names))
+        miou, acc = sc["miou"], sc["accuracy"]
+    return {"changed": int(s.n_changed), "confidence": float(s.mean_confidence), "miou": miou, "accuracy": acc}, s.labels
+
+
+__all__ = ["Step", "StepTracker", "original_to_work", "scalar_metrics"]

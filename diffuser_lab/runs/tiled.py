@@ -271,6 +271,8 @@ def diffuse_tile(cfg: Config, inp: TileInput, frames, taxonomy, name: str, spec:
         if res.lifted is not None:  # a features run (method/features.py)
             feats = unit_float16(res.lifted.method[res.rows[pos]])
         rec["iterations"] = int(res.diffusion.iterations) if res.diffusion is not None else 0
+        if res.diffusion is not None:  # the tile's last relative residual (run.rrd's per-tile chart)
+            rec["residual"] = float(res.diffusion.residual)
         msgs = sorted({first_line(w.message) for w in caught})
         if msgs:
             rec["warnings"] = msgs

@@ -187,7 +187,7 @@ def test_rrd_frame_timeline_one_entry_per_frame(thread_run):
     miou = rrd_rows(path, "/metrics/diffuser_miou", "Scalars:scalars")
     assert sorted(miou) == cap.index
     assert miou[cap.index[-1]][0] == pytest.approx(thread_run.res.frames[-1]["diffuser_miou"])
-    for e in ("/metrics/bayesian_miou", "/metrics/latency_ms", "/metrics/points", "/metrics/changed"):
+    for e in ("/metrics/bayesian_miou", "/metrics/latency_ms", "/metrics/points_k", "/metrics/changed"):
         assert sorted(rrd_rows(path, e, "Scalars:scalars")) == cap.index, e
     from rerun.chunk import RrdReader
 
@@ -466,3 +466,19 @@ def test_a_failing_online_record_never_stops_the_run(thread_run, tmp_path, monke
     assert calls == [0, 1, 2]  # switched off after the failure
     log = read_run(tmp_path / "run.mcap")
     assert log.complete and [f["index"] for f in log.frames] == [0, 1]  # what came before stays readable
+
+
+@pytest.mark.slow
+def test_online_layout_has_its_app_id_a_legend_and_its_plots(cli_runs):
+    from rrd_layout import check_layout, static_column
+
+    from diffuser_lab.data.taxonomy import load_taxonomy
+    from diffuser_lab.recording.rerun_log import APP_ONLINE, UNLABELED_ID
+
+    rrd = cli_runs["both"] / "run.rrd"
+    gt = np.asarray(static_column(rrd, "/world/scene/ground_truth", "Points3D:class_ids"))
+    tax = load_taxonomy(json.loads((cli_runs["both"] / "summary.json").read_text())["taxonomy"])
+    v = check_layout(rrd, APP_ONLINE, tax, gt[gt != UNLABELED_ID], {
+        "mIoU so far [%]": ["/metrics/diffuser_miou", "/metrics/bayesian_miou"],
+        "map points [thousands]": ["/metrics/points_k"], "latency [ms]": ["/metrics/latency_ms"]})
+    assert v["tabs"][0] == "online: labels"

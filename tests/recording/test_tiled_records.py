@@ -79,6 +79,48 @@ def test_a_tiled_run_records_its_labels_and_tiles(cli_run):
 
 
 @pytest.mark.slow
+def test_tiled_layout_outlines_on_the_tiles_tab_only_grey_errors_bars_per_tile(cli_run):
+    from rrd_layout import check_layout
+
+    from diffuser_lab.data.taxonomy import load_taxonomy
+    from diffuser_lab.recording.rerun_log import APP_TILED, RIGHT_RGB
+
+    d = cli_run
+    summary = json.loads((d / "summary.json").read_text())
+    tiles = summary["tiling"]["tiles"]
+    rrd = d / "run.rrd"
+    st = rrd_static(rrd)
+    gt = np.asarray(st["/world/tiled/ground_truth"].column("Points3D:class_ids").to_pylist()[0])
+    v = check_layout(rrd, APP_TILED, load_taxonomy(summary["taxonomy"]), gt[gt != UNLABELED_ID], {})
+    assert v["tabs"] == ["tiled: labels", "tiles", "errors", "ground truth"]
+    boxed = [t for t in v["tabs"] if "/world/tiled/tiles" in v[t]["query"]]
+    assert boxed == ["tiles"]  # labels, errors and ground truth free of boxes
+    assert st["/world/tiled/tiles"].column("Boxes3D:fill_mode").to_pylist()[0] == [1]  # MajorWireframe: outlines
+    for tab in ("tiles", "errors"):  # over the cloud in one grey
+        (over,) = v[tab]["overrides"].values()
+        assert rgb(over["Points3D:colors"][0]) == RIGHT_RGB
+    # the boxes end where the cloud ends (the grid's last cells reach past it)
+    pts = np.asarray(st["/world/tiled/labels"].column("Points3D:positions").to_pylist()[0])
+    c = np.asarray(st["/world/tiled/tiles"].column("Boxes3D:centers").to_pylist()[0])
+    h = np.asarray(st["/world/tiled/tiles"].column("Boxes3D:half_sizes").to_pylist()[0])
+    np.testing.assert_allclose((c + h)[:, :2].max(0), pts[:, :2].max(0), atol=1e-4)
+    # a bar per tile and figure, keyed by the tile's id, at its table row
+    for k in ("accuracy", "iterations", "residual_log10", "points", "time_s"):
+        for i, t in enumerate(tiles):
+            bar = st[f"/tile/{k}/{t['id']}"]
+            assert bar.column("BarChart:abscissa").to_pylist()[0] is not None
+    charts = [f"accuracy [%], mIoU {summary['metrics']['miou']:.1f}", "iterations", "last residual, log10", "points"]
+    assert [v[c]["query"] for c in charts] == [["$origin/**"]] * 4
+    def bar(k, t):  # a tensor of one value
+        return st[f"/tile/{k}/{t['id']}"].column("BarChart:values").to_pylist()[0][0]["buffer"][0]
+
+    for t in tiles:
+        assert bar("residual_log10", t) == pytest.approx(np.log10(t["residual"]), rel=1e-5)
+        assert bar("iterations", t) == t["iterations"] and bar("points", t) == t["points"]
+        assert 0 < bar("accuracy", t) <= 100
+
+
+@pytest.mark.slow
 def test_inspect_lists_the_tiles(cli_run, capsys):
     assert inspect.main([str(cli_run)]) == 0
     out = capsys.readouterr().out
