@@ -17,7 +17,7 @@ from diffuser_lab.runs.resolve import default_config
 
 ROOM = {"seed": 1, "n_views": 6, "image_width": 64, "image_height": 48, "point_spacing": 0.1}
 RUN = {"solver.max_iter": 30, "record.mode": "off", "protocol.max_targets": 2, "protocol.window": 3,
-       "online.compare_batch": False}
+       "online.compare_batch": False, "online.rate": 0.0}  # online labels compared exactly: no wall-clock idle steps
 
 
 @pytest.fixture
