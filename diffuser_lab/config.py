@@ -712,7 +712,8 @@ class TilingConfig(Section):
 
     KEY = "tiling"
     size: float = key(2.0, above(0, "metres"))  # tile edge in x and y, metres
-    halo: float = key(0.75, at_least(0, "metres"))  # points within this distance (x, y) of a tile join its diffusion; docs/tiling.md: labels equal vs halo
+    halo: Optional[float] = key(None, at_least(0, "metres", null=True, note="(= halo_factor * sigma_d)"))  # points within this distance (x, y) of a tile join its diffusion; null = halo_factor * graph.sigma_d
+    halo_factor: float = key(30.0, above(0))  # tiling.halo=null: the halo is this many graph.sigma_d (which scales with the point spacing as a Jacobi step's reach does); docs/tiling.md: labels equal vs halo
     max_depth: Optional[float] = key(None, above(0, "metres", null=True))  # a frame's view reaches this far when its tiles are chosen; null = unlimited
     workers: int = key(0, at_least(0, note="(0 = the tiles one after another in this process)"))  # >= 1: tiles are Ray tasks; a local Ray instance gets this many CPUs
     address: Optional[str] = None  # Ray cluster to run the tiles on: auto (a running cluster), ray://host:port; null = a local instance

@@ -12,6 +12,7 @@ from diffuser_lab.data import validate
 from diffuser_lab.data.frames import LazyFrames
 from diffuser_lab.data.predictions import with_predictions
 from diffuser_lab.method import evidence as evidence_mod
+from diffuser_lab.method.graph import nearest_distinct
 from diffuser_lab.runs import pipeline, tiled
 from diffuser_lab.runs.tiled import TileSpec, frames_meeting, tile_points
 from conftest import SMALL_DEMO, run_cli
@@ -38,8 +39,23 @@ def test_tiled_labels_equal_the_untiled_run(untiled, local_tiled):
     np.testing.assert_array_equal(res.bayesian_labels, untiled.bayesian_labels)  # the same evidence per point
     assert res.metrics["miou"] == pytest.approx(untiled.metrics["miou"], abs=0.2)
     assert sum(r["points"] for r in res.tiles) == untiled.scene.n_points
-    # rho tile by tile (each tile's points against its halo) is the untiled graph's
+    # rho tile by tile is the untiled graph's; the default halo is halo_factor * sigma_d, in metres
     assert res.rho == pytest.approx(untiled.graph.rho, rel=1e-9)
+    cfg = default_config(**TILED)
+    assert cfg.tiling.halo is None and res.halo == pytest.approx(cfg.tiling.halo_factor * untiled.graph.sigma_d)
+
+
+def test_the_spacing_tile_by_tile_is_the_whole_clouds():
+    """rho from the tiles' own points, the points near a cell's border looked up again beyond it,
+    equals the whole cloud's (duplicates and a lone point in a cell included)."""
+    rng = np.random.default_rng(5)
+    pts = (rng.random((20_000, 3)) * [9.0, 5.0, 2.0]).astype(np.float32)
+    pts[:40] = pts[40:80]  # duplicates
+    pts[-1] = [8.99, 4.99, 1.0]  # alone near a corner cell's edge
+    for size in (0.5, 2.0):
+        cells = tiled._Cells(pts, size)
+        d = nearest_distinct(pts, 24)
+        assert cells.spacing(pts, 24) == pytest.approx(d[np.isfinite(d)].mean(), rel=1e-9)
 
 
 @pytest.mark.parametrize("halo", [0.0, 0.3, 2.5])
@@ -76,7 +92,7 @@ def test_a_tile_reads_the_frames_that_see_it(untiled, local_tiled):
     extra = reads = 0
     for rec in res.tiles:
         ix, iy = map(int, rec["id"].split("_"))
-        spec = TileSpec(ix, iy, tuple(scene.points[:, :2].min(0).astype(float)), cfg.tiling.size, cfg.tiling.halo)
+        spec = TileSpec(ix, iy, tuple(scene.points[:, :2].min(0).astype(float)), cfg.tiling.size, res.halo)
         _, rows = tile_points(scene.points, spec)
         p = scene.points[rows].astype(np.float64)
         sees = []
@@ -131,10 +147,12 @@ def _budget_failing_the_largest_tile(res, k=24, classes=20):
     return (need[-1] + need[-2]) / 2 / validate.GIB
 
 
-def test_a_failing_tile_is_reported_and_the_others_kept(untiled, local_tiled, tmp_path):
-    res, _ = local_tiled
+def test_a_failing_tile_is_reported_and_the_others_kept(untiled, tmp_path):
+    # a halo narrower than the tiles (the default, 30 sigma_d, is 2.1 m on this coarse room): tiles of different sizes
+    cfg = {**TILED, "tiling.halo": 0.75}
+    res = tiled.tiled(default_config(**cfg), run_dir=tmp_path / "all")
     budget = _budget_failing_the_largest_tile(res)
-    out = tiled.tiled(default_config(**TILED, memory_budget_gb=budget), run_dir=tmp_path)
+    out = tiled.tiled(default_config(**cfg, memory_budget_gb=budget), run_dir=tmp_path)
     assert len(out.failed) == 1 and out.failed[0]["error"].startswith("MemoryError: this run needs about")
     bad = out.failed[0]["id"]
     assert not (tmp_path / "tiles" / f"{bad}.npz").exists()
