@@ -840,9 +840,31 @@ class Config(Section):
     output: OutputConfig = field(default_factory=OutputConfig)
 
 
+def claim_run_dir(parent: str, name: str, now: Any = None) -> str:
+    """``parent/<HH-MM-SS-ffffff>_<name>``, created here (``os.mkdir``, atomic): a run's own folder.
+    Two runs started in the same microsecond never share one: the second finds the folder made and
+    takes the next stamp. conf/config.yaml's ``hydra.run.dir`` (resolver ``diffuser_lab.run_dir``,
+    cached: a process resolves it to one folder). ``now``: the start time (a datetime; default now)."""
+    import datetime
+    import os
+
+    os.makedirs(parent, exist_ok=True)
+    now = now or datetime.datetime.now()
+    while True:  # loop until a free stamp: one step, but for a run started in the same microsecond
+        path = os.path.join(parent, f"{now:%H-%M-%S-%f}_{name}")
+        try:
+            os.mkdir(path)
+            return path
+        except FileExistsError:
+            now = max(now + datetime.timedelta(microseconds=1), datetime.datetime.now())
+
+
 def register() -> None:
-    """Register the schema as ``base_config`` (the first entry of conf/config.yaml's defaults)."""
+    """Register the schema as ``base_config`` (the first entry of conf/config.yaml's defaults) and the
+    run folder's resolver (:func:`claim_run_dir`)."""
     ConfigStore.instance().store(name="base_config", node=Config)
+    if not OmegaConf.has_resolver("diffuser_lab.run_dir"):
+        OmegaConf.register_new_resolver("diffuser_lab.run_dir", claim_run_dir, use_cache=True)
 
 
 def to_object(cfg: Any) -> Config:
