@@ -1,6 +1,6 @@
 """Bounded fuzzing of the capture formats' readers (issue 39, item 3): LAS/LAZ, COLMAP binary and
-text models, transforms.json, intrinsics files, ROS bags, the run.mcap that ``diffuser-lab-inspect``
-reads, each written valid first, then truncated, bytes flipped, header fields overwritten with
+text models and depth maps, transforms.json, intrinsics files, depth and label PNGs, ROS bags, the
+run.mcap that ``diffuser-lab-inspect`` reads, each written valid first, then truncated, bytes flipped, header fields overwritten with
 lies, garbage after a valid magic, NaN/inf. Every case ends within seconds (a timer fails the test
 instead of hanging) and in bounded address space (RLIMIT_AS: current + 2 GiB, so a lying count that
 allocates fails the test), either reading or raising one line that names the file. The corpus of
@@ -287,6 +287,42 @@ def run_mcap(tmp_path_factory):
 def test_the_run_mcap_inspect_reads(run_mcap, m):
     with tempfile.TemporaryDirectory() as d:
         ends_clearly(read_mcap, _write(d, "run.mcap", mutate(run_mcap, *m)))
+
+
+def _png(mode: str) -> bytes:
+    from PIL import Image
+
+    a = np.arange(48 * 64).reshape(48, 64)
+    buf = io.BytesIO()
+    Image.fromarray(a.astype(np.uint16 if mode == "I;16" else np.uint8)).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+@FUZZ
+@given(st.sampled_from(["I;16", "L"]), st.sampled_from([16, 20]), st.integers(0, 2**31 - 1), MUTATION)
+def test_depth_and_label_images_whose_header_lies(mode, field, value, m):
+    """A PNG's IHDR width or height (big-endian at bytes 16 and 20) overwritten, or the file damaged."""
+    from diffuser_lab.data.prediction_files import read_label_png
+    from diffuser_lab.data.sources.rgbd_folder import read_depth_png
+
+    data = _png(mode)
+    lied = data[:field] + struct.pack(">I", value) + data[field + 4:]
+    with tempfile.TemporaryDirectory() as d:
+        for name, b in (("lied.png", lied), ("damaged.png", mutate(data, *m))):
+            ends_clearly(lambda p: read_depth_png(p, 1000.0), _write(d, name, b))
+            ends_clearly(read_label_png, _write(d, name, b))
+
+
+@FUZZ
+@given(st.sampled_from([b"64&48&1&", b"4000000000&48&1&", b"64&-1&1&", b"0&0&1&", b"64&48&3&", b"nan&48&1&"]),
+       MUTATION, st.sampled_from([np.nan, np.inf, -1.0, 1.5]))
+def test_colmap_depth_maps(header, m, value):
+    from diffuser_lab.data.sources.colmap import read_depth_map
+
+    body = np.full(48 * 64, value, "<f4").tobytes()
+    with tempfile.TemporaryDirectory() as d:
+        ends_clearly(read_depth_map, _write(d, "a.geometric.bin", header + body))
+        ends_clearly(read_depth_map, _write(d, "b.geometric.bin", mutate(b"64&48&1&" + body, *m)))
 
 
 # ------------------------------------------------------------------------------------------- corpus
