@@ -3,6 +3,9 @@ a tile reads the frames that see it; tiles on a two-node Ray cluster; resume; th
 import dataclasses
 import json
 import os
+import subprocess
+import sys
+import time
 
 import numpy as np
 import pytest
@@ -15,7 +18,7 @@ from diffuser_lab.method import evidence as evidence_mod
 from diffuser_lab.method.graph import nearest_distinct
 from diffuser_lab.runs import pipeline, tiled
 from diffuser_lab.runs.tiled import TileSpec, frames_meeting, tile_points
-from conftest import SMALL_DEMO, run_cli
+from conftest import ROOT, SMALL_DEMO, run_cli
 
 SMALL = {"scene.demo.n_views": 12, "scene.demo.point_spacing": 0.07, "solver.max_iter": 60}
 TILED = {**SMALL, "protocol.name": "tiled", "tiling.size": 2.0}
@@ -211,3 +214,37 @@ def test_tiles_on_a_two_node_ray_cluster(cluster, local_tiled, tmp_path):
     assert len(out.failed) == 1 and "MemoryError" in out.failed[0]["error"]
     ok = out.labels != -1
     assert (out.labels[ok] == res.labels[ok]).all()
+
+
+@pytest.mark.slow
+def test_a_ray_worker_killed_mid_tile_is_retried_and_the_labels_equal(tmp_path):
+    """SIGKILL to the Ray worker while it runs a tile (its process title ray::_ray_tile): Ray runs the
+    task again (tiling.max_retries), the run ends done with labels equal to an undisturbed run's."""
+    pytest.importorskip("ray")
+    psutil = pytest.importorskip("psutil")
+    args = [sys.executable, "-m", "diffuser_lab", "scene.demo.n_views=10", "scene.demo.point_spacing=0.08",
+            "solver.max_iter=60", "protocol=tiled", "tiling.size=1.5", "record=off", "output.labels_ply=false"]
+    env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
+    proc = subprocess.Popen([*args, "tiling.workers=1", f"hydra.run.dir={tmp_path / 'ray'}"], cwd=ROOT, env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    killed = None
+    deadline = time.time() + 180
+    while killed is None and proc.poll() is None and time.time() < deadline:
+        for c in psutil.Process(proc.pid).children(recursive=True):  # loop over the run's processes
+            try:
+                if "ray::_ray_tile" in " ".join(c.cmdline()):
+                    c.kill()
+                    killed = c.pid
+                    break
+            except psutil.Error:
+                pass
+        time.sleep(0.02)
+    _, err = proc.communicate(timeout=300)
+    assert killed is not None, "no worker was seen running a tile"
+    ref = subprocess.run([*args, f"hydra.run.dir={tmp_path / 'ref'}"], cwd=ROOT, env=env, capture_output=True,
+                         text=True, timeout=300)
+    assert proc.returncode == 0 and ref.returncode == 0, err + ref.stderr
+    s = json.loads((tmp_path / "ray" / "summary.json").read_text())
+    assert s["tiling"]["failed"] == 0 and all(t["status"] == "done" for t in s["tiling"]["tiles"])
+    assert all(t["pid"] != killed for t in s["tiling"]["tiles"])  # the killed task's tile ran again elsewhere
+    np.testing.assert_array_equal(np.load(tmp_path / "ray" / "labels.npy"), np.load(tmp_path / "ref" / "labels.npy"))
