@@ -121,15 +121,13 @@ def read_colmap(folder: Path):
 
 
 def read_bag(path: Path):
-    """What scene=rosbag does with a bag: open it, read the first message of each topic."""
+    """What scene=rosbag does with a bag: open it (``_Bag.open``), read a message (``_Bag.message``,
+    at the stamp :func:`bag_files` wrote) of each topic it lists."""
     from diffuser_lab.data.sources.rosbag import _Bag
 
     bag = _Bag(path)
-    r = bag.open()
-    for c in r.connections:  # loop over topics
-        for _, t, _ in r.messages(connections=[c]):
-            bag.message(c.topic, t, 0)
-            break
+    for c in bag.open().connections:  # loop over topics
+        bag.message(c.topic, 10**18, 0)
 
 
 def read_mcap(path: Path):
@@ -303,7 +301,7 @@ def _png(mode: str) -> bytes:
 def test_depth_and_label_images_whose_header_lies(mode, field, value, m):
     """A PNG's IHDR width or height (big-endian at bytes 16 and 20) overwritten, or the file damaged."""
     from diffuser_lab.data.prediction_files import read_label_png
-    from diffuser_lab.data.sources.rgbd_folder import read_depth_png
+    from diffuser_lab.data.images import read_depth_png
 
     data = _png(mode)
     lied = data[:field] + struct.pack(">I", value) + data[field + 4:]
@@ -394,6 +392,12 @@ def make_corpus() -> None:
             if name.startswith("points3D"):
                 data = lie + data[8:] if lie else data.replace(b"\n", b"\nNaN x\n", 3)
             (d / name).write_bytes(data)
+    d = CORPUS / "colmap_bin_track_lies"  # the file size adds up; record 3's track length says 2^32 - 1
+    d.mkdir(exist_ok=True)
+    for name, data in colmap_files("bin").items():
+        if name == "points3D.bin":
+            data = data[:153] + struct.pack("<Q", 2**32 - 1) + data[161:]
+        (d / name).write_bytes(data)
 
 
 if __name__ == "__main__":
