@@ -280,6 +280,7 @@ def run_mcap(tmp_path_factory):
     return (d / "run.mcap").read_bytes()
 
 
+@pytest.mark.slow  # its fixture runs the command line
 @FUZZ
 @given(MUTATION)
 def test_the_run_mcap_inspect_reads(run_mcap, m):
@@ -344,6 +345,7 @@ def replay(paths: list[Path]) -> list[str]:
     return out
 
 
+@pytest.mark.slow  # a fresh interpreter
 def test_the_corpus_of_bad_files_replays_in_seconds():
     """The generated bad files (tiny, kept under tests/data/fuzz_corpus) in a fresh interpreter."""
     paths = sorted(CORPUS.iterdir())
