@@ -534,7 +534,9 @@ def _on_ray(cfg: Config, scene: Scene, given: bool, cells: _Cells, todo: list[Ti
     tc = cfg.tiling
     started = False
     if not ray.is_initialized():
-        kw = dict(address=tc.address) if tc.address else dict(num_cpus=tc.workers)
+        # address="local": a new local instance even where another Ray runs on this machine (Ray would
+        # join that one, refusing num_cpus)
+        kw = dict(address=tc.address) if tc.address else dict(address="local", num_cpus=tc.workers)
         # the workers import this package from where the driver does (a node must see that path,
         # e.g. a shared file system, or have diffuser-lab installed)
         path = [str(Path(__file__).resolve().parents[2])] + [p for p in [os.environ.get("PYTHONPATH")] if p]
