@@ -716,7 +716,8 @@ class TilingConfig(Section):
 
     KEY = "tiling"
     size: float = key(2.0, above(0, "metres"))  # tile edge in x and y, metres
-    halo: float = key(0.75, at_least(0, "metres"))  # points within this distance (x, y) of a tile join its diffusion; docs/tiling.md: labels equal vs halo
+    halo: Optional[float] = key(None, at_least(0, "metres", null=True, note="(= halo_factor * sigma_d)"))  # points within this distance (x, y) of a tile join its diffusion; null = halo_factor * graph.sigma_d
+    halo_factor: float = key(30.0, above(0))  # tiling.halo=null: the halo is this many graph.sigma_d (which scales with the point spacing as a Jacobi step's reach does); docs/tiling.md: labels equal vs halo
     max_depth: Optional[float] = key(None, above(0, "metres", null=True))  # a frame's view reaches this far when its tiles are chosen; null = unlimited
     workers: int = key(0, at_least(0, note="(0 = the tiles one after another in this process)"))  # >= 1: tiles are Ray tasks; a local Ray instance gets this many CPUs
     address: Optional[str] = None  # Ray cluster to run the tiles on: auto (a running cluster), ray://host:port; null = a local instance
@@ -843,9 +844,31 @@ class Config(Section):
     output: OutputConfig = field(default_factory=OutputConfig)
 
 
+def claim_run_dir(parent: str, name: str, now: Any = None) -> str:
+    """``parent/<HH-MM-SS-ffffff>_<name>``, created here (``os.mkdir``, atomic): a run's own folder.
+    Two runs started in the same microsecond never share one: the second finds the folder made and
+    takes the next stamp. conf/config.yaml's ``hydra.run.dir`` (resolver ``diffuser_lab.run_dir``,
+    cached: a process resolves it to one folder). ``now``: the start time (a datetime; default now)."""
+    import datetime
+    import os
+
+    os.makedirs(parent, exist_ok=True)
+    now = now or datetime.datetime.now()
+    while True:  # loop until a free stamp: one step, but for a run started in the same microsecond
+        path = os.path.join(parent, f"{now:%H-%M-%S-%f}_{name}")
+        try:
+            os.mkdir(path)
+            return path
+        except FileExistsError:
+            now = max(now + datetime.timedelta(microseconds=1), datetime.datetime.now())
+
+
 def register() -> None:
-    """Register the schema as ``base_config`` (the first entry of conf/config.yaml's defaults)."""
+    """Register the schema as ``base_config`` (the first entry of conf/config.yaml's defaults) and the
+    run folder's resolver (:func:`claim_run_dir`)."""
     ConfigStore.instance().store(name="base_config", node=Config)
+    if not OmegaConf.has_resolver("diffuser_lab.run_dir"):
+        OmegaConf.register_new_resolver("diffuser_lab.run_dir", claim_run_dir, use_cache=True)
 
 
 def to_object(cfg: Any) -> Config:

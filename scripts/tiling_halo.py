@@ -1,6 +1,7 @@
 """Labels of protocol=tiled equal to the untiled run's, % of points, per halo width (docs/tiling.md).
 
     PYTHONPATH=$PWD python scripts/tiling_halo.py demo 0.25,0.5,0.75,1.0 [key=value ...]
+    PYTHONPATH=$PWD python scripts/tiling_halo.py demo x5,x10,x15 [key=value ...]   # tiling.halo_factor (x sigma_d)
     PYTHONPATH=$PWD python scripts/tiling_halo.py bench FILE.npz SIZE 0,0.1,0.25,0.5,0.75,1
 
 demo: the configured scene (default: the demo room) untiled, then tiled (tiling.size, default 2 m)
@@ -27,19 +28,25 @@ def _value(v: str):
         return v
 
 
-def demo(halos: list[float], overrides: dict) -> None:
+def _halo(h: str) -> dict:
+    """``0.75``: tiling.halo in metres; ``x10``: tiling.halo=null, tiling.halo_factor=10."""
+    return {"tiling.halo": None, "tiling.halo_factor": float(h[1:])} if h.startswith("x") else {"tiling.halo": float(h)}
+
+
+def demo(halos: list[str], overrides: dict) -> None:
     with quiet():
         t = time.perf_counter()
         ref = pipeline.run(default_config(**overrides))
         tu = time.perf_counter() - t
         print(f"untiled: {ref.scene.n_points:,} points, {tu:.1f} s", flush=True)
-        print("| size (m) | grid | halo (m) | labels equal, % | Bayesian equal, % | time / untiled |")
+        print("| size (m) | grid | halo (m) | halo / sigma_d | labels equal, % | Bayesian equal, % | time / untiled |")
         for h in halos:  # loop over halo widths
-            cfg = default_config(**overrides, **{"protocol.name": "tiled", "tiling.halo": h})
+            cfg = default_config(**overrides, **{"protocol.name": "tiled", **_halo(h)})
             t = time.perf_counter()
             r = tiled.tiled(cfg, scene=ref.scene, run_dir=tempfile.mkdtemp())
             tt = time.perf_counter() - t
-            print(f"| {cfg.tiling.size:g} | {r.grid[0]}x{r.grid[1]} | {h:g} | {100 * (r.labels == ref.labels).mean():.3f} "
+            sd = cfg.graph.sigma_d_factor * r.rho
+            print(f"| {cfg.tiling.size:g} | {r.grid[0]}x{r.grid[1]} | {r.halo:.3g} | {r.halo / sd:.1f} | {100 * (r.labels == ref.labels).mean():.4f} "
                   f"| {100 * (r.bayesian_labels == ref.bayesian_labels).mean():.3f} | {tt / tu:.2f} |", flush=True)
 
 
@@ -63,6 +70,6 @@ if __name__ == "__main__":
     if len(sys.argv) < 3 or sys.argv[1] not in ("demo", "bench"):
         sys.exit(__doc__)
     if sys.argv[1] == "demo":
-        demo([float(h) for h in sys.argv[2].split(",")], {k: _value(v) for k, v in (a.split("=", 1) for a in sys.argv[3:])})
+        demo(sys.argv[2].split(","), {k: _value(v) for k, v in (a.split("=", 1) for a in sys.argv[3:])})
     else:
         bench(sys.argv[2], float(sys.argv[3]), [float(h) for h in sys.argv[4].split(",")])

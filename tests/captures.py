@@ -28,7 +28,9 @@ def seven_frames(n: int = 6, step: int = 15) -> list[dict]:
     """``n`` frames of the 7-Scenes sample, every ``step``-th file (real depth, colour, poses):
     dicts with ``name``, ``K`` (3, 3), ``c2w`` (4, 4), ``depth`` (480, 640) float32 metres (0 = none),
     ``depth_path``, ``color_path``, ``pose_path``."""
-    from diffuser_lab.data.sources.rgbd_folder import read_depth_png, read_intrinsics, read_pose_c2w
+    from diffuser_lab.data.images import read_depth_png
+    from diffuser_lab.data.intrinsics import read_intrinsics
+    from diffuser_lab.data.poses import read_pose_c2w
 
     K = read_intrinsics(SEVEN / "camera-intrinsics.txt")
     names = sorted(p.name[: -len(".depth.png")] for p in SEVEN.glob("frame-*.depth.png"))[::step][:n]

@@ -115,11 +115,12 @@ def test_no_compiled_or_numpy_choice_outside_backends():
 
 def test_tests_mirror_the_package():
     """A test is found where its code is: tests/<folder>/ for diffuser_lab/<folder>/ (and analysis/,
-    benchmarks/); no test module name twice (pytest imports them by their file names)."""
+    benchmarks/); a folder without Python files is test data (tests/data/fuzz_corpus); no test module
+    name twice (pytest imports them by their file names)."""
     tests = Path(__file__).resolve().parent
     folders = {p.relative_to(PKG).as_posix() for p in PKG.rglob("*") if p.is_dir() and not p.name.startswith("__")}
     for d in (p for p in tests.rglob("*") if p.is_dir() and not p.name.startswith("__")):
         rel = d.relative_to(tests).as_posix()
-        assert rel in folders or rel.split("/")[0] in ("analysis", "benchmarks"), rel
+        assert rel in folders or rel.split("/")[0] in ("analysis", "benchmarks") or not any(d.rglob("*.py")), rel
     names = [p.name for p in tests.rglob("test_*.py")]
     assert len(names) == len(set(names)), sorted(n for n in names if names.count(n) > 1)

@@ -385,8 +385,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except UsageError as exc:
         print(f"{PROG}: error: {exc}", file=sys.stderr)
         return 2
-    except Exception as exc:  # noqa: BLE001 - one line, not a traceback
-        print(f"{PROG}: error: {type(exc).__name__}: {exc}", file=sys.stderr)
+    except Exception as exc:  # noqa: BLE001 - one line, not a traceback, naming what was read
+        msg = " ".join(str(exc).split())
+        where = "" if args.run in msg else f"{args.run}: "
+        print(f"{PROG}: error: {where}{type(exc).__name__}: {msg}", file=sys.stderr)
         return 1
 
 

@@ -63,6 +63,12 @@ def one_line(exc: BaseException) -> str:
     return msg
 
 
+def _one(text: str, limit: int = 300) -> str:
+    """``text`` on one line, at most ``limit`` characters."""
+    text = " ".join(str(text).split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
 def _verbose() -> bool:
     return os.environ.get("HYDRA_FULL_ERROR") == "1"
 
@@ -150,6 +156,13 @@ def _task(cfg: Any) -> Optional[float]:
             say(job_line(hc.job.num, run_dir, done, time.perf_counter() - t_start))
         elif not conf.output.quiet:
             print(protocol.table(result, run_dir))
+        failed = (records or {}).get("errors")
+        if failed and not multirun:  # the labels are written: now say the records are not, in one line
+            names = {"rerun": "run.rrd", "mcap": "run.mcap"}
+            which = "; ".join(f"{names.get(k, k)}: {why}" for k, why in sorted(failed.items()))
+            print(f"{PROG}: error: {run_dir}: a record could not be written ({_one(which)}); the labels and "
+                  f"summary.json are written", file=sys.stderr)
+            sys.exit(1)
         return (done.get("metrics") or {}).get("miou")
     except Exception as exc:  # noqa: BLE001 - recorded, then reported as one line
         error = f"{type(exc).__name__}: {one_line(exc)}"
@@ -199,6 +212,9 @@ def main() -> None:
         sys.argv.remove("--verbose")
         os.environ["HYDRA_FULL_ERROR"] = "1"
     warnings.formatwarning = _one_line_warning
+    # Rerun's own (Rust) log lines would repeat a record's failure over several lines: this
+    # command reports it in one (set RUST_LOG to see them)
+    os.environ.setdefault("RUST_LOG", "off")
     _prevalidate(sys.argv[1:])
     app = hydra.main(config_path=config_dir(), config_name="config", version_base="1.3")(_task)
     try:

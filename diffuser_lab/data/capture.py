@@ -13,7 +13,7 @@ calls :func:`capture_scene`, which makes
   colour resized bilinearly, labels nearest;
 - **the cloud**: a file (``options.cloud``: PLY, LAS or LAZ; else the format's own, e.g. nerfstudio's
   ``ply_file_path`` or COLMAP's points), else the frames' depth back-projected and merged on a
-  ``options.cloud_voxel`` grid (:func:`~diffuser_lab.data.sources.rgbd_folder.fuse_depth`);
+  ``options.cloud_voxel`` grid (:func:`fuse_depth`);
 - **depth for the depth check when frames have none** (``options.visibility``): rendered per frame
   from a mesh (ray casting) or from the cloud itself (a point z-buffer whose splat radius follows
   the local point spacing, :mod:`diffuser_lab.data.visibility`), so the paper's depth check runs

@@ -14,6 +14,7 @@ unlabelled) to an extra dimension ``label``, and the taxonomy's names to a VLR
 from __future__ import annotations
 
 import json
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -67,6 +68,53 @@ def read_point_cloud_ply(path: str | Path) -> dict:
 
 
 
+# LAS 1.0-1.4 point formats 0-10: the smallest record (bytes) each can have
+_LAS_RECORD = {0: 20, 1: 28, 2: 26, 3: 34, 4: 57, 5: 63, 6: 30, 7: 36, 8: 38, 9: 59, 10: 67}
+_LAZ_MAX_RATIO = 1000  # a LAZ file's points take at most this many times its compressed bytes
+
+
+def check_las_header(path: Path) -> None:
+    """What a LAS/LAZ public header declares (ASPRS LAS 1.0-1.4: version, header size, point data
+    offset, VLR and EVLR counts, point format, record length, point count) against the file's size,
+    before laspy reads it: laspy loops over the declared VLRs and allocates the declared points, so
+    a file that is garbage after its ``LASF`` magic would keep it busy for minutes. One line naming
+    the file and the field that lies, else nothing."""
+    size = path.stat().st_size
+    with open(path, "rb") as fh:
+        h = fh.read(375)
+    if len(h) < 227 or h[:4] != b"LASF":
+        raise ValueError(f"{path}: not a LAS/LAZ file (expected the 'LASF' signature and a header of at least "
+                         f"227 bytes; the file has {size} bytes)")
+    major, minor = h[24], h[25]
+    if major != 1 or minor > 4:
+        raise ValueError(f"{path}: LAS version {major}.{minor} in the header, expected 1.0-1.4")
+    header_size, offset, n_vlrs, fmt, rec_len, n_points = struct.unpack_from("<HIIBHI", h, 94)
+    need_header = 375 if minor >= 4 else 235 if minor == 3 else 227
+    if not need_header <= header_size <= offset <= size:
+        raise ValueError(f"{path}: LAS header says a {header_size}-byte header (LAS 1.{minor}: at least {need_header}) "
+                         f"and points from byte {offset}; the file has {size} bytes")
+    if n_vlrs * 54 > offset - header_size:
+        raise ValueError(f"{path}: LAS header says {n_vlrs:,} VLRs (54 bytes each at least) in the "
+                         f"{offset - header_size:,} bytes between header and points")
+    compressed, pf = bool(fmt & 0xC0), fmt & 0x3F  # LAZ sets bit 7 (and 6) of the format id
+    if pf not in _LAS_RECORD or rec_len < _LAS_RECORD[pf]:
+        raise ValueError(f"{path}: LAS header says point format {pf} with {rec_len}-byte records, expected "
+                         f"format 0-10 with at least its fields' bytes")
+    if minor >= 4:
+        start_evlr, n_evlrs, n64 = struct.unpack_from("<QIQ", h, 235)
+        n_points = n64 or n_points
+        if n_evlrs and not (offset <= start_evlr and start_evlr + n_evlrs * 60 <= size):
+            raise ValueError(f"{path}: LAS header says {n_evlrs:,} EVLRs (60 bytes each at least) from byte "
+                             f"{start_evlr:,}; the file has {size:,} bytes")
+    data = n_points * rec_len
+    if not compressed and offset + data > size:
+        raise ValueError(f"{path}: LAS header says {n_points:,} points of {rec_len} bytes from byte {offset:,} "
+                         f"({offset + data:,} bytes); the file has {size:,} bytes (truncated, or the header lies)")
+    if compressed and data > _LAZ_MAX_RATIO * max(size - offset, 1):
+        raise ValueError(f"{path}: LAZ header says {n_points:,} points of {rec_len} bytes ({data / 2**20:,.0f} MiB) "
+                         f"from {size - offset:,} compressed bytes, more than {_LAZ_MAX_RATIO}x: the header lies")
+
+
 def read_las(path: str | Path) -> dict:
     """LAS / LAZ -> dict (module docstring): scaled x y z (metres, as the file's CRS has them),
     RGB (16-bit scaled to 8 when any value exceeds 255), the ``label`` extra dimension if present."""
@@ -75,6 +123,7 @@ def read_las(path: str | Path) -> dict:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"point cloud {path} does not exist")
+    check_las_header(path)
     try:
         las = laspy.read(str(path))
     except Exception as e:  # laspy raises several types for truncated or foreign files

@@ -43,7 +43,7 @@ def _checked_K(K: np.ndarray, path: Path, field: str) -> np.ndarray:
 def _checked_size(h, w, path: Path, field: str) -> tuple[int, int]:
     try:
         h, w = int(h), int(w)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # OverflowError: inf (JSON 1e400)
         raise ValueError(f"{path}: {field} = {h!r} x {w!r}, expected positive integer image height and width") from None
     if h <= 0 or w <= 0:
         raise ValueError(f"{path}: {field} = {h} x {w}, expected positive image height and width")
@@ -52,7 +52,7 @@ def _checked_size(h, w, path: Path, field: str) -> tuple[int, int]:
 
 def read_matrix_file(path: str | Path, what: str) -> np.ndarray:
     """A whitespace-separated numeric text matrix -> (r, c) float64; one line naming the file
-    (and ``what`` it holds) otherwise. Shared with the pose reader (rgbd_folder.read_pose_c2w)."""
+    (and ``what`` it holds) otherwise. Shared with the pose reader (poses.read_pose_c2w)."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{what} file {path} does not exist")

@@ -27,7 +27,7 @@ from diffuser_lab.backends.knn import normal_distance2
 from diffuser_lab.config import GraphConfig, NormalSign
 from diffuser_lab.data.geometry import estimate_normals
 
-__all__ = ["KnnGraph", "SortedKnnGraph", "build_graph", "graph_stage", "knn", "make_graph", "mean_spacing", "spacing_sum",
+__all__ = ["KnnGraph", "SortedKnnGraph", "build_graph", "graph_stage", "knn", "make_graph", "mean_spacing", "nearest_distinct",
            "normal_distance2"]
 
 
@@ -141,20 +141,17 @@ def _rho(d0: np.ndarray) -> float:
     return float(pos.mean())
 
 
-def spacing_sum(points: np.ndarray, own: np.ndarray, k: int = 2, backend: str = "auto") -> tuple[float, int]:
-    """rho's sum and count (:func:`build_graph`'s rho: per point the nearest distinct neighbour among its
-    ``k`` nearest) over the points ``own`` (indices into ``points``) only, for a cloud taken part by
-    part (a tiled run: a tile's own points against its points with halo, whose nearest neighbours
-    lie in the halo): the parts' sums over their counts give the whole cloud's rho."""
+def nearest_distinct(points: np.ndarray, k: int = 24, backend: str = "auto") -> np.ndarray:
+    """Per point of the (N, 3) ``points`` the distance to its nearest distinct neighbour among its ``k``
+    nearest (metres, float64; inf: none, duplicates at distance 0 skipped): the terms of
+    :func:`build_graph`'s rho, for a cloud taken part by part (a tiled run's survey)."""
     points = np.ascontiguousarray(points, np.float32)
+    d = np.full(points.shape[0], np.inf)
     if points.shape[0] < 2:
-        return 0.0, 0
+        return d
     nb = knn_backend.sorted_knn(points, None, min(k, points.shape[0] - 1), backend)
-    mine = np.zeros(points.shape[0], bool)
-    mine[own] = True
-    d = np.sqrt(nb.d0[mine[nb.order]])
-    d = d[np.isfinite(d)]
-    return float(d.sum()), int(d.size)
+    d[nb.order] = np.sqrt(nb.d0)
+    return d
 
 
 def build_graph(points: np.ndarray, k: int = 24, normals: np.ndarray | None = None, *,

@@ -15,7 +15,8 @@ run hands them and never change the result. The folder, by role:
   :mod:`.process` (a forked recording process: what the ``diffuser-lab`` command uses).
 
 A recorder that fails (disk full, a bug) is switched off with a warning and the run goes on;
-the failure is reported in ``files()["errors"]`` (and so in summary.json's ``records``).
+the failure is reported in ``files()["errors"]`` (and so in summary.json's ``records``); the
+``diffuser-lab`` command then ends with one error line and exit status 1, after the labels.
 
 Usage (the CLI does this when ``record != off``)::
 

@@ -252,7 +252,7 @@ def _mcap(path: Path, res: Any, idx: np.ndarray, stride: int, centers: np.ndarra
                                 gt_labels=None if scene.gt_labels is None else scene.gt_labels[idx],
                                 taxonomy=scene.taxonomy)
         rec.log_scene(shown)
-        meta = {"grid": list(res.grid), "size": float(conf.tiling.size), "halo": float(conf.tiling.halo),
+        meta = {"grid": list(res.grid), "size": float(conf.tiling.size), "halo": float(res.halo),
                 "n_points": int(scene.n_points), "displayed_points": int(idx.size), "stride": int(stride),
                 "max_display_points": MAX_DISPLAY_POINTS, "tiles": res.tiles}
         rec.log_tiled(shown.points, res.labels[idx], res.tiles, centers, half, _status_rgb(res.tiles), meta)

@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from diffuser_lab import progress
 from diffuser_lab.config import Config, SparseClasses
@@ -45,7 +46,7 @@ from diffuser_lab.data.taxonomy import resolve_taxonomy
 from diffuser_lab.hooks import RunHooks
 from diffuser_lab.method import fusion
 from diffuser_lab.method.features import unit_float16
-from diffuser_lab.method.graph import spacing_sum
+from diffuser_lab.method.graph import nearest_distinct
 from diffuser_lab.method.metrics import score
 
 from . import pipeline
@@ -93,6 +94,7 @@ class TiledResult:
     timings_s: dict = field(default_factory=dict)
     resumed_from: Optional[str] = None
     rho: Optional[float] = None  # the whole cloud's mean point spacing (sigma_d of every tile's graph from it)
+    halo: float = 0.0  # the halo the tiles had, metres (tiling.halo, or halo_factor * sigma_d)
     files: dict = field(default_factory=dict)  # what the run wrote beside the tiles (a features run: features.npy)
 
     @property
@@ -207,33 +209,67 @@ class _Cells:
         rows.sort()
         return rows
 
-    def survey(self, points: np.ndarray, halo: float, k: int) -> tuple[Optional[float], np.ndarray]:
-        """One pass over the tiles (in ``owns`` order) with halo ``halo``: rho when ``k`` > 0 (the graph's
-        K: the nearest distinct neighbour among a point's K nearest, as build_graph takes it; each tile's
-        own points against its points with halo: the whole cloud's where a point's K nearest lie
-        within the halo), and each tile's (2, 3) box (min, max corner of its points with halo, metres)."""
-        spacing = k > 0
+    def spacing(self, points: np.ndarray, k: int) -> float:
+        """rho, the whole cloud's mean spacing as :func:`~diffuser_lab.method.graph.build_graph` takes it
+        (per point the nearest distinct neighbour among its ``k`` nearest), tile by tile without a
+        halo guessed beforehand: a tile's own points' nearest neighbours among themselves, exact for
+        a point nearer to one of them than to its cell's border; the others (a thin band along the
+        border) are looked up again among the points within that distance of the cell."""
         total, count = 0.0, 0
-        boxes = np.empty((len(self.owns), 2, 3), np.float64)
-        what = "point spacing and tile boxes" if spacing else "tile boxes"
-        with progress.stage(f"{what} ({len(points):,} points, {len(self.owns)} tiles)", total=len(self.owns),
+        with progress.stage(f"point spacing ({len(points):,} points, {len(self.owns)} tiles)", total=len(self.owns),
                             unit="tile") as bar:
-            for t, ((ix, iy), own) in enumerate(self.owns.items()):  # loop over tiles
-                rows = self.rows(points, TileSpec(ix, iy, self.origin, self.size, halo))
-                p = points[rows]
-                boxes[t] = p.min(0), p.max(0)
-                if spacing:
-                    s, n = spacing_sum(p, np.searchsorted(rows, own), k)  # K = 24 runs faster than 2 here
-                    total, count = total + s, count + n
+            for (ix, iy), own in self.owns.items():  # loop over tiles
+                p = points[own]
+                d = nearest_distinct(p, k)  # K = 24 runs faster than 2 here
+                lo = np.asarray(self.origin) + np.array([ix, iy]) * self.size
+                border = np.minimum(p[:, :2] - lo, lo + self.size - p[:, :2]).min(1)
+                unsure = np.flatnonzero(~(d <= border))  # a point outside the cell may be nearer
+                if unsure.size:
+                    du = d[unsure]
+                    # a point without a distinct neighbour in its tile looks one cell further
+                    h = float(du[np.isfinite(du)].max(initial=0.0)) if np.isfinite(du).all() else \
+                        max(self.size, float(du[np.isfinite(du)].max(initial=0.0)))
+                    rows = self.rows(points, TileSpec(ix, iy, self.origin, self.size, h))
+                    q = points[rows]
+                    band = np.minimum(q[:, :2] - lo, lo + self.size - q[:, :2]).min(1) <= 2 * h  # outside: < 0
+                    cand = q[band]
+                    dist, _ = cKDTree(cand).query(p[unsure], k=min(k + 1, len(cand)))
+                    dist = np.where(dist.reshape(len(unsure), -1) > 0, dist.reshape(len(unsure), -1), np.inf)
+                    d[unsure] = np.minimum(du, dist.min(1))
+                d = d[np.isfinite(d)]
+                total, count = total + float(d.sum()), count + int(d.size)
                 bar.update()
-        if spacing and count == 0:
+        if count == 0:
             raise ValueError("all points coincide: the mean point spacing rho is 0")
-        return (total / count if spacing else None), boxes
+        return total / count
+
+    def boxes(self, points: np.ndarray, halo: float) -> np.ndarray:
+        """Each tile's (2, 3) box (min, max corner of its points with halo ``halo``, metres), in
+        ``owns`` order: (T, 2, 3) float64."""
+        boxes = np.empty((len(self.owns), 2, 3), np.float64)
+        for t, (ix, iy) in enumerate(self.owns):  # loop over tiles
+            p = points[self.rows(points, TileSpec(ix, iy, self.origin, self.size, halo))]
+            boxes[t] = p.min(0), p.max(0)
+        return boxes
 
     def input(self, scene: Scene, spec: TileSpec) -> TileInput:
         rows = self.rows(scene.points, spec)
         return TileInput(self.owns[(spec.ix, spec.iy)], rows, scene.points[rows],
                          None if scene.normals is None else scene.normals[rows])
+
+
+def halo_metres(cfg: Config, graph: bool) -> float:
+    """The tile halo in metres: ``tiling.halo`` when given, else ``tiling.halo_factor`` * sigma_d (the
+    graph's distance bandwidth, resolved: sigma_d_factor * rho), so that it scales with the point
+    spacing as the graph's reach per Jacobi step does (docs/tiling.md); 0 for a method without a
+    graph (a point's label depends on its own evidence only)."""
+    if cfg.tiling.halo is not None:
+        return float(cfg.tiling.halo)
+    if not graph:
+        return 0.0
+    if cfg.graph.sigma_d is None:
+        raise ValueError("tiling.halo=null needs the graph's sigma_d (resolved from rho first)")
+    return float(cfg.tiling.halo_factor * cfg.graph.sigma_d)
 
 
 def _specs(cfg: Config, scene: Scene, cells: _Cells, boxes: np.ndarray) -> list[TileSpec]:
@@ -411,10 +447,13 @@ def tiled(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHook
     tc0 = time.perf_counter()
     cells = _Cells(scene.points, tc.size)
     # sigma_d = sigma_d_factor * rho, rho the mean spacing of the whole cloud: the tiles use the untiled value
-    graph = cfg.graph.sigma_d is None and fusion.get(cfg.method.name).graph
-    rho, boxes = cells.survey(scene.points, tc.halo, cfg.graph.k if graph else 0)
+    graph = fusion.get(cfg.method.name).graph
+    rho = cells.spacing(scene.points, cfg.graph.k) if graph and cfg.graph.sigma_d is None else None
     if rho is not None:
         cfg = dataclasses.replace(cfg, graph=dataclasses.replace(cfg.graph, sigma_d=cfg.graph.sigma_d_factor * rho))
+    cfg = dataclasses.replace(cfg, tiling=dataclasses.replace(tc, halo=halo_metres(cfg, graph)))
+    tc = cfg.tiling
+    boxes = cells.boxes(scene.points, tc.halo)
     if cfg.solver.sparse_classes == SparseClasses.auto:  # the untiled run's choice (by the whole cloud's size)
         on = pipeline._sparse_classes(cfg.solver, scene.n_points, scene.taxonomy.num_classes) > 0
         cfg = dataclasses.replace(cfg, solver=dataclasses.replace(
@@ -472,7 +511,7 @@ def tiled(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHook
     t["labels"] = time.perf_counter() - tl
     res = TiledResult(scene=scene, method=cfg.method.name, labels=labels, bayesian_labels=bayes, grid=shape,
                       tiles=[records[s.id] for s in specs], tiles_dir=tiles_dir, resumed_from=tc.resume, rho=rho,
-                      files=res_files)
+                      halo=tc.halo, files=res_files)
     if scene.gt_labels is not None:
         tm = time.perf_counter()
         res.metrics = score(labels, scene.gt_labels, scene.taxonomy.names)
@@ -497,7 +536,9 @@ def _on_ray(cfg: Config, scene: Scene, given: bool, cells: _Cells, todo: list[Ti
     tc = cfg.tiling
     started = False
     if not ray.is_initialized():
-        kw = dict(address=tc.address) if tc.address else dict(num_cpus=tc.workers)
+        # address="local": a new local instance even where another Ray runs on this machine (Ray would
+        # join that one, refusing num_cpus)
+        kw = dict(address=tc.address) if tc.address else dict(address="local", num_cpus=tc.workers)
         # the workers import this package from where the driver does (a node must see that path,
         # e.g. a shared file system, or have diffuser-lab installed)
         path = [str(Path(__file__).resolve().parents[2])] + [p for p in [os.environ.get("PYTHONPATH")] if p]
@@ -550,7 +591,7 @@ def summary(res: TiledResult, cfg: Config) -> dict:
         "baseline": {"bayesian": res.baseline.get("bayesian")},
         "diffusion": {"iterations": max([r.get("iterations", 0) for r in res.tiles] or [0])},
         "timings_s": {k: round(v, 4) for k, v in res.timings_s.items()},
-        "tiling": {"size": cfg.tiling.size, "halo": cfg.tiling.halo, "grid": list(res.grid),
+        "tiling": {"size": cfg.tiling.size, "halo": res.halo, "halo_factor": cfg.tiling.halo_factor, "grid": list(res.grid),
                    "n_tiles": len(res.tiles), "failed": len(failed), "workers": cfg.tiling.workers,
                    "address": cfg.tiling.address, "tiles_dir": str(res.tiles_dir), "resumed_from": res.resumed_from,
                    "rho_m": res.rho, "tiles": res.tiles},

@@ -205,7 +205,7 @@ def test_scannet_source_in_nyu40_and_ids(scannet_dir):
     assert set(raw.tolist()) <= set(tax.ids) and all(n == f"class_{i}" for n, i in zip(tax.names, tax.ids))
     ids_scene = load_scannet(scannet_dir, frame_step=1, max_frames=2, mapping=None, taxonomy=tax)
     back = np.array(tax.ids)[ids_scene.gt_labels]  # class index -> raw NYU40 id, as in the PLY
-    from diffuser_lab.data.sources.scannet import read_labelled_mesh
+    from diffuser_lab.data.meshes import read_labelled_mesh
 
     np.testing.assert_array_equal(back, read_labelled_mesh(scannet_dir / "scene0999_00_vh_clean_2.labels.ply")[2])
 

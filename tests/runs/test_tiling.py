@@ -3,6 +3,9 @@ a tile reads the frames that see it; tiles on a two-node Ray cluster; resume; th
 import dataclasses
 import json
 import os
+import subprocess
+import sys
+import time
 
 import numpy as np
 import pytest
@@ -12,9 +15,10 @@ from diffuser_lab.data import validate
 from diffuser_lab.data.frames import LazyFrames
 from diffuser_lab.data.predictions import with_predictions
 from diffuser_lab.method import evidence as evidence_mod
+from diffuser_lab.method.graph import nearest_distinct
 from diffuser_lab.runs import pipeline, tiled
 from diffuser_lab.runs.tiled import TileSpec, frames_meeting, tile_points
-from conftest import SMALL_DEMO, run_cli
+from conftest import ROOT, SMALL_DEMO, run_cli
 
 SMALL = {"scene.demo.n_views": 12, "scene.demo.point_spacing": 0.07, "solver.max_iter": 60}
 TILED = {**SMALL, "protocol.name": "tiled", "tiling.size": 2.0}
@@ -38,8 +42,23 @@ def test_tiled_labels_equal_the_untiled_run(untiled, local_tiled):
     np.testing.assert_array_equal(res.bayesian_labels, untiled.bayesian_labels)  # the same evidence per point
     assert res.metrics["miou"] == pytest.approx(untiled.metrics["miou"], abs=0.2)
     assert sum(r["points"] for r in res.tiles) == untiled.scene.n_points
-    # rho tile by tile (each tile's points against its halo) is the untiled graph's
+    # rho tile by tile is the untiled graph's; the default halo is halo_factor * sigma_d, in metres
     assert res.rho == pytest.approx(untiled.graph.rho, rel=1e-9)
+    cfg = default_config(**TILED)
+    assert cfg.tiling.halo is None and res.halo == pytest.approx(cfg.tiling.halo_factor * untiled.graph.sigma_d)
+
+
+def test_the_spacing_tile_by_tile_is_the_whole_clouds():
+    """rho from the tiles' own points, the points near a cell's border looked up again beyond it,
+    equals the whole cloud's (duplicates and a lone point in a cell included)."""
+    rng = np.random.default_rng(5)
+    pts = (rng.random((20_000, 3)) * [9.0, 5.0, 2.0]).astype(np.float32)
+    pts[:40] = pts[40:80]  # duplicates
+    pts[-1] = [8.99, 4.99, 1.0]  # alone near a corner cell's edge
+    for size in (0.5, 2.0):
+        cells = tiled._Cells(pts, size)
+        d = nearest_distinct(pts, 24)
+        assert cells.spacing(pts, 24) == pytest.approx(d[np.isfinite(d)].mean(), rel=1e-9)
 
 
 @pytest.mark.parametrize("halo", [0.0, 0.3, 2.5])
@@ -76,7 +95,7 @@ def test_a_tile_reads_the_frames_that_see_it(untiled, local_tiled):
     extra = reads = 0
     for rec in res.tiles:
         ix, iy = map(int, rec["id"].split("_"))
-        spec = TileSpec(ix, iy, tuple(scene.points[:, :2].min(0).astype(float)), cfg.tiling.size, cfg.tiling.halo)
+        spec = TileSpec(ix, iy, tuple(scene.points[:, :2].min(0).astype(float)), cfg.tiling.size, res.halo)
         _, rows = tile_points(scene.points, spec)
         p = scene.points[rows].astype(np.float64)
         sees = []
@@ -131,10 +150,12 @@ def _budget_failing_the_largest_tile(res, k=24, classes=20):
     return (need[-1] + need[-2]) / 2 / validate.GIB
 
 
-def test_a_failing_tile_is_reported_and_the_others_kept(untiled, local_tiled, tmp_path):
-    res, _ = local_tiled
+def test_a_failing_tile_is_reported_and_the_others_kept(untiled, tmp_path):
+    # a halo narrower than the tiles (the default, 30 sigma_d, is 2.1 m on this coarse room): tiles of different sizes
+    cfg = {**TILED, "tiling.halo": 0.75}
+    res = tiled.tiled(default_config(**cfg), run_dir=tmp_path / "all")
     budget = _budget_failing_the_largest_tile(res)
-    out = tiled.tiled(default_config(**TILED, memory_budget_gb=budget), run_dir=tmp_path)
+    out = tiled.tiled(default_config(**cfg, memory_budget_gb=budget), run_dir=tmp_path)
     assert len(out.failed) == 1 and out.failed[0]["error"].startswith("MemoryError: this run needs about")
     bad = out.failed[0]["id"]
     assert not (tmp_path / "tiles" / f"{bad}.npz").exists()
@@ -188,8 +209,47 @@ def test_tiles_on_a_two_node_ray_cluster(cluster, local_tiled, tmp_path):
     # each task read its tile's points from tiles/inputs/<id>.npz, removed once the tile was done
     assert (tmp_path / "a" / "tiles" / "inputs").is_dir() and not list((tmp_path / "a" / "tiles" / "inputs").iterdir())
     # a tile that fails (its memory estimate over the budget) is retried, then reported; the others are kept
-    bad = dataclasses.replace(cfg, memory_budget_gb=_budget_failing_the_largest_tile(res))
+    # (a halo narrower than the default's 2.1 m on this coarse room: tiles of different sizes)
+    narrow = dataclasses.replace(cfg, tiling=dataclasses.replace(cfg.tiling, halo=0.75))
+    ref = tiled.tiled(narrow, run_dir=tmp_path / "c")
+    bad = dataclasses.replace(narrow, memory_budget_gb=_budget_failing_the_largest_tile(ref))
     out = tiled.tiled(bad, run_dir=tmp_path / "b")
     assert len(out.failed) == 1 and "MemoryError" in out.failed[0]["error"]
     ok = out.labels != -1
-    assert (out.labels[ok] == res.labels[ok]).all()
+    assert (out.labels[ok] == ref.labels[ok]).all()
+
+
+@pytest.mark.slow
+def test_a_ray_worker_killed_mid_tile_is_retried_and_the_labels_equal(tmp_path):
+    """SIGKILL to the Ray worker while it runs a tile (its process title ray::_ray_tile): Ray runs the
+    task again (tiling.max_retries), the run ends done with labels equal to an undisturbed run's."""
+    pytest.importorskip("ray")
+    psutil = pytest.importorskip("psutil")
+    args = [sys.executable, "-m", "diffuser_lab", "scene.demo.n_views=10", "scene.demo.point_spacing=0.08",
+            "solver.max_iter=2000", "solver.tol=0", "protocol=tiled", "tiling.size=1.5", "record=off",
+            "output.labels_ply=false"]  # 2000 steps: a tile lasts long enough to be caught running
+    # its own local Ray (RAY_ADDRESS of another test's cluster would send the tasks there)
+    env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR" and not k.startswith("RAY_")}
+    proc = subprocess.Popen([*args, "tiling.workers=1", f"hydra.run.dir={tmp_path / 'ray'}"], cwd=ROOT, env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    killed = None
+    deadline = time.time() + 180
+    while killed is None and proc.poll() is None and time.time() < deadline:
+        for c in psutil.Process(proc.pid).children(recursive=True):  # loop over the run's processes
+            try:
+                if "ray::_ray_tile" in " ".join(c.cmdline()):
+                    c.kill()
+                    killed = c.pid
+                    break
+            except psutil.Error:
+                pass
+        time.sleep(0.005)
+    _, err = proc.communicate(timeout=300)
+    assert killed is not None, f"no worker was seen running a tile (exit {proc.returncode}: {err[-800:]})"
+    ref = subprocess.run([*args, f"hydra.run.dir={tmp_path / 'ref'}"], cwd=ROOT, env=env, capture_output=True,
+                         text=True, timeout=300)
+    assert proc.returncode == 0 and ref.returncode == 0, err + ref.stderr
+    s = json.loads((tmp_path / "ray" / "summary.json").read_text())
+    assert s["tiling"]["failed"] == 0 and all(t["status"] == "done" for t in s["tiling"]["tiles"])
+    assert all(t["pid"] != killed for t in s["tiling"]["tiles"])  # the killed task's tile ran again elsewhere
+    np.testing.assert_array_equal(np.load(tmp_path / "ray" / "labels.npy"), np.load(tmp_path / "ref" / "labels.npy"))

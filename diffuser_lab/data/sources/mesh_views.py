@@ -16,22 +16,11 @@ import numpy as np
 from diffuser_lab import progress
 from diffuser_lab.config import SceneConfig
 from diffuser_lab.data.mapping import load_mapping, native_mapping
-from diffuser_lab.data.o3d import open3d
+from diffuser_lab.data.meshes import mesh_label_ids, read_labelled_mesh, vertex_normals
 from diffuser_lab.data.render import MeshRenderer, camera_trajectory, intrinsics, render_views
 from diffuser_lab.data.scene import IGNORE, SCANNET20, Frame, Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
 
-from .scannet import mesh_label_ids, read_labelled_mesh
-
-
-def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """(V, 3) float32 unit area-weighted vertex normals, oriented by the triangles' winding."""
-    o3d = open3d()
-
-    m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices.astype(np.float64)),
-                                  o3d.utility.Vector3iVector(triangles.astype(np.int32)))
-    m.compute_vertex_normals()
-    return np.asarray(m.vertex_normals, dtype=np.float32)
 
 
 def triangle_labels(vertex_labels: np.ndarray, triangles: np.ndarray) -> np.ndarray:

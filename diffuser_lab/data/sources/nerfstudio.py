@@ -63,7 +63,8 @@ from diffuser_lab.data.geometry import scaled_intrinsics
 from diffuser_lab.data.prediction_files import open_image, read_label_png, resize_nearest
 from diffuser_lab.data.scene import IGNORE, Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
-from diffuser_lab.data.sources.rgbd_folder import check_rigid, read_depth_png, read_rgb, rigid_inverse
+from diffuser_lab.data.images import read_depth_png, read_rgb
+from diffuser_lab.data.poses import check_rigid, rigid_inverse
 
 __all__ = ["World", "NerfstudioOptions", "load", "read_transforms", "OPENGL_TO_OPENCV", "CAMERA_MODELS"]
 

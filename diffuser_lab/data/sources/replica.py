@@ -39,7 +39,8 @@ from diffuser_lab.data.capture import CaptureOptions, CapturedFrame, capture_sce
 from diffuser_lab.data.prediction_files import read_label_png
 from diffuser_lab.data.scene import Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
-from diffuser_lab.data.sources.rgbd_folder import check_rigid, read_depth_png, read_rgb, rigid_inverse
+from diffuser_lab.data.images import read_depth_png, read_rgb
+from diffuser_lab.data.poses import check_rigid, rigid_inverse
 
 __all__ = ["ReplicaOptions", "load", "read_trajectory", "read_camera", "NICE_SLAM_CAMERA"]
 

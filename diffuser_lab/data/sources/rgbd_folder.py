@@ -16,8 +16,8 @@ the low bits carry flags, as in ``(raw >> 3) / 1e4`` m). 7-Scenes / ScanNet stor
 loader warns when the first frame's median depth looks like a wrong unit.
 
 Frames are read lazily (one frame's files per ``scene.frames[i]``), so memory does not
-grow with the sequence length. Also home of the readers and the depth-to-cloud fusion shared with
-:mod:`diffuser_lab.data.sources.scannet` and :mod:`diffuser_lab.data.sources.tum`.
+grow with the sequence length. The readers it shares with the other formats live in
+:mod:`diffuser_lab.data.images`, :mod:`diffuser_lab.data.poses` and :mod:`diffuser_lab.data.intrinsics`.
 """
 from __future__ import annotations
 
@@ -31,122 +31,20 @@ import numpy as np
 from diffuser_lab import progress
 from diffuser_lab.config import SceneConfig
 from diffuser_lab.data.capture import fuse_depth, taxonomy_mapping, to_taxonomy
-from diffuser_lab.data.clouds import read_cloud, read_point_cloud_ply
+from diffuser_lab.data.clouds import read_cloud
 from diffuser_lab.data.frames import LazyFrames
-from diffuser_lab.data.intrinsics import read_intrinsics, read_matrix_file
+from diffuser_lab.data.images import read_depth_png, read_rgb
+from diffuser_lab.data.intrinsics import read_intrinsics
 from diffuser_lab.data.mapping import ClassMapping
-from diffuser_lab.data.prediction_files import label_ids_in, open_image, read_label_png, resize_nearest
+from diffuser_lab.data.poses import CAMERA_TO_WORLD, pose_to_world_to_camera, read_pose_c2w
+from diffuser_lab.data.prediction_files import label_ids_in, read_label_png, resize_nearest
 from diffuser_lab.data.scene import SCANNET20, Frame, Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
 from diffuser_lab.data.validate import check_depth_unit
 
-__all__ = [
-    "load_rgbd_folder",
-    "load",
-    "label_ids",
-    "read_pose_c2w",
-    "pose_to_world_to_camera",
-    "fuse_depth",
-    "read_intrinsics",
-    "read_depth_png",
-    "read_rgb",
-    "read_point_cloud_ply",
-    "rigid_inverse",
-    "check_rigid",
-]
+__all__ = ["load_rgbd_folder", "load", "label_ids"]
 
 _MAPPING_HINT = "pass mapping= to translate another label space"
-CAMERA_TO_WORLD, WORLD_TO_CAMERA = "camera_to_world", "world_to_camera"  # pose file conventions
-
-
-def rigid_inverse(T: np.ndarray) -> np.ndarray:
-    """Inverse of a (4, 4) rigid transform (R^T, -R^T t), float64."""
-    R, t = T[:3, :3], T[:3, 3]
-    out = np.eye(4)
-    out[:3, :3] = R.T
-    out[:3, 3] = -R.T @ t
-    return out
-
-
-def read_pose_c2w(path: str | Path, tol: float = 1e-3, convention: str = CAMERA_TO_WORLD) -> np.ndarray | None:
-    """4x4 pose file -> (4, 4) float64 as stored, or None when it has non-finite
-    entries (ScanNet marks failed tracking with -inf poses; the caller skips those).
-    ``convention`` only words the errors; :func:`pose_to_world_to_camera` applies it.
-
-    Raises:
-        ValueError: not 4x4, or finite but not a rigid transform (R^T R != I within ``tol``,
-            det R != 1, last row != 0 0 0 1), naming the file.
-    """
-    path = Path(path)
-    T = read_matrix_file(path, "pose")
-    if T.shape != (4, 4):
-        raise ValueError(f"{path}: pose of shape {T.shape}, expected a 4x4 {convention.replace('_', '-')} matrix")
-    if not np.isfinite(T).all():
-        return None
-    check_rigid(T, str(path), convention, tol)
-    return T
-
-
-def check_rigid(T: np.ndarray, where: str, convention: str = CAMERA_TO_WORLD, tol: float = 1e-3) -> None:
-    """A finite (4, 4) pose must be rigid: R^T R = I and det R = 1 within ``tol``, last row 0 0 0 1;
-    else one ValueError starting with ``where`` (the file, and the field when it has several)."""
-    R = T[:3, :3]
-    ortho = np.abs(R.T @ R - np.eye(3)).max()
-    det = np.linalg.det(R)
-    if ortho > tol or abs(det - 1.0) > tol or np.abs(T[3] - [0, 0, 0, 1]).max() > tol:
-        raise ValueError(f"{where}: pose is not a rigid transform (max|R^T R - I| = {ortho:.2g}, det R = {det:.4g}, "
-                         f"last row {T[3].tolist()}), expected 4x4 {convention.replace('_', '-')} rotation + translation")
-
-
-def pose_to_world_to_camera(T: np.ndarray, convention: str) -> np.ndarray:
-    """A stored (4, 4) rigid pose in ``convention`` (camera_to_world | world_to_camera) -> T_cw."""
-    if convention == CAMERA_TO_WORLD:
-        return rigid_inverse(T)
-    if convention == WORLD_TO_CAMERA:
-        return np.array(T, np.float64)
-    raise ValueError(f"pose convention {convention!r}: expected {CAMERA_TO_WORLD} or {WORLD_TO_CAMERA}")
-
-
-def read_depth_png(path: str | Path, depth_scale: float, bit_shift: int = 0,
-                   invalid=(0, 65535), shift_kind: str = "circular") -> np.ndarray:
-    """16-bit depth PNG -> (H, W) float32 z-depth in metres, 0 = invalid.
-
-    Args:
-        depth_scale: stored units per metre (1000 for millimetres), applied after the shift.
-        bit_shift: right shift of the raw 16-bit value before scaling.
-        invalid: raw stored values (before the shift) meaning "no depth".
-        shift_kind: ``circular`` = 16-bit rotate right (SUN3D, ``bit_shift=3``), ``plain`` =
-            ``raw >> bit_shift`` (low bits dropped, e.g. ``(raw >> 3) / 1e4`` m).
-    """
-    if shift_kind not in ("circular", "plain"):
-        raise ValueError(f"depth shift kind {shift_kind!r}: expected circular or plain")
-    path = Path(path)
-    with open_image(path, "depth image") as im:
-        raw = np.asarray(im)
-    if raw.ndim != 2 or raw.dtype.kind not in "ui" or raw.dtype.itemsize < 2:
-        raise ValueError(f"{path}: depth image of dtype {raw.dtype} shape {raw.shape}, expected single-channel 16-bit")
-    raw = raw.astype(np.uint32) & 0xFFFF
-    bad = np.isin(raw, np.asarray(invalid, np.uint32))
-    if bit_shift and shift_kind == "plain":
-        raw = raw >> int(bit_shift)
-    elif bit_shift:
-        s = int(bit_shift) % 16
-        raw = ((raw >> s) | (raw << (16 - s))) & 0xFFFF  # 16-bit rotate right
-    depth = raw.astype(np.float32) / np.float32(depth_scale)
-    depth[bad] = 0.0
-    return depth
-
-
-def read_rgb(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndarray:
-    """Colour image -> (H, W, 3) uint8, bilinearly resized to ``shape`` = (H, W) when given."""
-    from PIL import Image
-
-    path = Path(path)
-    with open_image(path, "colour image") as im:
-        im = im.convert("RGB")
-        if shape is not None and im.size != (shape[1], shape[0]):
-            im = im.resize((int(shape[1]), int(shape[0])), Image.BILINEAR)
-        return np.asarray(im, dtype=np.uint8).copy()
 
 
 def load_rgbd_folder(

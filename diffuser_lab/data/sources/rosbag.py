@@ -32,6 +32,7 @@ the small messages (CameraInfo, tf, poses); an image is read from the bag when i
 from __future__ import annotations
 
 import io
+import mmap
 import struct
 import threading
 import time
@@ -45,11 +46,11 @@ from omegaconf import MISSING
 
 from diffuser_lab.config import SceneConfig, above, key, rule
 from diffuser_lab.data.capture import CaptureOptions, CapturedFrame, capture_scene
+from diffuser_lab.data.poses import associate
 from diffuser_lab.data.scene import IGNORE, Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
 from diffuser_lab.data.validate import check_depth_unit
 
-from .tum import associate
 
 __all__ = ["RosbagOptions", "load", "load_rosbag", "decode_image", "write_pointcloud2_bag", "read_pointcloud2_bag",
            "interpolate_poses"]
@@ -333,6 +334,57 @@ def _header(raw: memoryview | bytes, ros2: bool, what: str) -> tuple[int, str]:
     return sec * 1_000_000_000 + nsec, fid.lstrip("/")
 
 
+_MCAP_MAGIC = b"\x89MCAP0\r\n"
+_MCAP_FOOTER, _MCAP_CHUNK, _MCAP_CHUNK_INDEX = 0x02, 0x06, 0x08
+_MAX_RATIO = 1000  # a chunk's records take at most this many times its compressed bytes
+
+
+def check_mcap(path: Path) -> None:
+    """An MCAP file's records (opcode, uint64 length) walked against the file's size, and each chunk's
+    declared sizes against its own, before rosbags reads it: rosbags allocates what a length says,
+    so one flipped byte would ask for terabytes. Records, not messages: a few per megabyte.
+    One line naming the file and the record that lies, else nothing."""
+    size = path.stat().st_size
+    rec = struct.Struct("<BQ")
+    if size < 2 * len(_MCAP_MAGIC):
+        raise ValueError(f"{path}: not an MCAP file ({size} bytes; expected its magic at both ends); a recording "
+                         f"cut short needs 'mcap recover'")
+    with open(path, "rb") as fh, mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as data:
+        if data[:8] != _MCAP_MAGIC or data[size - 8:] != _MCAP_MAGIC:
+            raise ValueError(f"{path}: not an MCAP file (expected its magic at both ends; {size} bytes); a "
+                             f"recording cut short needs 'mcap recover'")
+        pos, end, starts = 8, size - 8, {0}
+        while pos < end:  # loop over the file's records (chunks, indexes, a footer: a few)
+            starts.add(pos)
+            if pos + 9 > end:
+                raise ValueError(f"{path}: record at byte {pos} cut short (MCAP: opcode and length, 9 bytes)")
+            op, n = rec.unpack_from(data, pos)
+            if pos + 9 + n > end:
+                raise ValueError(f"{path}: record at byte {pos} (opcode {op:#04x}) says {n:,} bytes; "
+                                 f"{end - pos - 9:,} are left before the end magic")
+            body = pos + 9
+            if op == _MCAP_CHUNK and n >= 36:
+                raw_size, = struct.unpack_from("<Q", data, body + 16)
+                clen, = struct.unpack_from("<I", data, body + 28)
+                if 32 + clen + 8 > n or raw_size > _MAX_RATIO * n:
+                    raise ValueError(f"{path}: chunk at byte {pos} says {raw_size:,} bytes uncompressed from "
+                                     f"{n:,} (compression name of {clen:,} bytes): the chunk lies")
+            elif op == _MCAP_CHUNK_INDEX and n >= 36:  # where a chunk is and how large, as the summary says
+                start, length, mlen = struct.unpack_from("<QQI", data, body + 16)
+                tail = body + 36 + mlen + 8
+                clen = struct.unpack_from("<I", data, tail)[0] if tail + 4 <= body + n else n
+                sizes = struct.unpack_from("<QQ", data, tail + 4 + clen) if tail + 4 + clen + 16 <= body + n else None
+                if start + length > size or sizes is None or sizes[0] > length or sizes[1] > _MAX_RATIO * max(length, 1):
+                    raise ValueError(f"{path}: chunk index at byte {pos} says a chunk of {length:,} bytes at byte "
+                                     f"{start:,} ({sizes} compressed, uncompressed); the file has {size:,} bytes")
+            elif op == _MCAP_FOOTER and n >= 16:  # the last record: where the summary starts, a record's start
+                summary = struct.unpack_from("<QQ", data, body)
+                if not set(summary) <= starts:
+                    raise ValueError(f"{path}: footer says the summary starts at byte {summary[0]:,} (offsets at "
+                                     f"{summary[1]:,}), not where a record starts")
+            pos += 9 + n
+
+
 class _Bag:
     """The bag, opened once per thread for the lazy frame reads (``rosbags.highlevel.AnyReader``)."""
 
@@ -346,6 +398,9 @@ class _Bag:
 
         r = getattr(self._local, "reader", None)
         if r is None:
+            for f in ([self.path] if self.path.is_file() else sorted(self.path.glob("*.mcap"))):
+                if f.suffix == ".mcap":
+                    check_mcap(f)
             r = AnyReader([self.path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
             try:
                 r.open()

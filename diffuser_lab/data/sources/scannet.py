@@ -41,17 +41,17 @@ import numpy as np
 from diffuser_lab import progress
 from diffuser_lab.config import SceneConfig
 from diffuser_lab.data.frames import LazyFrames
-from diffuser_lab.data.geometry import estimate_normals, scaled_intrinsics
-from diffuser_lab.data.o3d import open3d
+from diffuser_lab.data.geometry import scaled_intrinsics
+from diffuser_lab.data.images import read_depth_png, read_rgb
+from diffuser_lab.data.intrinsics import read_intrinsics
 from diffuser_lab.data.mapping import ClassMapping, identity_mapping, load_mapping, native_mapping
 from diffuser_lab.data.prediction_files import label_ids_in, read_label_png, resize_nearest
+from diffuser_lab.data.meshes import mesh_label_ids, read_labelled_mesh, vertex_normals
+from diffuser_lab.data.poses import read_pose_c2w, rigid_inverse
 from diffuser_lab.data.scene import SCANNET20, Frame, Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
 
-from .rgbd_folder import read_depth_png, read_intrinsics, read_pose_c2w, read_rgb, rigid_inverse
-
-__all__ = ["load_scannet", "read_labelled_mesh", "scaled_intrinsics", "ScannetLayout", "load", "label_ids",
-           "mesh_label_ids"]
+__all__ = ["load_scannet", "scaled_intrinsics", "ScannetLayout", "load", "label_ids"]
 
 
 @dataclass(frozen=True)
@@ -68,66 +68,6 @@ class ScannetLayout:
     intrinsic_depth: str = "intrinsic/intrinsic_depth.txt"
     intrinsic_color: str = "intrinsic/intrinsic_color.txt"
     depth_scale: float = 1000.0  # raw units per metre
-
-
-def read_labelled_mesh(path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
-    """Read a PLY triangle mesh with an optional per-vertex ``label`` property (plyfile;
-    open3d drops ushort properties).
-
-    Returns:
-        vertices (V, 3) float32 (file units, metres for ScanNet), triangles (T, 3) int64,
-        vertex_labels (V,) int64 or None, colors (V, 3) uint8 or None.
-    Raises:
-        FileNotFoundError / ValueError: missing file, no x/y/z, no faces, non-triangle faces
-        or out-of-range vertex indices.
-    """
-    from plyfile import PlyData
-
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"mesh file {path} does not exist")
-    try:
-        # Fixed list length: plyfile parses faces as one (T, 3) array instead of T Python lists.
-        ply = PlyData.read(str(path), known_list_len={"face": {"vertex_indices": 3, "vertex_index": 3}})
-    except Exception as e:  # plyfile raises several types (non-triangle faces, corrupt files)
-        try:
-            PlyData.read(str(path))
-        except Exception as e2:
-            raise ValueError(f"{path}: not a readable PLY file ({type(e2).__name__}: {e2})") from None
-        raise ValueError(f"{path}: faces are not all triangles ({e}), expected a triangle mesh") from None
-    if "vertex" not in ply or not {"x", "y", "z"} <= set(ply["vertex"].data.dtype.names or ()):
-        raise ValueError(f"{path}: PLY has no vertex x/y/z, expected a triangle mesh")
-    if "face" not in ply or len(ply["face"].data) == 0:
-        raise ValueError(f"{path}: PLY has no faces, expected a triangle mesh (element 'face')")
-    v = ply["vertex"].data
-    names = set(v.dtype.names)
-    vertices = np.stack([v["x"], v["y"], v["z"]], 1).astype(np.float32)
-    fdata = ply["face"].data
-    key = next((k for k in ("vertex_indices", "vertex_index") if k in fdata.dtype.names), None)
-    if key is None:
-        raise ValueError(f"{path}: faces have no vertex_indices list, expected a triangle mesh")
-    triangles = np.asarray(fdata[key]).astype(np.int64).reshape(-1, 3)
-    if triangles.min() < 0 or triangles.max() >= len(vertices):
-        raise ValueError(f"{path}: face vertex indices outside 0..{len(vertices) - 1}")
-    labels = np.asarray(v["label"]).astype(np.int64) if "label" in names else None
-    colors = np.stack([v["red"], v["green"], v["blue"]], 1).astype(np.uint8) \
-        if {"red", "green", "blue"} <= names else None
-    return vertices, triangles, labels, colors
-
-
-def _vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """(V, 3) float32 unit area-weighted vertex normals (open3d), oriented by the mesh
-    winding; vertices in no triangle get a local-PCA normal instead of zero."""
-    o3d = open3d()
-
-    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices.astype(np.float64)),
-                                     o3d.utility.Vector3iVector(triangles.astype(np.int32)))
-    mesh.compute_vertex_normals(normalized=True)
-    n = np.asarray(mesh.vertex_normals, dtype=np.float32)
-    bad = ~(np.abs(np.linalg.norm(n, axis=1) - 1.0) < 1e-3)
-    if bad.any():  # isolated or only-degenerate-face vertices
-        n[bad] = estimate_normals(vertices)[bad]
-    return n
 
 
 def _find_mesh(root: Path, pattern: str) -> Path | None:
@@ -186,7 +126,7 @@ def load_scannet(root, *, frame_step: int = 10, max_frames: int | None = None,
     label_path = _find_mesh(root, layout.labels_mesh)
     with progress.stage(f"reading mesh {mesh_path.name}" + (" + labels" if label_path is not None else "")):
         vertices, triangles, _, colors = read_labelled_mesh(mesh_path)
-        normals = _vertex_normals(vertices, triangles)
+        normals = vertex_normals(vertices, triangles)
         if label_path is not None:
             lv, _, vlabels, _ = read_labelled_mesh(label_path)
     gt = None
@@ -272,12 +212,6 @@ def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) ->
                            intrinsic_color=c.intrinsic_color, depth_scale=c.depth_scale)
     return load_scannet(c.root, frame_step=c.frame_step, max_frames=c.max_frames, mapping=c.mapping, layout=layout,
                         taxonomy=taxonomy)
-
-
-def mesh_label_ids(path: Path) -> list[tuple[np.ndarray, str]]:
-    """``taxonomy=ids``: the vertex label ids of a labelled mesh, ``[]`` when it has none."""
-    labels = read_labelled_mesh(path)[2]
-    return [] if labels is None else [(np.unique(labels), f"the labels of {path.name}")]
 
 
 def label_ids(cfg: SceneConfig, n: int) -> list[tuple[np.ndarray, str]]:

@@ -27,14 +27,15 @@ from typing import Optional
 import numpy as np
 
 from diffuser_lab.config import SceneConfig
+from diffuser_lab.data.capture import fuse_depth
 from diffuser_lab.data.frames import LazyFrames
+from diffuser_lab.data.images import read_depth_png, read_rgb
+from diffuser_lab.data.poses import associate
 from diffuser_lab.data.scene import SCANNET20, Frame, Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
 from diffuser_lab.data.validate import check_depth_unit
 
-from .rgbd_folder import fuse_depth, read_depth_png, read_rgb
-
-__all__ = ["load_tum", "read_tum_list", "read_tum_trajectory", "associate", "TUM_CAMERAS", "load"]
+__all__ = ["load_tum", "read_tum_list", "read_tum_trajectory", "TUM_CAMERAS", "load"]
 
 TUM_CAMERAS = {  # fx fy cx cy, pixels at 640x480 (TUM RGB-D "intrinsic calibration" page)
     "fr1": (517.3, 516.5, 318.6, 255.3),
@@ -93,29 +94,6 @@ def read_tum_trajectory(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     T[:, :3, :3] = Rotation.from_quat(a[:, 4:8]).as_matrix()  # normalises
     T[:, :3, 3] = a[:, 1:4]
     return a[:, 0], T
-
-
-def _nearest(t: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """For each of the (N,) times ``t``: index of the nearest of the sorted (M,) ``ref``, |difference|."""
-    j = np.clip(np.searchsorted(ref, t), 1, len(ref) - 1) if len(ref) > 1 else np.zeros(len(t), np.int64)
-    if len(ref) > 1:
-        j = np.where(np.abs(ref[j - 1] - t) <= np.abs(ref[j] - t), j - 1, j)
-    return j, np.abs(ref[j] - t)
-
-
-def associate(t: np.ndarray, ref: np.ndarray, max_diff: float, one_to_one: bool = True) -> np.ndarray:
-    """(N,) int64 index into sorted ``ref`` of each time in ``t``'s nearest, -1 when farther than
-    ``max_diff`` seconds; ``one_to_one``: a ``ref`` entry claimed by several keeps only the nearest."""
-    j, d = _nearest(np.asarray(t, np.float64), np.asarray(ref, np.float64))
-    ok = d <= max_diff
-    if one_to_one and ok.any():
-        cand = np.flatnonzero(ok)
-        order = cand[np.lexsort((d[cand], j[cand]))]  # by ref index, then by distance
-        first = np.ones(len(order), bool)
-        first[1:] = j[order[1:]] != j[order[:-1]]
-        ok[:] = False
-        ok[order[first]] = True
-    return np.where(ok, j, -1)
 
 
 def _camera_K(root: Path, camera: str, intrinsics) -> np.ndarray:

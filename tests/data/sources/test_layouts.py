@@ -16,9 +16,11 @@ from diffuser_lab.data.mapping import load_mapping
 from diffuser_lab.data.predictions import with_predictions
 from diffuser_lab.data.prediction_files import DEFAULT_PATTERNS, resize_nearest
 from diffuser_lab.data.scene import IGNORE, SCANNET20
-from diffuser_lab.data.sources.rgbd_folder import load_rgbd_folder, read_depth_png
+from diffuser_lab.data.images import read_depth_png
+from diffuser_lab.data.poses import associate
+from diffuser_lab.data.sources.rgbd_folder import load_rgbd_folder
 from diffuser_lab.data.sources.scannet import ScannetLayout, load_scannet
-from diffuser_lab.data.sources.tum import associate, load_tum, read_tum_trajectory
+from diffuser_lab.data.sources.tum import load_tum, read_tum_trajectory
 from diffuser_lab.runs.pipeline import load_scene
 
 SEVEN_SCENES = SHARED / "data" / "7scenes_sample"

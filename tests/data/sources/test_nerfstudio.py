@@ -19,7 +19,8 @@ from diffuser_lab.data.geometry import scaled_intrinsics
 from diffuser_lab.data.mapping import load_mapping
 from diffuser_lab.data.scene import IGNORE, SCANNET20
 from diffuser_lab.data.sources.nerfstudio import OPENGL_TO_OPENCV
-from diffuser_lab.data.sources.rgbd_folder import read_rgb, rigid_inverse
+from diffuser_lab.data.images import read_rgb
+from diffuser_lab.data.poses import rigid_inverse
 from diffuser_lab.runs.pipeline import load_scene
 
 STRIDE = ["scene.options.cloud_stride=8"]

@@ -10,7 +10,7 @@ from captures import agreement, labels_of, needs_7scenes, seven_frames, write_rg
 from conftest import compose, run_cli
 from PIL import Image
 
-from diffuser_lab.data.sources.rgbd_folder import rigid_inverse
+from diffuser_lab.data.poses import rigid_inverse
 from diffuser_lab.runs.pipeline import load_scene
 
 SCALE = 6553.5

@@ -27,8 +27,10 @@ from plyfile import PlyData, PlyElement
 from diffuser_lab.data.geometry import backproject, project
 from diffuser_lab.data.scene import IGNORE, SCANNET20
 from diffuser_lab.data.frames import LazyFrames
-from diffuser_lab.data.sources.rgbd_folder import load_rgbd_folder, read_depth_png
-from diffuser_lab.data.sources.scannet import load_scannet, read_labelled_mesh
+from diffuser_lab.data.images import read_depth_png
+from diffuser_lab.data.meshes import read_labelled_mesh
+from diffuser_lab.data.sources.rgbd_folder import load_rgbd_folder
+from diffuser_lab.data.sources.scannet import load_scannet
 from diffuser_lab.method.evidence import visible_projection
 
 SHARED = _SHARED / "data"
