@@ -30,7 +30,7 @@ every completed iteration readable (:func:`.mcap_read.read_run` reads such a tru
 Compression and writing happen on one background thread (in order, a short bounded queue), so
 the diffusion does not wait for the compression; :meth:`McapRecorder.close` drains it. The file is written
 with ``O_DIRECT`` where the file system allows (:mod:`.direct_file`): no page-cache copies.
-An online run (protocol=online, docs/recording.md "Online runs") has no /evidence/bayesian,
+An online run (protocol=online, docs/reference/records.md "Online runs") has no /evidence/bayesian,
 /diffuser_lab/run, /diffusion/labels or /diffuser_lab/metrics; per frame taken instead:
 ``/diffuser_lab/online/frame`` (diffuser_lab.OnlineFrame), the camera on /tf,
 /cameras/calibration and /cameras/labels, and on the frames the schedule keeps the map's Z on
@@ -92,7 +92,7 @@ COMPRESSION = "lz4"
 """Default compression of run.mcap's chunks (``record.compression``): lz4, zstd (mcap's level 3)
 or none. Float32 Z is mostly mantissa noise and compresses little; compressing it is most of the
 cost of recording. Measured on one 51k x 20 demo Z state (4 MB, 30 iterations): zstd 8.0 ms ->
-0.46x, lz4 2.4 ms -> 0.50x (see docs/recording.md)."""
+0.46x, lz4 2.4 ms -> 0.50x (see docs/reference/records.md)."""
 FOXGLOVE_LAYOUT = Path(__file__).with_name("foxglove_layout.json")
 """A Foxglove layout for run.mcap (Layouts > Import from file): the labelled cloud and the camera
 frames in a 3D panel, the label images in an Image panel, mIoU / labels changed / residual
