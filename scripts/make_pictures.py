@@ -279,6 +279,7 @@ def city_tiles(out: Path, tmp: Path) -> Path:
     imshow(axes[1], splat(pts, label_colors(res.scene.gt_labels, pal), K, T, shape), "ground truth")
     # the tiles' edges: x-y lines projected into the top view
     nx, ny = res.grid
+    size = res.tile_m  # tiling.size fitted to the cloud (runs.tiled.fitted_edge)
     origin = lo[:2]  # tile_grid's: the cloud's x-y minimum
     for ax in axes[:1]:
         for i in range(nx + 1):

@@ -55,6 +55,7 @@ def bench(path: str, size: float, halos: list[float]) -> None:
     kw = dict(iters=100, k=24, solver="jacobi", backend="auto", pixel_weight=1e-4, sigma_s=0.2, sigma_d_factor=2.0)
     ref, _ = _run_once(pts, nrm, ev, **kw)
     origin, shape, cell = tiled.tile_grid(pts, size)
+    size = tiled.fitted_edge(pts, size)  # the grid's cells' edge (tile_grid's)
     print(f"{len(pts):,} points, extent {np.ptp(pts, 0).round(2)} m")
     print("| size (m) | grid | halo (m) | labels equal, % |")
     for halo in halos:  # loop over halo widths

@@ -79,8 +79,8 @@ def display_index(n: int, max_points: int = MAX_DISPLAY_POINTS) -> tuple[np.ndar
 
 
 def tile_boxes(points: np.ndarray, tiles: Sequence[dict], size: float) -> tuple[np.ndarray, np.ndarray]:
-    """(T, 3) centres and (T, 3) half sizes of the tiles' boxes: the x-y cell of ``tiling.size``
-    from the cloud's x-y minimum (:func:`~diffuser_lab.runs.tiled.tile_grid`) cut to the x-y extent
+    """(T, 3) centres and (T, 3) half sizes of the tiles' boxes: the x-y cell of edge ``size`` (the
+    run's fitted edge, ``TiledResult.tile_m``) from the cloud's x-y minimum (:func:`~diffuser_lab.runs.tiled.tile_grid`) cut to the x-y extent
     of the points in it (the cells of the grid's last row and column reach past the cloud), z of
     the whole cloud. A tile without points keeps its whole cell."""
     origin = points[:, :2].min(0).astype(np.float64)
@@ -252,7 +252,8 @@ def _mcap(path: Path, res: Any, idx: np.ndarray, stride: int, centers: np.ndarra
                                 gt_labels=None if scene.gt_labels is None else scene.gt_labels[idx],
                                 taxonomy=scene.taxonomy)
         rec.log_scene(shown)
-        meta = {"grid": list(res.grid), "size": float(conf.tiling.size), "halo": float(res.halo),
+        meta = {"grid": list(res.grid), "size": float(conf.tiling.size), "tile_m": float(getattr(res, "tile_m", 0.0)),
+                "halo": float(res.halo),
                 "n_points": int(scene.n_points), "displayed_points": int(idx.size), "stride": int(stride),
                 "max_display_points": MAX_DISPLAY_POINTS, "tiles": res.tiles}
         rec.log_tiled(shown.points, res.labels[idx], res.tiles, centers, half, _status_rgb(res.tiles), meta)
@@ -270,7 +271,7 @@ def record_tiled(conf: Any, run_dir: Path | str, res: Any, overrides: Sequence[s
         return {}
     run_dir = Path(run_dir)
     idx, stride = display_index(res.scene.n_points, MAX_DISPLAY_POINTS)
-    centers, half = tile_boxes(res.scene.points, res.tiles, float(conf.tiling.size))
+    centers, half = tile_boxes(res.scene.points, res.tiles, float(getattr(res, "tile_m", 0.0) or conf.tiling.size))
     files: dict[str, Any] = {}
     errors: dict[str, str] = {}
     jobs = []

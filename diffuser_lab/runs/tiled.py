@@ -1,6 +1,7 @@
 """Tiled global 3D labelling (``protocol=tiled``, docs/tiling.md): the batch pipeline per tile.
 
-The cloud is cut into a regular x-y grid of ``tiling.size`` metres (from the cloud's x-y minimum).
+The cloud is cut into a regular x-y grid of ``tiling.size`` metres (from the cloud's x-y minimum),
+the edge shrunk so that the grid's cells just cover the cloud (:func:`fitted_edge`).
 A tile's run is :func:`diffuser_lab.runs.pipeline.run` on a sub-scene: the points within
 ``tiling.halo`` (x and y) of the tile, and the frames whose view meets that box
 (:func:`frames_meeting`), a :meth:`~diffuser_lab.data.frames.LazyFrames.subset` of the scene's
@@ -95,6 +96,7 @@ class TiledResult:
     resumed_from: Optional[str] = None
     rho: Optional[float] = None  # the whole cloud's mean point spacing (sigma_d of every tile's graph from it)
     halo: float = 0.0  # the halo the tiles had, metres (tiling.halo, or halo_factor * sigma_d)
+    tile_m: float = 0.0  # the tiles' edge, metres: tiling.size fitted to the cloud (fitted_edge)
     files: dict = field(default_factory=dict)  # what the run wrote beside the tiles (a features run: features.npy)
 
     @property
@@ -102,9 +104,21 @@ class TiledResult:
         return [t for t in self.tiles if t["status"] == "error"]
 
 
+def fitted_edge(points: np.ndarray, size: float) -> float:
+    """The tiles' edge, metres: ``size`` (``tiling.size``) shrunk so that the ceil(extent / size) cells of
+    each axis just cover the cloud's x-y extent (the larger of extent / cells over x and y, a hair more so
+    that the farthest point falls in the last cell): the grid fitted to the cloud, no near-empty last row or
+    column; never more than ``size``."""
+    ext = points[:, :2].max(0).astype(np.float64) - points[:, :2].min(0).astype(np.float64)
+    e = float((ext / np.maximum(np.ceil(ext / size), 1.0)).max()) * (1.0 + 1e-9)
+    return min(float(size), e) if e > 0 else float(size)
+
+
 def tile_grid(points: np.ndarray, size: float) -> tuple[tuple[float, float], tuple[int, int], np.ndarray]:
     """The grid's origin (the cloud's x-y minimum), its shape (nx, ny) and each point's cell (N, 2) int32
-    (an axis at a time: 12 bytes a point at most besides the result)."""
+    (an axis at a time: 12 bytes a point at most besides the result), the cells' edge
+    :func:`fitted_edge` (``size`` fitted to the cloud)."""
+    size = fitted_edge(points, size)
     origin = points[:, :2].min(0).astype(np.float64)
     cell = np.empty((len(points), 2), np.int32)
     for k in range(2):  # x, y: float64 as tile_points computes it
@@ -186,7 +200,7 @@ class _Cells:
         order = np.argsort(flat, kind="stable")  # within a cell: ascending point index
         keys, starts = np.unique(flat[order], return_index=True)
         del flat
-        self.origin, self.size = origin, size
+        self.origin, self.size = origin, fitted_edge(points, size)  # the grid's cells' edge, metres
         self.owns = {(int(k // self.shape[1]), int(k % self.shape[1])): o
                      for k, o in zip(keys, np.split(order, starts[1:]))}
 
@@ -276,7 +290,7 @@ def _specs(cfg: Config, scene: Scene, cells: _Cells, boxes: np.ndarray) -> list[
     """The tiles with own points (``cells.owns`` order, their (T, 2, 3) ``boxes``), each with the
     frames that see it (one pass over the frames' cameras, one frame read at a time)."""
     tc = cfg.tiling
-    base = [TileSpec(ix, iy, cells.origin, tc.size, tc.halo) for ix, iy in cells.owns]
+    base = [TileSpec(ix, iy, cells.origin, cells.size, tc.halo) for ix, iy in cells.owns]
     seen = np.zeros((len(base), len(scene.frames)), bool)
     margin = cfg.evidence.pixel_radius + 1.0
     for i, f in FrameLoop(scene.frames, f"cameras: which frames see which of {len(base)} tiles"):
@@ -510,6 +524,7 @@ def tiled(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHook
         res_files["features"] = "features.npy"
     t["labels"] = time.perf_counter() - tl
     res = TiledResult(scene=scene, method=cfg.method.name, labels=labels, bayesian_labels=bayes, grid=shape,
+                      tile_m=float(cells.size),
                       tiles=[records[s.id] for s in specs], tiles_dir=tiles_dir, resumed_from=tc.resume, rho=rho,
                       halo=tc.halo, files=res_files)
     if scene.gt_labels is not None:
@@ -591,7 +606,7 @@ def summary(res: TiledResult, cfg: Config) -> dict:
         "baseline": {"bayesian": res.baseline.get("bayesian")},
         "diffusion": {"iterations": max([r.get("iterations", 0) for r in res.tiles] or [0])},
         "timings_s": {k: round(v, 4) for k, v in res.timings_s.items()},
-        "tiling": {"size": cfg.tiling.size, "halo": res.halo, "halo_factor": cfg.tiling.halo_factor, "grid": list(res.grid),
+        "tiling": {"size": cfg.tiling.size, "tile_m": res.tile_m, "halo": res.halo, "halo_factor": cfg.tiling.halo_factor, "grid": list(res.grid),
                    "n_tiles": len(res.tiles), "failed": len(failed), "workers": cfg.tiling.workers,
                    "address": cfg.tiling.address, "tiles_dir": str(res.tiles_dir), "resumed_from": res.resumed_from,
                    "rho_m": res.rho, "tiles": res.tiles},

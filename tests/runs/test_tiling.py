@@ -69,10 +69,26 @@ def test_a_tiles_rows_from_its_neighbouring_cells_are_the_brute_force_ones(halo)
     cells = tiled._Cells(pts, 2.0)
     assert cells.shape == (5, 3) and sum(o.size for o in cells.owns.values()) == len(pts)
     for ix, iy in cells.owns:
-        spec = TileSpec(ix, iy, cells.origin, 2.0, halo)
+        spec = TileSpec(ix, iy, cells.origin, cells.size, halo)
         own, rows = tile_points(pts, spec)
         np.testing.assert_array_equal(cells.owns[(ix, iy)], own)
         np.testing.assert_array_equal(cells.rows(pts, spec), rows)
+
+
+def test_the_grid_is_fitted_to_the_cloud():
+    """tiling.size is the largest edge: the grid keeps ceil(extent / size) cells an axis, the edge
+    shrunk so that they just cover the cloud (no near-empty last row or column, as a 130 m city cut
+    into 60 m tiles had: 10 m of points in its last column)."""
+    rng = np.random.default_rng(0)
+    pts = (rng.random((60_000, 3)) * [130.0, 70.0, 20.0]).astype(np.float32)
+    cells = tiled._Cells(pts, 60.0)
+    assert cells.shape == (3, 2) and 43.2 < cells.size <= 130.0 / 3 * (1 + 1e-6)
+    counts = np.array([o.size for o in cells.owns.values()])
+    assert len(counts) == 6 and counts.min() >= 0.6 * counts.mean(), counts  # at 60 m: 3 of 6 cells ~1/6 full
+    origin, shape, cell = tiled.tile_grid(pts, 60.0)
+    assert shape == cells.shape and cell.max(0).tolist() == [2, 1]  # the farthest point in the last cell
+    square = np.array([[0, 0, 0], [4, 4, 0]], np.float32)
+    assert tiled.fitted_edge(square, 2.0) == 2.0 and tiled.fitted_edge(square, 3.0) == pytest.approx(2.0)
 
 
 def test_a_frame_has_the_same_predictions_in_a_tile(untiled):
@@ -95,7 +111,7 @@ def test_a_tile_reads_the_frames_that_see_it(untiled, local_tiled):
     extra = reads = 0
     for rec in res.tiles:
         ix, iy = map(int, rec["id"].split("_"))
-        spec = TileSpec(ix, iy, tuple(scene.points[:, :2].min(0).astype(float)), cfg.tiling.size, res.halo)
+        spec = TileSpec(ix, iy, tuple(scene.points[:, :2].min(0).astype(float)), res.tile_m, res.halo)
         _, rows = tile_points(scene.points, spec)
         p = scene.points[rows].astype(np.float64)
         sees = []
