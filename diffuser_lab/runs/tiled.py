@@ -118,7 +118,11 @@ def tile_grid(points: np.ndarray, size: float) -> tuple[tuple[float, float], tup
     """The grid's origin (the cloud's x-y minimum), its shape (nx, ny) and each point's cell (N, 2) int32
     (an axis at a time: 12 bytes a point at most besides the result), the cells' edge
     :func:`fitted_edge` (``size`` fitted to the cloud)."""
-    size = fitted_edge(points, size)
+    return _grid(points, fitted_edge(points, size))
+
+
+def _grid(points: np.ndarray, size: float) -> tuple[tuple[float, float], tuple[int, int], np.ndarray]:
+    """:func:`tile_grid` for cells of edge ``size`` as given (already fitted)."""
     origin = points[:, :2].min(0).astype(np.float64)
     cell = np.empty((len(points), 2), np.int32)
     for k in range(2):  # x, y: float64 as tile_points computes it
@@ -194,13 +198,14 @@ class _Cells:
     """The cloud's points by grid cell (one argsort), for a tile's rows from its neighbouring cells."""
 
     def __init__(self, points: np.ndarray, size: float):
-        origin, self.shape, cell = tile_grid(points, size)
+        edge = fitted_edge(points, size)  # the grid's cells' edge, metres (one pass for it, not two)
+        origin, self.shape, cell = _grid(points, edge)
         flat = cell[:, 0].astype(np.int64) * self.shape[1] + cell[:, 1]
         del cell
         order = np.argsort(flat, kind="stable")  # within a cell: ascending point index
         keys, starts = np.unique(flat[order], return_index=True)
         del flat
-        self.origin, self.size = origin, fitted_edge(points, size)  # the grid's cells' edge, metres
+        self.origin, self.size = origin, edge
         self.owns = {(int(k // self.shape[1]), int(k % self.shape[1])): o
                      for k, o in zip(keys, np.split(order, starts[1:]))}
 
