@@ -67,8 +67,11 @@ class DirectFile:
         finally:
             self.closed = True
             os.close(self.fd)
-            self._mv.release()
-            self._buf.close()
+            try:
+                self._mv.release()
+                self._buf.close()
+            except BufferError:  # a failed write's traceback still holds a slice: the GC frees it,
+                pass  # and the write's own error (a full disk) is the one the caller sees
 
     def __enter__(self) -> "DirectFile":
         return self

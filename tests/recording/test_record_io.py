@@ -90,6 +90,11 @@ def test_write_errors_reach_the_caller(tmp_path, monkeypatch):
     f.write(b"x" * 10)
     with pytest.raises(OSError, match="No space"):
         f.flush()
+    g = open_direct(tmp_path / "c.bin")  # at close, the write's error is the one raised (the failed
+    g.write(b"x" * 5000)  # write's traceback holds a slice of the buffer, which cannot then be unmapped)
+    with pytest.raises(OSError, match="No space"):
+        g.close()
+    assert g.closed
 
 
 _FAULTS = """
