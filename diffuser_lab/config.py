@@ -28,7 +28,7 @@ class ConfigError(ValueError):
     """A config value is out of range; the message names the key."""
 
 
-def _check(ok: bool, key: str, value: Any, expected: str) -> None:
+def check(ok: bool, key: str, value: Any, expected: str) -> None:
     if not ok:
         raise ConfigError(f"{key}={value!r}: expected {expected}")
 
@@ -36,7 +36,7 @@ def _check(ok: bool, key: str, value: Any, expected: str) -> None:
 def check_name(key: str, value: Any, names: List[str]) -> None:
     """A registry name: :class:`ConfigError` ``key='value': expected one of a, b, c`` unless
     ``value`` is one of ``names`` (in the order given)."""
-    _check(value in names, key, value, f"one of {', '.join(names)}")
+    check(value in names, key, value, f"one of {', '.join(names)}")
 
 
 # --------------------------------------------------------------------------- declared constraints
@@ -112,15 +112,15 @@ def validate(section: Any) -> None:
     against its value; :class:`ConfigError` naming the first key out of range. Nested sections
     are checked when they are built (their own ``__post_init__``)."""
     for f in dataclasses.fields(section):
-        check = f.metadata.get("check")
-        if check is not None:
+        rule_ = f.metadata.get("check")
+        if rule_ is not None:
             value = getattr(section, f.name)
-            _check(check.ok(value), f"{section.KEY}.{f.name}" if section.KEY else f.name, value, check.expected)
+            check(rule_.ok(value), f"{section.KEY}.{f.name}" if section.KEY else f.name, value, rule_.expected)
 
 
 class Section:
     """Base of the schema's dataclasses: building one validates it (:func:`validate`, then
-    :meth:`_check_keys`). ``KEY`` is its dotted key path (``scene.demo``; ``""`` at the top)."""
+    :meth:`_check_keys`). ``KEY`` is its dotted key path (``scene.options``; ``""`` at the top)."""
 
     KEY: ClassVar[str] = ""
 
@@ -202,203 +202,16 @@ class BayesianMode(Enum):
 
 # --------------------------------------------------------------------------- scene
 
-@dataclass
-class DemoSceneConfig(Section):
-    """Procedural room (diffuser_lab.data.sources.demo)."""
-
-    KEY = "scene.demo"
-    seed: int = 0
-    room_size: List[float] = key(check=rule("three sizes > 1 m", lambda v: len(v) == 3 and min(v) > 1.0),
-                                 factory=lambda: [5.0, 4.0, 2.6])  # x, y, z metres
-    n_views: int = key(30, at_least(1))
-    image_width: int = 160
-    image_height: int = 120
-    fov_deg: float = key(70.0, within(10, 150))  # horizontal field of view
-    point_spacing: float = key(0.04, within(0.005, 0.5, "metres"))  # metres between sampled surface points
-    point_noise: float = key(0.002, at_least(0))  # std of gaussian position noise, metres
-
-    def _check_keys(self) -> None:
-        _check(self.image_width >= 16 and self.image_height >= 16, "scene.demo.image_width/height",
-               (self.image_width, self.image_height), ">= 16 pixels")
-
-
-@dataclass
-class CitySceneConfig(Section):
-    """Procedural outdoor city (diffuser_lab.data.sources.city): a grid of blocks, each built from
-    its own seed (seed, bx, by), labelled in cityscapes19; drone and street-level views rendered
-    per frame on access from the blocks around the camera."""
-
-    KEY = "scene.city"
-    seed: int = 0
-    blocks_x: int = key(2, within(1, 1000, steps=True))  # blocks along x (the city's extent)
-    blocks_y: int = key(2, within(1, 1000, steps=True))  # blocks along y
-    block_size: float = key(60.0, within(30, 500, "metres"))  # edge of a block (street + lot), metres
-    road_width: float = key(10.0, within(6, 30, "metres"))  # street on each block's low x / low y side
-    sidewalk_width: float = key(3.0, within(1.5, 10, "metres"))
-    point_spacing: float = key(0.2, within(0.01, 2.0, "metres"))  # metres between sampled surface points (~250k a block at 0.2)
-    point_noise: float = key(0.01, at_least(0))  # std of gaussian position noise, metres
-    drone_views: int = key(4, at_least(0))  # per block: nadir and oblique views from drone_height
-    street_views: int = key(4, at_least(0))  # per block: views from street_height along its streets
-    drone_height: List[float] = key(check=rule("min <= max, both > 30 m (above the roofs)",
-                                               lambda v: len(v) == 2 and 30 < v[0] <= v[1]),
-                                    factory=lambda: [40.0, 70.0])  # metres above the road
-    street_height: List[float] = key(check=rule("0.5 m <= min <= max <= 5 m",
-                                                lambda v: len(v) == 2 and 0.5 <= v[0] <= v[1] <= 5),
-                                     factory=lambda: [1.5, 2.0])  # metres above the road
-    view_distance: float = key(150.0, within(20, 2000, "metres"))  # frames see up to this far (depth 0 beyond)
-    image_width: int = 320
-    image_height: int = 240
-    fov_deg: float = key(70.0, within(10, 150))  # horizontal field of view
-    sky: bool = True  # label images: pixels looking up at nothing are sky (depth 0), else IGNORE
-
-    def _check_keys(self) -> None:
-        _check(self.image_width >= 16 and self.image_height >= 16, "scene.city.image_width/height",
-               (self.image_width, self.image_height), ">= 16 pixels")
-        _check(self.road_width + 2 * self.sidewalk_width + 10 <= self.block_size, "scene.city.block_size",
-               self.block_size, ">= road_width + 2 sidewalk_width + 10 m (room for a lot)")
-        _check(self.drone_views == 0 or self.view_distance > self.drone_height[1], "scene.city.view_distance",
-               self.view_distance, "> drone_height max (a drone view sees the ground)")
-
-
-@dataclass
-class MeshViewsConfig(Section):
-    """Views rendered from a labelled mesh (diffuser_lab.data.sources.mesh_views)."""
-
-    KEY = "scene.mesh_views"
-    path: str = MISSING  # PLY mesh with a per-vertex `label` (e.g. ScanNet's *_vh_clean_2.labels.ply)
-    mapping: Optional[str] = "nyu40_to_scannet20"  # mesh label ids -> taxonomy (shipped table or CSV); null = taxonomy ids
-    n_views: int = key(40, at_least(1))
-    seed: int = 0
-    image_width: int = 320
-    image_height: int = 240
-    fov_deg: float = key(58.0, within(10, 150))  # horizontal; ScanNet's depth camera: fx = 577.9 at 640 px
-    min_coverage: float = key(0.3, within(0, 1, open_hi=True))  # reject views whose valid-depth share is below this
-    eye_height_min: float = 1.2  # metres above the floor
-    eye_height_max: float = 1.8
-
-    def _check_keys(self) -> None:
-        _check(self.image_width >= 16 and self.image_height >= 16, "scene.mesh_views.image_width/height",
-               (self.image_width, self.image_height), ">= 16 pixels")
-        _check(0.0 < self.eye_height_min <= self.eye_height_max, "scene.mesh_views.eye_height_min/max",
-               (self.eye_height_min, self.eye_height_max), "0 < min <= max")
-
-
-def _pattern(placeholder: str) -> Check:
+def file_pattern(placeholder: str) -> Check:
     """A relative file name with one ``{placeholder}`` and no other ``{...}``."""
     ph = "{" + placeholder + "}"
     return rule(f"a relative file name with one {ph} and no other {{...}}",
                 lambda v: isinstance(v, str) and v.count(ph) == 1 and v.replace(ph, "").count("{") == 0)
 
 
-_SCENE_FILE = rule("a file name, optionally with {scene}", lambda v: v.replace("{scene}", "").count("{") == 0)
-
-
-@dataclass
-class ScannetConfig(Section):
-    """A scene in ScanNet's export layout (diffuser_lab.data.sources.scannet). File names are
-    relative to ``root``; ``{scene}`` = the root folder's name, ``{frame}`` = the frame number."""
-
-    KEY = "scene.scannet"
-    root: str = MISSING  # folder holding color/ depth/ pose/ intrinsic/ label-filt/ and the PLYs
-    frame_step: int = key(10, at_least(1))  # paper: every 10th frame
-    max_frames: Optional[int] = key(None, at_least(1, null=True))
-    mapping: Optional[str] = "nyu40_to_scannet20"  # label ids -> taxonomy; null = the taxonomy's own ids
-    mesh: str = key("{scene}_vh_clean_2.ply", _SCENE_FILE)  # the points to label (mesh vertices)
-    labels_mesh: str = key("{scene}_vh_clean_2.labels.ply", _SCENE_FILE)  # per-vertex ground truth; optional file
-    depth: str = key("depth/{frame}.png", _pattern("frame"))  # 16-bit, depth_scale units per metre; frames are found by this
-    color: str = key("color/{frame}.jpg", _pattern("frame"))  # optional: without it frames carry no RGB
-    pose: str = key("pose/{frame}.txt", _pattern("frame"))  # 4x4 camera-to-world
-    labels: str = key("label-filt/{frame}.png", _pattern("frame"))  # optional ground-truth label images (mapping's source ids)
-    intrinsic_depth: str = "intrinsic/intrinsic_depth.txt"
-    intrinsic_color: str = "intrinsic/intrinsic_color.txt"  # optional, only checked against intrinsic_depth
-    depth_scale: float = key(1000.0, above(0))  # raw depth units per metre
-
-
-class DepthShiftKind(Enum):
-    circular = "circular"  # 16-bit rotate right (SUN3D stores depth rotated left by 3 bits)
-    plain = "plain"  # raw >> shift, the low bits dropped (e.g. (raw >> 3) / 1e4 m)
-
-
 class PoseConvention(Enum):
     camera_to_world = "camera_to_world"  # the pose maps camera coordinates to world (7-Scenes, ScanNet, TUM)
     world_to_camera = "world_to_camera"  # the pose maps world coordinates to camera (extrinsics)
-
-
-_SUFFIX = "a non-empty file name suffix, without / or *"
-
-
-def _suffix(null: bool = False) -> Check:
-    return rule(_SUFFIX, lambda v: bool(v) and "/" not in v and "*" not in v, null=null)
-
-
-@dataclass
-class RgbdFolderConfig(Section):
-    """A posed RGB-D folder: frame-XXXXXX.{color.*,depth.png,pose.txt} + camera-intrinsics.txt.
-    A frame's files are ``<frame_prefix><digits>.<suffix>``; docs/layouts.md describes each key."""
-
-    KEY = "scene.rgbd_folder"
-    root: str = MISSING  # the folder
-    intrinsics_file: str = key("camera-intrinsics.txt", rule("a file name relative to root",
-                                                             lambda v: bool(v) and "*" not in v))  # 3x3 K of the depth image, relative to root
-    frame_prefix: str = key("frame-", rule("a file name prefix without / or *",
-                                           lambda v: "/" not in v and "*" not in v))  # a frame's name = prefix + digits (frame-000000)
-    depth_suffix: str = key("depth.png", _suffix())
-    pose_suffix: str = key("pose.txt", _suffix())
-    pose_convention: PoseConvention = PoseConvention.camera_to_world
-    depth_scale: float = key(1000.0, above(0))  # metres = (raw, shifted) / depth_scale (1000 = millimetres)
-    depth_bit_shift: int = key(0, within(0, 15))  # right shift of the raw 16-bit depth before scaling (SUN3D: 3)
-    depth_shift_kind: DepthShiftKind = DepthShiftKind.circular  # circular (SUN3D) | plain (raw >> shift)
-    invalid_depth: List[int] = field(default_factory=lambda: [0, 65535])  # raw values, before the shift
-    color_suffix: Optional[str] = key("color.jpg", _suffix(null=True))  # null = no colour; no such file at all = no colour (warning)
-    label_suffix: Optional[str] = key(None, _suffix(null=True))  # ground-truth label images frame-XXXXXX.<suffix>, if any
-    mapping: Optional[str] = None  # label ids -> taxonomy; null = ids are taxonomy ids
-    cloud: Optional[str] = None  # PLY, LAS or LAZ point cloud; null = back-project and voxel-merge the depth frames
-    cloud_voxel: float = key(0.02, above(0, "metres"))  # metres, for the back-projected cloud
-    cloud_stride: int = key(4, at_least(1))  # every n-th pixel of each depth frame for the back-projected cloud
-    max_depth: Optional[float] = None  # metres; ignore depth beyond it
-    frame_step: int = key(1, at_least(1))
-    max_frames: Optional[int] = None
-
-
-class TumCamera(Enum):
-    """Intrinsics presets of the TUM RGB-D benchmark's calibration page (colour camera, to which the
-    depth images are registered): fx fy cx cy in pixels at 640x480."""
-
-    auto = "auto"  # freiburg1/2/3 from the root folder's name (rgbd_dataset_freiburg1_xyz), else ros_default
-    fr1 = "fr1"  # 517.3 516.5 318.6 255.3
-    fr2 = "fr2"  # 520.9 521.0 325.1 249.7
-    fr3 = "fr3"  # 535.4 539.2 320.1 247.6
-    ros_default = "ros_default"  # 525.0 525.0 319.5 239.5 (OpenNI's default, TUM's point-cloud example)
-
-
-@dataclass
-class TumConfig(Section):
-    """A TUM RGB-D sequence (diffuser_lab.data.sources.tum): rgb.txt, depth.txt, groundtruth.txt with
-    timestamps, associated by nearest timestamp; frames named after their RGB image's stem."""
-
-    KEY = "scene.tum"
-    root: str = MISSING  # the sequence folder (rgbd_dataset_freiburg1_xyz)
-    rgb_list: Optional[str] = "rgb.txt"  # 'timestamp file' lines; null = no colour
-    depth_list: str = "depth.txt"  # 'timestamp file' lines; the frames
-    groundtruth: str = "groundtruth.txt"  # 'timestamp tx ty tz qx qy qz qw', camera-to-world
-    max_time_diff: float = key(0.02, above(0, "seconds"))  # seconds: nearest RGB / pose farther than this drops the frame (associate.py)
-    depth_scale: float = key(5000.0, above(0))  # raw units per metre (TUM: 5000)
-    camera: TumCamera = TumCamera.auto
-    fx: Optional[float] = None  # pixels; set all four to override the camera preset
-    fy: Optional[float] = None
-    cx: Optional[float] = None
-    cy: Optional[float] = None
-    cloud_voxel: float = key(0.02, above(0, "metres"))  # metres, for the back-projected cloud
-    cloud_stride: int = key(4, at_least(1))
-    max_depth: Optional[float] = None  # metres; ignore depth beyond it in the cloud
-    frame_step: int = key(1, at_least(1))
-    max_frames: Optional[int] = key(None, at_least(1, null=True))
-
-    def _check_keys(self) -> None:
-        given = [v is not None for v in (self.fx, self.fy, self.cx, self.cy)]
-        _check(all(given) or not any(given), "scene.tum.fx/fy/cx/cy", (self.fx, self.fy, self.cx, self.cy),
-               "all four set (pixels) or all null (= scene.tum.camera's preset)")
-        _check(not any(given) or (self.fx > 0 and self.fy > 0), "scene.tum.fx/fy", (self.fx, self.fy), "> 0 pixels")
 
 
 class DepthModel(Enum):
@@ -436,40 +249,44 @@ class DepthNoiseConfig(Section):
     disparity_subpixel: float = key(0.125, above(0))  # disparity step, pixels (Kinect v1: 1/8)
 
     def _check_keys(self) -> None:
-        _check(0.0 <= self.min_range < self.max_range, "depth.min_range/max_range",
+        check(0.0 <= self.min_range < self.max_range, "depth.min_range/max_range",
                (self.min_range, self.max_range), "0 <= min_range < max_range metres")
 
 
-REQUIRED = {"mesh_views": "path", "scannet": "root", "rgbd_folder": "root", "tum": "root"}
-"""Each built-in scene source's required key (MISSING in its dataclass)."""
+MOVED_SCENE_KEYS = ("demo", "city", "mesh_views", "scannet", "rgbd_folder", "tum")
+"""Sources whose keys were ``scene.<source>.KEY`` until 2026-12; every source's are ``scene.options.KEY``."""
+
+
+def moved_key(dotted: str) -> Optional[str]:
+    """The new spelling of a scene source's key spelled the old way (``scene.demo.n_views`` ->
+    ``scene.options.n_views``; a leading ``+``/``++``/``~`` is ignored), else None."""
+    parts = dotted.lstrip("+~").split("=", 1)[0].split(".")
+    if len(parts) >= 2 and parts[0] == "scene" and parts[1] in MOVED_SCENE_KEYS:
+        return ".".join(["scene", "options", *parts[2:]])
+    return None
+
+
+def check_moved(dotted: str) -> None:
+    """Raise :class:`ConfigError` for a key spelled the old way (:func:`moved_key`), naming the new key."""
+    new = moved_key(dotted)
+    if new is not None:
+        old = dotted.lstrip("+~").split("=", 1)[0]
+        raise ConfigError(f"{old} is now {new}: every scene source's keys are scene.options.KEY "
+                          f"(docs/config.md)")
 
 
 @dataclass
 class SceneConfig(Section):
     """What the run labels. ``source`` names an entry of the scene sources' registry
-    (:mod:`diffuser_lab.data.sources`), which loads the scene from the keys it reads: the
-    built-in sources their own ``scene.<source>`` keys, a source registered by a user ``options``."""
+    (:mod:`diffuser_lab.data.sources`); ``options`` are that source's keys (``scene.options.KEY``):
+    the resolve step turns them into the dataclass the source's entry declares (typed, defaults
+    filled, ranges checked), or leaves a free-form dict for a source without one."""
 
     KEY = "scene"
     source: str = named("demo", "scene sources")  # the scene source's name (registry: diffuser_lab/data/sources)
     name: Optional[str] = None  # display name; null = derived from the source
-    # one dataclass per built-in source; a source's own settings are set (by its conf/scene/*.yaml)
-    # only when it is the selected one, so its required keys (MISSING) are asked for only then
-    demo: DemoSceneConfig = field(default_factory=DemoSceneConfig)
-    city: Optional[CitySceneConfig] = None  # set by conf/scene/city.yaml; scene.source=city alone: the defaults
-    mesh_views: Optional[MeshViewsConfig] = None
-    scannet: Optional[ScannetConfig] = None
-    rgbd_folder: Optional[RgbdFolderConfig] = None
-    tum: Optional[TumConfig] = None
     voxel_size: float = key(0.0, at_least(0, "metres", note="(0 = off)"))  # metres; > 0: voxel-downsample before diffusion, labels transferred back
-    # the keys of a source added to the registry: the dataclass its entry declares (the resolve step
-    # makes it from this dict), else a free-form dict its loader reads
-    options: Dict[str, Any] = field(default_factory=dict)
-
-    def _check_keys(self) -> None:
-        # a built-in source selected by scene.source alone (its settings never set): its required key
-        if self.source in REQUIRED and getattr(self, self.source) is None:
-            raise ConfigError(f"scene.{self.source}.{REQUIRED[self.source]} is required for scene={self.source}")
+    options: Dict[str, Any] = field(default_factory=dict)  # the source's keys (conf/scene/<source>.yaml sets its dataclass)
 
 
 SPECIAL_TAXONOMIES = ("file", "ids")
@@ -486,7 +303,7 @@ class TaxonomyConfig(Section):
     scan_frames: int = key(10, at_least(1))  # name=ids: label images of the first n frames are scanned for ids
 
     def _check_keys(self) -> None:
-        _check(self.name != "file" or bool(self.path), "taxonomy.path", self.path,
+        check(self.name != "file" or bool(self.path), "taxonomy.path", self.path,
                "a CSV or YAML file for taxonomy=file")
 
 
@@ -512,7 +329,7 @@ class OnnxConfig(Section):
     threads: int = key(0, at_least(0, note="(0 = onnxruntime's default)"))  # onnxruntime intra-op threads; 0 = its default (all cores)
 
 
-_FILE_NAME = _pattern("name")
+_FILE_NAME = file_pattern("name")
 
 
 @dataclass
@@ -573,11 +390,11 @@ class PredictionsConfig(Section):
             self.pattern = [self.pattern]
         self.pattern = list(self.pattern)
         for p in self.pattern:
-            _check(_FILE_NAME.ok(p), "predictions.pattern", p, _FILE_NAME.expected)
-        _check(len(self.pattern) >= 1, "predictions.pattern", self.pattern, "at least one file name")
+            check(_FILE_NAME.ok(p), "predictions.pattern", p, _FILE_NAME.expected)
+        check(len(self.pattern) >= 1, "predictions.pattern", self.pattern, "at least one file name")
         if self.source == "model" or (self.source == "features" and self.embeddings == "model"):
             target = (self.model or {}).get("_target_")
-            _check(isinstance(target, str) and bool(target.strip()), "predictions.model._target_", target,
+            check(isinstance(target, str) and bool(target.strip()), "predictions.model._target_", target,
                    "a Python callable's import path (pkg.module.name) for predictions=model")
         if self.source == "onnx" and self.onnx is None:
             raise ConfigError("predictions.onnx.path is required for predictions=onnx (pass predictions.onnx.path=...)")
@@ -800,7 +617,7 @@ class RecordConfig(Section):
                                          "(or rerun+https://, rerun://)", live_is_valid, null=True))
 
     def _check_keys(self) -> None:
-        _check(live_is_off(self.live) or self.mode in (RecordMode.rerun, RecordMode.both), "record.live", self.live,
+        check(live_is_off(self.live) or self.mode in (RecordMode.rerun, RecordMode.both), "record.live", self.live,
                "record=rerun or record=both (the live stream is run.rrd's content)")
 
 
@@ -890,5 +707,6 @@ def default_config(**overrides: Any) -> Config:
     returns the resolved config."""
     cfg = OmegaConf.structured(Config)
     for key_, value in overrides.items():
+        check_moved(key_)
         OmegaConf.update(cfg, key_, value, merge=False)
     return to_object(cfg)

@@ -260,7 +260,7 @@ def city_tiles(out: Path, tmp: Path) -> Path:
 
     size = 41.0  # 3 x 3 tiles on the 2 x 2 blocks' 120 m (and their points' noise)
     cfg = config("scene=city", "predictions=realistic_city", "protocol=tiled", f"tiling.size={size:g}",
-                 "scene.city.point_spacing=0.4")
+                 "scene.options.point_spacing=0.4")
     res = tiled(cfg, run_dir=tmp / "city")
     tax = res.scene.taxonomy
     pal = np.asarray(tax.colors)

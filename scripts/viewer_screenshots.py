@@ -30,8 +30,8 @@ KINDS: dict[str, list[str]] = {
     # README "Outdoor, tiles, clusters": the demo room in 2 m tiles
     "tiled": ["protocol=tiled", "tiling.size=2"],
     # the same on a one-block city (cityscapes19, the README's city at a quarter of its size)
-    "tiled-city": ["scene=city", "predictions=realistic_city", "scene.city.blocks_x=1", "scene.city.blocks_y=1",
-                   "scene.city.point_spacing=0.3", "protocol=tiled", "tiling.size=25"],
+    "tiled-city": ["scene=city", "predictions=realistic_city", "scene.options.blocks_x=1", "scene.options.blocks_y=1",
+                   "scene.options.point_spacing=0.3", "protocol=tiled", "tiling.size=25"],
 }
 WINDOW = "1600x1000"
 WIDTH = 1200

@@ -65,7 +65,7 @@ def labels_of(*overrides: str) -> tuple[np.ndarray, np.ndarray, object]:
 def reference_labels(parent: Path, frames: list[dict], *extra: str):
     """The posed RGB-D folder's run on ``frames`` (what each format must reproduce)."""
     root = write_rgbd_reference(parent, frames)
-    return labels_of("scene=rgbd_folder", f"scene.rgbd_folder.root={root}", *extra)
+    return labels_of("scene=rgbd_folder", f"scene.options.root={root}", *extra)
 
 
 def agreement(points_a, labels_a, points_b, labels_b, tol: float = 1e-3) -> float:

@@ -27,7 +27,7 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
     threadpoolctl.threadpool_limits(int(_share))
 
 # Small demo settings for tests that only need the mechanics (seconds, not tens of seconds).
-SMALL_DEMO = ["scene.demo.n_views=10", "scene.demo.point_spacing=0.08", "solver.max_iter=60"]
+SMALL_DEMO = ["scene.options.n_views=10", "scene.options.point_spacing=0.08", "solver.max_iter=60"]
 
 
 QUICK_BUDGET_S = 5.0
@@ -130,7 +130,7 @@ def small_demo_scene():
     from diffuser_lab.config import default_config
     from diffuser_lab.runs.pipeline import load_scene
 
-    cfg = default_config(**{"scene.demo.n_views": 12, "scene.demo.point_spacing": 0.07})
+    cfg = default_config(**{"scene.options.n_views": 12, "scene.options.point_spacing": 0.07})
     return load_scene(cfg.scene)
 
 

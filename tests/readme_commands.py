@@ -24,9 +24,9 @@ README = ROOT / "README.md"
 EXPERIMENTS = sorted(p.stem for p in (ROOT / "conf" / "experiment").glob("*.yaml"))
 # The long sweeps on the smallest scene that still shows each sweep's effect (mIoU falling with
 # the noise, with the iterations past the early stop: measured 2026-12-04) and keys none sweeps:
-DEMO_SMALL = ["scene.demo.point_spacing=0.15", "scene.demo.image_width=80",
-              "scene.demo.image_height=60"]  # ~3.6k points instead of ~51k, 80x60 views
-SCANNET_SMALL = ["scene.voxel_size=0.08", "scene.mesh_views.image_width=80", "scene.mesh_views.image_height=60",
+DEMO_SMALL = ["scene.options.point_spacing=0.15", "scene.options.image_width=80",
+              "scene.options.image_height=60"]  # ~3.6k points instead of ~51k, 80x60 views
+SCANNET_SMALL = ["scene.voxel_size=0.08", "scene.options.image_width=80", "scene.options.image_height=60",
                  "seed=0"]  # 8 cm voxels, 80x60 views, one seed of the three
 SINGLE_FRAME_SMALL = ["protocol.max_targets=8"]
 VENV = Path(sys.prefix)
@@ -132,7 +132,7 @@ def classify(c: Command) -> Command:
     if "scene=scannet_frames" in t:
         c.append = ["scene.options.max_frames=8"]  # 8 of the 27 real frames
     if "scene=city" in t:
-        c.append = ["scene.city.blocks_x=1", "scene.city.blocks_y=1", "scene.city.point_spacing=0.5"]  # ~40k points
+        c.append = ["scene.options.blocks_x=1", "scene.options.blocks_y=1", "scene.options.point_spacing=0.5"]  # ~40k points
     if ("scannet0470" in t or "../shared" in t) and not HAVE_SHARED and not c.skip:
         c.skip = f"needs the real data in {SHARED / 'data'} (absent)"
     if any(p in t for p in CAPTURES) and not HAVE_7SCENES and not c.skip:

@@ -124,3 +124,12 @@ def test_tests_mirror_the_package():
         assert rel in folders or rel.split("/")[0] in ("analysis", "benchmarks") or not any(d.rglob("*.py")), rel
     names = [p.name for p in tests.rglob("test_*.py")]
     assert len(names) == len(set(names)), sorted(n for n in names if names.count(n) > 1)
+
+
+def test_scene_sources_import_shared_layers_only():
+    """A scene source module (data/sources/<name>.py) imports the shared data layers, never another
+    source: the registry (data/sources/__init__.py) is the one module that knows them all."""
+    mods = _modules()
+    src = {m for m, f in mods.items() if m.startswith("diffuser_lab.data.sources.")}
+    bad = sorted({(a, b) for a, b, _ in _imports(mods) if a in src and b in src})
+    assert not bad, bad

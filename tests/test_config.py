@@ -31,13 +31,18 @@ def test_config_md_tables_are_generated_from_the_schema():
 
 def test_one_validator_reads_the_declared_checks():
     """Every declared check is what the error line says; a section built directly is validated too."""
-    checked = [(key, f.metadata["check"]) for key, f in _keys(config.Config) if "check" in f.metadata]
-    assert len(checked) > 80
+    from diffuser_lab.data.sources import SOURCES
+
+    keys = [*_keys(config.Config), *(kf for e in SOURCES.values() for kf in _keys(e.options, "scene.options"))]
+    checked = [(key, f.metadata["check"]) for key, f in keys if "check" in f.metadata]
+    assert len(checked) > 120
     assert dict(checked)["graph.k"].expected == ">= 1 (paper: 24)"
     with pytest.raises(config.ConfigError, match=r"^graph\.k=0: expected >= 1 \(paper: 24\)$"):
         config.GraphConfig(k=0)
-    with pytest.raises(config.ConfigError, match=r"^scene\.demo\.fov_deg=200\.0: expected in \[10, 150\]$"):
-        config.DemoSceneConfig(fov_deg=200.0)
+    from diffuser_lab.data.sources.demo import DemoOptions
+
+    with pytest.raises(config.ConfigError, match=r"^scene\.options\.fov_deg=200\.0: expected in \[10, 150\]$"):
+        DemoOptions(fov_deg=200.0)
     # registry names are strings the resolve step checks, not enums of the schema
     named = {key for key, f in _keys(config.Config) if "registry" in f.metadata}
     assert named == {"scene.source", "taxonomy.name", "predictions.source", "method.name", "protocol.name"}

@@ -3,7 +3,7 @@
     python -m diffuser_lab.cli.config_docs            # rewrite the tables in docs/config.md
     python -m diffuser_lab.cli.config_docs --check    # exit 1 when docs/config.md is stale
 
-One table per section of the schema (``graph``, ``scene.scannet``, ...): each key's type, its
+One table per section of the schema (``graph``, ``scene.options``, ...): each key's type, its
 default in the schema (a group's YAML file may set another), its range or choices (the declared
 constraint of its field, the enum's values, or the names its registry has) and the comment
 written beside it in config.py. Only the text between the two markers is generated; the prose

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any, Optional
 
 from diffuser_lab.backends import numba as nb
-from diffuser_lab.config import RecordMode, SolverBackend, register, to_object
+from diffuser_lab.config import ConfigError, RecordMode, SolverBackend, check_moved, moved_key, register, to_object
 from diffuser_lab.recording import make_hooks, record_result
 from diffuser_lab.recording.heap import retain_freed_memory
 from diffuser_lab.runs import launchers, report
@@ -48,6 +48,8 @@ def one_line(exc: BaseException) -> str:
     for e in chain:
         lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
         keys = [ln.split(":", 1)[1].strip() for ln in lines if ln.startswith("full_key:")]
+        if keys and moved_key(keys[0]):  # a YAML file spelling a scene source's key the old way
+            return f"{keys[0]} is now {moved_key(keys[0])}: every scene source's keys are scene.options.KEY"
         if keys and lines and "missing mandatory value" in lines[0].lower():  # a MISSING key of the schema
             return f"{keys[0]} is required (pass {keys[0]}=...)"
         if keys and lines:
@@ -215,6 +217,12 @@ def main() -> None:
     # Rerun's own (Rust) log lines would repeat a record's failure over several lines: this
     # command reports it in one (set RUST_LOG to see them)
     os.environ.setdefault("RUST_LOG", "off")
+    try:  # before Hydra, in every mode (-m too): a key spelled the old way names its new spelling
+        for a in sys.argv[1:]:
+            check_moved(a)
+    except ConfigError as exc:
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        sys.exit(2)
     _prevalidate(sys.argv[1:])
     app = hydra.main(config_path=config_dir(), config_name="config", version_base="1.3")(_task)
     try:

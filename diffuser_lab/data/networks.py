@@ -475,7 +475,7 @@ class NetworkPredictor:
     def __call__(self, i: int, f):
         if f.rgb is None:
             raise ValueError(f"frame {f.name}: no colour image for the network ({self.label}); the scene's "
-                             f"frames need RGB (e.g. scene.rgbd_folder.color_suffix)")
+                             f"frames need RGB (e.g. scene.options.color_suffix)")
         rgb = np.ascontiguousarray(f.rgb)
         parts = [str(rgb.shape).encode(), rgb.tobytes()]
         if self.pass_depth:

@@ -107,6 +107,7 @@ def load_scene(cfg: SceneConfig, taxonomy: Taxonomy = SCANNET20, depth: Optional
     (demo, mesh_views) and, with ``depth.apply_to_real``, to the real sources' depth frames.
     With :func:`reuse_scenes` on, the same keys give the scene loaded last (new Scene and Frame
     objects over the same, read-only arrays)."""
+    cfg = sources.typed_options(cfg)  # a library caller's dict of options: typed and checked here
     if _REUSE.on:
         return _REUSE.get(_REUSE.key_of(cfg, taxonomy, depth), lambda: _load_scene(cfg, taxonomy, depth))
     return _load_scene(cfg, taxonomy, depth)
@@ -126,6 +127,7 @@ def load_frames(cfg: SceneConfig, taxonomy: Taxonomy = SCANNET20, depth: Optiona
                 ) -> Sequence[Frame]:
     """The frames of :func:`load_scene`'s scene, without its cloud where the source can (its
     ``frames`` entry: the city); otherwise the scene is loaded and its frames kept."""
+    cfg = sources.typed_options(cfg)
     source, sensor = sources.get(cfg.source), sensor_model(depth) if depth is not None else None
     if source.frames is None:
         return load_scene(cfg, taxonomy, depth).frames

@@ -22,9 +22,6 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Mapping, Optional
 
-from omegaconf import OmegaConf
-from omegaconf.errors import OmegaConfBaseException
-
 from diffuser_lab import config
 from diffuser_lab.config import Config, check_name
 from diffuser_lab.data import predictions, sources
@@ -69,16 +66,8 @@ def resolve(cfg: Config, protocols: Optional[Mapping[str, Any]] = None) -> Confi
 def with_options(cfg: Config) -> Config:
     """``scene.options`` as the dataclass its scene source declares (:attr:`SceneSource.options`):
     typed, defaults filled, ranges checked; one line naming ``scene.options.<key>`` otherwise."""
-    kind = sources.get(cfg.scene.source).options
-    if kind is None or isinstance(cfg.scene.options, kind):
-        return cfg
-    try:
-        options = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(kind), dict(cfg.scene.options)))
-    except OmegaConfBaseException as exc:
-        where = f"scene.options.{exc.full_key}" if getattr(exc, "full_key", None) else "scene.options"
-        msg = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
-        raise config.ConfigError(f"{where}: {msg}") from None
-    return dataclasses.replace(cfg, scene=dataclasses.replace(cfg.scene, options=options))
+    scene = sources.typed_options(cfg.scene)
+    return cfg if scene is cfg.scene else dataclasses.replace(cfg, scene=scene)
 
 
 def default_config(**overrides: Any) -> Config:

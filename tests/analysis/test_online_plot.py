@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from conftest import ROOT
 
-TINY = ["protocol=online", "record=off", "scene.demo.n_views=6", "scene.demo.image_width=64",
-        "scene.demo.image_height=48"]
+TINY = ["protocol=online", "record=off", "scene.options.n_views=6", "scene.options.image_width=64",
+        "scene.options.image_height=48"]
 
 
 def compose(*overrides):

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from conftest import ROOT, run_cli
 
-TINY = ["scene.demo.point_spacing=0.1", "n_views=6", "solver.max_iter=20"]
+TINY = ["scene.options.point_spacing=0.1", "n_views=6", "solver.max_iter=20"]
 
 
 @pytest.fixture(scope="module")

@@ -34,7 +34,7 @@ SEVEN = SHARED / "data" / "7scenes_sample"
 ROUNDS = 3  # timed passes; the figures are the medians of theirs (a 2-core machine's noise is ~+-20%)
 CASES = {
     "scannet0470-given": (["scene=scannet0470"], 15.0, 50.0, 99.0, 0.5, SCANNET),
-    "7scenes-growing": (["scene=rgbd_folder", f"scene.rgbd_folder.root={SEVEN}", "online.map=growing",
+    "7scenes-growing": (["scene=rgbd_folder", f"scene.options.root={SEVEN}", "online.map=growing",
                          "predictions=model", "predictions.model._target_=tests.toy_networks.grey_levels",
                          "predictions.cache_dir=null"], 40.0, 120.0, 97.0, None, SEVEN),
     "demo-growing": (["online.map=growing"], 40.0, 120.0, 97.0, 0.5, None),

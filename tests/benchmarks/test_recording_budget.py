@@ -4,7 +4,7 @@ bytes per diffused point, on three runs:
 
     demo                                        budget: wall <= 1.20x, <= 300 bytes per point
     scene=scannet0470 (../shared)               budget: wall <= 1.10x, <= 300 bytes per point
-    demo, scene.demo.point_spacing=0.012        budget: wall <= 1.10x, <= 300 bytes per point
+    demo, scene.options.point_spacing=0.012        budget: wall <= 1.10x, <= 300 bytes per point
 
 Measure with
 
@@ -27,11 +27,11 @@ from conftest import SHARED, run_cli
 pytestmark = pytest.mark.slow  # timing runs (also run once as tests): not the quick loop
 
 SCANNET = SHARED / "data" / "scannet" / "scene0470_00" / "scene0470_00_vh_clean_2.labels.ply"
-SMALL = ["scene.demo.n_views=10", "scene.demo.point_spacing=0.08", "solver.max_iter=60"]
+SMALL = ["scene.options.n_views=10", "scene.options.point_spacing=0.08", "solver.max_iter=60"]
 CASES = {
     "demo": ([], 1.20),
     "scannet0470": (["scene=scannet0470"], 1.10),
-    "demo-566k": (["scene.demo.point_spacing=0.012"], 1.10),
+    "demo-566k": (["scene.options.point_spacing=0.012"], 1.10),
 }
 BYTES = 300
 

@@ -21,7 +21,7 @@ from diffuser_lab.runs.pipeline import run
 
 pytestmark = pytest.mark.slow  # timing runs (also run once as tests): not the quick loop
 
-SMALL = {"scene.demo.n_views": 10, "scene.demo.point_spacing": 0.08, "solver.max_iter": 60}
+SMALL = {"scene.options.n_views": 10, "scene.options.point_spacing": 0.08, "solver.max_iter": 60}
 
 
 def _bench(benchmark, tmp_path, mode: str):

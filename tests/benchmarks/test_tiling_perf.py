@@ -22,7 +22,7 @@ from conftest import compose
 
 pytestmark = pytest.mark.slow  # timing runs (also run once as tests): not the quick loop
 
-SMALL = ["scene.demo.n_views=8", "scene.demo.point_spacing=0.1", "solver.max_iter=30", "tiling.size=2"]
+SMALL = ["scene.options.n_views=8", "scene.options.point_spacing=0.1", "solver.max_iter=30", "tiling.size=2"]
 CITY = ["scene=city", "predictions=realistic_city", "tiling.size=30"]
 
 

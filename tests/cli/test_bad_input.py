@@ -4,6 +4,8 @@ Each case starts from a small valid posed RGB-D folder (rendered from the demo r
 breaks one thing, then runs the command line as a user would.
 """
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -59,8 +61,8 @@ def copy(good, tmp_path):
 
 
 def cli(root, *extra, cwd):
-    args = ["scene=rgbd_folder", f"scene.rgbd_folder.root={root}", "scene.rgbd_folder.label_suffix=label.png",
-            f"scene.rgbd_folder.mapping={root.parent / 'mapping.csv'}", "scene.rgbd_folder.cloud_voxel=0.05",
+    args = ["scene=rgbd_folder", f"scene.options.root={root}", "scene.options.label_suffix=label.png",
+            f"scene.options.mapping={root.parent / 'mapping.csv'}", "scene.options.cloud_voxel=0.05",
             "predictions=gt", "record=off", "solver.max_iter=30", "graph.k=8", *extra]
     return run_cli(*args, f"hydra.run.dir={cwd / 'run'}", cwd=cwd)
 
@@ -93,29 +95,55 @@ def test_missing_folder(tmp_path):
     one_error(cli(tmp_path / "nope", cwd=tmp_path), "does not exist")
 
 
-@pytest.mark.parametrize("scene,key", [("rgbd_folder", "scene.rgbd_folder.root"), ("scannet", "scene.scannet.root"),
-                                       ("mesh_views", "scene.mesh_views.path")])
+@pytest.mark.parametrize("scene,key", [("rgbd_folder", "scene.options.root"), ("scannet", "scene.options.root"),
+                                       ("mesh_views", "scene.options.path")])
 def test_missing_required_path_stops_at_start_up(scene, key, tmp_path):
     p = run_cli(f"scene={scene}", cwd=tmp_path)
     one_error(p, f"{key} is required")
     assert p.returncode == 2 and not (tmp_path / "logs").exists()  # nothing was started
 
 
-def test_required_keys_are_missing_in_the_schema():
-    """One dataclass per scene source: its required key is MISSING, asked for only when selected."""
+def test_every_scene_source_has_one_shape():
+    """Every scene source owns an options dataclass in its own module (``scene.options.KEY``, typed
+    and range-checked); SceneConfig holds no source's keys; a required key is asked for only when
+    its source is selected, by its new name."""
     import dataclasses
 
     from omegaconf import MISSING
 
-    from diffuser_lab.config import REQUIRED, ConfigError, SceneConfig, default_config
+    from diffuser_lab.config import Section, SceneConfig
+    from diffuser_lab.data.sources import SOURCES
+    from diffuser_lab.runs.resolve import default_config
 
-    for source, key in REQUIRED.items():
-        cls = next(f.type for f in dataclasses.fields(SceneConfig) if f.name == source)
-        cls = getattr(__import__("diffuser_lab.config", fromlist=["x"]), str(cls).split("[")[-1].rstrip("]"))
-        assert next(f.default for f in dataclasses.fields(cls) if f.name == key) is MISSING
-    assert default_config().scene.scannet is None  # the demo run carries no other source's settings
-    with pytest.raises(ConfigError, match="scene.scannet.root is required"):
-        default_config(**{"scene.source": "scannet"})
+    assert {f.name for f in dataclasses.fields(SceneConfig)} == {"source", "name", "voxel_size", "options"}
+    for entry in SOURCES.values():
+        assert entry.options is not None and issubclass(entry.options, Section), entry.name
+        assert entry.options.KEY == "scene.options" and entry.options.__module__ == entry.load.__module__
+    required = {e.name for e in SOURCES.values()
+                if any(f.default is MISSING and f.default_factory is dataclasses.MISSING
+                       for f in dataclasses.fields(e.options))}
+    assert {"scannet", "mesh_views", "rgbd_folder", "tum", "colmap"} <= required
+    assert type(default_config().scene.options).__name__ == "DemoOptions"
+    for source in sorted(required):
+        with pytest.raises(ValueError, match=r"^scene\.options\.\w+ is required"):
+            default_config(**{"scene.source": source})
+
+
+@pytest.mark.parametrize("old, new", [("scene.demo.n_views=3", "scene.options.n_views"),
+                                      ("scene.scannet.root=/x", "scene.options.root"),
+                                      ("+scene.city.blocks_x=1", "scene.options.blocks_x")])
+def test_an_old_spelling_names_the_new_key(old, new, tmp_path):
+    """``scene.<source>.KEY`` (the built-in sources' spelling until 2026-12) stops with one line
+    naming ``scene.options.KEY``, on the command line (also with -m) and in the library."""
+    from diffuser_lab.config import ConfigError, default_config
+
+    for args in ([old], ["-m", old]):
+        p = subprocess.run([sys.executable, "-m", "diffuser_lab", *args], cwd=tmp_path, capture_output=True,
+                           text=True, timeout=120)
+        one_error(p, f"is now {new}")
+        assert p.returncode == 2 and not (tmp_path / "logs").exists()
+    with pytest.raises(ConfigError, match=f"is now {new}"):
+        default_config(**{old.lstrip("+").split("=")[0]: 1})
 
 
 def test_frame_counts_differ(good, tmp_path):
@@ -143,7 +171,7 @@ def test_inverse_pose_convention_warns(good, tmp_path):
     for f in sorted(root.glob("*.pose.txt")):
         np.savetxt(f, np.linalg.inv(np.loadtxt(f)))  # world-to-camera written where camera-to-world belongs
     write_ply(tmp_path / "cloud.ply", scene.points)
-    p = cli(root, f"scene.rgbd_folder.cloud={tmp_path / 'cloud.ply'}", cwd=tmp_path)
+    p = cli(root, f"scene.options.cloud={tmp_path / 'cloud.ply'}", cwd=tmp_path)
     assert p.returncode == 0, p.stderr
     assert any("inverse convention" in w for w in warnings_of(p)), p.stderr
 
@@ -166,7 +194,7 @@ def test_label_ids_outside_the_mapping(good, tmp_path):
 
 def test_depth_in_the_wrong_unit_warns(good, tmp_path):
     root, _ = copy(good, tmp_path)
-    p = cli(root, "scene.rgbd_folder.depth_scale=1", cwd=tmp_path)  # millimetres read as metres
+    p = cli(root, "scene.options.depth_scale=1", cwd=tmp_path)  # millimetres read as metres
     assert any("depth_scale" in w for w in warnings_of(p)), p.stderr
 
 
@@ -186,13 +214,13 @@ def test_bad_point_clouds(good, tmp_path, case, needle):
         PlyData([PlyElement.describe(v, "vertex")]).write(str(ply))
     else:
         ply.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 99999999999\n\x00\x01")
-    one_error(cli(root, f"scene.rgbd_folder.cloud={ply}", cwd=tmp_path), needle)
+    one_error(cli(root, f"scene.options.cloud={ply}", cwd=tmp_path), needle)
 
 
 def test_k_not_smaller_than_n(good, tmp_path):
     root, scene = copy(good, tmp_path)
     write_ply(tmp_path / "cloud.ply", scene.points[:20])
-    one_error(cli(root, f"scene.rgbd_folder.cloud={tmp_path / 'cloud.ply'}", "graph.k=20", cwd=tmp_path),
+    one_error(cli(root, f"scene.options.cloud={tmp_path / 'cloud.ply'}", "graph.k=20", cwd=tmp_path),
               "graph.k=20", "20")
 
 
@@ -200,7 +228,7 @@ def test_duplicate_points_give_no_nan(good, tmp_path):
     root, scene = copy(good, tmp_path)
     write_ply(tmp_path / "cloud.ply", np.repeat(scene.points, 3, axis=0),  # every point three times
               np.repeat(scene.gt_labels, 3))
-    p = cli(root, f"scene.rgbd_folder.cloud={tmp_path / 'cloud.ply'}", cwd=tmp_path)
+    p = cli(root, f"scene.options.cloud={tmp_path / 'cloud.ply'}", cwd=tmp_path)
     assert p.returncode == 0, p.stderr
     s = json.loads((tmp_path / "run" / "summary.json").read_text())
     labels = np.load(tmp_path / "run" / "labels.npy")
@@ -215,7 +243,7 @@ def test_duplicate_points_give_no_nan(good, tmp_path):
 def test_no_frame_sees_any_point(good, tmp_path):
     root, scene = copy(good, tmp_path)
     write_ply(tmp_path / "cloud.ply", scene.points + np.float32([100.0, 0, 0]))  # the cloud is elsewhere
-    p = cli(root, f"scene.rgbd_folder.cloud={tmp_path / 'cloud.ply'}", cwd=tmp_path)
+    p = cli(root, f"scene.options.cloud={tmp_path / 'cloud.ply'}", cwd=tmp_path)
     assert p.returncode == 0, p.stderr
     assert any("no frame sees any point" in w for w in warnings_of(p)), p.stderr
     assert (np.load(tmp_path / "run" / "labels.npy") == -1).all()  # nothing labelled, not class 0

@@ -25,7 +25,7 @@ def test_run_writes_its_folder(tmp_path):
     assert {"miou", "accuracy"} <= set(s["baseline"]["bayesian"])
     assert {"load", "evidence", "graph", "diffusion", "total"} <= set(s["timings_s"])
     assert s["diffusion"]["iterations"] == 60
-    assert "scene.demo.n_views=10" in s["overrides"]
+    assert "scene.options.n_views=10" in s["overrides"]
     labels = np.load(run_dir / "labels.npy")
     assert labels.shape == (s["n_points"],) and labels.dtype == np.int16
     assert (labels >= -1).all() and (labels < s["n_classes"]).all()

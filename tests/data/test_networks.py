@@ -24,8 +24,8 @@ needs_7scenes = pytest.mark.skipif(not (SEVEN / "camera-intrinsics.txt").is_file
 # ------------------------------------------------------------------------------------ helpers
 
 def scene_overrides(n_frames=5):
-    return ["scene=rgbd_folder", f"scene.rgbd_folder.root={SEVEN}", f"scene.rgbd_folder.max_frames={n_frames}",
-            "scene.rgbd_folder.cloud_voxel=0.05", "solver.max_iter=30"]
+    return ["scene=rgbd_folder", f"scene.options.root={SEVEN}", f"scene.options.max_frames={n_frames}",
+            "scene.options.cloud_voxel=0.05", "solver.max_iter=30"]
 
 
 @pytest.fixture(scope="module")

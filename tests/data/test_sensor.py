@@ -14,12 +14,12 @@ from diffuser_lab.config import (
     ConfigError,
     DepthModel,
     DepthNoiseConfig,
-    RgbdFolderConfig,
     SceneConfig,
     default_config,
 )
 from diffuser_lab.data.render import MeshRenderer, intrinsics, look_at
 from diffuser_lab.data.scene import Frame
+from diffuser_lab.data.sources.rgbd_folder import RgbdFolderOptions
 from diffuser_lab.data.sensor import (
     SensorModel,
     axial_sigma,
@@ -199,7 +199,7 @@ def test_depth_error_report_on_known_noise():
 def test_perfect_is_the_default_and_changes_nothing(small_demo_scene):
     from diffuser_lab.runs.pipeline import load_scene
 
-    cfg = default_config(**{"scene.demo.n_views": 12, "scene.demo.point_spacing": 0.07})
+    cfg = default_config(**{"scene.options.n_views": 12, "scene.options.point_spacing": 0.07})
     assert cfg.depth.model == DepthModel.perfect and sensor_model(cfg.depth) is None
     same = load_scene(cfg.scene, depth=cfg.depth)
     for a, b in zip(small_demo_scene.frames, same.frames):
@@ -221,7 +221,7 @@ def test_apply_to_real_depth(tmp_path):
     from diffuser_lab.runs.pipeline import load_scene
 
     root = write_rgbd(tmp_path, make_world())
-    scene = SceneConfig(source="rgbd_folder", rgbd_folder=RgbdFolderConfig(root=str(root)))
+    scene = SceneConfig(source="rgbd_folder", options=RgbdFolderOptions(root=str(root)))
     real = load_scene(scene, depth=DepthNoiseConfig(model=DepthModel.sensor))  # apply_to_real off
     plain = load_scene(scene)
     np.testing.assert_array_equal(real.frames[0].depth, plain.frames[0].depth)
@@ -247,7 +247,7 @@ def test_depth_report_command(tmp_path, capsys):
     from diffuser_lab.cli.depth_report import main
 
     out = tmp_path / "rep.json"
-    main(["scene.demo.n_views=4", "scene.demo.point_spacing=0.1", "--json", str(out)])
+    main(["scene.options.n_views=4", "scene.options.point_spacing=0.1", "--json", str(out)])
     text = capsys.readouterr().out
     assert "| 1-2 |" in text and "holes" in text
     rep = json.loads(out.read_text())
@@ -268,11 +268,11 @@ def test_sensor_depth_on_the_real_scannet_mesh():
     which real depth does not show: docs/sensor.md), inlier error growing with range and within 2x
     of Nguyen's sigma_z at each bin's ends (the bins mix depths and angles)."""
     from diffuser_lab.cli.depth_report import report_for
-    from diffuser_lab.config import MeshViewsConfig
+    from diffuser_lab.data.sources.mesh_views import MeshViewsOptions
 
     cfg = default_config(**{"depth.model": "sensor"})
     cfg.scene = SceneConfig(source="mesh_views", voxel_size=0.02,
-                            mesh_views=MeshViewsConfig(path=str(REAL_MESH), n_views=12))
+                            options=MeshViewsOptions(path=str(REAL_MESH), n_views=12))
     rep, n = report_for(cfg)
     assert n == 12 and 0.003 < rep["all"]["holes"] < 0.15
     rows = [r for r in rep["bins"] if r["pixels"] > 10000]

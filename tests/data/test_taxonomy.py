@@ -192,9 +192,7 @@ def test_scannet_source_in_nyu40_and_ids(scannet_dir):
     names20 = np.array(SCANNET20.names + ("-",))[s20.gt_labels[same]]
     names40 = np.array(nyu.taxonomy.names + ("-",))[nyu.gt_labels[same]]
     assert same.any() and (np.char.replace(names40, "refridgerator", "refrigerator") == names20).all()
-    from diffuser_lab.config import ScannetConfig
-
-    cfg = default_config(**{"scene.source": "scannet", "scene.scannet": ScannetConfig(root=str(scannet_dir)),
+    cfg = default_config(**{"scene.source": "scannet", "scene.options.root": str(scannet_dir),
                             "taxonomy.name": "ids"})
     with warnings.catch_warnings(record=True) as w:
         warnings.simplefilter("always")
@@ -272,7 +270,7 @@ def test_cli_ids_taxonomy_on_an_rgbd_folder(tmp_path):
     root = write_rgbd(tmp_path, world)  # NYU40 ids in the label images, as a network's would be
     preds = write_label_predictions(tmp_path / "preds", world, [f"frame-{i:06d}" for i in range(len(world["poses"]))])
     run = tmp_path / "run"
-    p = run_cli("scene=rgbd_folder", f"scene.rgbd_folder.root={root}", "scene.rgbd_folder.label_suffix=label.png",
+    p = run_cli("scene=rgbd_folder", f"scene.options.root={root}", "scene.options.label_suffix=label.png",
                 "predictions=files", f"predictions.folder={preds}", "predictions.mapping=null", "taxonomy=ids",
                 "record=off",
                 "output.quiet=true", "solver.max_iter=20", f"hydra.run.dir={run}", cwd=tmp_path)

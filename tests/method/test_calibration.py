@@ -170,7 +170,7 @@ def test_temperature_changes_calibration_not_labels(small_demo_scene):
 
 # --- summary.json of both protocols and the reliability plot -----------------------------------------
 
-TINY = ["scene.demo.point_spacing=0.1", "n_views=6", "solver.max_iter=20", "record=off"]
+TINY = ["scene.options.point_spacing=0.1", "n_views=6", "solver.max_iter=20", "record=off"]
 
 
 @pytest.fixture(scope="module")

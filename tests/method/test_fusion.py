@@ -41,7 +41,7 @@ def test_a_new_method_is_one_registry_entry(monkeypatch):
     entry = fusion.FusionMethod("copy_of_bayesian", "the Bayesian baseline, renamed", graph=False,
                                 evidence=fusion.BASELINE, multi_view_row=True)
     monkeypatch.setitem(fusion.METHODS, entry.name, entry)
-    small = {"scene.demo.n_views": 6, "scene.demo.point_spacing": 0.1, "record.mode": "off"}
+    small = {"scene.options.n_views": 6, "scene.options.point_spacing": 0.1, "record.mode": "off"}
     a = run(default_config(**small, **{"method.name": "copy_of_bayesian"}))
     b = run(default_config(**small, **{"method.name": "bayesian"}))
     assert a.method == "copy_of_bayesian"

@@ -20,7 +20,7 @@ from diffuser_lab.method.online import OnlineDiffuser, discount
 from diffuser_lab.runs.online import online
 from diffuser_lab.runs.pipeline import _work_cloud, load_scene, run
 
-SMALL = {"scene.demo.n_views": 10, "scene.demo.point_spacing": 0.08, "protocol.name": "online",
+SMALL = {"scene.options.n_views": 10, "scene.options.point_spacing": 0.08, "protocol.name": "online",
          "record.mode": "off"}
 
 
@@ -235,7 +235,7 @@ def test_bad_frames_are_skipped_or_stop_the_run(demo):
 
 @pytest.mark.slow
 def test_cli_online_run_writes_its_folder(tmp_path):
-    r = run_cli("protocol=online", "scene.demo.n_views=6", "scene.demo.point_spacing=0.08", "record=off",
+    r = run_cli("protocol=online", "scene.options.n_views=6", "scene.options.point_spacing=0.08", "record=off",
                 f"hydra.run.dir={tmp_path / 'run'}")
     assert r.returncode == 0, r.stderr
     assert "diffuser-lab online" in r.stdout and "per frame [ms]" in r.stdout
@@ -262,7 +262,7 @@ def test_scannet0470_given_map_keeps_the_batch_result():
 
 # ------------------------------------------------------------------------------ growing map
 
-GROW = {"online.map": "growing", "scene.demo.n_views": 8, "online.voxel_size": 0.06}
+GROW = {"online.map": "growing", "scene.options.n_views": 8, "online.voxel_size": 0.06}
 
 
 def _grow_play(cfg, frames, backend="auto"):
@@ -343,9 +343,9 @@ def test_cli_bad_frame_skips_or_stops_and_keeps_the_records(tmp_path):
 
     h, w = np.asarray(Image.open(depth)).shape
     _save_u16(depth, np.full((h, w), 65535))
-    args = ["scene=rgbd_folder", f"scene.rgbd_folder.root={root}", "protocol=online", "predictions=model",
+    args = ["scene=rgbd_folder", f"scene.options.root={root}", "protocol=online", "predictions=model",
             "predictions.model._target_=tests.toy_networks.grey_levels", "predictions.cache_dir=null",
-            "scene.rgbd_folder.cloud_voxel=0.05"]
+            "scene.options.cloud_voxel=0.05"]
     r = run_cli(*args, f"hydra.run.dir={tmp_path / 'skip'}")
     assert r.returncode == 0, r.stderr
     warn = [ln for ln in r.stderr.splitlines() if "online: frame 2 skipped" in ln]

@@ -19,7 +19,7 @@ def test_killed_run_leaves_running_summary_and_readable_mcap(tmp_path):
     env = dict(os.environ)
     env.pop("HYDRA_FULL_ERROR", None)
     proc = subprocess.Popen(
-        [sys.executable, "-m", "diffuser_lab", "n_views=8", "scene.demo.point_spacing=0.08", "solver.max_iter=1000000",
+        [sys.executable, "-m", "diffuser_lab", "n_views=8", "scene.options.point_spacing=0.08", "solver.max_iter=1000000",
          "solver.tol=0", "record=mcap", "record.interval=5", f"hydra.run.dir={run_dir}"],
         cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
@@ -82,7 +82,7 @@ def test_a_record_that_cannot_be_written_ends_in_one_error_line_after_the_labels
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails (EFBIG), as on a full disk
         resource.setrlimit(resource.RLIMIT_FSIZE, (200_000, 200_000))
 
-    args = [sys.executable, "-m", "diffuser_lab", "scene.demo.n_views=10", "scene.demo.point_spacing=0.08",
+    args = [sys.executable, "-m", "diffuser_lab", "scene.options.n_views=10", "scene.options.point_spacing=0.08",
             "solver.max_iter=60", "output.labels_ply=false"]
     env = {k: v for k, v in os.environ.items() if k not in ("HYDRA_FULL_ERROR", "RUST_LOG")}
     p = subprocess.run([*args, f"hydra.run.dir={tmp_path / 'full'}"], cwd=ROOT, env=env, preexec_fn=full_disk,
@@ -105,7 +105,7 @@ def test_a_tiled_driver_killed_mid_run_resumes_to_equal_labels(tmp_path):
     folder: the labels equal an undisturbed run's, the finished tiles kept."""
     import numpy as np
 
-    args = [sys.executable, "-m", "diffuser_lab", "scene.demo.n_views=10", "scene.demo.point_spacing=0.08",
+    args = [sys.executable, "-m", "diffuser_lab", "scene.options.n_views=10", "scene.options.point_spacing=0.08",
             "solver.max_iter=60", "protocol=tiled", "tiling.size=1.5", "record=off", "output.labels_ply=false"]
     env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
     killed = tmp_path / "killed"

@@ -13,7 +13,7 @@ from diffuser_lab.recording import features as fv
 from diffuser_lab.recording.mcap_encode import TOPIC_FEATURE_VIEW, TOPIC_FEATURES
 from diffuser_lab.runs.pipeline import run
 
-SMALL = {"scene.demo.n_views": 12, "scene.demo.point_spacing": 0.07, "predictions.source": "features",
+SMALL = {"scene.options.n_views": 12, "scene.options.point_spacing": 0.07, "predictions.source": "features",
          "predictions.dim": 64, "solver.max_iter": 40}
 
 

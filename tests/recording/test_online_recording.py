@@ -23,10 +23,10 @@ from diffuser_lab.recording.online import FrameSchedule
 from diffuser_lab.recording.rerun_log import class_ids
 from diffuser_lab.runs.online import online
 
-SMALL = {"protocol.name": "online", "scene.demo.n_views": 6, "scene.demo.image_width": 64,
-         "scene.demo.image_height": 48, "online.compare_batch": False, "online.rate": 0.0, "online.finish": 0}
+SMALL = {"protocol.name": "online", "scene.options.n_views": 6, "scene.options.image_width": 64,
+         "scene.options.image_height": 48, "online.compare_batch": False, "online.rate": 0.0, "online.finish": 0}
 # per-frame records compared bit for bit between runs: no idle steps (they follow the wall clock), no finishing pass
-SMALL_CLI = ["protocol=online", "scene.demo.n_views=6", "scene.demo.image_width=64", "scene.demo.image_height=48",
+SMALL_CLI = ["protocol=online", "scene.options.n_views=6", "scene.options.image_width=64", "scene.options.image_height=48",
              "online.compare_batch=false", "online.rate=0", "online.finish=0"]
 TIMING = {"latency_ms", "map_ms", "evidence_ms", "steps_ms", "idle_ms"}
 RERUN = str(Path(sys.executable).with_name("rerun"))
@@ -405,8 +405,8 @@ def test_killed_online_run_leaves_readable_records(tmp_path):
     env.pop("HYDRA_FULL_ERROR", None)
     # 1000 steps a frame and no early stop: a few hundred ms per frame on the demo, 120 frames: the run
     # is far from its end when its recorder (which may lag on a busy machine) has written 3 frames
-    proc = subprocess.Popen([sys.executable, "-m", "diffuser_lab", "protocol=online", "scene.demo.n_views=120",
-                             "scene.demo.point_spacing=0.08", "online.steps=1000", "solver.tol=0", "record.interval=1",
+    proc = subprocess.Popen([sys.executable, "-m", "diffuser_lab", "protocol=online", "scene.options.n_views=120",
+                             "scene.options.point_spacing=0.08", "online.steps=1000", "solver.tol=0", "record.interval=1",
                              f"hydra.run.dir={run_dir}"], cwd=ROOT, env=env, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
     mcap = run_dir / "run.mcap"

@@ -76,7 +76,7 @@ def test_round_trip_last_z_is_the_solvers_and_gives_the_labels(cli_runs):
     np.testing.assert_array_equal(labels_from_scores(Z), labels)
     assert log.metrics[-1]["miou"] == pytest.approx(s["metrics"]["miou"], abs=1e-9)
     assert log.summary["diffusion"]["iterations"] == 60
-    assert "graph:" in log.config_yaml and "scene.demo.n_views=10" in log.overrides
+    assert "graph:" in log.config_yaml and "scene.options.n_views=10" in log.overrides
 
 
 def test_library_final_z_exact_also_after_early_convergence(small_demo_scene, tmp_path):

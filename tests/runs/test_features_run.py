@@ -7,7 +7,7 @@ from diffuser_lab.config import default_config
 from diffuser_lab.data.predictions import with_predictions
 from diffuser_lab.runs.pipeline import run
 
-SMALL = {"scene.demo.n_views": 12, "scene.demo.point_spacing": 0.07}
+SMALL = {"scene.options.n_views": 12, "scene.options.point_spacing": 0.07}
 CLEAN = {"predictions.source": "features", "predictions.strength": 0.0, "predictions.noise": 0.0,
          "predictions.rotation_deg": 0.0, "predictions.boundary_mix": 0.0, "predictions.stride": 1,
          "predictions.dim": 64}

@@ -98,8 +98,8 @@ def test_a_sweeps_jobs_reuse_their_scenes_and_get_the_same_results():
     from diffuser_lab.data.taxonomy import resolve_taxonomy
     from diffuser_lab.runs import pipeline
 
-    small = {"scene.demo.n_views": 4, "scene.demo.point_spacing": 0.1, "solver.max_iter": 30}
-    cfg, other = default_config(**small), default_config(**small, **{"scene.demo.seed": 1})
+    small = {"scene.options.n_views": 4, "scene.options.point_spacing": 0.1, "solver.max_iter": 30}
+    cfg, other = default_config(**small), default_config(**small, **{"scene.options.seed": 1})
     fresh = run(cfg)
     pipeline.reuse_scenes(True)
     try:

@@ -19,7 +19,7 @@ def compose(*overrides):
     register()
     with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
         cfg = to_object(hcompose("config", overrides=["scene=scannet0470", *overrides]))
-    cfg.scene.mesh_views.path = str(MESH)  # independent of the working directory
+    cfg.scene.options.path = str(MESH)  # independent of the working directory
     return cfg
 
 

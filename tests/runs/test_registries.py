@@ -47,7 +47,7 @@ def tiny(monkeypatch):
 
 def test_a_source_registered_at_run_time_runs_every_protocol(tiny, tmp_path):
     cfg = default_config(**{"scene.source": "tiny", "scene.options": ROOM, "predictions.source": "oracle", **RUN})
-    demo = default_config(**{**{f"scene.demo.{k}": v for k, v in ROOM.items()}, "predictions.source": "gt", **RUN})
+    demo = default_config(**{**{f"scene.options.{k}": v for k, v in ROOM.items()}, "predictions.source": "gt", **RUN})
     for name in ("global_3d", "single_frame", "online"):
         protocol = PROTOCOLS[name]
         res = protocol.run(cfg)

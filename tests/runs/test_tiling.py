@@ -20,7 +20,7 @@ from diffuser_lab.runs import pipeline, tiled
 from diffuser_lab.runs.tiled import TileSpec, frames_meeting, tile_points
 from conftest import ROOT, SMALL_DEMO, run_cli
 
-SMALL = {"scene.demo.n_views": 12, "scene.demo.point_spacing": 0.07, "solver.max_iter": 60}
+SMALL = {"scene.options.n_views": 12, "scene.options.point_spacing": 0.07, "solver.max_iter": 60}
 TILED = {**SMALL, "protocol.name": "tiled", "tiling.size": 2.0}
 
 
@@ -241,7 +241,7 @@ def test_a_ray_worker_killed_mid_tile_is_retried_and_the_labels_equal(tmp_path):
     task again (tiling.max_retries), the run ends done with labels equal to an undisturbed run's."""
     pytest.importorskip("ray")
     psutil = pytest.importorskip("psutil")
-    args = [sys.executable, "-m", "diffuser_lab", "scene.demo.n_views=10", "scene.demo.point_spacing=0.08",
+    args = [sys.executable, "-m", "diffuser_lab", "scene.options.n_views=10", "scene.options.point_spacing=0.08",
             "solver.max_iter=2000", "solver.tol=0", "protocol=tiled", "tiling.size=1.5", "record=off",
             "output.labels_ply=false"]  # 2000 steps: a tile lasts long enough to be caught running
     # its own local Ray (RAY_ADDRESS of another test's cluster would send the tasks there)

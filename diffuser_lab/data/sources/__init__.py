@@ -8,7 +8,7 @@ other layout (templates.py; ScanNet without a mesh and as SensReader writes it a
 nerfstudio's transforms.json (nerfstudio.py), Replica as NICE-SLAM ships it (replica.py), COLMAP
 models (colmap.py), ROS 1 / ROS 2 bags (rosbag.py). Each module has a
 ``load(cfg, taxonomy, sensor) -> Scene``; the first five read their own keys of the
-:class:`~diffuser_lab.config.SceneConfig` (``scene.demo.*``, ``scene.scannet.*``, ...), the capture
+:class:`~diffuser_lab.config.SceneConfig` (``scene.options.*``, ``scene.options.*``, ...), the capture
 formats ``scene.options``, an instance of the options dataclass their entry declares.
 
 Adding a dataset format is one module with such a ``load`` and an options dataclass (extending
@@ -21,20 +21,23 @@ options dataclass reads ``scene.options`` as a free-form dict (``+scene.options.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Callable, Optional, Sequence
 
 import numpy as np
 from hydra.core.config_store import ConfigStore
+from omegaconf import OmegaConf
+from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 
-from diffuser_lab.config import SceneConfig
+from diffuser_lab.config import ConfigError, SceneConfig
 from diffuser_lab.data.scene import Frame, Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
 from diffuser_lab.registry import Registry
 
 from . import city, colmap, demo, mesh_views, nerfstudio, replica, rgbd_folder, rosbag, scannet, templates, tum
 
-__all__ = ["SceneSource", "SOURCES", "register", "get"]
+__all__ = ["SceneSource", "SOURCES", "register", "get", "typed_options"]
 
 
 @dataclass(frozen=True)
@@ -70,14 +73,16 @@ class SceneSource:
 
 
 SOURCES: Registry = Registry("scene.source", "scene source", [
-    SceneSource("demo", "embedded procedural room", demo.load, rendered=True),
+    SceneSource("demo", "embedded procedural room", demo.load, rendered=True,
+                options=demo.DemoOptions),
     SceneSource("mesh_views", "labelled mesh (PLY with per-vertex label) + rendered views", mesh_views.load,
-                rendered=True, label_ids=mesh_views.label_ids),
+                rendered=True, label_ids=mesh_views.label_ids, options=mesh_views.MeshViewsOptions),
     SceneSource("scannet", "ScanNet export layout (color/ depth/ pose/ intrinsic/ label-filt/ + PLYs)", scannet.load,
-                label_ids=scannet.label_ids),
+                label_ids=scannet.label_ids, options=scannet.ScannetOptions),
     SceneSource("rgbd_folder", "frame-XXXXXX.{color,depth,pose} + camera-intrinsics.txt", rgbd_folder.load,
-                label_ids=rgbd_folder.label_ids),
-    SceneSource("tum", "TUM RGB-D: rgb.txt depth.txt groundtruth.txt, associated by timestamp", tum.load),
+                label_ids=rgbd_folder.label_ids, options=rgbd_folder.RgbdFolderOptions),
+    SceneSource("tum", "TUM RGB-D: rgb.txt depth.txt groundtruth.txt, associated by timestamp", tum.load,
+                options=tum.TumOptions),
     SceneSource("rosbag", "ROS 1 .bag / ROS 2 bag (mcap, db3): depth, colour, CameraInfo, tf or a pose topic",
                 rosbag.load, options=rosbag.RosbagOptions),
     SceneSource("templates", "any layout: a path template per file kind ({scene}, {frame:06d})", templates.load,
@@ -89,7 +94,7 @@ SOURCES: Registry = Registry("scene.source", "scene source", [
     SceneSource("colmap", "COLMAP sparse model (.bin/.txt) + images (+ MVS depth maps, fused.ply)", colmap.load,
                 options=colmap.ColmapOptions),
     SceneSource("city", "embedded procedural outdoor city (cityscapes19), drone and street views", city.load,
-                rendered=True, frames=city.frames),
+                rendered=True, frames=city.frames, options=city.CityOptions),
 ])
 """The scene sources by name (``scene.source``)."""
 
@@ -109,6 +114,24 @@ def register(entry: SceneSource) -> SceneSource:
     """Add a scene source (a run started after this may name it)."""
     _store_options(entry)
     return SOURCES.register(entry)
+
+
+def typed_options(cfg: SceneConfig) -> SceneConfig:
+    """``cfg`` with ``options`` as the dataclass its source declares (:attr:`SceneSource.options`):
+    typed, defaults filled, ranges checked (``cfg`` itself when they already are, or the source
+    reads a free-form dict); one line naming ``scene.options.<key>`` otherwise."""
+    kind = get(cfg.source).options
+    if kind is None or isinstance(cfg.options, kind):
+        return cfg
+    try:
+        options = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(kind), dict(cfg.options)))
+    except OmegaConfBaseException as exc:
+        where = f"scene.options.{exc.full_key}" if getattr(exc, "full_key", None) else "scene.options"
+        if isinstance(exc, MissingMandatoryValue):  # a required key, as the command line says it
+            raise ConfigError(f"{where} is required (pass {where}=...)") from None
+        msg = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        raise ConfigError(f"{where}: {msg}") from None
+    return dataclasses.replace(cfg, options=options)
 
 
 def get(name: str) -> SceneSource:

@@ -25,19 +25,59 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
-from typing import Optional
+from dataclasses import dataclass
+from typing import List, Optional
 
 import numpy as np
 
 from diffuser_lab import progress
-from diffuser_lab.config import CitySceneConfig, SceneConfig
+from diffuser_lab.config import SceneConfig, Section, at_least, check, key, rule, within
 from diffuser_lab.data.frames import LazyFrames
 from diffuser_lab.data.mapping import load_mapping, shipped_mappings
 from diffuser_lab.data.render import MeshRenderer, intrinsics, look_at, sample_surface
 from diffuser_lab.data.scene import IGNORE, Frame, Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
 
-__all__ = ["CITYSCAPES19", "City", "block_mesh", "make_city_scene", "load", "frames"]
+__all__ = ["CityOptions", "CITYSCAPES19", "City", "block_mesh", "make_city_scene", "load", "frames"]
+
+
+@dataclass
+class CityOptions(Section):
+    """Procedural outdoor city (diffuser_lab.data.sources.city): a grid of blocks, each built from
+    its own seed (seed, bx, by), labelled in cityscapes19; drone and street-level views rendered
+    per frame on access from the blocks around the camera."""
+
+    KEY = "scene.options"
+    seed: int = 0
+    blocks_x: int = key(2, within(1, 1000, steps=True))  # blocks along x (the city's extent)
+    blocks_y: int = key(2, within(1, 1000, steps=True))  # blocks along y
+    block_size: float = key(60.0, within(30, 500, "metres"))  # edge of a block (street + lot), metres
+    road_width: float = key(10.0, within(6, 30, "metres"))  # street on each block's low x / low y side
+    sidewalk_width: float = key(3.0, within(1.5, 10, "metres"))
+    point_spacing: float = key(0.2, within(0.01, 2.0, "metres"))  # metres between sampled surface points (~250k a block at 0.2)
+    point_noise: float = key(0.01, at_least(0))  # std of gaussian position noise, metres
+    drone_views: int = key(4, at_least(0))  # per block: nadir and oblique views from drone_height
+    street_views: int = key(4, at_least(0))  # per block: views from street_height along its streets
+    drone_height: List[float] = key(check=rule("min <= max, both > 30 m (above the roofs)",
+                                               lambda v: len(v) == 2 and 30 < v[0] <= v[1]),
+                                    factory=lambda: [40.0, 70.0])  # metres above the road
+    street_height: List[float] = key(check=rule("0.5 m <= min <= max <= 5 m",
+                                                lambda v: len(v) == 2 and 0.5 <= v[0] <= v[1] <= 5),
+                                     factory=lambda: [1.5, 2.0])  # metres above the road
+    view_distance: float = key(150.0, within(20, 2000, "metres"))  # frames see up to this far (depth 0 beyond)
+    image_width: int = 320
+    image_height: int = 240
+    fov_deg: float = key(70.0, within(10, 150))  # horizontal field of view
+    sky: bool = True  # label images: pixels looking up at nothing are sky (depth 0), else IGNORE
+
+    def _check_keys(self) -> None:
+        check(self.image_width >= 16 and self.image_height >= 16, "scene.options.image_width/height",
+               (self.image_width, self.image_height), ">= 16 pixels")
+        check(self.road_width + 2 * self.sidewalk_width + 10 <= self.block_size, "scene.options.block_size",
+               self.block_size, ">= road_width + 2 sidewalk_width + 10 m (room for a lot)")
+        check(self.drone_views == 0 or self.view_distance > self.drone_height[1], "scene.options.view_distance",
+               self.view_distance, "> drone_height max (a drone view sees the ground)")
+
 
 CITYSCAPES19 = Taxonomy(
     name="cityscapes19",
@@ -237,7 +277,7 @@ def _barrier(m: _Mesh, p0, p1, z0, label, rng):
 
 # ---------------------------------------------------------------- a block
 
-def block_mesh(cfg: CitySceneConfig, bx: int, by: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def block_mesh(cfg: CityOptions, bx: int, by: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The labelled triangle mesh of block (bx, by): vertices (V, 3) float32 world metres, triangles
     (T, 3) int32 wound outward, triangle labels (T,) int16 cityscapes19 ids. Drawn from the
     generator seeded by (seed, bx, by) alone."""
@@ -261,7 +301,7 @@ def block_mesh(cfg: CitySceneConfig, bx: int, by: int) -> tuple[np.ndarray, np.n
     return m.arrays()
 
 
-def _street(m: _Mesh, cfg: CitySceneConfig, rng):
+def _street(m: _Mesh, cfg: CityOptions, rng):
     """Parking lanes along both kerbs of the block's two streets: vehicles, cyclists."""
     B, w = cfg.block_size, cfg.road_width
     lanes = []  # (start point, along unit, across offset of the lane centre, length)
@@ -293,7 +333,7 @@ def _street(m: _Mesh, cfg: CitySceneConfig, rng):
             pos += ln + rng.uniform(0.8, 3.0)
 
 
-def _sidewalks(m: _Mesh, cfg: CitySceneConfig, rng, zt):
+def _sidewalks(m: _Mesh, cfg: CityOptions, rng, zt):
     """Street trees, lights, signs, bicycles and people on the four sides of the sidewalk ring;
     traffic lights on some corners."""
     B, w, s = cfg.block_size, cfg.road_width, cfg.sidewalk_width
@@ -342,7 +382,7 @@ def _sidewalks(m: _Mesh, cfg: CitySceneConfig, rng, zt):
             _pole(m, (cx, cy), yaw, zt, rng, "traffic light")
 
 
-def _parcels(m: _Mesh, cfg: CitySceneConfig, rng, zt):
+def _parcels(m: _Mesh, cfg: CityOptions, rng, zt):
     """The inner lot cut into 1-4 parcels, each a building with its yard or a park."""
     B, w, s = cfg.block_size, cfg.road_width, cfg.sidewalk_width
     a, b = w + s, B - s
@@ -411,7 +451,7 @@ def _park(m: _Mesh, x0, y0, x1, y1, zt, rng):
             _barrier(m, c[k], c[(k + 1) % 4], zt, "fence", rng)
 
 
-def block_points(cfg: CitySceneConfig, bx: int, by: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def block_points(cfg: CityOptions, bx: int, by: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Points (N, 3) float32, normals (N, 3) float32 and labels (N,) int16 sampled on block (bx, by)
     every ``point_spacing`` metres (covered surfaces dropped), seeded by (seed, bx, by)."""
     v, t, lab = block_mesh(cfg, bx, by)
@@ -422,7 +462,7 @@ def block_points(cfg: CitySceneConfig, bx: int, by: int) -> tuple[np.ndarray, np
 
 # ---------------------------------------------------------------- views
 
-def block_poses(cfg: CitySceneConfig, bx: int, by: int) -> list[tuple[str, np.ndarray]]:
+def block_poses(cfg: CityOptions, bx: int, by: int) -> list[tuple[str, np.ndarray]]:
     """The (kind, T_cw) of block (bx, by)'s views: ``street_views`` along its two streets at
     ``street_height``, ``drone_views`` alternately nadir and oblique (30-60 degrees down) from
     ``drone_height``, every eye above the block's own cell. Seeded by (seed, bx, by)."""
@@ -455,7 +495,7 @@ class City:
     """The city of ``cfg``: block meshes on demand (an LRU of ``cache_blocks``) and a ray caster per
     block neighbourhood (the last one kept), for rendering its frames lazily."""
 
-    def __init__(self, cfg: CitySceneConfig, sensor: Optional[SensorModel] = None):
+    def __init__(self, cfg: CityOptions, sensor: Optional[SensorModel] = None):
         self.cfg = cfg
         self.sensor = sensor
         self.reach = int(math.ceil((cfg.view_distance + 5.0) / cfg.block_size))
@@ -520,7 +560,7 @@ class City:
         return Frame(name=name, K=self.K.copy(), T_cw=T.copy(), depth=depth, labels=None, gt_labels=labels)
 
 
-def make_city_scene(cfg: CitySceneConfig, sensor: Optional[SensorModel] = None) -> tuple[Scene, City]:
+def make_city_scene(cfg: CityOptions, sensor: Optional[SensorModel] = None) -> tuple[Scene, City]:
     """The city of ``cfg``: points sampled block by block (normals the exact mesh normals,
     cityscapes19 ground truth) and its frames, rendered when read. Returns the scene and the
     :class:`City` that renders them."""
@@ -567,10 +607,10 @@ def _frames_in(frames: LazyFrames, lut: Optional[np.ndarray]) -> LazyFrames:
 
 
 def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) -> Scene:
-    """``scene.source=city``: the city of the ``scene.city`` keys (defaults when unset), in ``taxonomy``
+    """``scene.source=city``: the city of the ``scene.options`` keys (defaults when unset), in ``taxonomy``
     (cityscapes19, or one a shipped ``cityscapes19_to_<name>`` mapping reaches)."""
     lut = _lut(taxonomy)
-    scene, _ = make_city_scene(cfg.city if cfg.city is not None else CitySceneConfig(), sensor)
+    scene, _ = make_city_scene(cfg.options, sensor)
     if lut is None:
         scene.taxonomy = taxonomy
         return scene
@@ -581,5 +621,5 @@ def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) ->
 def frames(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) -> LazyFrames:
     """The frames of :func:`load`'s scene without sampling the cloud (a tiled run's worker):
     rendered when read from the blocks around each camera."""
-    city = City(cfg.city if cfg.city is not None else CitySceneConfig(), sensor)
+    city = City(cfg.options, sensor)
     return _frames_in(LazyFrames([v[0] for v in city.views], city.frame), _lut(taxonomy))

@@ -9,17 +9,39 @@ covered surfaces (floor under a cabinet, wall behind a picture) and drops them.
 """
 from __future__ import annotations
 
-from typing import Optional
+from dataclasses import dataclass
+from typing import List, Optional
 
 import numpy as np
 
-from diffuser_lab.config import SceneConfig
+from diffuser_lab.config import SceneConfig, Section, at_least, check, key, rule, within
 from diffuser_lab.data.mapping import relabel_scene
 from diffuser_lab.data.render import MeshRenderer, camera_trajectory, intrinsics, render_views, sample_surface
 from diffuser_lab.data.scene import SCANNET20, Frame, Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
 
-__all__ = ["make_demo_scene", "demo_mesh", "load"]
+__all__ = ["DemoOptions", "make_demo_scene", "demo_mesh", "load"]
+
+
+@dataclass
+class DemoOptions(Section):
+    """Procedural room (diffuser_lab.data.sources.demo)."""
+
+    KEY = "scene.options"
+    seed: int = 0
+    room_size: List[float] = key(check=rule("three sizes > 1 m", lambda v: len(v) == 3 and min(v) > 1.0),
+                                 factory=lambda: [5.0, 4.0, 2.6])  # x, y, z metres
+    n_views: int = key(30, at_least(1))
+    image_width: int = 160
+    image_height: int = 120
+    fov_deg: float = key(70.0, within(10, 150))  # horizontal field of view
+    point_spacing: float = key(0.04, within(0.005, 0.5, "metres"))  # metres between sampled surface points
+    point_noise: float = key(0.002, at_least(0))  # std of gaussian position noise, metres
+
+    def _check_keys(self) -> None:
+        check(self.image_width >= 16 and self.image_height >= 16, "scene.options.image_width/height",
+               (self.image_width, self.image_height), ">= 16 pixels")
+
 
 _LIFT = 0.005  # m, furniture bottom above the floor plane
 _GAP = 0.005  # m, wall items / furniture backs off the wall plane
@@ -411,8 +433,8 @@ def make_demo_scene(
 
 
 def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) -> Scene:
-    """``scene.source=demo``: the room of the ``scene.demo`` keys, relabelled to ``taxonomy``."""
-    d = cfg.demo
+    """``scene.source=demo``: the room of the ``scene.options`` keys, relabelled to ``taxonomy``."""
+    d = cfg.options
     scene, _ = make_demo_scene(seed=d.seed, room_size=tuple(d.room_size), n_views=d.n_views,
                                image_width=d.image_width, image_height=d.image_height,
                                fov_deg=d.fov_deg, point_spacing=d.point_spacing, point_noise=d.point_noise,

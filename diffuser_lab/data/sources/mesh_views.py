@@ -9,17 +9,44 @@ layer then corrupts or replaces.
 from __future__ import annotations
 
 from pathlib import Path
+from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
+from omegaconf import MISSING
 
 from diffuser_lab import progress
-from diffuser_lab.config import SceneConfig
+from diffuser_lab.config import SceneConfig, Section, at_least, check, key, within
 from diffuser_lab.data.mapping import load_mapping, native_mapping
 from diffuser_lab.data.meshes import mesh_label_ids, read_labelled_mesh, vertex_normals
 from diffuser_lab.data.render import MeshRenderer, camera_trajectory, intrinsics, render_views
 from diffuser_lab.data.scene import IGNORE, SCANNET20, Frame, Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
+
+__all__ = ["MeshViewsOptions", "load_mesh_views", "triangle_labels", "load", "label_ids"]
+
+
+@dataclass
+class MeshViewsOptions(Section):
+    """Views rendered from a labelled mesh (diffuser_lab.data.sources.mesh_views)."""
+
+    KEY = "scene.options"
+    path: str = MISSING  # PLY mesh with a per-vertex `label` (e.g. ScanNet's *_vh_clean_2.labels.ply)
+    mapping: Optional[str] = "nyu40_to_scannet20"  # mesh label ids -> taxonomy (shipped table or CSV); null = taxonomy ids
+    n_views: int = key(40, at_least(1))
+    seed: int = 0
+    image_width: int = 320
+    image_height: int = 240
+    fov_deg: float = key(58.0, within(10, 150))  # horizontal; ScanNet's depth camera: fx = 577.9 at 640 px
+    min_coverage: float = key(0.3, within(0, 1, open_hi=True))  # reject views whose valid-depth share is below this
+    eye_height_min: float = 1.2  # metres above the floor
+    eye_height_max: float = 1.8
+
+    def _check_keys(self) -> None:
+        check(self.image_width >= 16 and self.image_height >= 16, "scene.options.image_width/height",
+               (self.image_width, self.image_height), ">= 16 pixels")
+        check(0.0 < self.eye_height_min <= self.eye_height_max, "scene.options.eye_height_min/max",
+               (self.eye_height_min, self.eye_height_max), "0 < min <= max")
 
 
 
@@ -77,8 +104,8 @@ def load_mesh_views(path: str | Path, *, taxonomy: Taxonomy = SCANNET20, mapping
 
 
 def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) -> Scene:
-    """``scene.source=mesh_views``: the views the ``scene.mesh_views`` keys ask for."""
-    m = cfg.mesh_views
+    """``scene.source=mesh_views``: the views the ``scene.options`` keys ask for."""
+    m = cfg.options
     return load_mesh_views(m.path, taxonomy=taxonomy, mapping=m.mapping, n_views=m.n_views, seed=m.seed,
                            image_width=m.image_width, image_height=m.image_height, fov_deg=m.fov_deg,
                            min_coverage=m.min_coverage, eye_height_range=(m.eye_height_min, m.eye_height_max),
@@ -87,4 +114,4 @@ def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) ->
 
 def label_ids(cfg: SceneConfig, n: int) -> list[tuple[np.ndarray, str]]:
     """``taxonomy=ids``: the mesh's vertex labels."""
-    return mesh_label_ids(Path(cfg.mesh_views.path))
+    return mesh_label_ids(Path(cfg.options.path))

@@ -55,7 +55,7 @@ from typing import Any, Optional
 import numpy as np
 from omegaconf import MISSING
 
-from diffuser_lab.config import SceneConfig, key, rule, above
+from diffuser_lab.config import SceneConfig, above, key, rule
 from diffuser_lab.data.capture import CaptureOptions, CapturedFrame, capture_scene
 from diffuser_lab.data.clouds import read_cloud
 from diffuser_lab.data.distortion import FISHEYE, PERSPECTIVE, LensModel, undistort_image

@@ -24,12 +24,15 @@ from __future__ import annotations
 import re
 import warnings
 from pathlib import Path
-from typing import Optional
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import List, Optional
 
 import numpy as np
+from omegaconf import MISSING
 
 from diffuser_lab import progress
-from diffuser_lab.config import SceneConfig
+from diffuser_lab.config import Check, PoseConvention, SceneConfig, Section, above, at_least, key, rule, within
 from diffuser_lab.data.capture import fuse_depth, taxonomy_mapping, to_taxonomy
 from diffuser_lab.data.clouds import read_cloud
 from diffuser_lab.data.frames import LazyFrames
@@ -42,7 +45,49 @@ from diffuser_lab.data.scene import SCANNET20, Frame, Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
 from diffuser_lab.data.validate import check_depth_unit
 
-__all__ = ["load_rgbd_folder", "load", "label_ids"]
+__all__ = ["RgbdFolderOptions", "DepthShiftKind", "load_rgbd_folder", "load", "label_ids"]
+
+
+class DepthShiftKind(Enum):
+    circular = "circular"  # 16-bit rotate right (SUN3D stores depth rotated left by 3 bits)
+    plain = "plain"  # raw >> shift, the low bits dropped (e.g. (raw >> 3) / 1e4 m)
+
+
+_SUFFIX = "a non-empty file name suffix, without / or *"
+
+
+def _suffix(null: bool = False) -> Check:
+    return rule(_SUFFIX, lambda v: bool(v) and "/" not in v and "*" not in v, null=null)
+
+
+@dataclass
+class RgbdFolderOptions(Section):
+    """A posed RGB-D folder: frame-XXXXXX.{color.*,depth.png,pose.txt} + camera-intrinsics.txt.
+    A frame's files are ``<frame_prefix><digits>.<suffix>``; docs/layouts.md describes each key."""
+
+    KEY = "scene.options"
+    root: str = MISSING  # the folder
+    intrinsics_file: str = key("camera-intrinsics.txt", rule("a file name relative to root",
+                                                             lambda v: bool(v) and "*" not in v))  # 3x3 K of the depth image, relative to root
+    frame_prefix: str = key("frame-", rule("a file name prefix without / or *",
+                                           lambda v: "/" not in v and "*" not in v))  # a frame's name = prefix + digits (frame-000000)
+    depth_suffix: str = key("depth.png", _suffix())
+    pose_suffix: str = key("pose.txt", _suffix())
+    pose_convention: PoseConvention = PoseConvention.camera_to_world
+    depth_scale: float = key(1000.0, above(0))  # metres = (raw, shifted) / depth_scale (1000 = millimetres)
+    depth_bit_shift: int = key(0, within(0, 15))  # right shift of the raw 16-bit depth before scaling (SUN3D: 3)
+    depth_shift_kind: DepthShiftKind = DepthShiftKind.circular  # circular (SUN3D) | plain (raw >> shift)
+    invalid_depth: List[int] = field(default_factory=lambda: [0, 65535])  # raw values, before the shift
+    color_suffix: Optional[str] = key("color.jpg", _suffix(null=True))  # null = no colour; no such file at all = no colour (warning)
+    label_suffix: Optional[str] = key(None, _suffix(null=True))  # ground-truth label images frame-XXXXXX.<suffix>, if any
+    mapping: Optional[str] = None  # label ids -> taxonomy; null = ids are taxonomy ids
+    cloud: Optional[str] = None  # PLY, LAS or LAZ point cloud; null = back-project and voxel-merge the depth frames
+    cloud_voxel: float = key(0.02, above(0, "metres"))  # metres, for the back-projected cloud
+    cloud_stride: int = key(4, at_least(1))  # every n-th pixel of each depth frame for the back-projected cloud
+    max_depth: Optional[float] = None  # metres; ignore depth beyond it
+    frame_step: int = key(1, at_least(1))
+    max_frames: Optional[int] = None
+
 
 _MAPPING_HINT = "pass mapping= to translate another label space"
 
@@ -176,9 +221,9 @@ def load_rgbd_folder(
 
 
 def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) -> Scene:
-    """``scene.source=rgbd_folder``: the folder of the ``scene.rgbd_folder`` keys (real depth: the
+    """``scene.source=rgbd_folder``: the folder of the ``scene.options`` keys (real depth: the
     pipeline applies ``sensor`` with ``depth.apply_to_real``)."""
-    r = cfg.rgbd_folder
+    r = cfg.options
     return load_rgbd_folder(r.root, taxonomy=taxonomy, depth_scale=r.depth_scale, depth_bit_shift=r.depth_bit_shift,
                             depth_shift_kind=r.depth_shift_kind.value, invalid_depth=tuple(r.invalid_depth),
                             intrinsics_file=r.intrinsics_file, frame_prefix=r.frame_prefix,
@@ -191,7 +236,7 @@ def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) ->
 
 def label_ids(cfg: SceneConfig, n: int) -> list[tuple[np.ndarray, str]]:
     """``taxonomy=ids``: the first ``n`` ground-truth label images (``label_suffix``), if any."""
-    r = cfg.rgbd_folder
+    r = cfg.options
     if not r.label_suffix:
         return []
     root = Path(r.root)

@@ -23,7 +23,7 @@ exactly the common depth K 577.591, 578.730, 318.905, 242.684. Resizing labels t
 resolution instead would need depth upsampling and 4x the pixels for no extra geometry.
 The loader compares the two K files per scene and warns when they disagree by > 2 px.
 
-Every file name above is a key of :class:`ScannetLayout` (``scene.scannet.*``, docs/layouts.md).
+Every file name above is a key of :class:`ScannetLayout` (``scene.options.*``, docs/layouts.md).
 Only the mesh, depth, pose and intrinsic_depth are required: without ``color/`` the frames carry
 no RGB (the points keep the mesh's colours; predictions from files, ground truth or simulated
 ones do not need it), without ``label-filt/`` they carry no ground truth.
@@ -37,9 +37,10 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
+from omegaconf import MISSING
 
 from diffuser_lab import progress
-from diffuser_lab.config import SceneConfig
+from diffuser_lab.config import SceneConfig, Section, above, at_least, file_pattern, key, rule
 from diffuser_lab.data.frames import LazyFrames
 from diffuser_lab.data.geometry import scaled_intrinsics
 from diffuser_lab.data.images import read_depth_png, read_rgb
@@ -51,7 +52,32 @@ from diffuser_lab.data.poses import read_pose_c2w, rigid_inverse
 from diffuser_lab.data.scene import SCANNET20, Frame, Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
 
-__all__ = ["load_scannet", "scaled_intrinsics", "ScannetLayout", "load", "label_ids"]
+__all__ = ["ScannetOptions", "load_scannet", "scaled_intrinsics", "ScannetLayout", "load", "label_ids"]
+
+
+_SCENE_FILE = rule("a file name, optionally with {scene}", lambda v: v.replace("{scene}", "").count("{") == 0)
+
+
+@dataclass
+class ScannetOptions(Section):
+    """A scene in ScanNet's export layout (diffuser_lab.data.sources.scannet). File names are
+    relative to ``root``; ``{scene}`` = the root folder's name, ``{frame}`` = the frame number."""
+
+    KEY = "scene.options"
+    root: str = MISSING  # folder holding color/ depth/ pose/ intrinsic/ label-filt/ and the PLYs
+    frame_step: int = key(10, at_least(1))  # paper: every 10th frame
+    max_frames: Optional[int] = key(None, at_least(1, null=True))
+    mapping: Optional[str] = "nyu40_to_scannet20"  # label ids -> taxonomy; null = the taxonomy's own ids
+    mesh: str = key("{scene}_vh_clean_2.ply", _SCENE_FILE)  # the points to label (mesh vertices)
+    labels_mesh: str = key("{scene}_vh_clean_2.labels.ply", _SCENE_FILE)  # per-vertex ground truth; optional file
+    depth: str = key("depth/{frame}.png", file_pattern("frame"))  # 16-bit, depth_scale units per metre; frames are found by this
+    color: str = key("color/{frame}.jpg", file_pattern("frame"))  # optional: without it frames carry no RGB
+    pose: str = key("pose/{frame}.txt", file_pattern("frame"))  # 4x4 camera-to-world
+    labels: str = key("label-filt/{frame}.png", file_pattern("frame"))  # optional ground-truth label images (mapping's source ids)
+    intrinsic_depth: str = "intrinsic/intrinsic_depth.txt"
+    intrinsic_color: str = "intrinsic/intrinsic_color.txt"  # optional, only checked against intrinsic_depth
+    depth_scale: float = key(1000.0, above(0))  # raw depth units per metre
+
 
 
 @dataclass(frozen=True)
@@ -120,7 +146,7 @@ def load_scannet(root, *, frame_step: int = 10, max_frames: int | None = None,
 
     mesh_path = _find_mesh(root, layout.mesh)
     if mesh_path is None:
-        raise FileNotFoundError(f"{root}: no {layout.mesh.format(scene=root.name)} mesh (scene.scannet.mesh); "
+        raise FileNotFoundError(f"{root}: no {layout.mesh.format(scene=root.name)} mesh (scene.options.mesh); "
                                 f"without a mesh use scene=scannet_frames scene.options.root={root} (the cloud "
                                 f"back-projected from the depth, ground truth carried from label-filt)")
     label_path = _find_mesh(root, layout.labels_mesh)
@@ -151,7 +177,7 @@ def _scannet_frames(root: Path, frame_step: int, max_frames: int | None, mapping
     K = read_intrinsics(root / L.intrinsic_depth)
     ids = _frame_ids(root, L.depth)
     if not ids:
-        raise FileNotFoundError(f"{root}: no {L.depth} depth images (scene.scannet.depth; "
+        raise FileNotFoundError(f"{root}: no {L.depth} depth images (scene.options.depth; "
                                 f"use with_frames=False for the mesh only)")
     K_color = None
     if (root / L.intrinsic_color).is_file():
@@ -204,9 +230,9 @@ def _scannet_frames(root: Path, frame_step: int, max_frames: int | None, mapping
 
 
 def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) -> Scene:
-    """``scene.source=scannet``: the scene of the ``scene.scannet`` keys (its depth is real: the
+    """``scene.source=scannet``: the scene of the ``scene.options`` keys (its depth is real: the
     pipeline applies ``sensor`` with ``depth.apply_to_real``)."""
-    c = cfg.scannet
+    c = cfg.options
     layout = ScannetLayout(mesh=c.mesh, labels_mesh=c.labels_mesh, depth=c.depth, color=c.color,
                            pose=c.pose, labels=c.labels, intrinsic_depth=c.intrinsic_depth,
                            intrinsic_color=c.intrinsic_color, depth_scale=c.depth_scale)
@@ -216,8 +242,8 @@ def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) ->
 
 def label_ids(cfg: SceneConfig, n: int) -> list[tuple[np.ndarray, str]]:
     """``taxonomy=ids``: the first ``n`` ground-truth label images and the labels mesh, if there."""
-    root = Path(cfg.scannet.root)
-    labels = root / cfg.scannet.labels.replace("{frame}", "*")
+    root = Path(cfg.options.root)
+    labels = root / cfg.options.labels.replace("{frame}", "*")
     out = label_ids_in(list(labels.parent.glob(labels.name)), n, f"ground-truth ({labels.parent})")
-    ply = root / cfg.scannet.labels_mesh.format(scene=root.name)
+    ply = root / cfg.options.labels_mesh.format(scene=root.name)
     return out + (mesh_label_ids(ply) if ply.is_file() else [])

@@ -22,11 +22,14 @@ from __future__ import annotations
 import re
 import warnings
 from pathlib import Path
+from dataclasses import dataclass
+from enum import Enum
 from typing import Optional
 
 import numpy as np
+from omegaconf import MISSING
 
-from diffuser_lab.config import SceneConfig
+from diffuser_lab.config import SceneConfig, Section, above, at_least, check, key
 from diffuser_lab.data.capture import fuse_depth
 from diffuser_lab.data.frames import LazyFrames
 from diffuser_lab.data.images import read_depth_png, read_rgb
@@ -35,7 +38,49 @@ from diffuser_lab.data.scene import SCANNET20, Frame, Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
 from diffuser_lab.data.validate import check_depth_unit
 
-__all__ = ["load_tum", "read_tum_list", "read_tum_trajectory", "TUM_CAMERAS", "load"]
+__all__ = ["TumOptions", "TumCamera", "load_tum", "read_tum_list", "read_tum_trajectory", "TUM_CAMERAS", "load"]
+
+
+class TumCamera(Enum):
+    """Intrinsics presets of the TUM RGB-D benchmark's calibration page (colour camera, to which the
+    depth images are registered): fx fy cx cy in pixels at 640x480."""
+
+    auto = "auto"  # freiburg1/2/3 from the root folder's name (rgbd_dataset_freiburg1_xyz), else ros_default
+    fr1 = "fr1"  # 517.3 516.5 318.6 255.3
+    fr2 = "fr2"  # 520.9 521.0 325.1 249.7
+    fr3 = "fr3"  # 535.4 539.2 320.1 247.6
+    ros_default = "ros_default"  # 525.0 525.0 319.5 239.5 (OpenNI's default, TUM's point-cloud example)
+
+
+@dataclass
+class TumOptions(Section):
+    """A TUM RGB-D sequence (diffuser_lab.data.sources.tum): rgb.txt, depth.txt, groundtruth.txt with
+    timestamps, associated by nearest timestamp; frames named after their RGB image's stem."""
+
+    KEY = "scene.options"
+    root: str = MISSING  # the sequence folder (rgbd_dataset_freiburg1_xyz)
+    rgb_list: Optional[str] = "rgb.txt"  # 'timestamp file' lines; null = no colour
+    depth_list: str = "depth.txt"  # 'timestamp file' lines; the frames
+    groundtruth: str = "groundtruth.txt"  # 'timestamp tx ty tz qx qy qz qw', camera-to-world
+    max_time_diff: float = key(0.02, above(0, "seconds"))  # seconds: nearest RGB / pose farther than this drops the frame (associate.py)
+    depth_scale: float = key(5000.0, above(0))  # raw units per metre (TUM: 5000)
+    camera: TumCamera = TumCamera.auto
+    fx: Optional[float] = None  # pixels; set all four to override the camera preset
+    fy: Optional[float] = None
+    cx: Optional[float] = None
+    cy: Optional[float] = None
+    cloud_voxel: float = key(0.02, above(0, "metres"))  # metres, for the back-projected cloud
+    cloud_stride: int = key(4, at_least(1))
+    max_depth: Optional[float] = None  # metres; ignore depth beyond it in the cloud
+    frame_step: int = key(1, at_least(1))
+    max_frames: Optional[int] = key(None, at_least(1, null=True))
+
+    def _check_keys(self) -> None:
+        given = [v is not None for v in (self.fx, self.fy, self.cx, self.cy)]
+        check(all(given) or not any(given), "scene.options.fx/fy/cx/cy", (self.fx, self.fy, self.cx, self.cy),
+               "all four set (pixels) or all null (= scene.options.camera's preset)")
+        check(not any(given) or (self.fx > 0 and self.fy > 0), "scene.options.fx/fy", (self.fx, self.fy), "> 0 pixels")
+
 
 TUM_CAMERAS = {  # fx fy cx cy, pixels at 640x480 (TUM RGB-D "intrinsic calibration" page)
     "fr1": (517.3, 516.5, 318.6, 255.3),
@@ -188,7 +233,7 @@ def load_tum(
     info = {"n_frames_found": len(t_d), "n_no_pose": n_no_pose, "n_no_rgb": n_no_rgb,
             "timestamps": t_d[sel].tolist()}
     frames = LazyFrames(names, load, info=info)
-    check_depth_unit(frames[0], hint=f"scene.tum.depth_scale={depth_scale} (units per metre)")
+    check_depth_unit(frames[0], hint=f"scene.options.depth_scale={depth_scale} (units per metre)")
     frames.info["depth_unit_checked"] = True
     points, colors = fuse_depth(frames, voxel_size, cloud_stride, max_depth)
     if points.shape[0] == 0:
@@ -197,9 +242,9 @@ def load_tum(
 
 
 def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) -> Scene:
-    """``scene.source=tum``: the sequence of the ``scene.tum`` keys (real depth: the pipeline
+    """``scene.source=tum``: the sequence of the ``scene.options`` keys (real depth: the pipeline
     applies ``sensor`` with ``depth.apply_to_real``)."""
-    c = cfg.tum
+    c = cfg.options
     return load_tum(c.root, taxonomy=taxonomy, rgb_list=c.rgb_list, depth_list=c.depth_list, groundtruth=c.groundtruth,
                     max_time_diff=c.max_time_diff, depth_scale=c.depth_scale, camera=c.camera.value,
                     intrinsics=None if c.fx is None else (c.fx, c.fy, c.cx, c.cy),

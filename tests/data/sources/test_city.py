@@ -4,7 +4,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from diffuser_lab.config import CitySceneConfig
+from diffuser_lab.data.sources.city import CityOptions
 from diffuser_lab.data.geometry import visible_projection
 from diffuser_lab.data.scene import IGNORE
 from diffuser_lab.data.sources.city import CITYSCAPES19, block_mesh, block_points, make_city_scene
@@ -17,8 +17,8 @@ TINY = dict(block_size=40.0, point_spacing=0.4, street_views=2, drone_views=2, i
             view_distance=75.0, drone_height=[32.0, 40.0])
 
 
-def tiny(**kw) -> CitySceneConfig:
-    return CitySceneConfig(**{**TINY, **kw})
+def tiny(**kw) -> CityOptions:
+    return CityOptions(**{**TINY, **kw})
 
 
 @pytest.fixture(scope="module")
@@ -120,9 +120,9 @@ def test_pipeline_diffuser_beats_bayesian():
 
     from diffuser_lab.runs.pipeline import run
 
-    cfg = compose("scene=city", "record=off", "scene.city.blocks_x=2", "scene.city.blocks_y=1",
-                  *(f"scene.city.{k}={v}" for k, v in TINY.items() if k != "street_views"),
-                  "scene.city.street_views=4", "scene.city.drone_views=4")
+    cfg = compose("scene=city", "record=off", "scene.options.blocks_x=2", "scene.options.blocks_y=1",
+                  *(f"scene.options.{k}={v}" for k, v in TINY.items() if k != "street_views"),
+                  "scene.options.street_views=4", "scene.options.drone_views=4")
     assert cfg.taxonomy.name == "cityscapes19" and cfg.scene.source == "city"
     res = run(cfg)
     assert res.scene.taxonomy.name == "cityscapes19"
@@ -145,7 +145,7 @@ def test_other_taxonomy_needs_a_mapping():
     from diffuser_lab.data.sources import city
 
     with pytest.raises(ValueError, match="taxonomy=cityscapes19"):
-        city.load(dataclasses.replace(SceneConfig(), source="city", city=tiny(blocks_x=1, blocks_y=1)), SCANNET20,
+        city.load(dataclasses.replace(SceneConfig(), source="city", options=tiny(blocks_x=1, blocks_y=1)), SCANNET20,
                   None)
 
 
@@ -156,7 +156,7 @@ def test_frames_alone_are_the_scenes_frames(city):
     from diffuser_lab.runs.pipeline import load_frames
 
     scene, _ = city
-    cfg = dataclasses.replace(SceneConfig(), source="city", city=tiny(blocks_x=2, blocks_y=1))
+    cfg = dataclasses.replace(SceneConfig(), source="city", options=tiny(blocks_x=2, blocks_y=1))
     frames = load_frames(cfg, CITYSCAPES19)
     assert list(frames.names) == list(scene.frames.names)
     for i in (0, len(frames) - 1):

@@ -15,7 +15,7 @@ from diffuser_lab.data.sources.colmap import Undistorter, read_depth_map
 
 pycolmap = pytest.importorskip("pycolmap")
 
-STRIDE = ("scene.rgbd_folder.cloud_stride=8",)
+STRIDE = ("scene.options.cloud_stride=8",)
 N_FRAMES, STEP = 5, 20
 
 
@@ -83,7 +83,7 @@ def reference(tmp_path_factory):
     root = write_rgbd_reference(tmp_path_factory.mktemp("ref"), frames)
     for f in frames:  # loop over frames: the pose files with the stored rotations
         np.savetxt(root / f"{f['name']}.pose.txt", f["c2w"], fmt="%.17g")
-    pts, lab, res = labels_of("scene=rgbd_folder", f"scene.rgbd_folder.root={root}", *STRIDE)
+    pts, lab, res = labels_of("scene=rgbd_folder", f"scene.options.root={root}", *STRIDE)
     return frames, pts, lab, res
 
 

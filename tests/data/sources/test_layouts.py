@@ -34,8 +34,11 @@ KEYS = dict(intrinsics_file="K.txt", frame_prefix="img_", color_suffix="rgb.png"
 
 
 def _scene_cfg(scene: dict):
-    """A validated Config whose scene section is ``scene`` (as a scene YAML would give it)."""
-    return to_object(OmegaConf.merge(OmegaConf.structured(Config), {"scene": scene}))
+    """A validated Config whose scene section is ``scene`` (as a scene YAML would give it), its
+    options typed and checked as the resolve step does."""
+    from diffuser_lab.runs.resolve import with_options
+
+    return with_options(to_object(OmegaConf.merge(OmegaConf.structured(Config), {"scene": scene})))
 
 
 @pytest.fixture(scope="module")
@@ -117,7 +120,7 @@ def test_both_pose_conventions_give_the_same_cloud(tmp_path, world):
 
 def test_config_keys_reach_the_loader(tmp_path, world):
     root = write_lab_layout(tmp_path, world, **RENAMED)
-    keys = {"source": "rgbd_folder", "rgbd_folder": {
+    keys = {"source": "rgbd_folder", "options": {
         "root": str(root), "intrinsics_file": "K.txt", "frame_prefix": "img_", "color_suffix": "rgb.png",
         "depth_suffix": "z.png", "pose_suffix": "T.txt", "label_suffix": "gt.png", "depth_bit_shift": 3,
         "depth_shift_kind": "plain", "invalid_depth": [0], "pose_convention": "camera_to_world",
@@ -128,9 +131,9 @@ def test_config_keys_reach_the_loader(tmp_path, world):
     _same_frame(s.frames[3], world, 3, 0.0005 + 1e-6)
     for bad, match in (({"depth_shift_kind": "rotate"}, "depth_shift_kind"),
                        ({"pose_convention": "c2w"}, "pose_convention"),
-                       ({"depth_suffix": "*.png"}, r"scene\.rgbd_folder\.depth_suffix")):
+                       ({"depth_suffix": "*.png"}, r"scene\.options\.depth_suffix")):
         with pytest.raises(Exception, match=match):
-            _scene_cfg({**keys, "rgbd_folder": {**keys["rgbd_folder"], **bad}})
+            _scene_cfg({**keys, "options": {**keys["options"], **bad}})
 
 
 def test_scannet_without_color_and_renamed_files(tmp_path, world):
@@ -150,8 +153,8 @@ def test_scannet_without_color_and_renamed_files(tmp_path, world):
     np.testing.assert_array_equal(pred[1].labels, s.frames[1].gt_labels)
     with pytest.raises(FileNotFoundError, match=r"no depth/\{frame\}\.png depth images"):
         load_scannet(root)  # the default name no longer exists
-    with pytest.raises(ConfigError, match=r"scene\.scannet\.depth"):
-        _scene_cfg({"source": "scannet", "scannet": {"root": str(root), "depth": "depth/x.png"}})
+    with pytest.raises(ConfigError, match=r"scene\.options\.depth"):
+        _scene_cfg({"source": "scannet", "options": {"root": str(root), "depth": "depth/x.png"}})
 
 
 def test_prediction_file_pattern_key(tmp_path, world):
@@ -221,13 +224,15 @@ def test_tum_association_and_quaternion_poses(tmp_path, world):
 
 def test_tum_through_config(tmp_path, world):
     root, exp = write_tum(tmp_path, world)
-    cfg = _scene_cfg({"source": "tum", "tum": {"root": str(root), "camera": "fr1", "cloud_voxel": 0.05}})
+    cfg = _scene_cfg({"source": "tum", "options": {"root": str(root), "camera": "fr1", "cloud_voxel": 0.05}})
     s = load_scene(cfg.scene)
     assert len(s.frames) == 4 and s.frames[0].K[0, 0] == 517.3 and s.n_points > 100
-    with pytest.raises(ConfigError, match=r"scene\.tum\.fx/fy/cx/cy"):
-        _scene_cfg({"source": "tum", "tum": {"root": str(root), "fx": 500.0}})
-    with pytest.raises(ConfigError, match=r"scene\.tum\.root is required"):
-        default_config(**{"scene.source": "tum"})
+    with pytest.raises(ConfigError, match=r"scene\.options\.fx/fy/cx/cy"):
+        _scene_cfg({"source": "tum", "options": {"root": str(root), "fx": 500.0}})
+    from diffuser_lab.runs.resolve import default_config as resolved
+
+    with pytest.raises(ConfigError, match=r"scene\.options\.root is required"):
+        resolved(**{"scene.source": "tum"})
 
 
 @pytest.mark.skipif(not SEVEN_SCENES.is_dir(), reason=f"real 7-Scenes sample absent ({SEVEN_SCENES})")
@@ -260,9 +265,9 @@ def test_cli_end_to_end_on_the_issue_layout(tmp_path, world):
     .segm.png network ids, camera-intrinsics.color.txt) through conf/scene/my_rgbd_lab.yaml."""
     root = write_lab_layout(tmp_path, world, label="label.png")
     out = tmp_path / "run"
-    r = run_cli("scene=my_rgbd_lab", f"scene.rgbd_folder.root={root}", "scene.rgbd_folder.depth_scale=1000",
-                "scene.rgbd_folder.label_suffix=label.png", "scene.rgbd_folder.mapping=nyu40_to_scannet20",
-                "scene.rgbd_folder.cloud_voxel=0.1", "predictions=files", f"predictions.folder={root}",
+    r = run_cli("scene=my_rgbd_lab", f"scene.options.root={root}", "scene.options.depth_scale=1000",
+                "scene.options.label_suffix=label.png", "scene.options.mapping=nyu40_to_scannet20",
+                "scene.options.cloud_voxel=0.1", "predictions=files", f"predictions.folder={root}",
                 "predictions.pattern='{name}.segm.png'", "predictions.mapping=nyu40_to_scannet20",
                 "record=off", "solver.max_iter=30", f"hydra.run.dir={out}")
     assert r.returncode == 0, r.stderr[-2000:]

@@ -24,7 +24,7 @@ from diffuser_lab.data.poses import rigid_inverse
 from diffuser_lab.runs.pipeline import load_scene
 
 STRIDE = ["scene.options.cloud_stride=8"]
-REF_STRIDE = ["scene.rgbd_folder.cloud_stride=8"]
+REF_STRIDE = ["scene.options.cloud_stride=8"]
 # a saved frame as ns-process-data's COLMAP one (axes permuted, y <-> z with a sign) plus a shift
 APPLIED = np.array([[1.0, 0, 0, 0.3], [0, 0, 1, -0.2], [0, -1, 0, 1.5], [0, 0, 0, 1]])
 

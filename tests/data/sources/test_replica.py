@@ -51,8 +51,8 @@ def test_replica_agrees_with_the_rgbd_folder(tmp_path, seven):
     ref = write_rgbd_reference(tmp_path / "ref", seven)
     for i, f in enumerate(seven):  # loop over frames: the reference's depth at Replica's precision
         shutil.copy(root / "results" / f"depth{i:06d}.png", ref / f"{f['name']}.depth.png")
-    ref_pts, ref_lab, _ = labels_of("scene=rgbd_folder", f"scene.rgbd_folder.root={ref}", "scene.rgbd_folder.cloud_stride=8",
-                                    f"scene.rgbd_folder.depth_scale={SCALE}", "scene.rgbd_folder.invalid_depth=[0]")
+    ref_pts, ref_lab, _ = labels_of("scene=rgbd_folder", f"scene.options.root={ref}", "scene.options.cloud_stride=8",
+                                    f"scene.options.depth_scale={SCALE}", "scene.options.invalid_depth=[0]")
     pts, lab, res = labels_of("scene=replica", f"scene.options.root={root}", "scene.options.cloud_stride=8")
     assert agreement(ref_pts, ref_lab, pts, lab) >= 0.999 and agreement(pts, lab, ref_pts, ref_lab) >= 0.999
     assert res.scene.frames.names == [f"frame{i:06d}" for i in range(len(seven))]

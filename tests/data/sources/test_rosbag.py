@@ -157,7 +157,7 @@ def reference(tmp_path_factory, seven):
     root = write_rgbd_reference(tmp_path_factory.mktemp("ref"), seven)
     for f in seven:  # loop over frames: the rigid pose files
         np.savetxt(root / f["pose_path"].name, f["c2w"])
-    pts, lab, _ = labels_of("scene=rgbd_folder", f"scene.rgbd_folder.root={root}", "scene.rgbd_folder.cloud_stride=8")
+    pts, lab, _ = labels_of("scene=rgbd_folder", f"scene.options.root={root}", "scene.options.cloud_stride=8")
     return pts, lab
 
 

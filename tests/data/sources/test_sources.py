@@ -108,7 +108,7 @@ def test_scannet_frame_step_and_missing_folders(scannet_dir):
     for p in (scannet_dir / "depth").iterdir():
         p.unlink()
     (scannet_dir / "depth").rmdir()
-    with pytest.raises(FileNotFoundError, match=r"depth/\{frame\}\.png.*scene\.scannet\.depth"):
+    with pytest.raises(FileNotFoundError, match=r"depth/\{frame\}\.png.*scene\.options\.depth"):
         load_scannet(scannet_dir)
     assert len(load_scannet(scannet_dir, with_frames=False).frames) == 0
 

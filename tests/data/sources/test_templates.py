@@ -50,7 +50,7 @@ def seven(tmp_path_factory):
     """5 frames, the reference run, the frames' K and a folder for the layouts."""
     base = tmp_path_factory.mktemp("templates")
     frames = seven_frames(5, 15)
-    ref = reference_labels(base, frames, "scene.rgbd_folder.cloud_stride=8")
+    ref = reference_labels(base, frames, "scene.options.cloud_stride=8")
     return dict(frames=frames, ref=ref, base=base, K=frames[0]["K"])
 
 
@@ -146,8 +146,8 @@ def test_bad_input_is_one_line(seven, tmp_path):
     r = run_cli(*base, "scene.options.depth='depth/{frme}.png'", "record=off")
     assert r.returncode != 0 and "Traceback" not in r.stderr
     assert "scene.options.depth='depth/{frme}.png': expected a path template relative to root with {frame}" in r.stderr
-    r = run_cli("scene=scannet", f"scene.scannet.root={root}", "record=off")
-    assert r.returncode != 0 and "mesh (scene.scannet.mesh); without a mesh use scene=scannet_frames" in r.stderr
+    r = run_cli("scene=scannet", f"scene.options.root={root}", "record=off")
+    assert r.returncode != 0 and "mesh (scene.options.mesh); without a mesh use scene=scannet_frames" in r.stderr
     # a non-rigid pose, then an -inf one (ScanNet: tracking lost) that is skipped and counted
     n1 = int(seven["frames"][1]["name"].split("-")[1])
     pose = root / "poses" / f"{n1}.txt"
