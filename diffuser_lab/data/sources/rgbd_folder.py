@@ -84,9 +84,9 @@ class RgbdFolderOptions(Section):
     cloud: Optional[str] = None  # PLY, LAS or LAZ point cloud; null = back-project and voxel-merge the depth frames
     cloud_voxel: float = key(0.02, above(0, "metres"))  # metres, for the back-projected cloud
     cloud_stride: int = key(4, at_least(1))  # every n-th pixel of each depth frame for the back-projected cloud
-    max_depth: Optional[float] = None  # metres; ignore depth beyond it
+    max_depth: Optional[float] = key(None, above(0, "metres", null=True))  # ignore depth beyond it
     frame_step: int = key(1, at_least(1))
-    max_frames: Optional[int] = None
+    max_frames: Optional[int] = key(None, at_least(1, null=True))
 
 
 _MAPPING_HINT = "pass mapping= to translate another label space"

@@ -71,7 +71,7 @@ class TumOptions(Section):
     cy: Optional[float] = None
     cloud_voxel: float = key(0.02, above(0, "metres"))  # metres, for the back-projected cloud
     cloud_stride: int = key(4, at_least(1))
-    max_depth: Optional[float] = None  # metres; ignore depth beyond it in the cloud
+    max_depth: Optional[float] = key(None, above(0, "metres", null=True))  # ignore depth beyond it in the cloud
     frame_step: int = key(1, at_least(1))
     max_frames: Optional[int] = key(None, at_least(1, null=True))
 
