@@ -46,14 +46,13 @@ from omegaconf import MISSING
 
 from diffuser_lab.config import SceneConfig, above, key, rule
 from diffuser_lab.data.capture import CaptureOptions, CapturedFrame, capture_scene
-from diffuser_lab.data.poses import associate
+from diffuser_lab.data.poses import associate, interpolate_poses, pose_matrices
 from diffuser_lab.data.scene import IGNORE, Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
 from diffuser_lab.data.validate import check_depth_unit
 
 
-__all__ = ["RosbagOptions", "load", "load_rosbag", "decode_image", "write_pointcloud2_bag", "read_pointcloud2_bag",
-           "interpolate_poses"]
+__all__ = ["RosbagOptions", "load", "load_rosbag", "decode_image", "write_pointcloud2_bag", "read_pointcloud2_bag"]
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 INFO_TYPE = "sensor_msgs/msg/CameraInfo"
@@ -180,53 +179,6 @@ def _to_labels(a: np.ndarray, enc: str, what: str) -> np.ndarray:
 # --------------------------------------------------------------------------- poses
 
 
-def _quat_matrix(t: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """(N, 3) translations, (N, 4) quaternions qx qy qz qw -> (N, 4, 4) rigid transforms."""
-    from scipy.spatial.transform import Rotation
-
-    T = np.tile(np.eye(4), (len(t), 1, 1))
-    if len(t):
-        T[:, :3, :3] = Rotation.from_quat(q).as_matrix()
-        T[:, :3, 3] = t
-    return T
-
-
-def interpolate_poses(stamps: np.ndarray, trans: np.ndarray, quats: np.ndarray, at: np.ndarray, tol: float,
-                      interpolate: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """Poses of a sampled trajectory at other times.
-
-    Args:
-        stamps: (M,) int64 nanoseconds, sorted. trans: (M, 3) metres. quats: (M, 4) qx qy qz qw, unit.
-        at: (N,) int64 nanoseconds. tol: seconds; a sample farther than this from ``at`` is not used.
-        interpolate: between the samples just before and after (both within ``tol``): translation linear,
-            rotation slerp; otherwise (and when only one is within ``tol``) the nearest sample.
-    Returns:
-        (N, 4, 4) float64 transforms and (N,) bool: a sample lay within ``tol``.
-    """
-    at = np.asarray(at, np.int64)
-    m = len(stamps)
-    jr = np.clip(np.searchsorted(stamps, at), 0, m - 1)
-    jl = np.clip(jr - 1, 0, m - 1)
-    jl = np.where(stamps[jr] == at, jr, jl)
-    dl, dr = np.abs(at - stamps[jl]) * 1e-9, np.abs(at - stamps[jr]) * 1e-9
-    ok = np.minimum(dl, dr) <= tol
-    near = np.where(dl <= dr, jl, jr)
-    both = interpolate & (jl != jr) & (stamps[jl] <= at) & (at <= stamps[jr]) & (dl <= tol) & (dr <= tol)
-    a = np.where(both, (at - stamps[jl]) / np.maximum(stamps[jr] - stamps[jl], 1), 0.0)[:, None]
-    i0, i1 = np.where(both, jl, near), np.where(both, jr, near)
-    t = (1 - a) * trans[i0] + a * trans[i1]
-    q0, q1 = quats[i0], quats[i1]
-    d = np.sum(q0 * q1, 1, keepdims=True)
-    q1 = np.where(d < 0, -q1, q1)  # the shorter arc
-    th = np.arccos(np.clip(np.abs(d), -1.0, 1.0))
-    s = np.sin(th)
-    small = s < 1e-9
-    w0 = np.where(small, 1 - a, np.sin((1 - a) * th) / np.where(small, 1, s))
-    w1 = np.where(small, a, np.sin(a * th) / np.where(small, 1, s))
-    q = w0 * q0 + w1 * q1
-    return _quat_matrix(t, q / np.linalg.norm(q, axis=1, keepdims=True)), ok
-
-
 def _rigid(q: np.ndarray, t: np.ndarray, where: str) -> None:
     """One line when a sample's quaternion is not a rotation (or any value is not finite)."""
     n = np.linalg.norm(q, axis=1)
@@ -255,8 +207,8 @@ class _Track:
     def at(self, at: np.ndarray, tol: float, interpolate: bool) -> tuple[np.ndarray, np.ndarray]:
         st, tr, q = self.arrays()
         if self.static:  # valid at every time: the latest sample
-            return np.repeat(_quat_matrix(tr[-1:], q[-1:]), len(at), 0), np.ones(len(at), bool)
-        return interpolate_poses(st, tr, q, at, tol, interpolate)
+            return np.repeat(pose_matrices(tr[-1:], q[-1:]), len(at), 0), np.ones(len(at), bool)
+        return interpolate_poses(st, tr, q, at, tol * 1e9, interpolate)  # nanoseconds
 
 
 def _chain(edges: dict[str, _Track], world: str, camera: str, bag: Path) -> tuple[list[str], list[str]]:
@@ -574,8 +526,8 @@ def load_rosbag(o: RosbagOptions, taxonomy: Taxonomy) -> Scene:
         if not track.t:
             raise ValueError(f"{bag}: no message on {pose_t} (scene.options.pose_topic)")
         st, tr, q = track.arrays()
-        T_wb, ok = interpolate_poses(st, tr, q, d_st, o.pose_max_time_diff, o.pose_interpolation)
-        T_bc = np.eye(4) if o.camera_in_body is None else _quat_matrix(
+        T_wb, ok = interpolate_poses(st, tr, q, d_st, o.pose_max_time_diff * 1e9, o.pose_interpolation)
+        T_bc = np.eye(4) if o.camera_in_body is None else pose_matrices(
             np.asarray(o.camera_in_body[:3], float)[None], np.asarray(o.camera_in_body[3:], float)[None])[0]
         T_wc = T_wb @ T_bc
         world = pose_frame

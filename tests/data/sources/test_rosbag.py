@@ -9,7 +9,7 @@ from captures import agreement, labels_of, needs_7scenes, seven_frames, write_rg
 from conftest import compose, run_cli
 
 from diffuser_lab.data.scene import IGNORE, SCANNET20
-from diffuser_lab.data.sources.rosbag import (RosbagOptions, interpolate_poses, load_rosbag, read_pointcloud2_bag,
+from diffuser_lab.data.sources.rosbag import (RosbagOptions, load_rosbag, read_pointcloud2_bag,
                                               write_pointcloud2_bag)
 from diffuser_lab.data.poses import rigid_inverse
 
@@ -225,19 +225,6 @@ def test_online_run_consumes_the_frames_in_stamp_order(ros2_bag):
     t = [T0 + k * DT for k in range(4)]
     assert seen == [f"{s // 10**9}.{s % 10**9:09d}" for s in t]
     assert len(res.labels) > 1000 and (res.labels != IGNORE).mean() > 0.5
-
-
-def test_interpolated_pose_is_the_slerp_midpoint():
-    from scipy.spatial.transform import Rotation
-
-    st = np.array([0, 100_000_000], np.int64)
-    q = Rotation.from_euler("z", [[0], [90]], degrees=True).as_quat()
-    T, ok = interpolate_poses(st, np.array([[0, 0, 0], [1, 0, 0.0]]), q, np.array([25_000_000, 300_000_000]), 0.08)
-    assert ok.tolist() == [True, False]
-    np.testing.assert_allclose(T[0, :3, 3], [0.25, 0, 0])
-    np.testing.assert_allclose(Rotation.from_matrix(T[0, :3, :3]).as_euler("zyx", degrees=True)[0], 22.5)
-    T, _ = interpolate_poses(st, np.array([[0, 0, 0], [1, 0, 0.0]]), q, np.array([25_000_000]), 0.08, False)
-    np.testing.assert_allclose(T[0, :3, 3], 0)  # the nearest sample
 
 
 # ------------------------------------------------------------------------------------ bad input
