@@ -60,7 +60,8 @@ from diffuser_lab.data.capture import CaptureOptions, CapturedFrame, capture_sce
 from diffuser_lab.data.clouds import read_cloud
 from diffuser_lab.data.distortion import FISHEYE, PERSPECTIVE, LensModel, undistort_image
 from diffuser_lab.data.geometry import scaled_intrinsics
-from diffuser_lab.data.prediction_files import open_image, read_label_png, resize_nearest
+from diffuser_lab.data.images import open_image, resize_nearest
+from diffuser_lab.data.prediction_files import read_label_png
 from diffuser_lab.data.scene import IGNORE, Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
 from diffuser_lab.data.images import read_depth_png, read_rgb
