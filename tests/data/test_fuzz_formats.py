@@ -100,7 +100,7 @@ def colmap_files(kind: str) -> dict[str, bytes]:
 def bag_files() -> dict[str, bytes]:
     """A ROS 2 bag folder (metadata.yaml, one .mcap) as diffuser-lab writes it."""
     from diffuser_lab.data.scene import SCANNET20
-    from diffuser_lab.data.sources.rosbag import write_pointcloud2_bag
+    from diffuser_lab.data.clouds import write_pointcloud2_bag
 
     with tempfile.TemporaryDirectory() as d:
         p = write_pointcloud2_bag(Path(d) / "labels", np.zeros((20, 3), np.float32), np.zeros(20, np.int64), SCANNET20,

@@ -9,8 +9,8 @@ from captures import agreement, labels_of, needs_7scenes, seven_frames, write_rg
 from conftest import compose, run_cli
 
 from diffuser_lab.data.scene import IGNORE, SCANNET20
-from diffuser_lab.data.sources.rosbag import (RosbagOptions, load_rosbag, read_pointcloud2_bag,
-                                              write_pointcloud2_bag)
+from diffuser_lab.data.clouds import read_pointcloud2_bag, write_pointcloud2_bag
+from diffuser_lab.data.sources.rosbag import RosbagOptions, load_rosbag
 from diffuser_lab.data.poses import rigid_inverse
 
 T0 = 1_700_000_000 * 10**9  # the first frame's stamp, ns
