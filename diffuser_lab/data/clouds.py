@@ -254,6 +254,13 @@ def read_pointcloud2_bag(path, topic: str = "/diffuser_lab/labels") -> tuple[np.
             raise ValueError(f"{path}: no topic {topic}; topics present: {', '.join(sorted(r.topics)) or 'none'}")
         c, _, raw = next(r.messages(connections=conns))
         m = r.deserialize(raw, c.msgtype)
+    fields = [(f.name, int(f.offset), int(f.datatype)) for f in m.fields]
+    want = [(n, _PC2_DTYPE.fields[n][1], d) for n, d in (("x", 7), ("y", 7), ("z", 7), ("rgb", 7), ("label", 5))]
+    n = int(m.width) * int(m.height)
+    if fields != want or m.point_step != _PC2_DTYPE.itemsize or m.is_bigendian or len(m.data) != n * m.point_step:
+        raise ValueError(f"{path}: {topic} declares {m.width} x {m.height} points of {m.point_step} bytes, fields "
+                         f"{fields} with {len(m.data)} data bytes; expected the fields {want} of "
+                         f"write_pointcloud2_bag, little endian, {_PC2_DTYPE.itemsize} bytes a point")
     rec = np.frombuffer(np.asarray(m.data, np.uint8).tobytes(), _PC2_DTYPE)
     p = rec["rgb"].view(np.uint32)
     cols = np.stack([(p >> 16) & 255, (p >> 8) & 255, p & 255], 1).astype(np.uint8)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["read_depth_png", "read_rgb", "open_image", "resize_nearest", "resize_bilinear"]
+__all__ = ["read_depth_png", "read_rgb", "read_array", "open_image", "resize_nearest", "resize_bilinear"]
 
 
 def resize_nearest(img: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -109,3 +109,60 @@ def read_rgb(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndarr
     with open_image(path, "colour image") as im:
         rgb = np.asarray(im.convert("RGB"), dtype=np.uint8).copy()
     return rgb if shape is None else resize_bilinear(rgb, shape)
+
+
+def _npy_checked(fh, size: int, where: str) -> np.ndarray:
+    """The array of an open ``.npy`` stream of ``size`` bytes, its header's shape x dtype checked
+    against the bytes there before anything is allocated (a header that lies would ask for terabytes)."""
+    fmt = np.lib.format
+    try:
+        version = fmt.read_magic(fh)
+        if version not in ((1, 0), (2, 0), (3, 0)):
+            raise ValueError(f"format version {version}, expected 1.0, 2.0 or 3.0")
+        start, width = fh.tell(), 2 if version == (1, 0) else 4
+        hlen = int.from_bytes(fh.read(width), "little")
+        if hlen > size - start - width:  # read before it is checked, a lying length allocates gigabytes
+            raise ValueError(f"header length {hlen:,} beyond the file's {size:,} bytes")
+        fh.seek(start)
+        shape, fortran, dtype = (fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0)(fh)
+    except (ValueError, OSError, EOFError, SyntaxError) as e:
+        raise ValueError(f"{where}: not a .npy array ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
+                         ) from None
+    if dtype.hasobject:
+        raise ValueError(f"{where}: array of Python objects ({dtype}), expected numbers")
+    need = int(np.prod(shape, dtype=object)) * dtype.itemsize
+    have = size - fh.tell()
+    if need != have:
+        raise ValueError(f"{where}: header says shape {shape} of {dtype} = {need:,} bytes, the file holds {have:,}")
+    buf = fh.read(need)
+    if len(buf) != need:
+        raise ValueError(f"{where}: header says {need:,} bytes of {dtype}, the file ends after {len(buf):,}")
+    return np.frombuffer(buf, dtype).reshape(shape, order="F" if fortran else "C")
+
+
+def read_array(path: str | Path, what: str, key: str | None = None) -> np.ndarray:
+    """A ``.npy`` file, or a ``.npz``'s array ``key`` (absent: its first), as stored, read only after its
+    header's shape and dtype are checked against the file's bytes (one ValueError naming the file
+    otherwise; missing file: FileNotFoundError). For depth and probability images kept as arrays."""
+    import zipfile
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{what} {path} does not exist")
+    if path.suffix.lower() == ".npz":
+        try:
+            with zipfile.ZipFile(path) as z:
+                names = [n for n in z.namelist() if n.endswith(".npy")]
+                if not names:
+                    raise ValueError(f"{path}: empty .npz, expected a {what}")
+                name = f"{key}.npy" if key is not None and f"{key}.npy" in names else names[0]
+                info = z.getinfo(name)
+                if info.file_size > 1100 * info.compress_size + 4096:  # deflate expands 1032:1 at most
+                    raise ValueError(f"{path}: member {name} says {info.file_size:,} bytes from "
+                                     f"{info.compress_size:,} compressed, more than deflate can expand to")
+                with z.open(name) as fh:
+                    return _npy_checked(fh, info.file_size, f"{path} [{name[:-4]}]")
+        except (zipfile.BadZipFile, OSError, EOFError) as e:
+            raise ValueError(f"{path}: unreadable .npz ({type(e).__name__}: {e})") from None
+    with open(path, "rb") as fh:
+        return _npy_checked(fh, path.stat().st_size, str(path))

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .images import open_image, resize_bilinear, resize_nearest
+from .images import open_image, read_array, resize_bilinear, resize_nearest
 from .mapping import ClassMapping
 
 __all__ = [
@@ -85,22 +85,16 @@ def load_probability_prediction(path: str | Path, num_classes: int, shape: tuple
         path: ``.npy`` or ``.npz`` (array ``probs`` if present, else the first array),
             (H', W', C) or (C, H', W'); C must equal ``num_classes``.
         num_classes: C of the evaluation taxonomy.
-        shape: (H, W) target resolution (nearest-neighbour resize).
+        shape: (H, W) target resolution (bilinear resize, :func:`~diffuser_lab.data.images.resize_bilinear`).
     Returns:
         (H, W, C) float32 non-negative scores (not renormalised; evidence normalises rows).
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"probability file {path} does not exist")
-    if path.suffix == ".npy":
-        arr = np.load(path, allow_pickle=False)
-    elif path.suffix == ".npz":
-        with np.load(path, allow_pickle=False) as z:
-            if not z.files:
-                raise ValueError(f"{path}: empty .npz, expected an array of class probabilities")
-            arr = z["probs"] if "probs" in z.files else z[z.files[0]]
-    else:
+    if path.suffix not in (".npy", ".npz"):
         raise ValueError(f"{path}: probability file must be .npy or .npz, got {path.suffix or 'no suffix'}")
+    arr = read_array(path, "array of class probabilities", key="probs")
     if arr.ndim != 3 or arr.dtype.kind not in "fiu":
         raise ValueError(f"{path}: probabilities of shape {arr.shape} dtype {arr.dtype}, expected numeric "
                          f"(H, W, {num_classes}) or ({num_classes}, H, W)")

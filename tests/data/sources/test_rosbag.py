@@ -2,6 +2,7 @@
 rosbags' own writers label the same points as the posed RGB-D folder; the labelled cloud written as a
 PointCloud2 MCAP bag reads back; bad bags fail with one line."""
 import shutil
+import struct
 
 import numpy as np
 import pytest
@@ -281,9 +282,17 @@ def test_pointcloud2_bag_reads_back(tmp_path):
     assert schema.name == "sensor_msgs/msg/PointCloud2" and schema.encoding == "ros2msg"
     assert channel.topic == "/diffuser_lab/labels" and channel.message_encoding == "cdr"
     assert message.log_time == T0 and len(message.data) > 500 * 20
+    raw = mcap.read_bytes()
     with pytest.raises(FileExistsError, match="labels"):
         write_pointcloud2_bag(tmp_path / "labels", pts, lab, SCANNET20)
     shutil.rmtree(tmp_path / "labels")
+    # a width that lies (5,000 points declared, 500 stored): one line before any array is made
+    assert raw.count(struct.pack("<II", 1, 500)) == 1
+    write_pointcloud2_bag(tmp_path / "lies", pts, lab, SCANNET20, stamp_ns=T0)
+    lied = next((tmp_path / "lies").glob("*.mcap"))
+    lied.write_bytes(raw.replace(struct.pack("<II", 1, 500), struct.pack("<II", 1, 5000)))
+    with pytest.raises(ValueError, match=r"lies: /diffuser_lab/labels declares 5000 x 1 points of 20 bytes"):
+        read_pointcloud2_bag(tmp_path / "lies")
 
 
 def test_image_encodings_and_a_distorted_camera_info():
