@@ -7,10 +7,10 @@ The scene is composed from the same config as ``diffuser-lab`` (``depth=sensor``
 overrides pick another ``depth`` option). Rendered sources (demo, mesh_views) are loaded twice,
 with perfect and with sensor depth (the same seeded camera path); real sources once, their depth
 taken as "perfect" and the model applied on top. Prints the frames, the pixels and a markdown
-table of :func:`diffuser_lab.data.sensor.depth_error_report` (RMSE, holes by range bin); ``--json``
+table of :func:`diffuser_lab.data.depth_stats.depth_error_report` (RMSE, holes by range bin); ``--json``
 also writes the report as JSON.
 
-Then the holes of the depth on its own (:func:`diffuser_lab.data.sensor.depth_hole_stats`: at
+Then the holes of the depth on its own (:func:`diffuser_lab.data.depth_stats.depth_hole_stats`: at
 discontinuities, in smooth regions, in blobs, by range and incidence): for a rendered source the
 sensor model's depth (pixels where the perfect render hit nothing are ignored: they are not the
 sensor's), for a real source the real depth itself. ``--beside FILE.json`` (repeatable) puts the
@@ -30,14 +30,8 @@ from diffuser_lab import progress
 from diffuser_lab.cli.main import config_dir, one_line
 from diffuser_lab.config import DepthModel, register, to_object
 from diffuser_lab.data import sources
-from diffuser_lab.data.sensor import (
-    depth_error_report,
-    depth_hole_stats,
-    format_depth_report,
-    format_hole_stats,
-    noisy_frames,
-    sensor_model,
-)
+from diffuser_lab.data.depth_stats import depth_error_report, depth_hole_stats, format_depth_report, format_hole_stats
+from diffuser_lab.data.sensor import noisy_frames, sensor_model
 from diffuser_lab.data.taxonomy import resolve_taxonomy
 from diffuser_lab.runs.pipeline import load_scene
 from diffuser_lab.runs.resolve import resolve

@@ -38,12 +38,12 @@ from diffuser_lab.data.clouds import read_cloud
 from diffuser_lab.data.frames import LazyFrames
 from diffuser_lab.data.geometry import backproject, scaled_intrinsics, visible_projection, voxel_downsample
 from diffuser_lab.data.mapping import ClassMapping, load_mapping, native_mapping
-from diffuser_lab.data.prediction_files import resize_nearest
+from diffuser_lab.data.images import resize_bilinear, resize_nearest
 from diffuser_lab.data.scene import IGNORE, Frame, Scene, Taxonomy
 from diffuser_lab.data.visibility import CloudDepth, MeshDepth
 
 __all__ = ["Visibility", "CaptureOptions", "CapturedFrame", "capture_scene", "carry_frame_labels",
-           "taxonomy_mapping", "to_taxonomy", "fuse_depth", "resize_rgb"]
+           "taxonomy_mapping", "to_taxonomy", "fuse_depth"]
 
 
 class Visibility(Enum):
@@ -134,16 +134,6 @@ def to_taxonomy(ids: np.ndarray, mapping: Optional[ClassMapping], taxonomy: Taxo
     return ids.astype(np.int16)
 
 
-def resize_rgb(rgb: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """(h, w, 3) uint8 colour -> (H, W, 3) uint8, bilinear (pixel centres aligned), as read_rgb resizes."""
-    from PIL import Image
-
-    rgb = np.asarray(rgb, np.uint8)
-    if rgb.shape[:2] == tuple(shape):
-        return rgb
-    return np.asarray(Image.fromarray(rgb).resize((int(shape[1]), int(shape[0])), Image.BILINEAR), np.uint8)
-
-
 def _merge(pts: np.ndarray, cols: np.ndarray, w: np.ndarray, voxel_size: float):
     """Weighted voxel merge: (N, 3) points, (N, 3) colours and (N,) weights (point counts)
     -> (M, 3) float32 weighted centroids, (M, 3) float32 mean colours, (M,) float64 summed weights."""
@@ -219,7 +209,7 @@ def _build_frame(cf: CapturedFrame, mapping, taxonomy: Taxonomy, render) -> Fram
         depth = render(K, cf.T_cw, shape)
     rgb = None
     if cf.rgb is not None:
-        rgb = resize_rgb(cf.rgb(), shape)
+        rgb = resize_bilinear(np.asarray(cf.rgb(), np.uint8), shape)
     gt = None
     if cf.labels is not None:
         gt = to_taxonomy(resize_nearest(np.asarray(cf.labels()), shape), mapping, taxonomy, f"frame {cf.name} labels")

@@ -10,16 +10,24 @@ it), with ``source`` naming the file.
 ``class id + 1`` (0 = unlabelled: LAS reserves 0 for "never classified"), the exact id (-1 =
 unlabelled) to an extra dimension ``label``, and the taxonomy's names to a VLR
 (``diffuser-lab``/``classes``, JSON ``{"1": "wall", ...}``) and a side file ``<name>.classes.json``.
+
+:func:`write_pointcloud2_bag` writes them as a ROS 2 bag (MCAP storage) with one
+``sensor_msgs/msg/PointCloud2`` message that rviz2 and Foxglove display; :func:`read_pointcloud2_bag`
+reads it back.
 """
 from __future__ import annotations
 
 import json
 import struct
+import time
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["read_cloud", "read_point_cloud_ply", "read_las", "write_las", "CLOUD_SUFFIXES"]
+from diffuser_lab.data.scene import IGNORE, Taxonomy
+
+__all__ = ["read_cloud", "read_point_cloud_ply", "read_las", "write_las", "write_pointcloud2_bag",
+           "read_pointcloud2_bag", "CLOUD_SUFFIXES"]
 
 CLOUD_SUFFIXES = (".ply", ".las", ".laz")
 
@@ -177,3 +185,83 @@ def write_las(path: str | Path, points: np.ndarray, labels: np.ndarray, names, c
     side = path.with_name(path.stem + ".classes.json")
     side.write_text(json.dumps({"classification": "class id + 1 (0 = unlabelled)", "classes": classes}, indent=1))
     return [path, side]
+
+
+# --------------------------------------------------------------------------- ROS 2 PointCloud2 bags
+
+
+_PC2_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgb", "<f4"), ("label", "<i4")])
+
+
+def write_pointcloud2_bag(path, points: np.ndarray, labels: np.ndarray, taxonomy: Taxonomy, frame_id: str = "map",
+                          topic: str = "/diffuser_lab/labels", stamp_ns: int | None = None,
+                          ignore_color=(128, 128, 128)) -> Path:
+    """Labelled points as a ROS 2 bag (MCAP storage, CDR, ROS 2 Humble message definitions).
+
+    One ``sensor_msgs/msg/PointCloud2`` on ``topic``: fields x y z (float32, metres in ``frame_id``),
+    rgb (float32 holding the packed 0x00RRGGBB bytes, as rviz reads it: the class colours; IGNORE
+    ``ignore_color``) and label (int32 class id, -1 = IGNORE); height 1, little endian, dense.
+
+    Args:
+        path: the bag folder to create (``<path>/<name>.mcap`` + ``metadata.yaml``); must not exist.
+        points: (N, 3) world metres. labels: (N,) class ids of ``taxonomy``.
+        stamp_ns: header stamp and record time; None = now.
+    Returns:
+        the ``.mcap`` file (Foxglove opens it as it is; ``ros2 bag play`` takes the folder).
+    """
+    from rosbags.rosbag2 import StoragePlugin, Writer, WriterError
+    from rosbags.typesys import Stores, get_typestore
+
+    path = Path(path)
+    points = np.asarray(points, np.float32).reshape(-1, 3)
+    labels = np.asarray(labels).reshape(-1)
+    if len(labels) != len(points):
+        raise ValueError(f"{path}: {len(points)} points but {len(labels)} labels")
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    PointCloud2, PointField = ts.types["sensor_msgs/msg/PointCloud2"], ts.types["sensor_msgs/msg/PointField"]
+    Header, Time = ts.types["std_msgs/msg/Header"], ts.types["builtin_interfaces/msg/Time"]
+    rgb = taxonomy.colorize(labels, ignore_color).astype(np.uint32)
+    packed = (rgb[:, 0] << 16) | (rgb[:, 1] << 8) | rgb[:, 2]
+    rec = np.empty(len(points), _PC2_DTYPE)
+    rec["x"], rec["y"], rec["z"] = points[:, 0], points[:, 1], points[:, 2]
+    rec["rgb"] = packed.view(np.float32)
+    rec["label"] = np.where(labels == IGNORE, -1, labels).astype(np.int32)
+    stamp = time.time_ns() if stamp_ns is None else int(stamp_ns)
+    fields = [PointField(name=n, offset=_PC2_DTYPE.fields[n][1], datatype=d, count=1)
+              for n, d in (("x", 7), ("y", 7), ("z", 7), ("rgb", 7), ("label", 5))]  # 7 FLOAT32, 5 INT32
+    msg = PointCloud2(header=Header(stamp=Time(sec=stamp // 1_000_000_000, nanosec=stamp % 1_000_000_000),
+                                    frame_id=frame_id),
+                      height=1, width=len(points), fields=fields, is_bigendian=False,
+                      point_step=_PC2_DTYPE.itemsize, row_step=_PC2_DTYPE.itemsize * len(points),
+                      data=rec.view(np.uint8).reshape(-1), is_dense=True)
+    try:
+        with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+            conn = w.add_connection(topic, PointCloud2.__msgtype__, typestore=ts)
+            w.write(conn, stamp, ts.serialize_cdr(msg, PointCloud2.__msgtype__))
+    except WriterError as e:
+        raise FileExistsError(f"{path}: {e}") from None
+    return next(path.glob("*.mcap"))
+
+
+def read_pointcloud2_bag(path, topic: str = "/diffuser_lab/labels") -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
+    """What :func:`write_pointcloud2_bag` wrote: (N, 3) float32 points, (N,) int32 labels, (N, 3) uint8
+    colours and the frame_id (the first message on ``topic``)."""
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([Path(path)]) as r:
+        conns = [c for c in r.connections if c.topic == topic]
+        if not conns:
+            raise ValueError(f"{path}: no topic {topic}; topics present: {', '.join(sorted(r.topics)) or 'none'}")
+        c, _, raw = next(r.messages(connections=conns))
+        m = r.deserialize(raw, c.msgtype)
+    fields = [(f.name, int(f.offset), int(f.datatype)) for f in m.fields]
+    want = [(n, _PC2_DTYPE.fields[n][1], d) for n, d in (("x", 7), ("y", 7), ("z", 7), ("rgb", 7), ("label", 5))]
+    n = int(m.width) * int(m.height)
+    if fields != want or m.point_step != _PC2_DTYPE.itemsize or m.is_bigendian or len(m.data) != n * m.point_step:
+        raise ValueError(f"{path}: {topic} declares {m.width} x {m.height} points of {m.point_step} bytes, fields "
+                         f"{fields} with {len(m.data)} data bytes; expected the fields {want} of "
+                         f"write_pointcloud2_bag, little endian, {_PC2_DTYPE.itemsize} bytes a point")
+    rec = np.frombuffer(np.asarray(m.data, np.uint8).tobytes(), _PC2_DTYPE)
+    p = rec["rgb"].view(np.uint32)
+    cols = np.stack([(p >> 16) & 255, (p >> 8) & 255, p & 255], 1).astype(np.uint8)
+    return np.stack([rec["x"], rec["y"], rec["z"]], 1), rec["label"].copy(), cols, m.header.frame_id

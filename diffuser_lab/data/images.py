@@ -1,13 +1,76 @@
-"""Depth and colour images shared by the capture formats (label images: :mod:`.prediction_files`)."""
+"""Depth and colour images shared by the capture formats (label images: :mod:`.prediction_files`), and
+the one resize of every image: :func:`resize_nearest` for label ids, depth and masks (values kept),
+:func:`resize_bilinear` for colour and class probabilities (Pillow's bilinear)."""
 from __future__ import annotations
 
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 
-from diffuser_lab.data.prediction_files import open_image
+__all__ = ["read_depth_png", "read_rgb", "read_array", "open_image", "resize_nearest", "resize_bilinear"]
 
-__all__ = ["read_depth_png", "read_rgb"]
+
+def resize_nearest(img: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Nearest-neighbour resize of an (H, W, ...) array to ``shape`` = (H', W').
+
+    Output pixel (r, c) takes input pixel (floor((r + 0.5) H / H'), floor((c + 0.5) W / W')),
+    i.e. pixel centres are aligned (the same samples as Pillow's NEAREST). Returns the
+    input itself when the shape already matches.
+    """
+    h, w = img.shape[:2]
+    H, W = int(shape[0]), int(shape[1])
+    if (h, w) == (H, W):
+        return img
+    rows = np.minimum(((np.arange(H) + 0.5) * (h / H)).astype(np.int64), h - 1)
+    cols = np.minimum(((np.arange(W) + 0.5) * (w / W)).astype(np.int64), w - 1)
+    return img[rows[:, None], cols[None, :]]
+
+
+def resize_bilinear(img: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Bilinear resize of an (h, w) or (h, w, C) image to ``shape`` = (H, W): Pillow's BILINEAR, the
+    triangle filter with pixel centres aligned (output centre (r + 0.5) h / H - 0.5 in input pixels,
+    clamped at the borders) widened by the factor when shrinking (no aliasing); for colour and class
+    probabilities (a convex combination: probabilities still sum to one). uint8 with 1 or 3 channels
+    in Pillow's 8-bit modes, anything else per channel in float32 (returned as float32). Returns the
+    input itself when the shape matches."""
+    from PIL import Image
+
+    img = np.asarray(img)
+    h, w = img.shape[:2]
+    H, W = int(shape[0]), int(shape[1])
+    if (h, w) == (H, W):
+        return img
+    if img.dtype == np.uint8 and (img.ndim == 2 or img.shape[2] in (1, 3)):
+        mode = "RGB" if img.ndim == 3 and img.shape[2] == 3 else "L"
+        out = np.asarray(Image.fromarray(img.reshape(h, w, -1).squeeze(2) if mode == "L" else img, mode)
+                         .resize((W, H), Image.BILINEAR), np.uint8)
+        return out.reshape(H, W, *img.shape[2:])
+    planes = img.reshape(h, w, -1).astype(np.float32)
+    out = np.empty((H, W, planes.shape[2]), np.float32)
+    for c in range(planes.shape[2]):  # loop over channels (3 colours, C classes)
+        out[..., c] = np.asarray(Image.fromarray(np.ascontiguousarray(planes[..., c]), "F").resize((W, H), Image.BILINEAR))
+    return out.reshape(H, W, *img.shape[2:])
+
+
+@contextmanager
+def open_image(path: str | Path, what: str):
+    """PIL image of ``path`` whose pixels are loaded; an unreadable, truncated or corrupt file
+    is one ValueError naming it (Pillow raises OSError and friends)."""
+    from PIL import Image, UnidentifiedImageError
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{what} {path} does not exist")
+    try:
+        im = Image.open(path)
+        im.load()
+    except (OSError, UnidentifiedImageError, SyntaxError, ValueError) as exc:
+        raise ValueError(f"{path}: unreadable {what} ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
+    with im:
+        yield im
+
+
 
 
 def read_depth_png(path: str | Path, depth_scale: float, bit_shift: int = 0,
@@ -41,12 +104,65 @@ def read_depth_png(path: str | Path, depth_scale: float, bit_shift: int = 0,
 
 
 def read_rgb(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndarray:
-    """Colour image -> (H, W, 3) uint8, bilinearly resized to ``shape`` = (H, W) when given."""
-    from PIL import Image
-
+    """Colour image -> (H, W, 3) uint8, resized to ``shape`` = (H, W) when given (:func:`resize_bilinear`)."""
     path = Path(path)
     with open_image(path, "colour image") as im:
-        im = im.convert("RGB")
-        if shape is not None and im.size != (shape[1], shape[0]):
-            im = im.resize((int(shape[1]), int(shape[0])), Image.BILINEAR)
-        return np.asarray(im, dtype=np.uint8).copy()
+        rgb = np.asarray(im.convert("RGB"), dtype=np.uint8).copy()
+    return rgb if shape is None else resize_bilinear(rgb, shape)
+
+
+def _npy_checked(fh, size: int, where: str) -> np.ndarray:
+    """The array of an open ``.npy`` stream of ``size`` bytes, its header's shape x dtype checked
+    against the bytes there before anything is allocated (a header that lies would ask for terabytes)."""
+    fmt = np.lib.format
+    try:
+        version = fmt.read_magic(fh)
+        if version not in ((1, 0), (2, 0), (3, 0)):
+            raise ValueError(f"format version {version}, expected 1.0, 2.0 or 3.0")
+        start, width = fh.tell(), 2 if version == (1, 0) else 4
+        hlen = int.from_bytes(fh.read(width), "little")
+        if hlen > size - start - width:  # read before it is checked, a lying length allocates gigabytes
+            raise ValueError(f"header length {hlen:,} beyond the file's {size:,} bytes")
+        fh.seek(start)
+        shape, fortran, dtype = (fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0)(fh)
+    except (ValueError, OSError, EOFError, SyntaxError) as e:
+        raise ValueError(f"{where}: not a .npy array ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
+                         ) from None
+    if dtype.hasobject:
+        raise ValueError(f"{where}: array of Python objects ({dtype}), expected numbers")
+    need = int(np.prod(shape, dtype=object)) * dtype.itemsize
+    have = size - fh.tell()
+    if need != have:
+        raise ValueError(f"{where}: header says shape {shape} of {dtype} = {need:,} bytes, the file holds {have:,}")
+    buf = fh.read(need)
+    if len(buf) != need:
+        raise ValueError(f"{where}: header says {need:,} bytes of {dtype}, the file ends after {len(buf):,}")
+    return np.frombuffer(buf, dtype).reshape(shape, order="F" if fortran else "C")
+
+
+def read_array(path: str | Path, what: str, key: str | None = None) -> np.ndarray:
+    """A ``.npy`` file, or a ``.npz``'s array ``key`` (absent: its first), as stored, read only after its
+    header's shape and dtype are checked against the file's bytes (one ValueError naming the file
+    otherwise; missing file: FileNotFoundError). For depth and probability images kept as arrays."""
+    import zipfile
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{what} {path} does not exist")
+    if path.suffix.lower() == ".npz":
+        try:
+            with zipfile.ZipFile(path) as z:
+                names = [n for n in z.namelist() if n.endswith(".npy")]
+                if not names:
+                    raise ValueError(f"{path}: empty .npz, expected a {what}")
+                name = f"{key}.npy" if key is not None and f"{key}.npy" in names else names[0]
+                info = z.getinfo(name)
+                if info.file_size > 1100 * info.compress_size + 4096:  # deflate expands 1032:1 at most
+                    raise ValueError(f"{path}: member {name} says {info.file_size:,} bytes from "
+                                     f"{info.compress_size:,} compressed, more than deflate can expand to")
+                with z.open(name) as fh:
+                    return _npy_checked(fh, info.file_size, f"{path} [{name[:-4]}]")
+        except (zipfile.BadZipFile, OSError, EOFError) as e:
+            raise ValueError(f"{path}: unreadable .npz ({type(e).__name__}: {e})") from None
+    with open(path, "rb") as fh:
+        return _npy_checked(fh, path.stat().st_size, str(path))

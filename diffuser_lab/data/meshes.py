@@ -1,5 +1,7 @@
-"""Triangle meshes shared by the scene sources: a PLY mesh with per-vertex labels and colours, its
-vertex normals (area-weighted, a local-PCA normal where a vertex has no face), its label ids."""
+"""Triangle meshes shared by the scene sources and the renderer: a PLY mesh with per-vertex labels and
+colours, its label ids, and the one rule for its normals: a face's by the right-hand rule on its
+vertex order (:func:`triangle_normals`), a vertex's the area-weighted sum of its faces' (a local-PCA
+normal where a vertex has no face of non-zero area: :func:`vertex_normals`)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -7,9 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from diffuser_lab.data.geometry import estimate_normals
-from diffuser_lab.data.o3d import open3d
 
-__all__ = ["read_labelled_mesh", "vertex_normals", "mesh_label_ids"]
+__all__ = ["read_labelled_mesh", "triangle_normals", "vertex_normals", "mesh_label_ids"]
 
 
 def read_labelled_mesh(path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
@@ -57,16 +58,31 @@ def read_labelled_mesh(path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None,
     return vertices, triangles, labels, colors
 
 
-def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """(V, 3) float32 unit area-weighted vertex normals (open3d), oriented by the mesh
-    winding; vertices in no triangle get a local-PCA normal instead of zero."""
-    o3d = open3d()
+def triangle_normals(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals (T, 3) float64 (right-hand rule on the vertex order, zero for
+    degenerate triangles) and areas (T,) float64 m^2 of a triangle mesh."""
+    v = np.asarray(vertices, np.float64)
+    t = np.asarray(triangles, np.int64)
+    cr = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
+    norm = np.linalg.norm(cr, axis=1)
+    n = cr / np.maximum(norm, 1e-20)[:, None]
+    return n, 0.5 * norm
 
-    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices.astype(np.float64)),
-                                     o3d.utility.Vector3iVector(triangles.astype(np.int32)))
-    mesh.compute_vertex_normals(normalized=True)
-    n = np.asarray(mesh.vertex_normals, dtype=np.float32)
-    bad = ~(np.abs(np.linalg.norm(n, axis=1) - 1.0) < 1e-3)
+
+def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """(V, 3) float32 unit vertex normals: the area-weighted sum of the :func:`triangle_normals` of
+    the vertex's faces (open3d's compute_vertex_normals rule), oriented by the mesh winding; a vertex
+    in no triangle of non-zero area (or whose faces cancel) gets the local-PCA normal of
+    :func:`~diffuser_lab.data.geometry.estimate_normals` instead (sign arbitrary)."""
+    v = np.asarray(vertices, np.float64)
+    t = np.asarray(triangles, np.int64)
+    n_tri, area = triangle_normals(v, t)
+    w = np.repeat(n_tri * area[:, None], 3, axis=0)  # each face's area-weighted normal, once per corner
+    corner = t.ravel()
+    acc = np.stack([np.bincount(corner, w[:, k], minlength=len(v)) for k in range(3)], 1)
+    norm = np.linalg.norm(acc, axis=1)
+    n = (acc / np.maximum(norm, 1e-30)[:, None]).astype(np.float32)
+    bad = ~(norm > 1e-12 * max(float(area.max(initial=0.0)), 1e-30))
     if bad.any():  # isolated or only-degenerate-face vertices
         n[bad] = estimate_normals(vertices)[bad]
     return n

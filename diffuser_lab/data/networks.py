@@ -49,10 +49,10 @@ from diffuser_lab.config import ChannelOrder, OnnxConfig, OnnxOutput, Prediction
 
 from .frames import LazyFrames
 from .mapping import ClassMapping, load_mapping
-from .prediction_files import resize_nearest
+from .images import resize_bilinear, resize_nearest
 from .scene import IGNORE, Frame, Taxonomy
 
-__all__ = ["NetworkPredictor", "build_callable", "OnnxModel", "resize_bilinear", "translate", "model_key",
+__all__ = ["NetworkPredictor", "build_callable", "OnnxModel", "translate", "model_key",
            "onnx_key", "check_target", "model_predictions", "onnx_predictions"]
 
 CACHE_VERSION = 1  # bump when the cached file's content changes meaning
@@ -201,11 +201,9 @@ class OnnxModel:
         self.std = np.asarray(cfg.std, np.float32)
 
     def __call__(self, rgb: np.ndarray) -> np.ndarray:
-        from PIL import Image
-
         cfg = self.cfg
         if self.size is not None and tuple(rgb.shape[:2]) != self.size:
-            rgb = np.asarray(Image.fromarray(rgb).resize((self.size[1], self.size[0]), Image.BILINEAR))
+            rgb = resize_bilinear(np.asarray(rgb, np.uint8), self.size)
         if cfg.channels == ChannelOrder.bgr:
             rgb = rgb[..., ::-1]
         x = (rgb.astype(np.float32) / 255.0 - self.mean) / self.std  # mean/std in the network's order
@@ -237,28 +235,6 @@ class OnnxModel:
 
 
 # --------------------------------------------------------------------------- outputs -> taxonomy
-
-def resize_bilinear(img: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """Bilinear resize of an (h, w, C) float array to ``shape`` = (H, W), pixel centres aligned
-    (output centre (r + 0.5) h / H - 0.5 in input pixels, clamped at the borders; Pillow's and
-    OpenCV's convention when enlarging). Returns the input itself when the shape matches."""
-    h, w = img.shape[:2]
-    H, W = int(shape[0]), int(shape[1])
-    if (h, w) == (H, W):
-        return img
-
-    def axis(n_in: int, n_out: int):
-        x = np.clip((np.arange(n_out) + 0.5) * (n_in / n_out) - 0.5, 0.0, n_in - 1)
-        i0 = np.floor(x).astype(np.int64)
-        i1 = np.minimum(i0 + 1, n_in - 1)
-        return i0, i1, (x - i0).astype(np.float32)
-
-    r0, r1, wr = axis(h, H)
-    c0, c1, wc = axis(w, W)
-    extra = (None,) * (img.ndim - 2)
-    rows = img[r0] * (1 - wr)[(slice(None), None, *extra)] + img[r1] * wr[(slice(None), None, *extra)]
-    return rows[:, c0] * (1 - wc)[(None, slice(None), *extra)] + rows[:, c1] * wc[(None, slice(None), *extra)]
-
 
 def as_output(raw: Any, what: str) -> np.ndarray:
     """A network's raw output -> (h, w) int64 ids or (h, w, C) float16-rounded float32 scores."""

@@ -1,6 +1,7 @@
 """Camera poses and trajectories shared by the capture formats: rigid (4, 4) transforms, the pose
-file reader and its rigidity check, the camera-to-world / world-to-camera conventions, and the
-association of time stamps (nearest within a tolerance) that TUM lists and ROS bags use."""
+file reader and its rigidity check, the camera-to-world / world-to-camera conventions, the
+association of time stamps (nearest within a tolerance) that pairs the images of TUM lists and ROS
+bags, and the one trajectory rule both use for poses: :func:`interpolate_poses`."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -10,17 +11,19 @@ import numpy as np
 from diffuser_lab.data.intrinsics import read_matrix_file
 
 __all__ = ["CAMERA_TO_WORLD", "WORLD_TO_CAMERA", "rigid_inverse", "read_pose_c2w", "check_rigid",
-           "pose_to_world_to_camera", "associate"]
+           "pose_to_world_to_camera", "associate", "pose_matrices", "interpolate_poses"]
 
 CAMERA_TO_WORLD, WORLD_TO_CAMERA = "camera_to_world", "world_to_camera"  # pose file conventions
 
 
 def rigid_inverse(T: np.ndarray) -> np.ndarray:
-    """Inverse of a (4, 4) rigid transform (R^T, -R^T t), float64."""
-    R, t = T[:3, :3], T[:3, 3]
-    out = np.eye(4)
-    out[:3, :3] = R.T
-    out[:3, 3] = -R.T @ t
+    """Inverse of a (4, 4) rigid transform, or of each of (N, 4, 4): (R^T, -R^T t), float64."""
+    T = np.asarray(T, np.float64)
+    R_t = np.swapaxes(T[..., :3, :3], -1, -2)
+    out = np.zeros_like(T)
+    out[..., :3, :3] = R_t
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", R_t, T[..., :3, 3])
+    out[..., 3, 3] = 1.0
     return out
 
 
@@ -84,3 +87,55 @@ def associate(t: np.ndarray, ref: np.ndarray, max_diff: float, one_to_one: bool 
         ok[:] = False
         ok[order[first]] = True
     return np.where(ok, j, -1)
+
+
+def pose_matrices(trans: np.ndarray, quats: np.ndarray) -> np.ndarray:
+    """(N, 3) translations, (N, 4) quaternions ``qx qy qz qw`` (scalar last; normalised here) ->
+    (N, 4, 4) float64 rigid transforms."""
+    from scipy.spatial.transform import Rotation
+
+    T = np.tile(np.eye(4), (len(trans), 1, 1))
+    if len(trans):
+        T[:, :3, :3] = Rotation.from_quat(quats).as_matrix()
+        T[:, :3, 3] = trans
+    return T
+
+
+def interpolate_poses(stamps: np.ndarray, trans: np.ndarray, quats: np.ndarray, at: np.ndarray, tol: float,
+                      interpolate: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Poses of a sampled trajectory at other times: the one trajectory rule of every source.
+
+    A time between two samples both within ``tol`` gets the pose between them: translation linear,
+    rotation slerp (the shorter arc), by the time's fraction of the gap. A time with only one sample
+    within ``tol`` (outside the trajectory, or beside a gap in it) gets that nearest sample; a time
+    with none is not valid (the caller drops the frame).
+
+    Args:
+        stamps: (M,) sorted sample times, any unit (int64 nanoseconds or float64 seconds).
+        trans: (M, 3) metres. quats: (M, 4) ``qx qy qz qw``, unit.
+        at: (N,) times, the unit of ``stamps``. tol: the largest time difference, same unit.
+        interpolate: False: always the nearest sample within ``tol``.
+    Returns:
+        (N, 4, 4) float64 transforms (the samples' frame convention) and (N,) bool: a sample lay
+        within ``tol``.
+    """
+    from scipy.spatial.transform import Rotation
+
+    stamps, at = np.asarray(stamps), np.asarray(at, np.asarray(stamps).dtype)
+    m = len(stamps)
+    if m == 0 or len(at) == 0:
+        return np.tile(np.eye(4), (len(at), 1, 1)), np.zeros(len(at), bool)
+    jr = np.clip(np.searchsorted(stamps, at), 0, m - 1)
+    jl = np.where(stamps[jr] == at, jr, np.clip(jr - 1, 0, m - 1))
+    dl, dr = np.abs(at - stamps[jl]), np.abs(at - stamps[jr])
+    ok = np.minimum(dl, dr) <= tol
+    near = np.where(dl <= dr, jl, jr)
+    both = interpolate & (jl != jr) & (stamps[jl] <= at) & (at <= stamps[jr]) & (dl <= tol) & (dr <= tol)
+    gap = (stamps[jr] - stamps[jl]).astype(np.float64)
+    a = np.where(both, (at - stamps[jl]) / np.where(both, gap, 1.0), 0.0)
+    i0, i1 = np.where(both, jl, near), np.where(both, jr, near)
+    t = (1 - a)[:, None] * trans[i0] + a[:, None] * trans[i1]
+    r0 = Rotation.from_quat(quats[i0])
+    step = (r0.inv() * Rotation.from_quat(quats[i1])).as_rotvec()  # the shorter arc, |angle| <= pi
+    T = pose_matrices(t, (r0 * Rotation.from_rotvec(a[:, None] * step)).as_quat())
+    return T, ok

@@ -6,22 +6,21 @@ Two kinds of file per frame:
 - class probabilities as ``.npy`` / ``.npz`` (first array, or the one keyed ``probs``),
   (H, W, C) or (C, H, W) float, already in the evaluation taxonomy's class order.
 
-Predictions made at another resolution are resized with nearest neighbour to the
-frame's depth resolution (pixel-centre aligned, like Pillow's NEAREST: output pixel
-centre (c + 0.5) * W_in / W_out - 0.5 samples the input), which keeps ids/probability
-vectors intact; this assumes the prediction covers the same field of view as depth.
+Predictions made at another resolution are resized to the frame's depth resolution by the one
+resize of :mod:`.images` (pixel centres aligned): label ids nearest (ids kept), probabilities
+bilinear (a convex combination of the neighbours' vectors, so still a distribution), as a
+network's outputs are; this assumes the prediction covers the same field of view as depth.
 """
 from __future__ import annotations
 
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 
+from .images import open_image, read_array, resize_bilinear, resize_nearest
 from .mapping import ClassMapping
 
 __all__ = [
-    "resize_nearest",
     "read_label_png",
     "load_label_prediction",
     "load_probability_prediction",
@@ -31,40 +30,6 @@ __all__ = [
 ]
 
 DEFAULT_PATTERNS = ("{name}.png", "{name}.label.png", "{name}.npy", "{name}.npz")  # = predictions.pattern's default
-
-
-def resize_nearest(img: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """Nearest-neighbour resize of an (H, W, ...) array to ``shape`` = (H', W').
-
-    Output pixel (r, c) takes input pixel (floor((r + 0.5) H / H'), floor((c + 0.5) W / W')),
-    i.e. pixel centres are aligned (the same samples as Pillow's NEAREST). Returns the
-    input itself when the shape already matches.
-    """
-    h, w = img.shape[:2]
-    H, W = int(shape[0]), int(shape[1])
-    if (h, w) == (H, W):
-        return img
-    rows = np.minimum(((np.arange(H) + 0.5) * (h / H)).astype(np.int64), h - 1)
-    cols = np.minimum(((np.arange(W) + 0.5) * (w / W)).astype(np.int64), w - 1)
-    return img[rows[:, None], cols[None, :]]
-
-
-@contextmanager
-def open_image(path: str | Path, what: str):
-    """PIL image of ``path`` whose pixels are loaded; an unreadable, truncated or corrupt file
-    is one ValueError naming it (Pillow raises OSError and friends)."""
-    from PIL import Image, UnidentifiedImageError
-
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{what} {path} does not exist")
-    try:
-        im = Image.open(path)
-        im.load()
-    except (OSError, UnidentifiedImageError, SyntaxError, ValueError) as exc:
-        raise ValueError(f"{path}: unreadable {what} ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
-    with im:
-        yield im
 
 
 def read_label_png(path: str | Path) -> np.ndarray:
@@ -120,22 +85,16 @@ def load_probability_prediction(path: str | Path, num_classes: int, shape: tuple
         path: ``.npy`` or ``.npz`` (array ``probs`` if present, else the first array),
             (H', W', C) or (C, H', W'); C must equal ``num_classes``.
         num_classes: C of the evaluation taxonomy.
-        shape: (H, W) target resolution (nearest-neighbour resize).
+        shape: (H, W) target resolution (bilinear resize, :func:`~diffuser_lab.data.images.resize_bilinear`).
     Returns:
         (H, W, C) float32 non-negative scores (not renormalised; evidence normalises rows).
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"probability file {path} does not exist")
-    if path.suffix == ".npy":
-        arr = np.load(path, allow_pickle=False)
-    elif path.suffix == ".npz":
-        with np.load(path, allow_pickle=False) as z:
-            if not z.files:
-                raise ValueError(f"{path}: empty .npz, expected an array of class probabilities")
-            arr = z["probs"] if "probs" in z.files else z[z.files[0]]
-    else:
+    if path.suffix not in (".npy", ".npz"):
         raise ValueError(f"{path}: probability file must be .npy or .npz, got {path.suffix or 'no suffix'}")
+    arr = read_array(path, "array of class probabilities", key="probs")
     if arr.ndim != 3 or arr.dtype.kind not in "fiu":
         raise ValueError(f"{path}: probabilities of shape {arr.shape} dtype {arr.dtype}, expected numeric "
                          f"(H, W, {num_classes}) or ({num_classes}, H, W)")
@@ -151,7 +110,7 @@ def load_probability_prediction(path: str | Path, num_classes: int, shape: tuple
     arr = arr.astype(np.float32, copy=False)
     if not np.isfinite(arr).all() or (arr < 0).any():
         raise ValueError(f"{path}: probabilities contain NaN/inf or negative values, expected scores >= 0")
-    return np.ascontiguousarray(resize_nearest(arr, shape))
+    return np.ascontiguousarray(resize_bilinear(arr, shape))
 
 
 def find_prediction(folder: str | Path, frame_name: str, patterns=DEFAULT_PATTERNS) -> Path:

@@ -18,6 +18,7 @@ import numpy as np
 
 from diffuser_lab import progress
 
+from .meshes import triangle_normals
 from .o3d import open3d
 from .scene import IGNORE
 
@@ -25,7 +26,6 @@ __all__ = [
     "look_at",
     "intrinsics",
     "MeshRenderer",
-    "triangle_normals",
     "sample_surface",
     "camera_trajectory",
     "render_views",
@@ -70,17 +70,6 @@ def intrinsics(width: int, height: int, fov_deg: float) -> np.ndarray:
     pixel centres at integer coordinates."""
     f = 0.5 * width / np.tan(np.deg2rad(fov_deg) / 2.0)
     return np.array([[f, 0.0, (width - 1) / 2.0], [0.0, f, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
-
-
-def triangle_normals(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit normals (T, 3) float64 (right-hand rule on the vertex order, zero for
-    degenerate triangles) and areas (T,) float64 m^2 of a triangle mesh."""
-    v = np.asarray(vertices, np.float64)
-    t = np.asarray(triangles, np.int64)
-    cr = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
-    norm = np.linalg.norm(cr, axis=1)
-    n = cr / np.maximum(norm, 1e-20)[:, None]
-    return n, 0.5 * norm
 
 
 def _open3d():

@@ -15,11 +15,10 @@ import yaml
 from omegaconf import OmegaConf
 
 from diffuser_lab import progress
-from diffuser_lab.data.clouds import write_las
+from diffuser_lab.data.clouds import write_las, write_pointcloud2_bag
 from diffuser_lab.data.embeddings import write_queries
 from diffuser_lab.data.o3d import open3d
 from diffuser_lab.data.scene import Taxonomy
-from diffuser_lab.data.sources.rosbag import write_pointcloud2_bag
 from diffuser_lab.method.features import unit_float16
 
 

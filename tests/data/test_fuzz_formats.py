@@ -100,7 +100,7 @@ def colmap_files(kind: str) -> dict[str, bytes]:
 def bag_files() -> dict[str, bytes]:
     """A ROS 2 bag folder (metadata.yaml, one .mcap) as diffuser-lab writes it."""
     from diffuser_lab.data.scene import SCANNET20
-    from diffuser_lab.data.sources.rosbag import write_pointcloud2_bag
+    from diffuser_lab.data.clouds import write_pointcloud2_bag
 
     with tempfile.TemporaryDirectory() as d:
         p = write_pointcloud2_bag(Path(d) / "labels", np.zeros((20, 3), np.float32), np.zeros(20, np.int64), SCANNET20,
@@ -324,15 +324,51 @@ def test_colmap_depth_maps(header, m, value):
         ends_clearly(read_depth_map, _write(d, "b.geometric.bin", mutate(b"64&48&1&" + body, *m)))
 
 
+def _npy(shape=(6, 8, 20)) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, np.random.default_rng(0).random(shape).astype(np.float32))
+    return buf.getvalue()
+
+
+@FUZZ
+@given(st.sampled_from([(6, 8, 20), (6000, 8000, 20), (2**40, 2**20, 20), (20, 6, 8), (0, 8, 20)]), MUTATION,
+       st.booleans())
+def test_probability_and_depth_arrays_whose_header_lies(shape, m, npz):
+    """A .npy's header shape overwritten (a lie up to 2^60 elements), or the file damaged, inside a .npz too:
+    probability files (predictions=files) and nerfstudio's .npy depth."""
+    import zipfile
+
+    from diffuser_lab.data.prediction_files import load_probability_prediction
+    from diffuser_lab.data.sources.nerfstudio import _read_depth
+
+    data = _npy()
+    head = np.lib.format.header_data_from_array_1_0(np.zeros((1,), "<f4"))
+    hb = io.BytesIO()
+    np.lib.format.write_array_header_1_0(hb, {**head, "shape": shape})
+    lied = hb.getvalue() + data[128:]  # both headers padded to 128 bytes
+    with tempfile.TemporaryDirectory() as d:
+        for name, b in (("lied.npy", lied), ("damaged.npy", mutate(data, *m))):
+            if npz:
+                zb = io.BytesIO()
+                with zipfile.ZipFile(zb, "w") as z:
+                    z.writestr("probs.npy", b)
+                name, b = name.replace(".npy", ".npz"), zb.getvalue()
+            p = _write(d, name, b)
+            ends_clearly(lambda q: load_probability_prediction(q, 20, (6, 8)), p)
+            ends_clearly(lambda q: _read_depth(q, 0.001), p)
+
+
 # ------------------------------------------------------------------------------------------- corpus
 
 READERS = {".las": "read_cloud", ".laz": "read_cloud", ".ply": "read_cloud", ".json": "read_transforms",
-           ".yaml": "read_intrinsics_file", ".txt": "read_intrinsics_file"}
+           ".yaml": "read_intrinsics_file", ".txt": "read_intrinsics_file", ".npy": "read_array"}
 
 
 def replay(paths: list[Path]) -> list[str]:
     """Each corpus file through its reader, bounded: one result line per file."""
-    fns = {"read_cloud": read_cloud, "read_transforms": read_transforms,
+    from diffuser_lab.data.images import read_array
+
+    fns = {"read_cloud": read_cloud, "read_transforms": read_transforms, "read_array": lambda p: read_array(p, "array"),
            "read_intrinsics_file": read_intrinsics_file, "read_bag": read_bag, "read_colmap": read_colmap}
     out = []
     for p in paths:  # loop over corpus files
@@ -378,6 +414,7 @@ def make_corpus() -> None:
         "truncated.json": json.dumps(TRANSFORMS).encode()[:60],
         "nan_focal.yaml": INTRINSICS["camera_info.yaml"].replace(b"500", b".nan"),
         "huge_size.yaml": INTRINSICS["camera_info.yaml"].replace(b"64", b"4000000000"),
+        "shape_lies.npy": _npy().replace(b"(6, 8, 20), }", b"(6, 8, 999),}", 1),
     }
     for name, data in files.items():  # loop over corpus files
         (CORPUS / name).write_bytes(data)

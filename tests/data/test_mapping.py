@@ -8,8 +8,8 @@ from diffuser_lab.data.prediction_files import (
     find_prediction,
     load_label_prediction,
     load_probability_prediction,
-    resize_nearest,
 )
+from diffuser_lab.data.images import resize_nearest
 from diffuser_lab.data.scene import IGNORE, SCANNET20, SCANNET20_NYU40_IDS
 
 WALL, C = SCANNET20.names.index("wall"), SCANNET20.num_classes
@@ -123,7 +123,11 @@ def test_probability_prediction(tmp_path):
     np.savez(tmp_path / "p.npz", other=np.zeros(3), probs=hwc)
     out = load_probability_prediction(tmp_path / "p.npz", C, (3, 4))  # downsized by 2
     assert out.shape == (3, 4, C) and out.dtype == np.float32
-    np.testing.assert_array_equal(out, hwc[1::2, 1::2])
+    ref = np.asarray(Image.fromarray(hwc[..., 3], "F").resize((4, 3), Image.BILINEAR))
+    np.testing.assert_allclose(out[..., 3], ref, atol=1e-6)  # probabilities bilinear (Pillow's), as a network's
+    unit = hwc / hwc.sum(2, keepdims=True)
+    np.savez(tmp_path / "u.npz", probs=unit)
+    np.testing.assert_allclose(load_probability_prediction(tmp_path / "u.npz", C, (3, 4)).sum(2), 1.0, atol=1e-5)
     np.save(tmp_path / "bad.npy", rng.random((6, 8, 13)))
     with pytest.raises(ValueError, match=r"bad\.npy.*no axis of 20 classes"):
         load_probability_prediction(tmp_path / "bad.npy", C, (6, 8))

@@ -164,7 +164,7 @@ def test_translate_ids_probs_and_errors(tmp_path):
 def test_resize_bilinear_matches_pillow():
     from PIL import Image
 
-    from diffuser_lab.data.networks import resize_bilinear
+    from diffuser_lab.data.images import resize_bilinear
 
     a = np.random.default_rng(1).random((7, 9, 2)).astype(np.float32)
     r = resize_bilinear(a, (21, 27))
@@ -250,7 +250,7 @@ def test_model_ids_run_cached_and_reused(scene, mapping_csv, tmp_path):
 
 @needs_7scenes
 def test_model_probabilities_resized_and_mapped(scene, mapping_csv, tmp_path):
-    from diffuser_lab.data.networks import resize_bilinear
+    from diffuser_lab.data.images import resize_bilinear
 
     ov = ["predictions=model", "predictions.model._target_=toy_networks.soft_grey",
           f"predictions.mapping={mapping_csv}", f"predictions.cache_dir={tmp_path / 'c'}"]
@@ -327,7 +327,7 @@ def test_onnx_fixed_size_logits_ids_and_a_run(scene, mapping_csv, tmp_path):
     small = np.asarray(Image.fromarray(scene.frames[0].rgb).resize((160, 120), Image.BILINEAR))
     src = np.argmax(numpy_net(small), axis=2)
     lut = np.array([SCANNET20.names.index(n) for n in ("chair", "wall", "floor")] + [IGNORE])
-    from diffuser_lab.data.prediction_files import resize_nearest
+    from diffuser_lab.data.images import resize_nearest
 
     assert (fi[0].labels == resize_nearest(lut[src], (480, 640))).mean() > 0.999
     res = run(compose(*scene_overrides(), "predictions=onnx", f"predictions.onnx.path={soft}",

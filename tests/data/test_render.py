@@ -10,8 +10,8 @@ from diffuser_lab.data.render import (
     intrinsics,
     look_at,
     sample_surface,
-    triangle_normals,
 )
+from diffuser_lab.data.meshes import triangle_normals, vertex_normals
 from diffuser_lab.data.scene import IGNORE
 
 _SIGNS = np.array([[(i >> 0) & 1, (i >> 1) & 1, (i >> 2) & 1] for i in range(8)], float)
@@ -223,3 +223,20 @@ def test_camera_trajectory_on_scannet_mesh():
     poses = camera_trajectory(v, 40, np.random.default_rng(0), width=160, height=120, K=K, renderer=r)
     cov = [np.count_nonzero(r.render(K, T, 160, 120)[0]) / (160 * 120) for T in poses]
     assert len(poses) == 40 and min(cov) >= 0.3 and np.mean(cov) > 0.5
+
+
+def test_vertex_normals_are_open3ds_area_weighted_rule_with_a_pca_fallback():
+    """The one vertex-normal rule (data/meshes.py) equals open3d's compute_vertex_normals on a bumpy
+    sheet; a vertex of no face gets a unit local-PCA normal, not zero."""
+    import open3d as o3d
+
+    g = np.stack(np.meshgrid(np.arange(12.0), np.arange(9.0), indexing="ij"), -1).reshape(-1, 2) * 0.1
+    v = np.column_stack([g, 0.05 * np.sin(7 * g[:, 0]) * np.cos(5 * g[:, 1])])
+    i = np.arange(11)[:, None] * 9 + np.arange(8)[None]
+    t = np.concatenate([np.stack([i, i + 9, i + 1], -1).reshape(-1, 3), np.stack([i + 1, i + 9, i + 10], -1).reshape(-1, 3)])
+    m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(v), o3d.utility.Vector3iVector(t.astype(np.int32)))
+    m.compute_vertex_normals(normalized=True)
+    n = vertex_normals(v, t)
+    np.testing.assert_allclose(n, np.asarray(m.vertex_normals), atol=1e-6)
+    lone = vertex_normals(np.vstack([v, [[0.55, 0.4, 0.0]]]), t)[-1]  # inside the sheet, in no face
+    assert abs(np.linalg.norm(lone) - 1) < 1e-5 and abs(lone[2]) > 0.9

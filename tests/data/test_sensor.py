@@ -19,12 +19,11 @@ from diffuser_lab.config import (
 )
 from diffuser_lab.data.render import MeshRenderer, intrinsics, look_at
 from diffuser_lab.data.scene import Frame
+from diffuser_lab.data.depth_stats import depth_error_report, depth_hole_stats
 from diffuser_lab.data.sources.rgbd_folder import RgbdFolderOptions
 from diffuser_lab.data.sensor import (
     SensorModel,
     axial_sigma,
-    depth_error_report,
-    depth_hole_stats,
     depth_jumps,
     incidence_angles,
     noisy_frames,

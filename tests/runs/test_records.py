@@ -5,7 +5,7 @@ import numpy as np
 from diffuser_lab.config import CloudFormat
 from diffuser_lab.data.clouds import read_cloud
 from diffuser_lab.data.scene import SCANNET20
-from diffuser_lab.data.sources.rosbag import read_pointcloud2_bag
+from diffuser_lab.data.clouds import read_pointcloud2_bag
 from diffuser_lab.runs.records import CLOUD_WRITERS, write_labels
 
 

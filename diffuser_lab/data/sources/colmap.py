@@ -24,8 +24,9 @@ Conventions converted:
 - **cameras**: SIMPLE_PINHOLE / PINHOLE as they are; SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV
   resampled to a pinhole camera (``undistort``): the same principal point and image size, focal
   lengths scaled by the least factor >= 1 that leaves no blank pixel (as image_undistorter's
-  default ``blank_pixels=0``); the map is computed once per camera and image size (pycolmap's own
-  projection of the model), colour bilinear, labels and depth nearest. Other models (fisheye, FOV,
+  default ``blank_pixels=0``); the models map onto :mod:`diffuser_lab.data.distortion`'s (the one
+  undistortion of every source: :func:`~diffuser_lab.data.distortion.colmap_lens`), its map is
+  computed once per camera and image size, colour bilinear, labels and depth nearest. Other models (fisheye, FOV,
   ...) are refused: undistort them with ``colmap image_undistorter`` and load its workspace.
 - **depth**: ``stereo/depth_maps/<image name>.<geometric|photometric>.bin``: an ASCII header
   ``width&height&channels&`` then float32 little-endian, row-major (COLMAP's read_write_dense.py),
@@ -51,13 +52,14 @@ from omegaconf import MISSING
 from diffuser_lab.config import SceneConfig, key, rule
 from diffuser_lab.data.capture import CaptureOptions, CapturedFrame, capture_scene
 from diffuser_lab.data.clouds import read_cloud, read_point_cloud_ply
+from diffuser_lab.data.distortion import colmap_lens, focal_scale, undistort_image
+from diffuser_lab.data.geometry import scaled_intrinsics
 from diffuser_lab.data.prediction_files import read_label_png
-from diffuser_lab.data.scene import Scene, Taxonomy
+from diffuser_lab.data.scene import IGNORE, Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
 from diffuser_lab.data.images import read_rgb
 
-__all__ = ["ColmapOptions", "DepthMaps", "CloudFrom", "load", "read_model", "read_depth_map", "find_sparse",
-           "Undistorter"]
+__all__ = ["ColmapOptions", "DepthMaps", "CloudFrom", "load", "read_model", "read_depth_map", "find_sparse"]
 
 PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")
 DISTORTED_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
@@ -329,76 +331,27 @@ def _pinhole_K(cam) -> np.ndarray:
                      [0.0, 0.0, 1.0]])
 
 
-class Undistorter:
-    """A distorted COLMAP camera resampled to a pinhole one: ``K`` (3, 3) for (``height``, ``width``),
-    the camera's principal point, focal lengths times the least ``scale`` >= 1 that leaves no blank
-    pixel. ``__call__(image, order)`` resamples an image of any size (intrinsics scaled with pixel
-    centres aligned); the map is computed once per image size."""
+class _Lens:
+    """A distorted COLMAP camera resampled to a pinhole one (:mod:`diffuser_lab.data.distortion`): ``K``
+    (3, 3) for (``height``, ``width``), the camera's principal point, focal lengths times the least
+    ``scale`` >= 1 that leaves no blank pixel; ``__call__(image, order, fill)`` resamples an image of
+    any size (intrinsics scaled with pixel centres aligned)."""
 
-    def __init__(self, cam, what: str):
-        self.cam, self.size = cam, (int(cam.height), int(cam.width))
-        K0 = _pinhole_K(cam)
-        self.scale = self._least_scale(K0, what)
-        self.K = K0.copy()
+    def __init__(self, cam, model: str, what: str):
+        self.model, self.size = model, (int(cam.height), int(cam.width))
+        self.K0, self.lens = colmap_lens(model, cam.params)
+        try:
+            self.scale = focal_scale(self.K0, self.size, self.lens, what)
+        except ValueError as e:
+            raise ValueError(f"{e} (undistort it with colmap image_undistorter)") from None
+        self.K = self.K0.copy()
         self.K[0, 0] *= self.scale
         self.K[1, 1] *= self.scale
-        self._maps: dict = {}
 
-    def _source(self, K: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """Pinhole pixels (u, v) of the camera's size -> (N, 2) distorted pixels (integer centres)."""
-        rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], 1)
-        uv = np.asarray(self.cam.img_from_cam(np.ascontiguousarray(rays, np.float64)), np.float64) - 0.5
-        return np.where(np.isfinite(uv), uv, -1e9)
-
-    def _least_scale(self, K0: np.ndarray, what: str) -> float:
-        H, W = self.size
-        t = np.linspace(0, 1, 257)  # the image border, sampled
-        u = np.concatenate([t * (W - 1), t * (W - 1), np.zeros_like(t), np.full_like(t, W - 1)])
-        v = np.concatenate([np.zeros_like(t), np.full_like(t, H - 1), t * (H - 1), t * (H - 1)])
-
-        def inside(s: float) -> bool:
-            K = K0.copy()
-            K[0, 0] *= s
-            K[1, 1] *= s
-            uv = self._source(K, u, v)
-            return bool(((uv[:, 0] >= -0.5) & (uv[:, 0] <= W - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= H - 0.5)).all())
-
-        if inside(1.0):
-            return 1.0
-        hi = 2.0
-        while not inside(hi):  # loop: doubling, a few steps
-            hi *= 2
-            if hi > 64:
-                raise ValueError(f"{what}: distortion too strong to resample to a pinhole camera without blank "
-                                 f"pixels (undistort it with colmap image_undistorter)")
-        lo = 1.0
-        for _ in range(30):  # bisection on the focal scale
-            mid = 0.5 * (lo + hi)
-            lo, hi = (lo, mid) if inside(mid) else (mid, hi)
-        return hi
-
-    def coords(self, shape: tuple[int, int]) -> np.ndarray:
-        """(2, h, w) float32 source (row, col) of every pixel of a pinhole image of ``shape``."""
-        shape = (int(shape[0]), int(shape[1]))
-        if shape not in self._maps:
-            (H, W), (h, w) = self.size, shape
-            v, u = np.mgrid[0:h, 0:w].astype(np.float64)
-            # pixels of `shape` -> the camera's size (centres aligned), through the distortion, and back
-            uv = self._source(self.K, (u.ravel() + 0.5) * W / w - 0.5, (v.ravel() + 0.5) * H / h - 0.5)
-            col = (uv[:, 0] + 0.5) * w / W - 0.5  # camera-size pixels -> pixels of shape, centres aligned
-            row = (uv[:, 1] + 0.5) * h / H - 0.5
-            self._maps[shape] = np.stack([row.reshape(h, w), col.reshape(h, w)]).astype(np.float32)
-        return self._maps[shape]
-
-    def __call__(self, image: np.ndarray, order: int) -> np.ndarray:
-        """(h, w) or (h, w, c) image -> the same shape and dtype, resampled (order 1 bilinear, 0 nearest)."""
-        from scipy.ndimage import map_coordinates
-
-        c = self.coords(image.shape[:2])
-        if image.ndim == 2:
-            return map_coordinates(image, c, order=order, mode="nearest").astype(image.dtype)
-        return np.stack([map_coordinates(image[..., k], c, order=order, mode="nearest")
-                         for k in range(image.shape[2])], -1).astype(image.dtype)
+    def __call__(self, image: np.ndarray, order: int, fill=0) -> np.ndarray:
+        shape = image.shape[:2]
+        return undistort_image(image, scaled_intrinsics(self.K0, self.size, shape), self.lens, order=order,
+                               fill=fill, K_out=scaled_intrinsics(self.K, self.size, shape))
 
 
 # ---------------------------------------------------------------------------------------- depth maps
@@ -425,13 +378,13 @@ def read_depth_map(path: str | Path) -> np.ndarray:
 # ---------------------------------------------------------------------------------------- the scene
 
 def _camera(cam, cid: int, model: str, cams_file: Path, undistort: bool, cache: dict):
-    """(K, Undistorter or None) of a camera used by the frames; one line naming the file otherwise."""
+    """(K, _Lens or None) of a camera used by the frames; one line naming the file otherwise."""
     if cid in cache:
         return cache[cid]
     if model in PINHOLE_MODELS:
         out = (_pinhole_K(cam), None)
     elif model in DISTORTED_MODELS and undistort:
-        u = Undistorter(cam, f"{cams_file}: camera {cid} ({model})")
+        u = _Lens(cam, model, f"{cams_file}: camera {cid} ({model})")
         out = (u.K, u)
     elif model in DISTORTED_MODELS:
         raise ValueError(f"{cams_file}: camera {cid} has model {model} (distorted) and scene.options.undistort="
@@ -501,7 +454,7 @@ def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) ->
             name=stem, T_cw=T, K=K, K_size=(int(cam.height), int(cam.width)),
             depth=_reader(read_depth_map, depth_path, und, 0) if use_depth else None,
             rgb=_reader(read_rgb, img_path, und, 1),
-            labels=_reader(read_label_png, label_path, und, 0) if label_path is not None and label_path.is_file()
+            labels=_reader(read_label_png, label_path, und, 0, IGNORE) if label_path is not None and label_path.is_file()
             else None,
             size=None if use_depth else (int(cam.height), int(cam.width))))
     if missing:
@@ -514,7 +467,7 @@ def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) ->
     if not frames:
         raise ValueError(f"{depth_dir}: no image has a {depth_kind} depth map (scene.options.depth_maps=none)")
     cloud, cloud_note = _cloud(o, root, rec, folder, kind)
-    distorted = sorted(f"{u.cam.model.name} (camera {c}, focal x{u.scale:.4g})" for c, (_, u) in cache.items()
+    distorted = sorted(f"{u.model} (camera {c}, focal x{u.scale:.4g})" for c, (_, u) in cache.items()
                        if u is not None)
     info = {"colmap_model": f"{folder} ({kind}, {rec.num_images()} images, {rec.num_points3D()} points)",
             "images_registered": len(images),
@@ -526,11 +479,12 @@ def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) ->
     return capture_scene(root.resolve().name, frames, o, taxonomy, root=root, cloud=cloud, info=info)
 
 
-def _reader(read, path: Path, und: Optional[Undistorter], order: int):
-    """A lazy reader of ``path`` (resampled by ``und`` when the camera is distorted)."""
+def _reader(read, path: Path, und: Optional[_Lens], order: int, fill=0):
+    """A lazy reader of ``path`` (resampled by ``und`` when the camera is distorted; ``fill`` where
+    a pixel has no source, which the focal scale leaves none of but at rounding)."""
     if und is None:
         return lambda: read(path)
-    return lambda: und(np.asarray(read(path)), order)
+    return lambda: und(np.asarray(read(path)), order, fill)
 
 
 def _cloud(o: ColmapOptions, root: Path, rec, folder: Path, kind: str):

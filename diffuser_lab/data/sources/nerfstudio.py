@@ -60,7 +60,8 @@ from diffuser_lab.data.capture import CaptureOptions, CapturedFrame, capture_sce
 from diffuser_lab.data.clouds import read_cloud
 from diffuser_lab.data.distortion import FISHEYE, PERSPECTIVE, LensModel, undistort_image
 from diffuser_lab.data.geometry import scaled_intrinsics
-from diffuser_lab.data.prediction_files import open_image, read_label_png, resize_nearest
+from diffuser_lab.data.images import open_image, read_array, resize_nearest
+from diffuser_lab.data.prediction_files import read_label_png
 from diffuser_lab.data.scene import IGNORE, Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
 from diffuser_lab.data.images import read_depth_png, read_rgb
@@ -174,13 +175,7 @@ def _frame_path(root: Path, rel: str, downscale: int, prefix: str) -> Path:
 def _read_depth(path: Path, unit: float) -> np.ndarray:
     """A depth file -> (H, W) float32 metres (x ``unit``), 0 = none: 16-bit PNG or ``.npy``."""
     if path.suffix.lower() == ".npy":
-        if not path.is_file():
-            raise FileNotFoundError(f"depth file {path} does not exist")
-        try:
-            d = np.load(path, allow_pickle=False)
-        except (ValueError, OSError, EOFError) as e:
-            raise ValueError(f"{path}: unreadable .npy depth ({type(e).__name__}: {e})") from None
-        d = np.squeeze(np.asarray(d))
+        d = np.squeeze(read_array(path, "depth file"))
         if d.ndim != 2 or d.dtype.kind not in "uif":
             raise ValueError(f"{path}: depth array of dtype {d.dtype} shape {d.shape}, expected (H, W) numbers")
         d = d.astype(np.float64) * unit

@@ -26,8 +26,8 @@ skipped and counted in ``scene.frames.info``; frames are ordered by stamp.
 Frames are lazy: the first pass keeps (topic, record time, ordinal) per image message and decodes only
 the small messages (CameraInfo, tf, poses); an image is read from the bag when its frame is.
 
-:func:`write_pointcloud2_bag` writes labelled points as a ROS 2 bag (MCAP storage) with one
-``sensor_msgs/msg/PointCloud2`` message that rviz2 and Foxglove display.
+The labelled points go out as a PointCloud2 bag through
+:func:`diffuser_lab.data.clouds.write_pointcloud2_bag`, beside the other cloud writers.
 """
 from __future__ import annotations
 
@@ -35,7 +35,6 @@ import io
 import mmap
 import struct
 import threading
-import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,14 +45,13 @@ from omegaconf import MISSING
 
 from diffuser_lab.config import SceneConfig, above, key, rule
 from diffuser_lab.data.capture import CaptureOptions, CapturedFrame, capture_scene
-from diffuser_lab.data.poses import associate
-from diffuser_lab.data.scene import IGNORE, Scene, Taxonomy
+from diffuser_lab.data.poses import associate, interpolate_poses, pose_matrices
+from diffuser_lab.data.scene import Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
 from diffuser_lab.data.validate import check_depth_unit
 
 
-__all__ = ["RosbagOptions", "load", "load_rosbag", "decode_image", "write_pointcloud2_bag", "read_pointcloud2_bag",
-           "interpolate_poses"]
+__all__ = ["RosbagOptions", "load", "load_rosbag", "decode_image"]
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 INFO_TYPE = "sensor_msgs/msg/CameraInfo"
@@ -180,53 +178,6 @@ def _to_labels(a: np.ndarray, enc: str, what: str) -> np.ndarray:
 # --------------------------------------------------------------------------- poses
 
 
-def _quat_matrix(t: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """(N, 3) translations, (N, 4) quaternions qx qy qz qw -> (N, 4, 4) rigid transforms."""
-    from scipy.spatial.transform import Rotation
-
-    T = np.tile(np.eye(4), (len(t), 1, 1))
-    if len(t):
-        T[:, :3, :3] = Rotation.from_quat(q).as_matrix()
-        T[:, :3, 3] = t
-    return T
-
-
-def interpolate_poses(stamps: np.ndarray, trans: np.ndarray, quats: np.ndarray, at: np.ndarray, tol: float,
-                      interpolate: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """Poses of a sampled trajectory at other times.
-
-    Args:
-        stamps: (M,) int64 nanoseconds, sorted. trans: (M, 3) metres. quats: (M, 4) qx qy qz qw, unit.
-        at: (N,) int64 nanoseconds. tol: seconds; a sample farther than this from ``at`` is not used.
-        interpolate: between the samples just before and after (both within ``tol``): translation linear,
-            rotation slerp; otherwise (and when only one is within ``tol``) the nearest sample.
-    Returns:
-        (N, 4, 4) float64 transforms and (N,) bool: a sample lay within ``tol``.
-    """
-    at = np.asarray(at, np.int64)
-    m = len(stamps)
-    jr = np.clip(np.searchsorted(stamps, at), 0, m - 1)
-    jl = np.clip(jr - 1, 0, m - 1)
-    jl = np.where(stamps[jr] == at, jr, jl)
-    dl, dr = np.abs(at - stamps[jl]) * 1e-9, np.abs(at - stamps[jr]) * 1e-9
-    ok = np.minimum(dl, dr) <= tol
-    near = np.where(dl <= dr, jl, jr)
-    both = interpolate & (jl != jr) & (stamps[jl] <= at) & (at <= stamps[jr]) & (dl <= tol) & (dr <= tol)
-    a = np.where(both, (at - stamps[jl]) / np.maximum(stamps[jr] - stamps[jl], 1), 0.0)[:, None]
-    i0, i1 = np.where(both, jl, near), np.where(both, jr, near)
-    t = (1 - a) * trans[i0] + a * trans[i1]
-    q0, q1 = quats[i0], quats[i1]
-    d = np.sum(q0 * q1, 1, keepdims=True)
-    q1 = np.where(d < 0, -q1, q1)  # the shorter arc
-    th = np.arccos(np.clip(np.abs(d), -1.0, 1.0))
-    s = np.sin(th)
-    small = s < 1e-9
-    w0 = np.where(small, 1 - a, np.sin((1 - a) * th) / np.where(small, 1, s))
-    w1 = np.where(small, a, np.sin(a * th) / np.where(small, 1, s))
-    q = w0 * q0 + w1 * q1
-    return _quat_matrix(t, q / np.linalg.norm(q, axis=1, keepdims=True)), ok
-
-
 def _rigid(q: np.ndarray, t: np.ndarray, where: str) -> None:
     """One line when a sample's quaternion is not a rotation (or any value is not finite)."""
     n = np.linalg.norm(q, axis=1)
@@ -255,8 +206,8 @@ class _Track:
     def at(self, at: np.ndarray, tol: float, interpolate: bool) -> tuple[np.ndarray, np.ndarray]:
         st, tr, q = self.arrays()
         if self.static:  # valid at every time: the latest sample
-            return np.repeat(_quat_matrix(tr[-1:], q[-1:]), len(at), 0), np.ones(len(at), bool)
-        return interpolate_poses(st, tr, q, at, tol, interpolate)
+            return np.repeat(pose_matrices(tr[-1:], q[-1:]), len(at), 0), np.ones(len(at), bool)
+        return interpolate_poses(st, tr, q, at, tol * 1e9, interpolate)  # nanoseconds
 
 
 def _chain(edges: dict[str, _Track], world: str, camera: str, bag: Path) -> tuple[list[str], list[str]]:
@@ -574,8 +525,8 @@ def load_rosbag(o: RosbagOptions, taxonomy: Taxonomy) -> Scene:
         if not track.t:
             raise ValueError(f"{bag}: no message on {pose_t} (scene.options.pose_topic)")
         st, tr, q = track.arrays()
-        T_wb, ok = interpolate_poses(st, tr, q, d_st, o.pose_max_time_diff, o.pose_interpolation)
-        T_bc = np.eye(4) if o.camera_in_body is None else _quat_matrix(
+        T_wb, ok = interpolate_poses(st, tr, q, d_st, o.pose_max_time_diff * 1e9, o.pose_interpolation)
+        T_bc = np.eye(4) if o.camera_in_body is None else pose_matrices(
             np.asarray(o.camera_in_body[:3], float)[None], np.asarray(o.camera_in_body[3:], float)[None])[0]
         T_wc = T_wb @ T_bc
         world = pose_frame
@@ -625,76 +576,3 @@ def load_rosbag(o: RosbagOptions, taxonomy: Taxonomy) -> Scene:
 def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) -> Scene:
     """``scene.source=rosbag``: the bag of ``scene.options`` (a :class:`RosbagOptions`; real depth)."""
     return load_rosbag(cfg.options, taxonomy)
-
-
-# --------------------------------------------------------------------------- output: PointCloud2
-
-
-_PC2_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgb", "<f4"), ("label", "<i4")])
-
-
-def write_pointcloud2_bag(path, points: np.ndarray, labels: np.ndarray, taxonomy: Taxonomy, frame_id: str = "map",
-                          topic: str = "/diffuser_lab/labels", stamp_ns: Optional[int] = None,
-                          ignore_color=(128, 128, 128)) -> Path:
-    """Labelled points as a ROS 2 bag (MCAP storage, CDR, ROS 2 Humble message definitions).
-
-    One ``sensor_msgs/msg/PointCloud2`` on ``topic``: fields x y z (float32, metres in ``frame_id``),
-    rgb (float32 holding the packed 0x00RRGGBB bytes, as rviz reads it: the class colours; IGNORE
-    ``ignore_color``) and label (int32 class id, -1 = IGNORE); height 1, little endian, dense.
-
-    Args:
-        path: the bag folder to create (``<path>/<name>.mcap`` + ``metadata.yaml``); must not exist.
-        points: (N, 3) world metres. labels: (N,) class ids of ``taxonomy``.
-        stamp_ns: header stamp and record time; None = now.
-    Returns:
-        the ``.mcap`` file (Foxglove opens it as it is; ``ros2 bag play`` takes the folder).
-    """
-    from rosbags.rosbag2 import StoragePlugin, Writer, WriterError
-    from rosbags.typesys import Stores, get_typestore
-
-    path = Path(path)
-    points = np.asarray(points, np.float32).reshape(-1, 3)
-    labels = np.asarray(labels).reshape(-1)
-    if len(labels) != len(points):
-        raise ValueError(f"{path}: {len(points)} points but {len(labels)} labels")
-    ts = get_typestore(Stores.ROS2_HUMBLE)
-    PointCloud2, PointField = ts.types["sensor_msgs/msg/PointCloud2"], ts.types["sensor_msgs/msg/PointField"]
-    Header, Time = ts.types["std_msgs/msg/Header"], ts.types["builtin_interfaces/msg/Time"]
-    rgb = taxonomy.colorize(labels, ignore_color).astype(np.uint32)
-    packed = (rgb[:, 0] << 16) | (rgb[:, 1] << 8) | rgb[:, 2]
-    rec = np.empty(len(points), _PC2_DTYPE)
-    rec["x"], rec["y"], rec["z"] = points[:, 0], points[:, 1], points[:, 2]
-    rec["rgb"] = packed.view(np.float32)
-    rec["label"] = np.where(labels == IGNORE, -1, labels).astype(np.int32)
-    stamp = time.time_ns() if stamp_ns is None else int(stamp_ns)
-    fields = [PointField(name=n, offset=_PC2_DTYPE.fields[n][1], datatype=d, count=1)
-              for n, d in (("x", 7), ("y", 7), ("z", 7), ("rgb", 7), ("label", 5))]  # 7 FLOAT32, 5 INT32
-    msg = PointCloud2(header=Header(stamp=Time(sec=stamp // 1_000_000_000, nanosec=stamp % 1_000_000_000),
-                                    frame_id=frame_id),
-                      height=1, width=len(points), fields=fields, is_bigendian=False,
-                      point_step=_PC2_DTYPE.itemsize, row_step=_PC2_DTYPE.itemsize * len(points),
-                      data=rec.view(np.uint8).reshape(-1), is_dense=True)
-    try:
-        with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
-            conn = w.add_connection(topic, PointCloud2.__msgtype__, typestore=ts)
-            w.write(conn, stamp, ts.serialize_cdr(msg, PointCloud2.__msgtype__))
-    except WriterError as e:
-        raise FileExistsError(f"{path}: {e}") from None
-    return next(path.glob("*.mcap"))
-
-
-def read_pointcloud2_bag(path, topic: str = "/diffuser_lab/labels") -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
-    """What :func:`write_pointcloud2_bag` wrote: (N, 3) float32 points, (N,) int32 labels, (N, 3) uint8
-    colours and the frame_id (the first message on ``topic``)."""
-    from rosbags.highlevel import AnyReader
-
-    with AnyReader([Path(path)]) as r:
-        conns = [c for c in r.connections if c.topic == topic]
-        if not conns:
-            raise ValueError(f"{path}: no topic {topic}; topics present: {_topics_line(r.topics)}")
-        c, _, raw = next(r.messages(connections=conns))
-        m = r.deserialize(raw, c.msgtype)
-    rec = np.frombuffer(np.asarray(m.data, np.uint8).tobytes(), _PC2_DTYPE)
-    p = rec["rgb"].view(np.uint32)
-    cols = np.stack([(p >> 16) & 255, (p >> 8) & 255, p & 255], 1).astype(np.uint8)
-    return np.stack([rec["x"], rec["y"], rec["z"]], 1), rec["label"].copy(), cols, m.header.frame_id

@@ -10,7 +10,9 @@ Layout of ``root`` (``rgbd_dataset_freiburg1_xyz/`` after unpacking the .tgz)::
 The three streams run on their own clocks (RGB and depth at 30 Hz, the motion capture at 100 Hz).
 A frame is a depth image; it is kept when an RGB image and a ground-truth pose lie within
 ``max_time_diff`` seconds of it (TUM's ``associate.py`` uses 0.02 s); each RGB image serves at most one
-frame (the nearest), as ``associate.py`` pairs them one-to-one. Frames are named after the RGB image's
+frame (the nearest), as ``associate.py`` pairs them one-to-one. The pose is the trajectory at the depth
+image's time (:func:`~diffuser_lab.data.poses.interpolate_poses`, as for ROS bags): between the two
+samples around it when both lie within ``max_time_diff``, else the nearest sample. Frames are named after the RGB image's
 file stem (the name a 2D network's output usually carries), or the depth's without colour.
 
 Depth is registered to the colour camera, so one K serves both; TUM's calibration page gives per-camera
@@ -33,12 +35,13 @@ from diffuser_lab.config import SceneConfig, Section, above, at_least, check, ke
 from diffuser_lab.data.capture import fuse_depth
 from diffuser_lab.data.frames import LazyFrames
 from diffuser_lab.data.images import read_depth_png, read_rgb
-from diffuser_lab.data.poses import associate
+from diffuser_lab.data.poses import associate, interpolate_poses, pose_matrices, rigid_inverse
 from diffuser_lab.data.scene import SCANNET20, Frame, Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
 from diffuser_lab.data.validate import check_depth_unit
 
-__all__ = ["TumOptions", "TumCamera", "load_tum", "read_tum_list", "read_tum_trajectory", "TUM_CAMERAS", "load"]
+__all__ = ["TumOptions", "TumCamera", "load_tum", "read_tum_list", "read_tum_samples", "read_tum_trajectory", "TUM_CAMERAS",
+           "load"]
 
 
 class TumCamera(Enum):
@@ -55,14 +58,15 @@ class TumCamera(Enum):
 @dataclass
 class TumOptions(Section):
     """A TUM RGB-D sequence (diffuser_lab.data.sources.tum): rgb.txt, depth.txt, groundtruth.txt with
-    timestamps, associated by nearest timestamp; frames named after their RGB image's stem."""
+    timestamps: RGB by nearest timestamp, the pose interpolated at the depth image's time; frames named
+    after their RGB image's stem."""
 
     KEY = "scene.options"
     root: str = MISSING  # the sequence folder (rgbd_dataset_freiburg1_xyz)
     rgb_list: Optional[str] = "rgb.txt"  # 'timestamp file' lines; null = no colour
     depth_list: str = "depth.txt"  # 'timestamp file' lines; the frames
     groundtruth: str = "groundtruth.txt"  # 'timestamp tx ty tz qx qy qz qw', camera-to-world
-    max_time_diff: float = key(0.02, above(0, "seconds"))  # seconds: nearest RGB / pose farther than this drops the frame (associate.py)
+    max_time_diff: float = key(0.02, above(0, "seconds"))  # seconds: the nearest RGB image and the pose samples used must lie within it (associate.py), else the frame is dropped; the pose is interpolated between the samples around the depth image
     depth_scale: float = key(5000.0, above(0))  # raw units per metre (TUM: 5000)
     camera: TumCamera = TumCamera.auto
     fx: Optional[float] = None  # pixels; set all four to override the camera preset
@@ -115,13 +119,9 @@ def read_tum_list(path: str | Path) -> tuple[np.ndarray, list[str]]:
     return t[order], [rows[k][1] for k in order]
 
 
-def read_tum_trajectory(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """groundtruth.txt -> (N,) float64 seconds (sorted), (N, 4, 4) float64 camera-to-world poses.
-
-    Quaternions are ``qx qy qz qw`` (scalar last, scipy's order); each must be unit within 1e-2.
-    """
-    from scipy.spatial.transform import Rotation
-
+def read_tum_samples(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """groundtruth.txt -> (N,) float64 seconds (sorted), (N, 3) metres, (N, 4) unit ``qx qy qz qw``
+    (scalar last, scipy's order; each must be unit within 1e-2 and is normalised): camera-to-world."""
     path = Path(path)
     rows = _rows(path, 8, "'timestamp tx ty tz qx qy qz qw'")
     try:
@@ -135,10 +135,13 @@ def read_tum_trajectory(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
         k = int(np.argmax(bad))
         raise ValueError(f"{path}: pose at t={a[k, 0]:.6f} has quaternion norm {norm[k]:.4g} (or non-finite "
                          f"values), expected a unit quaternion qx qy qz qw")
-    T = np.tile(np.eye(4), (len(a), 1, 1))
-    T[:, :3, :3] = Rotation.from_quat(a[:, 4:8]).as_matrix()  # normalises
-    T[:, :3, 3] = a[:, 1:4]
-    return a[:, 0], T
+    return a[:, 0], a[:, 1:4], a[:, 4:8] / norm[:, None]
+
+
+def read_tum_trajectory(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """groundtruth.txt -> (N,) float64 seconds (sorted), (N, 4, 4) float64 camera-to-world poses."""
+    t, trans, quats = read_tum_samples(path)
+    return t, pose_matrices(trans, quats)
 
 
 def _camera_K(root: Path, camera: str, intrinsics) -> np.ndarray:
@@ -195,9 +198,8 @@ def load_tum(
                          f"expected positive values")
     K = _camera_K(root, camera, intrinsics)
     t_d, f_d = read_tum_list(root / depth_list)
-    t_g, T_wc = read_tum_trajectory(root / groundtruth)
-    pose_idx = associate(t_d, t_g, max_time_diff, one_to_one=False)  # 100 Hz poses serve any frame
-    keep = pose_idx >= 0
+    t_g, trans, quats = read_tum_samples(root / groundtruth)
+    T_wc, keep = interpolate_poses(t_g, trans, quats, t_d, max_time_diff)  # at each depth image's time
     n_no_pose = int(np.count_nonzero(~keep))
     n_no_rgb = 0
     rgb_idx = None
@@ -216,11 +218,7 @@ def load_tum(
     if n_no_pose + n_no_rgb > 0.5 * len(t_d):
         warnings.warn(f"{root}: {n_no_pose + n_no_rgb} of {len(t_d)} depth images dropped ({n_no_pose} without a "
                       f"pose, {n_no_rgb} without RGB within max_time_diff={max_time_diff} s)", stacklevel=2)
-    T_sel = T_wc[pose_idx[sel]]
-    R_t = np.transpose(T_sel[:, :3, :3], (0, 2, 1))
-    T_cw = np.tile(np.eye(4), (len(sel), 1, 1))  # rigid inverse of every pose at once
-    T_cw[:, :3, :3] = R_t
-    T_cw[:, :3, 3] = -np.einsum("nij,nj->ni", R_t, T_sel[:, :3, 3])
+    T_cw = rigid_inverse(T_wc[sel])
     depth_files = [root / f_d[k] for k in sel]
     rgb_files = [root / f_c[rgb_idx[k]] for k in sel] if rgb_idx is not None else None
     names = [p.stem for p in (rgb_files if rgb_files is not None else depth_files)]

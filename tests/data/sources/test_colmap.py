@@ -11,7 +11,9 @@ import pytest
 from captures import agreement, labels_of, needs_7scenes, seven_frames, write_rgbd_reference
 from conftest import run_cli
 
-from diffuser_lab.data.sources.colmap import Undistorter, read_depth_map
+from diffuser_lab.data.distortion import colmap_lens, focal_scale, undistort_image, undistort_map
+from diffuser_lab.data.geometry import scaled_intrinsics
+from diffuser_lab.data.sources.colmap import read_depth_map
 
 pycolmap = pytest.importorskip("pycolmap")
 
@@ -196,27 +198,59 @@ def test_depth_map_reader_round_trip(tmp_path):
         read_depth_map(tmp_path / "c.bin")
 
 
+def _pinhole(model, params, shape=(240, 320)):
+    """(K of the distorted camera, LensModel, K of the pinhole one with colmap's no-blank focal scale)."""
+    K, lens = colmap_lens(model, params)
+    s = focal_scale(K, shape, lens, "test")
+    Ko = K.copy()
+    Ko[:2, :2] *= s
+    return K, lens, Ko, s
+
+
+@pytest.mark.parametrize("model,params", [
+    ("SIMPLE_RADIAL", [300.0, 160.0, 120.0, -0.1]), ("RADIAL", [300.0, 160.0, 120.0, -0.1, 0.02]),
+    ("OPENCV", [300.0, 310.0, 161.0, 119.5, -0.12, 0.03, 0.001, -0.002]),
+    ("OPENCV", [300.0, 300.0, 160.0, 120.0, 0.2, 0.0, 0.0, 0.0]),
+    ("FULL_OPENCV", [300.0, 310.0, 161.0, 119.5, -0.12, 0.03, 0.001, -0.002, 0.01, 0.02, -0.01, 0.005])])
+def test_colmap_models_map_onto_the_one_undistortion(model, params):
+    """data/distortion.py's map of a COLMAP camera equals pycolmap's own projection (img_from_cam, the
+    former colmap Undistorter's) to 1e-3 px, at the camera's size and at half of it (centres aligned)."""
+    cam = pycolmap.Camera.create_from_model_name(1, model, 300.0, 320, 240)
+    cam.params = params
+    K, lens, Ko, _ = _pinhole(model, params)
+    for h, w in ((240, 320), (120, 160)):
+        coords, valid = undistort_map(scaled_intrinsics(K, (240, 320), (h, w)), (h, w), lens,
+                                      scaled_intrinsics(Ko, (240, 320), (h, w)))
+        v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+        U, V = (u.ravel() + 0.5) * 320 / w - 0.5, (v.ravel() + 0.5) * 240 / h - 0.5  # at the camera's size
+        rays = np.stack([(U - Ko[0, 2]) / Ko[0, 0], (V - Ko[1, 2]) / Ko[1, 1], np.ones_like(U)], 1)
+        uv = np.asarray(cam.img_from_cam(rays), np.float64) - 0.5
+        ref = np.stack([((uv[:, 1] + 0.5) * h / 240 - 0.5).reshape(h, w), ((uv[:, 0] + 0.5) * w / 320 - 0.5).reshape(h, w)])
+        assert np.abs(coords - ref).max() < 1e-3
+        assert valid.all()  # the focal scale leaves no blank pixel
+
+
 def test_undistortion_inverts_the_camera_model():
     """An image distorted through pycolmap's own OPENCV projection comes back to the pinhole one."""
     cam = pycolmap.Camera.create_from_model_name(1, "OPENCV", 300.0, 320, 240)
     cam.params = [300.0, 310.0, 161.0, 119.5, -0.12, 0.03, 0.001, -0.002]
-    u = Undistorter(cam, "test")
-    assert u.scale == 1.0  # barrel distortion: the pinhole image of the same focal length has no blank pixel
+    K, lens, Ko, s = _pinhole("OPENCV", cam.params)
+    assert s == 1.0  # barrel distortion: the pinhole image of the same focal length has no blank pixel
     v, w = np.mgrid[0:240, 0:320].astype(np.float64)
     truth = np.sin(w / 9.0) + np.cos(v / 7.0)  # a smooth pinhole image, pixel centres at integers
 
     # the distorted image: each distorted pixel (centre + 0.5 in COLMAP's frame) looks up the pinhole image
     xy = cam.cam_from_img(np.stack([w.ravel() + 0.5, v.ravel() + 0.5], 1))
-    pu, pv = u.K[0, 0] * xy[:, 0] + u.K[0, 2], u.K[1, 1] * xy[:, 1] + u.K[1, 2]
+    pu, pv = Ko[0, 0] * xy[:, 0] + Ko[0, 2], Ko[1, 1] * xy[:, 1] + Ko[1, 2]
     distorted = (np.sin(pu / 9.0) + np.cos(pv / 7.0)).reshape(240, 320).astype(np.float32)
-    back = u(distorted, 1)
+    back = undistort_image(distorted, K, lens, order=1, K_out=Ko)
     inner = (slice(20, -20), slice(20, -20))
     assert np.abs(back[inner] - truth[inner]).max() < 0.02
-    half = u(distorted[::2, ::2].copy(), 1)  # another size: the map follows, centres aligned
+    half = undistort_image(distorted[::2, ::2].copy(), scaled_intrinsics(K, (240, 320), (120, 160)), lens, order=1,
+                           K_out=scaled_intrinsics(Ko, (240, 320), (120, 160)))  # another size: centres aligned
     assert np.abs(half[10:-10, 10:-10] - truth[::2, ::2][10:-10, 10:-10]).max() < 0.05
     # pincushion distortion: the focal length grows until no pixel is blank
-    cam.params = [300.0, 300.0, 160.0, 120.0, 0.2, 0.0, 0.0, 0.0]
-    assert Undistorter(cam, "test").scale > 1.0
+    assert _pinhole("OPENCV", [300.0, 300.0, 160.0, 120.0, 0.2, 0.0, 0.0, 0.0])[3] > 1.0
 
 
 def test_labels_template_and_sparse_0(tmp_path):

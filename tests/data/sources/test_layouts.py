@@ -14,10 +14,11 @@ from omegaconf import OmegaConf
 from diffuser_lab.config import Config, ConfigError, default_config, to_object
 from diffuser_lab.data.mapping import load_mapping
 from diffuser_lab.data.predictions import with_predictions
-from diffuser_lab.data.prediction_files import DEFAULT_PATTERNS, resize_nearest
+from diffuser_lab.data.images import resize_nearest
+from diffuser_lab.data.prediction_files import DEFAULT_PATTERNS
 from diffuser_lab.data.scene import IGNORE, SCANNET20
 from diffuser_lab.data.images import read_depth_png
-from diffuser_lab.data.poses import associate
+from diffuser_lab.data.poses import associate, rigid_inverse
 from diffuser_lab.data.sources.rgbd_folder import load_rgbd_folder
 from diffuser_lab.data.sources.scannet import ScannetLayout, load_scannet
 from diffuser_lab.data.sources.tum import load_tum, read_tum_trajectory
@@ -220,6 +221,25 @@ def test_tum_association_and_quaternion_poses(tmp_path, world):
     with pytest.raises(ValueError, match=r"none of the 6 depth images .*\(1 without pose, 5 without RGB\)"):
         load_tum(root, max_time_diff=0.004, voxel_size=0.05)
     assert load_tum(root, rgb_list=None, voxel_size=0.05, max_frames=2).frames.names[0] == f"{exp['t_depth'][0]:.6f}"
+
+
+def test_tum_pose_is_the_trajectory_at_the_depth_time(tmp_path, world):
+    """A second sample 7 ms after each depth image (10 ms after the first, 1 cm further along x): the
+    frame's pose is the trajectory interpolated at its time (0.3 cm), not the nearest sample's."""
+    root, exp = write_tum(tmp_path, world)
+    lines = (root / "groundtruth.txt").read_text().splitlines()
+    extra = []
+    for ln in lines[2:]:
+        v = [float(x) for x in ln.split()]
+        v[0] += 0.010
+        v[1] += 0.01
+        extra.append(f"{v[0]:.6f} " + " ".join(f"{x:.9f}" for x in v[1:]))
+    (root / "groundtruth.txt").write_text("\n".join(lines + extra) + "\n")
+    s = load_tum(root, voxel_size=0.05, max_frames=2)
+    for k, v in enumerate(exp["views"][:2]):
+        c_interp = rigid_inverse(s.frames[k].T_cw)[:3, 3]
+        c_sample = rigid_inverse(world["poses"][v])[:3, 3]
+        np.testing.assert_allclose(c_interp - c_sample, [0.003, 0, 0], atol=1e-6)
 
 
 def test_tum_through_config(tmp_path, world):

@@ -2,6 +2,7 @@
 rosbags' own writers label the same points as the posed RGB-D folder; the labelled cloud written as a
 PointCloud2 MCAP bag reads back; bad bags fail with one line."""
 import shutil
+import struct
 
 import numpy as np
 import pytest
@@ -9,8 +10,8 @@ from captures import agreement, labels_of, needs_7scenes, seven_frames, write_rg
 from conftest import compose, run_cli
 
 from diffuser_lab.data.scene import IGNORE, SCANNET20
-from diffuser_lab.data.sources.rosbag import (RosbagOptions, interpolate_poses, load_rosbag, read_pointcloud2_bag,
-                                              write_pointcloud2_bag)
+from diffuser_lab.data.clouds import read_pointcloud2_bag, write_pointcloud2_bag
+from diffuser_lab.data.sources.rosbag import RosbagOptions, load_rosbag
 from diffuser_lab.data.poses import rigid_inverse
 
 T0 = 1_700_000_000 * 10**9  # the first frame's stamp, ns
@@ -227,19 +228,6 @@ def test_online_run_consumes_the_frames_in_stamp_order(ros2_bag):
     assert len(res.labels) > 1000 and (res.labels != IGNORE).mean() > 0.5
 
 
-def test_interpolated_pose_is_the_slerp_midpoint():
-    from scipy.spatial.transform import Rotation
-
-    st = np.array([0, 100_000_000], np.int64)
-    q = Rotation.from_euler("z", [[0], [90]], degrees=True).as_quat()
-    T, ok = interpolate_poses(st, np.array([[0, 0, 0], [1, 0, 0.0]]), q, np.array([25_000_000, 300_000_000]), 0.08)
-    assert ok.tolist() == [True, False]
-    np.testing.assert_allclose(T[0, :3, 3], [0.25, 0, 0])
-    np.testing.assert_allclose(Rotation.from_matrix(T[0, :3, :3]).as_euler("zyx", degrees=True)[0], 22.5)
-    T, _ = interpolate_poses(st, np.array([[0, 0, 0], [1, 0, 0.0]]), q, np.array([25_000_000]), 0.08, False)
-    np.testing.assert_allclose(T[0, :3, 3], 0)  # the nearest sample
-
-
 # ------------------------------------------------------------------------------------ bad input
 
 
@@ -294,9 +282,17 @@ def test_pointcloud2_bag_reads_back(tmp_path):
     assert schema.name == "sensor_msgs/msg/PointCloud2" and schema.encoding == "ros2msg"
     assert channel.topic == "/diffuser_lab/labels" and channel.message_encoding == "cdr"
     assert message.log_time == T0 and len(message.data) > 500 * 20
+    raw = mcap.read_bytes()
     with pytest.raises(FileExistsError, match="labels"):
         write_pointcloud2_bag(tmp_path / "labels", pts, lab, SCANNET20)
     shutil.rmtree(tmp_path / "labels")
+    # a width that lies (5,000 points declared, 500 stored): one line before any array is made
+    assert raw.count(struct.pack("<II", 1, 500)) == 1
+    write_pointcloud2_bag(tmp_path / "lies", pts, lab, SCANNET20, stamp_ns=T0)
+    lied = next((tmp_path / "lies").glob("*.mcap"))
+    lied.write_bytes(raw.replace(struct.pack("<II", 1, 500), struct.pack("<II", 1, 5000)))
+    with pytest.raises(ValueError, match=r"lies: /diffuser_lab/labels declares 5000 x 1 points of 20 bytes"):
+        read_pointcloud2_bag(tmp_path / "lies")
 
 
 def test_image_encodings_and_a_distorted_camera_info():
