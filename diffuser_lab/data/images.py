@@ -8,7 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["read_depth_png", "read_rgb", "read_array", "open_image", "resize_nearest", "resize_bilinear"]
+__all__ = ["read_depth_png", "read_rgb", "read_label_png", "label_ids_in", "read_array", "open_image", "resize_nearest",
+           "resize_bilinear"]
 
 
 def resize_nearest(img: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -109,6 +110,27 @@ def read_rgb(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndarr
     with open_image(path, "colour image") as im:
         rgb = np.asarray(im.convert("RGB"), dtype=np.uint8).copy()
     return rgb if shape is None else resize_bilinear(rgb, shape)
+
+
+def read_label_png(path: str | Path) -> np.ndarray:
+    """Single-channel label image -> (H, W) int64 ids (8/16-bit grey, 32-bit int, or palette indices)."""
+    path = Path(path)
+    with open_image(path, "label image") as im:
+        if im.mode not in ("L", "P", "I", "I;16", "I;16B", "I;16L"):
+            raise ValueError(f"{path}: label image mode {im.mode}, expected single-channel 8/16-bit ids "
+                             f"(grey or palette), not colour-coded labels")
+        arr = np.asarray(im)
+    return arr.astype(np.int64)
+
+
+def label_ids_in(files, n: int, what: str) -> list[tuple[np.ndarray, str]]:
+    """The label ids in the first ``n`` of ``files`` (label images, in name order), as
+    ``[(unique ids, "<k> <what> label images")]``; ``[]`` without files (``taxonomy=ids``)."""
+    files = sorted(files)[:n]
+    if not files:
+        return []
+    ids = np.unique(np.concatenate([np.unique(read_label_png(p)) for p in files]))  # <= n images
+    return [(ids, f"{len(files)} {what} label images")]
 
 
 def _npy_checked(fh, size: int, where: str) -> np.ndarray:

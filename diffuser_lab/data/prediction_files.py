@@ -17,11 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .images import open_image, read_array, resize_bilinear, resize_nearest
+from .images import read_array, read_label_png, resize_bilinear, resize_nearest
 from .mapping import ClassMapping
 
 __all__ = [
-    "read_label_png",
     "load_label_prediction",
     "load_probability_prediction",
     "find_prediction",
@@ -30,27 +29,6 @@ __all__ = [
 ]
 
 DEFAULT_PATTERNS = ("{name}.png", "{name}.label.png", "{name}.npy", "{name}.npz")  # = predictions.pattern's default
-
-
-def read_label_png(path: str | Path) -> np.ndarray:
-    """Single-channel label image -> (H, W) int64 ids (8/16-bit grey, 32-bit int, or palette indices)."""
-    path = Path(path)
-    with open_image(path, "label image") as im:
-        if im.mode not in ("L", "P", "I", "I;16", "I;16B", "I;16L"):
-            raise ValueError(f"{path}: label image mode {im.mode}, expected single-channel 8/16-bit ids "
-                             f"(grey or palette), not colour-coded labels")
-        arr = np.asarray(im)
-    return arr.astype(np.int64)
-
-
-def label_ids_in(files, n: int, what: str) -> list[tuple[np.ndarray, str]]:
-    """The label ids in the first ``n`` of ``files`` (label images, in name order), as
-    ``[(unique ids, "<k> <what> label images")]``; ``[]`` without files (``taxonomy=ids``)."""
-    files = sorted(files)[:n]
-    if not files:
-        return []
-    ids = np.unique(np.concatenate([np.unique(read_label_png(p)) for p in files]))  # <= n images
-    return [(ids, f"{len(files)} {what} label images")]
 
 
 def load_label_prediction(path: str | Path, mapping: ClassMapping | None,

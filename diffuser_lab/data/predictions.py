@@ -26,7 +26,8 @@ from .embeddings import prototypes, simulate_features
 from .frames import LazyFrames
 from .mapping import load_mapping, native_mapping
 from .networks import model_predictions, onnx_predictions
-from .prediction_files import (find_prediction, label_ids_in, load_feature_prediction, load_label_prediction,
+from .images import label_ids_in
+from .prediction_files import (find_prediction, load_feature_prediction, load_label_prediction,
                                load_probability_prediction)
 from .scene import Frame, Taxonomy
 from .simulate import simulate_predictions, surface_regions

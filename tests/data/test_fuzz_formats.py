@@ -301,7 +301,7 @@ def _png(mode: str) -> bytes:
 @given(st.sampled_from(["I;16", "L"]), st.sampled_from([16, 20]), st.integers(0, 2**31 - 1), MUTATION)
 def test_depth_and_label_images_whose_header_lies(mode, field, value, m):
     """A PNG's IHDR width or height (big-endian at bytes 16 and 20) overwritten, or the file damaged."""
-    from diffuser_lab.data.prediction_files import read_label_png
+    from diffuser_lab.data.images import read_label_png
     from diffuser_lab.data.images import read_depth_png
 
     data = _png(mode)

@@ -13,10 +13,9 @@ from hypothesis import strategies as st
 from PIL import Image
 
 from diffuser_lab.data.mapping import load_mapping
-from diffuser_lab.data.prediction_files import read_label_png
+from diffuser_lab.data.images import read_depth_png, read_label_png
 from diffuser_lab.data.scene import SCANNET20
 from diffuser_lab.data.clouds import read_point_cloud_ply
-from diffuser_lab.data.images import read_depth_png
 from diffuser_lab.data.intrinsics import read_intrinsics
 from diffuser_lab.data.meshes import read_labelled_mesh
 from diffuser_lab.data.poses import read_pose_c2w

@@ -54,10 +54,9 @@ from diffuser_lab.data.capture import CaptureOptions, CapturedFrame, capture_sce
 from diffuser_lab.data.clouds import read_cloud, read_point_cloud_ply
 from diffuser_lab.data.distortion import colmap_lens, focal_scale, undistort_image
 from diffuser_lab.data.geometry import scaled_intrinsics
-from diffuser_lab.data.prediction_files import read_label_png
+from diffuser_lab.data.images import read_label_png, read_rgb
 from diffuser_lab.data.scene import IGNORE, Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
-from diffuser_lab.data.images import read_rgb
 
 __all__ = ["ColmapOptions", "DepthMaps", "CloudFrom", "load", "read_model", "read_depth_map", "find_sparse"]
 

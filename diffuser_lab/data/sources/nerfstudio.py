@@ -60,11 +60,9 @@ from diffuser_lab.data.capture import CaptureOptions, CapturedFrame, capture_sce
 from diffuser_lab.data.clouds import read_cloud
 from diffuser_lab.data.distortion import FISHEYE, PERSPECTIVE, LensModel, undistort_image
 from diffuser_lab.data.geometry import scaled_intrinsics
-from diffuser_lab.data.images import open_image, read_array, resize_nearest
-from diffuser_lab.data.prediction_files import read_label_png
+from diffuser_lab.data.images import open_image, read_array, read_depth_png, read_label_png, read_rgb, resize_nearest
 from diffuser_lab.data.scene import IGNORE, Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
-from diffuser_lab.data.images import read_depth_png, read_rgb
 from diffuser_lab.data.poses import check_rigid, rigid_inverse
 
 __all__ = ["World", "NerfstudioOptions", "load", "read_transforms", "OPENGL_TO_OPENCV", "CAMERA_MODELS"]

@@ -36,10 +36,9 @@ from omegaconf import MISSING
 
 from diffuser_lab.config import SceneConfig, above, at_least, key, rule
 from diffuser_lab.data.capture import CaptureOptions, CapturedFrame, capture_scene
-from diffuser_lab.data.prediction_files import read_label_png
+from diffuser_lab.data.images import read_depth_png, read_label_png, read_rgb
 from diffuser_lab.data.scene import Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
-from diffuser_lab.data.images import read_depth_png, read_rgb
 from diffuser_lab.data.poses import check_rigid, rigid_inverse
 
 __all__ = ["ReplicaOptions", "load", "read_trajectory", "read_camera", "NICE_SLAM_CAMERA"]

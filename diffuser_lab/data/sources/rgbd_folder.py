@@ -36,12 +36,10 @@ from diffuser_lab.config import Check, PoseConvention, SceneConfig, Section, abo
 from diffuser_lab.data.capture import fuse_depth, taxonomy_mapping, to_taxonomy
 from diffuser_lab.data.clouds import read_cloud
 from diffuser_lab.data.frames import LazyFrames
-from diffuser_lab.data.images import read_depth_png, read_rgb
+from diffuser_lab.data.images import label_ids_in, read_depth_png, read_label_png, read_rgb, resize_nearest
 from diffuser_lab.data.intrinsics import read_intrinsics
 from diffuser_lab.data.mapping import ClassMapping
 from diffuser_lab.data.poses import CAMERA_TO_WORLD, pose_to_world_to_camera, read_pose_c2w
-from diffuser_lab.data.images import resize_nearest
-from diffuser_lab.data.prediction_files import label_ids_in, read_label_png
 from diffuser_lab.data.scene import SCANNET20, Frame, Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
 from diffuser_lab.data.validate import check_depth_unit

@@ -43,11 +43,9 @@ from diffuser_lab import progress
 from diffuser_lab.config import SceneConfig, Section, above, at_least, file_pattern, key, rule
 from diffuser_lab.data.frames import LazyFrames
 from diffuser_lab.data.geometry import scaled_intrinsics
-from diffuser_lab.data.images import read_depth_png, read_rgb
+from diffuser_lab.data.images import label_ids_in, read_depth_png, read_label_png, read_rgb, resize_nearest
 from diffuser_lab.data.intrinsics import read_intrinsics
 from diffuser_lab.data.mapping import ClassMapping, identity_mapping, load_mapping, native_mapping
-from diffuser_lab.data.images import resize_nearest
-from diffuser_lab.data.prediction_files import label_ids_in, read_label_png
 from diffuser_lab.data.meshes import mesh_label_ids, read_labelled_mesh, vertex_normals
 from diffuser_lab.data.poses import read_pose_c2w, rigid_inverse
 from diffuser_lab.data.scene import SCANNET20, Frame, Scene, Taxonomy

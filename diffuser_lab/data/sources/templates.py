@@ -35,10 +35,9 @@ from omegaconf import MISSING
 from diffuser_lab import progress
 from diffuser_lab.config import PoseConvention, SceneConfig, above, key, rule
 from diffuser_lab.data.capture import CaptureOptions, CapturedFrame, capture_scene
-from diffuser_lab.data.images import read_depth_png, read_rgb
+from diffuser_lab.data.images import read_depth_png, read_label_png, read_rgb
 from diffuser_lab.data.intrinsics import detect_format, read_intrinsics_file, scannet_depth_shift
 from diffuser_lab.data.poses import pose_to_world_to_camera, read_pose_c2w
-from diffuser_lab.data.prediction_files import read_label_png
 from diffuser_lab.data.scene import Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
 

@@ -14,10 +14,9 @@ from omegaconf import OmegaConf
 from diffuser_lab.config import Config, ConfigError, default_config, to_object
 from diffuser_lab.data.mapping import load_mapping
 from diffuser_lab.data.predictions import with_predictions
-from diffuser_lab.data.images import resize_nearest
+from diffuser_lab.data.images import read_depth_png, resize_nearest
 from diffuser_lab.data.prediction_files import DEFAULT_PATTERNS
 from diffuser_lab.data.scene import IGNORE, SCANNET20
-from diffuser_lab.data.images import read_depth_png
 from diffuser_lab.data.poses import associate, rigid_inverse
 from diffuser_lab.data.sources.rgbd_folder import load_rgbd_folder
 from diffuser_lab.data.sources.scannet import ScannetLayout, load_scannet

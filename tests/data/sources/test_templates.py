@@ -16,8 +16,7 @@ from diffuser_lab.config import ConfigError
 from diffuser_lab.data.geometry import scaled_intrinsics
 from diffuser_lab.data.intrinsics import read_intrinsics_file
 from diffuser_lab.data.mapping import load_mapping
-from diffuser_lab.data.images import resize_nearest
-from diffuser_lab.data.prediction_files import read_label_png
+from diffuser_lab.data.images import read_label_png, resize_nearest
 from diffuser_lab.data.sources.templates import find_frames, read_depth
 from diffuser_lab.runs.pipeline import load_scene, run
 from diffuser_lab.runs.resolve import resolve
