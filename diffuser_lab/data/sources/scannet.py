@@ -23,7 +23,7 @@ exactly the common depth K 577.591, 578.730, 318.905, 242.684. Resizing labels t
 resolution instead would need depth upsampling and 4x the pixels for no extra geometry.
 The loader compares the two K files per scene and warns when they disagree by > 2 px.
 
-Every file name above is a key of :class:`ScannetLayout` (``scene.options.*``, docs/layouts.md).
+Every file name above is a key of :class:`ScannetOptions` (``scene.options.*``, docs/formats/scannet.md).
 Only the mesh, depth, pose and intrinsic_depth are required: without ``color/`` the frames carry
 no RGB (the points keep the mesh's colours; predictions from files, ground truth or simulated
 ones do not need it), without ``label-filt/`` they carry no ground truth.
@@ -51,7 +51,7 @@ from diffuser_lab.data.poses import read_pose_c2w, rigid_inverse
 from diffuser_lab.data.scene import SCANNET20, Frame, Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
 
-__all__ = ["ScannetOptions", "load_scannet", "scaled_intrinsics", "ScannetLayout", "load", "label_ids"]
+__all__ = ["ScannetOptions", "load_scannet", "scaled_intrinsics", "load", "label_ids"]
 
 
 _SCENE_FILE = rule("a file name, optionally with {scene}", lambda v: v.replace("{scene}", "").count("{") == 0)
@@ -79,22 +79,6 @@ class ScannetOptions(Section):
 
 
 
-@dataclass(frozen=True)
-class ScannetLayout:
-    """File names of a ScanNet export, relative to the scene folder: ``{scene}`` = its name,
-    ``{frame}`` = a frame's number as written in the file name (ScanNetConfig has the same keys)."""
-
-    mesh: str = "{scene}_vh_clean_2.ply"
-    labels_mesh: str = "{scene}_vh_clean_2.labels.ply"
-    depth: str = "depth/{frame}.png"
-    color: str = "color/{frame}.jpg"
-    pose: str = "pose/{frame}.txt"
-    labels: str = "label-filt/{frame}.png"
-    intrinsic_depth: str = "intrinsic/intrinsic_depth.txt"
-    intrinsic_color: str = "intrinsic/intrinsic_color.txt"
-    depth_scale: float = 1000.0  # raw units per metre
-
-
 def _find_mesh(root: Path, pattern: str) -> Path | None:
     """``root / pattern`` with ``{scene}`` = the folder name, else the only file matching it with any scene."""
     p = root / pattern.format(scene=root.name)
@@ -113,7 +97,7 @@ def _frame_ids(root: Path, pattern: str) -> list[str]:
 
 def load_scannet(root, *, frame_step: int = 10, max_frames: int | None = None,
                  mapping: str | ClassMapping | None = "nyu40_to_scannet20", with_frames: bool = True,
-                 layout: ScannetLayout = ScannetLayout(), taxonomy: Taxonomy = SCANNET20) -> Scene:
+                 layout: Optional[ScannetOptions] = None, taxonomy: Taxonomy = SCANNET20) -> Scene:
     """Load one ScanNet scene (layout in the module docstring).
 
     Args:
@@ -123,7 +107,8 @@ def load_scannet(root, *, frame_step: int = 10, max_frames: int | None = None,
         mapping: NYU40 -> ``taxonomy`` (shipped CSV name, path or ClassMapping, whose target
             becomes the scene's taxonomy); None = the label ids are ``taxonomy``'s own label ids.
         with_frames: False = mesh only (color/depth/pose folders may be absent).
-        layout: the file names (defaults: ScanNet's export); colour and label-filt are optional.
+        layout: the file names and depth scale (:class:`ScannetOptions`' keys other than ``root``,
+            ``frame_step``, ``max_frames``, ``mapping``; None = ScanNet's export); colour and label-filt are optional.
     Returns:
         Scene: points = mesh vertices (V, 3) float32 metres, colors (V, 3) uint8,
         normals (V, 3) float32 unit vertex normals (winding-oriented), gt_labels (V,) int16
@@ -135,6 +120,7 @@ def load_scannet(root, *, frame_step: int = 10, max_frames: int | None = None,
     root = Path(root)
     if not root.is_dir():
         raise FileNotFoundError(f"ScanNet scene folder {root} does not exist")
+    layout = layout if layout is not None else ScannetOptions(root=str(root))
     if frame_step < 1:
         raise ValueError(f"frame_step={frame_step}, expected >= 1")
     if mapping is None:
@@ -172,7 +158,7 @@ def load_scannet(root, *, frame_step: int = 10, max_frames: int | None = None,
 
 
 def _scannet_frames(root: Path, frame_step: int, max_frames: int | None, mapping: ClassMapping,
-                    L: ScannetLayout) -> LazyFrames:
+                    L: ScannetOptions) -> LazyFrames:
     K = read_intrinsics(root / L.intrinsic_depth)
     ids = _frame_ids(root, L.depth)
     if not ids:
@@ -232,10 +218,7 @@ def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) ->
     """``scene.source=scannet``: the scene of the ``scene.options`` keys (its depth is real: the
     pipeline applies ``sensor`` with ``depth.apply_to_real``)."""
     c = cfg.options
-    layout = ScannetLayout(mesh=c.mesh, labels_mesh=c.labels_mesh, depth=c.depth, color=c.color,
-                           pose=c.pose, labels=c.labels, intrinsic_depth=c.intrinsic_depth,
-                           intrinsic_color=c.intrinsic_color, depth_scale=c.depth_scale)
-    return load_scannet(c.root, frame_step=c.frame_step, max_frames=c.max_frames, mapping=c.mapping, layout=layout,
+    return load_scannet(c.root, frame_step=c.frame_step, max_frames=c.max_frames, mapping=c.mapping, layout=c,
                         taxonomy=taxonomy)
 
 

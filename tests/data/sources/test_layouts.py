@@ -19,7 +19,7 @@ from diffuser_lab.data.prediction_files import DEFAULT_PATTERNS
 from diffuser_lab.data.scene import IGNORE, SCANNET20
 from diffuser_lab.data.poses import associate, rigid_inverse
 from diffuser_lab.data.sources.rgbd_folder import load_rgbd_folder
-from diffuser_lab.data.sources.scannet import ScannetLayout, load_scannet
+from diffuser_lab.data.sources.scannet import ScannetOptions, load_scannet
 from diffuser_lab.data.sources.tum import load_tum, read_tum_trajectory
 from diffuser_lab.runs.pipeline import load_scene
 
@@ -142,7 +142,7 @@ def test_scannet_without_color_and_renamed_files(tmp_path, world):
         p.unlink()
     (root / "color").rmdir()
     (root / "depth").rename(root / "depth_mm")
-    layout = ScannetLayout(depth="depth_mm/{frame}.png")
+    layout = ScannetOptions(root=str(root), depth="depth_mm/{frame}.png")
     s = load_scannet(root, frame_step=1, layout=layout)
     assert s.frames.names == ["0", "1", "3"] and s.frames.info["has_color"] is False
     f = s.frames[0]
