@@ -81,12 +81,12 @@ _LAS_RECORD = {0: 20, 1: 28, 2: 26, 3: 34, 4: 57, 5: 63, 6: 30, 7: 36, 8: 38, 9:
 _LAZ_MAX_RATIO = 1000  # a LAZ file's points take at most this many times its compressed bytes
 
 
-def check_las_header(path: Path) -> None:
+def check_las_header(path: Path) -> bool:
     """What a LAS/LAZ public header declares (ASPRS LAS 1.0-1.4: version, header size, point data
     offset, VLR and EVLR counts, point format, record length, point count) against the file's size,
     before laspy reads it: laspy loops over the declared VLRs and allocates the declared points, so
     a file that is garbage after its ``LASF`` magic would keep it busy for minutes. One line naming
-    the file and the field that lies, else nothing."""
+    the file and the field that lies; else whether the points are compressed (LAZ)."""
     size = path.stat().st_size
     with open(path, "rb") as fh:
         h = fh.read(375)
@@ -121,17 +121,80 @@ def check_las_header(path: Path) -> None:
     if compressed and data > _LAZ_MAX_RATIO * max(size - offset, 1):
         raise ValueError(f"{path}: LAZ header says {n_points:,} points of {rec_len} bytes ({data / 2**20:,.0f} MiB) "
                          f"from {size - offset:,} compressed bytes, more than {_LAZ_MAX_RATIO}x: the header lies")
+    return compressed
 
 
 def read_las(path: str | Path) -> dict:
     """LAS / LAZ -> dict (module docstring): scaled x y z (metres, as the file's CRS has them),
-    RGB (16-bit scaled to 8 when any value exceeds 255), the ``label`` extra dimension if present."""
-    import laspy
+    RGB (16-bit scaled to 8 when any value exceeds 255), the ``label`` extra dimension if present.
 
+    A LAZ file is decoded in a child process (:func:`_laz_in_child`): its decoder (lazrs, Rust)
+    aborts the whole process when a damaged file makes it allocate more than it can (a lying chunk
+    or layer size), which would end a run without a line; the child's end becomes one."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"point cloud {path} does not exist")
-    check_las_header(path)
+    if check_las_header(path):
+        return _laz_in_child(path)
+    return _read_las_here(path)
+
+
+_LAZ_CHILD = """
+import sys
+import numpy as np
+from diffuser_lab.data.clouds import _read_las_here
+try:
+    out = _read_las_here(sys.argv[1])
+except Exception as e:
+    print("diffuser-lab-laz: " + (str(e).splitlines()[0] if str(e) else type(e).__name__), file=sys.stderr)
+    sys.exit(3)
+np.savez(sys.argv[2], **out)
+"""
+
+
+def _laz_in_child(path: Path) -> dict:
+    """:func:`_read_las_here` of the LAZ ``path`` in a child interpreter (a fresh one: a fork would
+    inherit the decoder's thread pool without its threads), its address space bounded by the header's
+    decoded size + 2 GiB, the arrays back through a temporary ``.npz``: its arrays, or one line naming
+    the file when it fails or dies (~0.3 s of start-up)."""
+    import resource
+    import signal
+    import subprocess
+    import sys
+    import tempfile
+
+    with open(path, "rb") as fh:
+        h = fh.read(375)
+    _, _, _, _, rec_len, n_points = struct.unpack_from("<HIIBHI", h, 94)
+    if h[25] >= 4:
+        n_points = struct.unpack_from("<Q", h, 247)[0] or n_points
+    limit = 3 * n_points * rec_len + (3 << 30)
+
+    def bounded():  # in the child: a lying size fails its allocation instead of swapping the machine
+        _, hard = resource.getrlimit(resource.RLIMIT_AS)
+        resource.setrlimit(resource.RLIMIT_AS, (limit if hard == resource.RLIM_INFINITY else min(limit, hard), hard))
+
+    with tempfile.TemporaryDirectory(prefix="diffuser-lab-laz-") as tmp:
+        out = Path(tmp) / "cloud.npz"
+        p = subprocess.run([sys.executable, "-c", _LAZ_CHILD, str(path), str(out)], capture_output=True, text=True,
+                           errors="replace", preexec_fn=bounded)
+        if p.returncode == 0:
+            with np.load(out) as z:
+                return {k: z[k] for k in z.files}
+        lines = [ln.strip() for ln in p.stderr.splitlines() if ln.strip()]
+        own = [ln[len("diffuser-lab-laz: "):] for ln in lines if ln.startswith("diffuser-lab-laz: ")]
+        if p.returncode == 3 and own:  # the reader's own line (it names the file)
+            raise ValueError(own[-1])
+        how = f"signal {signal.Signals(-p.returncode).name}" if p.returncode < 0 else f"exit status {p.returncode}"
+        raise ValueError(f"{path}: the LAZ decoder stopped ({how}: {lines[0][:160] if lines else 'no message'}): "
+                         f"a damaged LAZ file, or one whose sizes lie")
+
+
+def _read_las_here(path: str | Path) -> dict:
+    """LAS / LAZ -> dict, decoded in this process (laspy; lazrs for LAZ)."""
+    import laspy
+
+    path = Path(path)
     try:
         las = laspy.read(str(path))
     except Exception as e:  # laspy raises several types for truncated or foreign files

@@ -32,7 +32,7 @@ import numpy as np
 from scipy.ndimage import map_coordinates
 
 __all__ = ["PERSPECTIVE", "FISHEYE", "LensModel", "distort_points", "undistort_points", "undistort_map",
-           "undistort_image", "focal_scale", "colmap_lens", "COLMAP_LENS_MODELS"]
+           "undistort_image", "focal_scale", "colmap_lens", "COLMAP_LENS_MODELS", "ros_lens", "ROS_LENS_MODELS"]
 
 PERSPECTIVE, FISHEYE = "perspective", "fisheye"
 
@@ -219,6 +219,29 @@ def colmap_lens(model: str, params) -> tuple[np.ndarray, LensModel]:
     coeffs = p[3:] if one_f else p[4:]
     K = np.array([[fx, 0.0, cx - 0.5], [0.0, fy, cy - 0.5], [0.0, 0.0, 1.0]])
     return K, LensModel(PERSPECTIVE, **dict(zip(COLMAP_LENS_MODELS[model], coeffs)))
+
+
+ROS_LENS_MODELS = {  # sensor_msgs/CameraInfo distortion_model -> (kind, D's coefficients as LensModel fields)
+    "plumb_bob": (PERSPECTIVE, ("k1", "k2", "p1", "p2", "k3")),
+    "rational_polynomial": (PERSPECTIVE, ("k1", "k2", "p1", "p2", "k3", "q1", "q2", "q3")),
+    "equidistant": (FISHEYE, ("k1", "k2", "k3", "k4")),
+}
+
+
+def ros_lens(model: str, D, where: str) -> LensModel:
+    """A CameraInfo's ``distortion_model`` and ``D`` -> its LensModel (image_geometry's definitions:
+    plumb_bob = OpenCV's k1 k2 p1 p2 k3, rational_polynomial adds k4 k5 k6 = the denominator's q1 q2 q3,
+    equidistant = OpenCV's fisheye k1..k4); one line naming ``where`` for another model or length."""
+    D = [float(x) for x in np.ravel(D)]
+    if model not in ROS_LENS_MODELS:
+        raise ValueError(f"{where}: distortion_model {model!r} with D = {np.round(D, 5).tolist()}; expected "
+                         f"{', '.join(ROS_LENS_MODELS)} (or D all zero)")
+    kind, names = ROS_LENS_MODELS[model]
+    if len(D) > len(names) and any(D[len(names):]):
+        raise ValueError(f"{where}: {model} D has {len(D)} coefficients, expected at most {len(names)}")
+    if not np.all(np.isfinite(D)):
+        raise ValueError(f"{where}: {model} D = {D} is not finite")
+    return LensModel(kind, **dict(zip(names, D)))
 
 
 def undistort_image(img: np.ndarray, K: np.ndarray, model: LensModel, *, order: int, fill=0,

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import os
 import json
 import resource
 import signal
@@ -28,7 +29,8 @@ from diffuser_lab.data.clouds import read_cloud, write_las
 from diffuser_lab.data.intrinsics import read_intrinsics_file
 from diffuser_lab.data.sources.nerfstudio import read_transforms
 
-FUZZ = settings(max_examples=25, deadline=None, suppress_health_check=list(HealthCheck), database=None)
+FUZZ = settings(max_examples=int(os.environ.get("DIFFUSER_FUZZ_EXAMPLES", 25)),  # deeper: DIFFUSER_FUZZ_EXAMPLES=2000
+                deadline=None, suppress_health_check=list(HealthCheck), database=None)
 LIMIT_S = 5.0  # per case
 SPARE_BYTES = 2 << 30  # address space a case may add
 CORPUS = Path(__file__).with_name("fuzz_corpus")
@@ -407,6 +409,9 @@ def make_corpus() -> None:
         "truncated.las": las[: len(las) // 2],
         "point_count_lies.laz": laz[:247] + struct.pack("<Q", 2**40) + laz[255:],
         "garbage_after_magic.laz": b"LASF" + rng.integers(0, 256, 500, dtype=np.uint8).tobytes(),
+        # found by DIFFUSER_FUZZ_EXAMPLES=1000: lazrs aborted the interpreter (a Rust allocation failure)
+        "laz_chunk_size_lies.laz": laz[:771] + struct.pack("<I", 3835953594) + laz[775:],  # laszip VLR chunk_size
+        "laz_layer_size_lies.laz": laz[:880] + struct.pack("<I", 1661324470) + laz[884:],  # a layer's byte count
         "vertex_count_lies.ply": b"ply\nformat binary_little_endian 1.0\nelement vertex 4000000000\n"
                                  b"property float x\nproperty float y\nproperty float z\nend_header\n" + bytes(24),
         "nan_points.ply": b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"

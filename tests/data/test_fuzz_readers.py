@@ -3,6 +3,7 @@ intrinsics files with text or wrong shapes, mapping tables, empty folders. Every
 reads or raises ValueError / FileNotFoundError with a message naming the file: never another
 exception, a hang or a crash of the interpreter."""
 import io
+import os
 import tempfile
 from pathlib import Path
 
@@ -21,7 +22,8 @@ from diffuser_lab.data.meshes import read_labelled_mesh
 from diffuser_lab.data.poses import read_pose_c2w
 from diffuser_lab.data.sources.rgbd_folder import load_rgbd_folder
 
-FUZZ = settings(max_examples=40, deadline=2000, suppress_health_check=[HealthCheck.function_scoped_fixture])
+FUZZ = settings(max_examples=int(os.environ.get("DIFFUSER_FUZZ_EXAMPLES", 40)), deadline=2000,  # deeper: DIFFUSER_FUZZ_EXAMPLES=2000
+                suppress_health_check=[HealthCheck.function_scoped_fixture])
 CLEAR = (ValueError, FileNotFoundError)
 
 PLY_LINES = ["ply", "format ascii 1.0", "format binary_little_endian 1.0", "format binary_big_endian 1.0",

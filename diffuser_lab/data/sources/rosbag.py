@@ -9,8 +9,11 @@ What is read (message definitions: https://docs.ros.org/en/rolling/p/sensor_msgs
 - **colour** ``Image`` rgb8 / bgr8 / rgba8 / bgra8 / mono8 or ``CompressedImage`` jpeg / png, registered to
   the depth image (one optical frame: e.g. RealSense ``aligned_depth_to_color``), resized to its size;
 - **labels** ``Image`` mono8 / mono16 (8UC1, 16UC1, 32SC1) or a PNG ``CompressedImage``: label ids;
-- **intrinsics** ``sensor_msgs/CameraInfo`` of the depth topic: ``K`` for ``width x height``; images
-  must be undistorted (``D`` all zero; a non-zero ``D`` is refused);
+- **intrinsics** ``sensor_msgs/CameraInfo`` of the depth topic: ``K`` for ``width x height``; a
+  non-zero ``D`` (``plumb_bob``, ``rational_polynomial``, ``equidistant``: e.g. the Azure Kinect's raw
+  topics) resamples depth (nearest), colour (bilinear) and labels (nearest) to the pinhole camera of the
+  same K with the one undistortion (:mod:`diffuser_lab.data.distortion`); pixels without a source get no
+  depth / IGNORE; ``scene.frames.info["undistorted"]`` names the lens;
 - **poses** of the camera's optical frame (x right, y down, z forward: OpenCV's camera, REP 103) in the
   world: the tf2 chain ``world_frame`` -> ``camera_frame`` of ``/tf`` + ``/tf_static``
   (``tf2_msgs/TFMessage``; any number of links, static and dynamic), or a pose topic
@@ -38,15 +41,17 @@ import threading
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import List, Optional
+from typing import Callable, List, Optional
 
 import numpy as np
 from omegaconf import MISSING
 
 from diffuser_lab.config import SceneConfig, above, key, rule
 from diffuser_lab.data.capture import CaptureOptions, CapturedFrame, capture_scene
+from diffuser_lab.data.distortion import LensModel, ros_lens, undistort_image
+from diffuser_lab.data.geometry import scaled_intrinsics
 from diffuser_lab.data.poses import associate, interpolate_poses, pose_matrices
-from diffuser_lab.data.scene import Scene, Taxonomy
+from diffuser_lab.data.scene import IGNORE, Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
 from diffuser_lab.data.validate import check_depth_unit
 
@@ -418,18 +423,31 @@ def _info_topic(topics: dict, name: Optional[str], depth_topic: str, bag: Path) 
                      f"({', '.join(sorted(infos)) or 'none'}): set scene.options.camera_info_topic")
 
 
-def _intrinsics(msg, bag: Path, topic: str) -> tuple[np.ndarray, Optional[tuple[int, int]]]:
-    """CameraInfo -> (3, 3) K, (H, W) it is for (None when width/height are 0)."""
+def _intrinsics(msg, bag: Path, topic: str) -> tuple[np.ndarray, Optional[tuple[int, int]], Optional[LensModel]]:
+    """CameraInfo -> (3, 3) K, (H, W) it is for (None when width/height are 0), its lens (None when
+    D is all zero: a rectified topic)."""
     K = np.asarray(getattr(msg, "k", None) if hasattr(msg, "k") else msg.K, np.float64).reshape(3, 3)
     D = np.asarray(getattr(msg, "d", None) if hasattr(msg, "d") else msg.D, np.float64).ravel()
-    if np.any(D != 0):
-        raise ValueError(f"{bag}: {topic} distortion_model {msg.distortion_model!r} with D = "
-                         f"{np.round(D, 5).tolist()}; expected undistorted images (D all zero: a rectified "
-                         f"image topic)")
     if not (K[0, 0] > 0 and K[1, 1] > 0):
         raise ValueError(f"{bag}: {topic} K = {K.ravel().tolist()}, expected fx, fy > 0")
     size = (int(msg.height), int(msg.width)) if msg.height and msg.width else None
-    return K, size
+    lens = ros_lens(msg.distortion_model, D, f"{bag}: {topic}") if np.any(D != 0) else None
+    if lens is not None and size is None:
+        raise ValueError(f"{bag}: {topic} has distortion D = {np.round(D, 5).tolist()} but width/height 0: "
+                         f"expected the image size the calibration is for")
+    return K, size, lens
+
+
+def _undistorted(read: Callable[[], np.ndarray], K: np.ndarray, K_size: tuple[int, int], lens: LensModel,
+                 order: int, fill) -> Callable[[], np.ndarray]:
+    """``read`` resampled to the pinhole camera of the same K (the one undistortion, data/distortion.py):
+    ``order`` 1 (colour) or 0 (depth, labels); an image of another size than the calibration's takes K scaled."""
+    def undistorted():
+        img = read()
+        shape = img.shape[:2]
+        K_img = K if tuple(shape) == tuple(K_size) else scaled_intrinsics(K, K_size, shape)
+        return undistort_image(img, K_img, lens, order=order, fill=fill)
+    return undistorted
 
 
 def load_rosbag(o: RosbagOptions, taxonomy: Taxonomy) -> Scene:
@@ -497,7 +515,7 @@ def load_rosbag(o: RosbagOptions, taxonomy: Taxonomy) -> Scene:
                          f"{str(e).splitlines()[0] if str(e) else ''})") from None
     if info_msg is None:
         raise ValueError(f"{bag}: no message on {info_t} (scene.options.camera_info_topic)")
-    K, K_size = _intrinsics(info_msg, bag, info_t)
+    K, K_size, lens = _intrinsics(info_msg, bag, info_t)
     d_st, d_rt, d_ord = (np.asarray(x, np.int64) for x in images[depth_t])
     if len(d_st) == 0:
         raise ValueError(f"{bag}: no message on {depth_t} (scene.options.depth_topic)")
@@ -505,6 +523,8 @@ def load_rosbag(o: RosbagOptions, taxonomy: Taxonomy) -> Scene:
     d_st, d_rt, d_ord = d_st[order], d_rt[order], d_ord[order]
     keep = np.ones(len(d_st), bool)
     info: dict = {"bag": str(bag), "depth_topic": depth_t, "n_frames_found": int(len(d_st))}
+    if lens is not None:
+        info["undistorted"] = lens.text()
 
     def match(topic):  # (index into the topic's sorted messages per depth frame, their arrays)
         st, rt, od = (np.asarray(x, np.int64) for x in images[topic])
@@ -555,9 +575,10 @@ def load_rosbag(o: RosbagOptions, taxonomy: Taxonomy) -> Scene:
     T_cw[:, :3, :3], T_cw[:, :3, 3] = R_t, -np.einsum("nij,nj->ni", R_t, T_wc[:, :3, 3])
     info["timestamps"] = (d_st[sel] * 1e-9).tolist()
 
-    def reader(topic, t, n, convert):
+    def reader(topic, t, n, convert, order=0, fill=0):
         what = f"{bag}: {topic} at {t * 1e-9:.6f} s"
-        return lambda: convert(*decode_image(handle.message(topic, int(t), int(n)), what), what)
+        read = lambda: convert(*decode_image(handle.message(topic, int(t), int(n)), what), what)  # noqa: E731
+        return read if lens is None else _undistorted(read, K, K_size, lens, order, fill)
 
     scale = o.depth_scale
     frames = []
@@ -566,8 +587,9 @@ def load_rosbag(o: RosbagOptions, taxonomy: Taxonomy) -> Scene:
         frames.append(CapturedFrame(
             name=name, T_cw=T_cw[i], K=K, K_size=K_size,
             depth=reader(depth_t, d_rt[i], d_ord[i], lambda a, e, w: _to_depth(a, e, scale, w)),
-            rgb=reader(color_t, c_rt[cj[i]], c_ord[cj[i]], _to_rgb) if color_t else None,
-            labels=reader(label_t, l_rt[lj[i]], l_ord[lj[i]], _to_labels) if label_t and lj[i] >= 0 else None))
+            rgb=reader(color_t, c_rt[cj[i]], c_ord[cj[i]], _to_rgb, order=1) if color_t else None,
+            labels=reader(label_t, l_rt[lj[i]], l_ord[lj[i]], _to_labels, fill=IGNORE)
+            if label_t and lj[i] >= 0 else None))
     scene = capture_scene(bag.stem if bag.is_file() else bag.name, frames, o, taxonomy, root=bag, info=info)
     check_depth_unit(scene.frames[0], hint=f"scene.options.depth_scale={scale} (16UC1 units per metre)")
     return scene

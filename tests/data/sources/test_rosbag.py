@@ -42,11 +42,12 @@ def _msgs(ts, ros1: bool):
         return T["sensor_msgs/msg/Image"](header=header(stamp, frame), height=h, width=w, encoding=enc, is_bigendian=0,
                                           step=a.strides[0], data=a.view(np.uint8).reshape(-1))
 
-    def info(stamp, frame, K, h, w):
+    def info(stamp, frame, K, h, w, D=np.zeros(5)):
         RoI = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
         P = np.hstack([K, np.zeros((3, 1))]).ravel()
-        kd = dict(D=np.zeros(5), K=K.ravel(), R=np.eye(3).ravel(), P=P) if ros1 else \
-            dict(d=np.zeros(5), k=K.ravel(), r=np.eye(3).ravel(), p=P)
+        D = np.asarray(D, np.float64)
+        kd = dict(D=D, K=K.ravel(), R=np.eye(3).ravel(), P=P) if ros1 else \
+            dict(d=D, k=K.ravel(), r=np.eye(3).ravel(), p=P)
         return T["sensor_msgs/msg/CameraInfo"](header=header(stamp, frame), height=h, width=w,
                                                distortion_model="plumb_bob", binning_x=0, binning_y=0, roi=RoI, **kd)
 
@@ -67,9 +68,22 @@ def _msgs(ts, ros1: bool):
     return header, image, info, transform, pose
 
 
-def write_ros2_bag(path, frames, storage="mcap", extra_depth=True, rigid=True):
+def _distort(depth, K, lens):
+    """A pinhole depth image as the distorted camera of the same K would see it (nearest)."""
+    from diffuser_lab.data.distortion import undistort_points
+
+    h, w = depth.shape
+    v, u = np.mgrid[:h, :w].astype(np.float64)
+    x, y = undistort_points((u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], lens)
+    cu, cv = np.rint(K[0, 0] * x + K[0, 2]).astype(int), np.rint(K[1, 1] * y + K[1, 2]).astype(int)
+    inside = (cu >= 0) & (cu < w) & (cv >= 0) & (cv < h)
+    return np.where(inside, depth[np.clip(cv, 0, h - 1), np.clip(cu, 0, w - 1)], 0)
+
+
+def write_ros2_bag(path, frames, storage="mcap", extra_depth=True, rigid=True, D=None):
     """The frames as a ROS 2 bag: depth Image 16UC1 (mm), colour CompressedImage (the JPEG files' bytes),
-    label images mono16 at half size (the toy network's grey-level classes), CameraInfo, /tf world -> base_link
+    label images mono16 at half size (the toy network's grey-level classes), CameraInfo (``D``: plumb_bob
+    coefficients, the depth images distorted by them), /tf world -> base_link
     per frame (samples 10 ms before and after each stamp), /tf_static
     base_link -> camera_optical; colour stamped 5 ms after depth. ``extra_depth``: one more depth image
     with no colour near it (skipped)."""
@@ -92,8 +106,13 @@ def write_ros2_bag(path, frames, storage="mcap", extra_depth=True, rigid=True):
             msgs.append((t + dt, "/tf", T["tf2_msgs/msg/TFMessage"](transforms=[transform(
                 t + dt, "world", "base_link", T_wb, 1.0 if rigid or i != 1 else 2.0)])))  # frame 1: not rigid
         depth = np.rint(f["depth"] * 1000).astype(np.uint16)
+        if D is not None:
+            from diffuser_lab.data.distortion import ros_lens
+
+            depth = _distort(depth, K, ros_lens("plumb_bob", D, "test"))
         msgs.append((t, "/camera/depth/image_rect_raw", image(t, "camera_optical", depth, "16UC1")))
-        msgs.append((t, "/camera/depth/camera_info", info(t, "camera_optical", K, *depth.shape)))
+        msgs.append((t, "/camera/depth/camera_info", info(t, "camera_optical", K, *depth.shape,
+                                                          *(() if D is None else (D,)))))
         jpeg = np.frombuffer(f["color_path"].read_bytes(), np.uint8)
         grey = np.asarray(PILImage.open(f["color_path"]).convert("RGB"))[::2, ::2].mean(axis=2)
         labels = np.digitize(grey, (60, 120, 180)).astype(np.uint16)  # the toy network's classes, half size
@@ -331,9 +350,33 @@ def test_image_encodings_and_a_distorted_camera_info():
     with pytest.raises(ValueError, match=r"m: image encoding 'yuv422', expected one of rgb8"):
         decode_image(NS(encoding="yuv422", height=2, width=3, step=9, is_bigendian=0, data=np.zeros(18, np.uint8)), "m")
     info = NS(k=np.array([585.0, 0, 320, 0, 585, 240, 0, 0, 1]), d=np.array([0.1, -0.2, 0, 0, 0]),
-              distortion_model="plumb_bob", height=480, width=640)
-    with pytest.raises(ValueError, match=r"b\.bag: /cam/camera_info distortion_model 'plumb_bob' with D = \[0\.1"):
+              distortion_model="kannala", height=480, width=640)
+    with pytest.raises(ValueError, match=r"b\.bag: /cam/camera_info: distortion_model 'kannala' with D = \[0\.1.*"
+                                         r"expected plumb_bob, rational_polynomial, equidistant"):
         _intrinsics(info, "b.bag", "/cam/camera_info")
+    info.distortion_model = "plumb_bob"
+    K, size, lens = _intrinsics(info, "b.bag", "/cam/camera_info")
+    assert (lens.kind, lens.k1, lens.k2) == ("perspective", 0.1, -0.2)
     info.d = np.zeros(5)
-    K, size = _intrinsics(info, "b.bag", "/cam/camera_info")
-    assert size == (480, 640) and K[0, 2] == 320
+    K, size, lens = _intrinsics(info, "b.bag", "/cam/camera_info")
+    assert size == (480, 640) and K[0, 2] == 320 and lens is None
+
+
+@needs_7scenes
+def test_a_distorted_camera_info_undistorts_the_frames(tmp_path, seven):
+    """Depth images of a plumb_bob camera (an Azure Kinect's raw topics) come back as the pinhole
+    camera's: the one undistortion (data/distortion.py) inverts the distortion the bag was written with."""
+    D = (0.12, -0.25, 0.001, -0.0005, 0.08)
+    bag = write_ros2_bag(tmp_path / "rec", seven[:1], extra_depth=False, D=D)
+    s = load_rosbag(RosbagOptions(path=str(bag), world_frame="world", cloud_stride=16), SCANNET20)
+    assert s.frames.info["undistorted"].startswith("perspective k1=0.12 k2=-0.25")
+    got, want = s.frames[0].depth, seven[0]["depth"]
+    both = (got > 0) & (want > 0)
+    assert both.mean() > 0.8  # the corners the distorted image did not see stay without depth
+    close = np.abs(got[both] - want[both]) < 0.002  # nearest twice: one pixel off at depth edges
+    assert close.mean() > 0.97, close.mean()
+    from diffuser_lab.data.distortion import ros_lens
+
+    # the images as the bag holds them (read as if rectified) are far from the pinhole ones
+    raw = _distort(np.rint(want * 1000).astype(np.uint16), seven[0]["K"], ros_lens("plumb_bob", D, "t")) / 1000
+    assert (np.abs(raw[both] - want[both]) < 0.002).mean() < close.mean() - 0.05
