@@ -123,10 +123,10 @@ def voxel_downsample(points: np.ndarray, voxel_size: float) -> VoxelGrid:
     return grid
 
 
-# scene.voxel_size=auto: the voxel edge in rho, the raw cloud's mean spacing. 3 rho was better than or
-# equal to each scene's hand-set edge on scene0470 (rho 1.3 cm -> 4 cm), the real scene0014 frames
-# (1.5 cm -> 4.5 cm) and the city (10 cm -> 30 cm); docs/results/defaults.md
-VOXEL_RHO = 3.0
+# scene.voxel_size=auto: the voxel edge in rho, the raw cloud's mean spacing. 2.7 rho was better than
+# or equal to each scene's hand-set edge (3 seeds): scene0470 (rho 13 mm -> 3.6 cm, +4.5 mIoU), the
+# real scene0014 frames (15 mm -> 4.0 cm, +0.2) and the city (10 cm -> 27 cm, +2.4); results/defaults.md
+VOXEL_RHO = 2.7
 
 
 def point_spacing(points: np.ndarray, sample: int = 100_000, seed: int = 0) -> float:
