@@ -104,14 +104,25 @@ class TiledResult:
         return [t for t in self.tiles if t["status"] == "error"]
 
 
+# a cloud overshooting a whole number of tiles by less than this fraction of tiling.size keeps that
+# number (its tiles up to this much larger) rather than a whole extra row or column: the 3x3 city at
+# 0.1 m spans 181.9 m, and 4 x 45.5 m tiles put their borders inside its buildings where 3 x 60.6 m
+# put them on its streets (labels equal to the untiled run 99.94 % vs 99.999 %, results/tiling.md)
+GRID_SLACK = 0.05
+
+
 def fitted_edge(points: np.ndarray, size: float) -> float:
-    """The tiles' edge, metres: ``size`` (``tiling.size``) shrunk so that the ceil(extent / size) cells of
-    each axis just cover the cloud's x-y extent (the larger of extent / cells over x and y, a hair more so
-    that the farthest point falls in the last cell): the grid fitted to the cloud, no near-empty last row or
-    column; never more than ``size``."""
+    """The tiles' edge, metres: ``size`` (``tiling.size``) fitted so that the ceil(extent / size -
+    :data:`GRID_SLACK`) cells of each axis just cover the cloud's x-y extent (the larger of extent / cells
+    over x and y, a hair more so that the farthest point falls in the last cell): the grid fitted to the
+    cloud, no near-empty last row or column; never more than ``size`` x (1 + GRID_SLACK)."""
     ext = points[:, :2].max(0).astype(np.float64) - points[:, :2].min(0).astype(np.float64)
-    e = float((ext / np.maximum(np.ceil(ext / size), 1.0)).max()) * (1.0 + 1e-9)
-    return min(float(size), e) if e > 0 else float(size)
+    whole = np.maximum(np.ceil(ext / size), 1.0)
+    cells = np.maximum(np.ceil(ext / size - GRID_SLACK), 1.0)
+    e = float((ext / cells).max()) * (1.0 + 1e-9)
+    if e <= 0:
+        return float(size)
+    return min(float(size), e) if (cells == whole).all() else min(float(size) * (1.0 + GRID_SLACK), e)
 
 
 def tile_grid(points: np.ndarray, size: float) -> tuple[tuple[float, float], tuple[int, int], np.ndarray]:

@@ -17,7 +17,8 @@ from diffuser_lab.runs import report
 from diffuser_lab.runs.protocols import PROTOCOLS
 from conftest import compose, run_cli
 
-ARGS = ["protocol=tiled", "tiling.size=2", "scene.options.n_views=12", "scene.options.point_spacing=0.07",
+ARGS = ["protocol=tiled", "tiling.size=1.9",  # a 3x3 grid of 1.67 m
+        "scene.options.n_views=12", "scene.options.point_spacing=0.07",
         "solver.max_iter=60"]
 
 

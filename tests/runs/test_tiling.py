@@ -21,7 +21,7 @@ from diffuser_lab.runs.tiled import TileSpec, frames_meeting, tile_points
 from conftest import ROOT, SMALL_DEMO, run_cli
 
 SMALL = {"scene.options.n_views": 12, "scene.options.point_spacing": 0.07, "solver.max_iter": 60}
-TILED = {**SMALL, "protocol.name": "tiled", "tiling.size": 2.0}
+TILED = {**SMALL, "protocol.name": "tiled", "tiling.size": 1.9}  # a 3x3 grid of 1.67 m (the room is 5.01 x 4.01 m)
 
 
 @pytest.fixture(scope="module")
@@ -76,7 +76,7 @@ def test_a_tiles_rows_from_its_neighbouring_cells_are_the_brute_force_ones(halo)
 
 
 def test_the_grid_is_fitted_to_the_cloud():
-    """tiling.size is the largest edge: the grid keeps ceil(extent / size) cells an axis, the edge
+    """tiling.size is the largest edge (up to GRID_SLACK more): the grid keeps ceil(extent / size) cells an axis, the edge
     shrunk so that they just cover the cloud (no near-empty last row or column, as a 130 m city cut
     into 60 m tiles had: 10 m of points in its last column)."""
     rng = np.random.default_rng(0)
@@ -87,6 +87,12 @@ def test_the_grid_is_fitted_to_the_cloud():
     assert len(counts) == 6 and counts.min() >= 0.6 * counts.mean(), counts  # at 60 m: 3 of 6 cells ~1/6 full
     origin, shape, cell = tiled.tile_grid(pts, 60.0)
     assert shape == cells.shape and cell.max(0).tolist() == [2, 1]  # the farthest point in the last cell
+    # a cloud over a whole number of tiles by less than GRID_SLACK of tiling.size keeps that number:
+    # the 3x3 city at 0.1 m (181.9 m) gets 3 x 60.63 m, not 4 x 45.5 m (borders in its buildings)
+    city = np.array([[0, 0, 0], [181.89, 121.26, 0]], np.float32)
+    assert tiled.tile_grid(city, 60.0)[1] == (3, 2)
+    assert tiled.fitted_edge(city, 60.0) == pytest.approx(60.63, abs=1e-3) and 60.63 <= 60.0 * (1 + tiled.GRID_SLACK)
+    assert tiled.tile_grid(city, 57.0)[1] == (4, 3)  # 3.19 x 57 m: a fourth column
     square = np.array([[0, 0, 0], [4, 4, 0]], np.float32)
     assert tiled.fitted_edge(square, 2.0) == 2.0 and tiled.fitted_edge(square, 3.0) == pytest.approx(2.0)
 
@@ -184,12 +190,13 @@ def test_a_failing_tile_is_reported_and_the_others_kept(untiled, tmp_path):
 def test_the_command_line_writes_the_tiles_and_their_records(tmp_path):
     p = run_cli(*SMALL_DEMO, "protocol=tiled", "record=off", "output.labels_ply=false", f"hydra.run.dir={tmp_path}")
     assert p.returncode == 0, p.stderr
-    assert "tiled 3x3 grid, 9 tiles" in p.stdout and "tiles: 9 of 9 done" in p.stdout
+    # the default 2 m: 3 columns, and 2 rows of 2.007 m for the room's 4.014 m (GRID_SLACK), not 3 of 1.34 m
+    assert "tiled 3x2 grid, 6 tiles" in p.stdout and "tiles: 6 of 6 done" in p.stdout
     s = json.loads((tmp_path / "summary.json").read_text())
-    assert s["status"] == "ok" and s["protocol"] == "tiled" and s["tiling"]["grid"] == [3, 3]
+    assert s["status"] == "ok" and s["protocol"] == "tiled" and s["tiling"]["grid"] == [3, 2]
     rec = s["tiling"]["tiles"][0]
     assert {"id", "points", "frames_read", "iterations", "time_s", "node", "pid", "status"} <= set(rec)
-    assert len(list((tmp_path / "tiles").glob("*.npz"))) == 9 and (tmp_path / "labels.npy").is_file()
+    assert len(list((tmp_path / "tiles").glob("*.npz"))) == 6 and (tmp_path / "labels.npy").is_file()
 
 
 def test_memory_refusal_names_the_tiling_keys():
