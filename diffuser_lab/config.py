@@ -285,7 +285,8 @@ class SceneConfig(Section):
     KEY = "scene"
     source: str = named("demo", "scene sources")  # the scene source's name (registry: diffuser_lab/data/sources)
     name: Optional[str] = None  # display name; null = derived from the source
-    voxel_size: float = key(0.0, at_least(0, "metres", note="(0 = off)"))  # metres; > 0: voxel-downsample before diffusion, labels transferred back
+    voxel_size: Any = key(0.0, rule("metres >= 0 (0 = off) or auto", lambda v: v == "auto" or (
+        isinstance(v, (int, float)) and not isinstance(v, bool) and v >= 0)))  # metres; > 0: voxel-downsample before diffusion, labels transferred back; auto = 2.7 x the cloud's point spacing (docs/results/defaults.md)
     options: Dict[str, Any] = field(default_factory=dict)  # the source's keys (conf/scene/<source>.yaml sets its dataclass)
 
 

@@ -18,7 +18,7 @@ from diffuser_lab.backends import resolve_backend
 from diffuser_lab.config import Config, DepthNoiseConfig, SceneConfig, SolverName, SparseClasses
 from diffuser_lab.data import sources, validate
 from diffuser_lab.data.frames import FrameLoop
-from diffuser_lab.data.geometry import VoxelGrid, nearest_transfer, voxel_downsample
+from diffuser_lab.data.geometry import VoxelGrid, nearest_transfer, voxel_downsample, voxel_edge
 from diffuser_lab.data.embeddings import prototypes
 from diffuser_lab.data.predictions import describe as describe_predictions
 from diffuser_lab.data.predictions import with_predictions
@@ -165,7 +165,10 @@ class RunResult:
     lifted: Optional["FeatureLift"] = None  # a features run's queries and per-point features
 
 
-def _work_cloud(scene: Scene, voxel_size: float) -> tuple[np.ndarray, Optional[np.ndarray], Optional[VoxelGrid]]:
+def _work_cloud(scene: Scene, voxel_size) -> tuple[np.ndarray, Optional[np.ndarray], Optional[VoxelGrid]]:
+    """The points the graph is built on: ``scene.voxel_size`` (metres, 0 = off, or ``auto``:
+    :func:`~diffuser_lab.data.geometry.voxel_edge`) applied to the scene's points."""
+    voxel_size = voxel_edge(voxel_size, scene.points)
     if voxel_size <= 0:
         return scene.points, scene.normals, None
     with progress.stage(f"voxel grid ({voxel_size:g} m, {scene.n_points:,} points)"):

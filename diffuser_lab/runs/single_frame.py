@@ -23,7 +23,7 @@ from scipy.ndimage import distance_transform_edt
 
 from diffuser_lab.config import Config, FrameNormals, SparseClasses
 from diffuser_lab.data.frames import FrameLoop
-from diffuser_lab.data.geometry import backproject, normals_from_depth, voxel_downsample
+from diffuser_lab.data.geometry import backproject, normals_from_depth, voxel_downsample, voxel_edge
 from diffuser_lab.data.predictions import with_predictions
 from diffuser_lab.data.scene import IGNORE, Frame, Scene
 from diffuser_lab.data.taxonomy import resolve_taxonomy
@@ -134,8 +134,9 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None, on_frame=None) -> S
         pts, pix = backproject(f.depth, f.K, f.T_cw)
         if pts.shape[0] <= cfg.graph.k:
             continue  # almost no depth in this frame: nothing to label
-        if cfg.scene.voxel_size > 0:
-            grid = voxel_downsample(pts, cfg.scene.voxel_size)
+        edge = voxel_edge(cfg.scene.voxel_size, pts)  # auto: from this frame's back-projected points
+        if edge > 0:
+            grid = voxel_downsample(pts, edge)
             work, to_work = grid.points, grid.inverse
         else:
             work, to_work = pts, np.arange(pts.shape[0])

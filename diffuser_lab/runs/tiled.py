@@ -464,8 +464,8 @@ def tiled(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHook
     ``run_dir/tiles`` (or to ``tiling.resume``'s). ``hooks`` are not called (tiles run apart)."""
     cfg = resolve(cfg)
     tc = cfg.tiling
-    if cfg.scene.voxel_size > 0:
-        raise ValueError(f"protocol=tiled needs scene.voxel_size=0 (got {cfg.scene.voxel_size:g}): the voxel grid "
+    if cfg.scene.voxel_size != 0:
+        raise ValueError(f"protocol=tiled needs scene.voxel_size=0 (got {cfg.scene.voxel_size}): the voxel grid "
                          f"is anchored at the cloud's minimum, which a tile does not share")
     t = {}
     t0 = time.perf_counter()

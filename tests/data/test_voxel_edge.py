@@ -34,3 +34,22 @@ def test_numbers_pass_and_bad_values_are_named():
             voxel_edge(bad, _grid(1.0))
     with pytest.raises(ValueError, match="coincide"):
         point_spacing(np.zeros((5, 3), np.float32))
+
+
+def test_scene_voxel_size_auto_runs_as_its_number():
+    """``scene.voxel_size=auto`` is the key's value in the schema (typed, checked) and a run with it
+    gives the labels of a run with the number it stands for; a value that is neither says the key."""
+    from diffuser_lab.config import ConfigError
+    from diffuser_lab.runs.pipeline import load_scene, run
+    from diffuser_lab.runs.resolve import default_config
+
+    small = {"scene.options.n_views": 6, "scene.options.point_spacing": 0.08, "solver.max_iter": 30}
+    auto = default_config(**small, **{"scene.voxel_size": "auto"})
+    edge = voxel_edge("auto", load_scene(auto.scene).points)
+    assert 0.1 < edge < 0.3  # 2.7 x the 8 cm demo's spacing
+    a = run(auto)
+    b = run(default_config(**small, **{"scene.voxel_size": edge}))
+    assert a.work_points.shape == b.work_points.shape and (a.labels == b.labels).all()
+    for bad in ("big", -1.0):
+        with pytest.raises(ConfigError, match="scene.voxel_size"):
+            default_config(**{"scene.voxel_size": bad})
