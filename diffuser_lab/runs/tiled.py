@@ -98,6 +98,7 @@ class TiledResult:
     halo: float = 0.0  # the halo the tiles had, metres (tiling.halo, or halo_factor * sigma_d)
     tile_m: float = 0.0  # the tiles' edge, metres: tiling.size fitted to the cloud (fitted_edge)
     files: dict = field(default_factory=dict)  # what the run wrote beside the tiles (a features run: features.npy)
+    from_halo: int = 0  # points their tile left unlabelled, labelled from a neighbour's halo (fill_from_halos)
 
     @property
     def failed(self) -> list[dict]:
@@ -315,9 +316,10 @@ def _specs(cfg: Config, scene: Scene, cells: _Cells, boxes: np.ndarray) -> list[
 
 
 def diffuse_tile(cfg: Config, inp: TileInput, frames, taxonomy, name: str, spec: TileSpec
-                 ) -> tuple[np.ndarray, np.ndarray, dict, Optional[np.ndarray]]:
-    """The pipeline on one tile: its own points' labels and Bayesian labels, its record, and (a
-    features run) its own points' features, (own, D) float16 unit rows, else None.
+                 ) -> tuple[np.ndarray, np.ndarray, dict, Optional[np.ndarray], tuple[np.ndarray, np.ndarray]]:
+    """The pipeline on one tile: its own points' labels and Bayesian labels, its record, (a
+    features run) its own points' features, (own, D) float16 unit rows, else None, and its halo's
+    labelled points: (scene indices int64, labels int16), for :func:`fill_from_halos`.
     ``frames`` is the whole scene's frame sequence: the tile reads only ``spec.frames`` of it."""
     t0 = time.perf_counter()
     own, rows = inp.own, inp.rows
@@ -326,6 +328,7 @@ def diffuse_tile(cfg: Config, inp: TileInput, frames, taxonomy, name: str, spec:
     labels = np.full(own.size, IGNORE, np.int16)
     bayes = labels.copy()
     feats = None
+    halo = (np.zeros(0, np.int64), np.zeros(0, np.int16))
     if spec.frames:
         sub = Scene(name=f"{name} tile {spec.id}", points=inp.points, taxonomy=taxonomy,
                     frames=LazyFrames.subset(frames, spec.frames), normals=inp.normals)
@@ -334,6 +337,10 @@ def diffuse_tile(cfg: Config, inp: TileInput, frames, taxonomy, name: str, spec:
             res = pipeline.run(cfg, scene=sub)
         pos = np.searchsorted(rows, own)
         labels, bayes = res.labels[pos], res.bayesian_labels[pos]
+        in_halo = np.ones(rows.size, bool)
+        in_halo[pos] = False
+        in_halo &= res.labels != IGNORE
+        halo = (rows[in_halo].astype(np.int64), res.labels[in_halo].astype(np.int16))
         if res.lifted is not None:  # a features run (method/features.py)
             feats = unit_float16(res.lifted.method[res.rows[pos]])
         rec["iterations"] = int(res.diffusion.iterations) if res.diffusion is not None else 0
@@ -344,7 +351,26 @@ def diffuse_tile(cfg: Config, inp: TileInput, frames, taxonomy, name: str, spec:
             rec["warnings"] = msgs
     rec.update(time_s=round(time.perf_counter() - t0, 3), node=socket.gethostname(), pid=os.getpid(),
                status="done", peak_rss_gb=round(_peak_rss_gb(), 3))
-    return labels, bayes, rec, feats
+    return labels, bayes, rec, feats, halo
+
+
+def fill_from_halos(labels: np.ndarray, halos: list[tuple[np.ndarray, np.ndarray]],
+                    done: Optional[np.ndarray] = None) -> int:
+    """Give a point its tile left unlabelled (nothing reached it there: unseen surface whose
+    evidence lies across the border) the label a neighbouring tile gave it in its halo, the first
+    such tile in grid order; labelled points keep theirs, and so do the points of a failed tile
+    (``done``: (N,) bool, False there; None = every tile finished). ``labels``: (N,) int16, changed
+    in place; ``halos``: per tile (scene indices, labels) of its labelled halo points. Returns how many
+    points were filled. The untiled graph reaches these points through the border; a tile only
+    through its halo, so the neighbour that holds them in its halo is the one that saw the way."""
+    filled = 0
+    for idx, lab in halos:  # loop over tiles
+        take = labels[idx] == IGNORE
+        if done is not None:
+            take &= done[idx]
+        labels[idx[take]] = lab[take]
+        filled += int(take.sum())
+    return filled
 
 
 def _peak_rss_gb() -> float:
@@ -361,12 +387,15 @@ def _crc(own: np.ndarray) -> int:
 
 
 def write_tile(tiles_dir: Path, spec: TileSpec, own: np.ndarray, labels: np.ndarray, bayes: np.ndarray,
-               rec: dict, features: Optional[np.ndarray] = None) -> Path:
+               rec: dict, features: Optional[np.ndarray] = None,
+               halo: Optional[tuple[np.ndarray, np.ndarray]] = None) -> Path:
     """``tiles/<id>.npz`` through a temporary file and os.replace (never half-written under its name);
-    a features run's tile also keeps its points' features."""
+    a features run's tile also keeps its points' features, every tile its halo's labelled points."""
     path = Path(tiles_dir) / f"{spec.id}.npz"
     buf = io.BytesIO()
     extra = {} if features is None else {"features": features}
+    if halo is not None:
+        extra.update(halo_index=halo[0], halo_labels=halo[1])
     np.savez(buf, labels=labels.astype(np.int16), bayesian=bayes.astype(np.int16), crc=np.int64(_crc(own)),
              record=np.array(json.dumps(rec)), **extra)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
@@ -379,10 +408,11 @@ def write_tile(tiles_dir: Path, spec: TileSpec, own: np.ndarray, labels: np.ndar
 
 
 def read_tile(tiles_dir: Path, spec: TileSpec, own: np.ndarray, features: bool = False
-              ) -> Optional[tuple[np.ndarray, np.ndarray, dict, Optional[np.ndarray]]]:
-    """A tile's finished file (labels, Bayesian labels, record and, with ``features``, a features
-    run's (own, D) float16 features or None), or None when it is missing or not complete
-    (unreadable, another shape, another set of points)."""
+              ) -> Optional[tuple[np.ndarray, np.ndarray, dict, Optional[np.ndarray], Optional[tuple]]]:
+    """A tile's finished file (labels, Bayesian labels, record, with ``features`` a features
+    run's (own, D) float16 features or None, and its halo's labelled points (indices, labels) or
+    None in a file without them), or None when it is missing or not complete (unreadable,
+    another shape, another set of points)."""
     path = Path(tiles_dir) / f"{spec.id}.npz"
     if not path.is_file():
         return None
@@ -390,18 +420,21 @@ def read_tile(tiles_dir: Path, spec: TileSpec, own: np.ndarray, features: bool =
         with np.load(path) as z:
             labels, bayes, crc, rec = z["labels"], z["bayesian"], int(z["crc"]), json.loads(str(z["record"]))
             feats = z["features"] if features and "features" in z.files else None
+            halo = (z["halo_index"], z["halo_labels"]) if "halo_index" in z.files else None
     except Exception:  # noqa: BLE001 - a truncated or foreign file: the tile is computed again
         return None
     if labels.shape != (own.size,) or bayes.shape != (own.size,) or crc != _crc(own):
         return None
     if feats is not None and feats.shape[0] != own.size:
         return None
-    return labels, bayes, rec, feats
+    if halo is not None and halo[0].shape != halo[1].shape:
+        halo = None
+    return labels, bayes, rec, feats, halo
 
 
 def _run_tile(cfg: Config, inp: TileInput, frames, taxonomy, name: str, spec: TileSpec, tiles_dir: str) -> dict:
-    labels, bayes, rec, feats = diffuse_tile(cfg, inp, frames, taxonomy, name, spec)
-    write_tile(Path(tiles_dir), spec, inp.own, labels, bayes, rec, feats)
+    labels, bayes, rec, feats, halo = diffuse_tile(cfg, inp, frames, taxonomy, name, spec)
+    write_tile(Path(tiles_dir), spec, inp.own, labels, bayes, rec, feats, halo)
     return rec
 
 
@@ -521,6 +554,7 @@ def tiled(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHook
     labels = np.full(scene.n_points, IGNORE, np.int16)
     bayes = labels.copy()
     features = None  # a features run's (N, D) float16 features.npy, a memory map filled tile by tile
+    halos, done = [], np.zeros(scene.n_points, bool)  # done: the points whose own tile finished
     for spec in specs:  # loop over tiles: their files -> the scene's labels (and features)
         got = (read_tile(tiles_dir, spec, owns[spec.id], features=run_dir is not None)
                if records[spec.id]["status"] != "error" else None)
@@ -528,11 +562,15 @@ def tiled(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHook
             records[spec.id] = dict(records[spec.id], status="error", error="its tile file is missing or damaged")
         if got is not None:
             labels[owns[spec.id]], bayes[owns[spec.id]] = got[0], got[1]
+            done[owns[spec.id]] = True
+            if got[4] is not None and got[4][0].size and got[4][0].max() < scene.n_points:
+                halos.append(got[4])
             if got[3] is not None:
                 if features is None:
                     features = np.lib.format.open_memmap(Path(run_dir) / "features.npy", mode="w+", dtype=np.float16,
                                                          shape=(scene.n_points, got[3].shape[1]))
                 features[owns[spec.id]] = got[3]  # a failed tile's points keep zero rows (unlabeled)
+    from_halo = fill_from_halos(labels, halos, done) if features is None else 0  # features: per-point rows, not labels
     res_files = {}
     if features is not None:
         features.flush()
@@ -542,7 +580,7 @@ def tiled(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHook
     res = TiledResult(scene=scene, method=cfg.method.name, labels=labels, bayesian_labels=bayes, grid=shape,
                       tile_m=float(cells.size),
                       tiles=[records[s.id] for s in specs], tiles_dir=tiles_dir, resumed_from=tc.resume, rho=rho,
-                      halo=tc.halo, files=res_files)
+                      halo=tc.halo, files=res_files, from_halo=from_halo)
     if scene.gt_labels is not None:
         tm = time.perf_counter()
         res.metrics = score(labels, scene.gt_labels, scene.taxonomy.names)
@@ -625,7 +663,7 @@ def summary(res: TiledResult, cfg: Config) -> dict:
         "tiling": {"size": cfg.tiling.size, "tile_m": res.tile_m, "halo": res.halo, "halo_factor": cfg.tiling.halo_factor, "grid": list(res.grid),
                    "n_tiles": len(res.tiles), "failed": len(failed), "workers": cfg.tiling.workers,
                    "address": cfg.tiling.address, "tiles_dir": str(res.tiles_dir), "resumed_from": res.resumed_from,
-                   "rho_m": res.rho, "tiles": res.tiles},
+                   "rho_m": res.rho, "from_halo": res.from_halo, "tiles": res.tiles},
     }
 
 

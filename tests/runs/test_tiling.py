@@ -276,3 +276,19 @@ def test_a_ray_worker_killed_mid_tile_is_retried_and_the_labels_equal(tmp_path):
     assert s["tiling"]["failed"] == 0 and all(t["status"] == "done" for t in s["tiling"]["tiles"])
     assert all(t["pid"] != killed for t in s["tiling"]["tiles"])  # the killed task's tile ran again elsewhere
     np.testing.assert_array_equal(np.load(tmp_path / "ray" / "labels.npy"), np.load(tmp_path / "ref" / "labels.npy"))
+
+
+def test_a_point_its_tile_left_unlabelled_takes_a_neighbours_halo_label():
+    """fill_from_halos: an unlabelled point takes the label of the first tile that labelled it in its
+    halo; a labelled point keeps its own; a halo's unlabelled entries are never there to give."""
+    from diffuser_lab.runs.tiled import fill_from_halos
+
+    from diffuser_lab.data.scene import IGNORE
+
+    labels = np.array([3, IGNORE, IGNORE, 5, IGNORE], np.int16)
+    halos = [(np.array([1, 3]), np.array([7, 9], np.int16)), (np.array([1, 2]), np.array([8, 4], np.int16))]
+    kept = labels.copy()
+    assert fill_from_halos(labels, halos) == 2
+    assert labels.tolist() == [3, 7, 4, 5, IGNORE]
+    assert fill_from_halos(kept, halos, done=np.array([1, 0, 1, 1, 1], bool)) == 1  # point 1's tile failed
+    assert kept.tolist() == [3, IGNORE, 4, 5, IGNORE]
