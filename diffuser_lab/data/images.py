@@ -54,6 +54,31 @@ def resize_bilinear(img: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return out.reshape(H, W, *img.shape[2:])
 
 
+_PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def _check_png_chunks(path: Path, what: str) -> None:
+    """A PNG's chunk lengths (big-endian uint32 before each chunk's type) against the file's size,
+    before Pillow reads them: Pillow reads a chunk it skips at its declared length in one call, so a
+    damaged length after the pixels asked for up to 4 GiB (MemoryError, no file named). One line
+    naming the file and the chunk; nothing for another format. A loop over chunks, not pixels."""
+    size = path.stat().st_size
+    with open(path, "rb") as fh:
+        if fh.read(8) != _PNG_MAGIC:
+            return
+        pos = 8
+        while pos + 8 <= size:  # loop over chunks (tens to a few thousand)
+            fh.seek(pos)
+            head = fh.read(8)
+            n, kind = int.from_bytes(head[:4], "big"), head[4:]
+            if n > 2**31 - 1 or pos + 12 + n > size:
+                raise ValueError(f"{path}: {what}: PNG chunk {kind!r} at byte {pos:,} says {n:,} bytes; the file "
+                                 f"has {size - pos - 12:,} after its header (truncated or damaged)")
+            if kind == b"IEND":
+                return
+            pos += 12 + n
+
+
 @contextmanager
 def open_image(path: str | Path, what: str):
     """PIL image of ``path`` whose pixels are loaded; an unreadable, truncated or corrupt file
@@ -63,6 +88,7 @@ def open_image(path: str | Path, what: str):
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{what} {path} does not exist")
+    _check_png_chunks(path, what)
     try:
         im = Image.open(path)
         im.load()

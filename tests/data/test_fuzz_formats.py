@@ -363,15 +363,17 @@ def test_probability_and_depth_arrays_whose_header_lies(shape, m, npz):
 # ------------------------------------------------------------------------------------------- corpus
 
 READERS = {".las": "read_cloud", ".laz": "read_cloud", ".ply": "read_cloud", ".json": "read_transforms",
-           ".yaml": "read_intrinsics_file", ".txt": "read_intrinsics_file", ".npy": "read_array"}
+           ".yaml": "read_intrinsics_file", ".txt": "read_intrinsics_file", ".npy": "read_array",
+           ".png": "read_depth_png"}
 
 
 def replay(paths: list[Path]) -> list[str]:
     """Each corpus file through its reader, bounded: one result line per file."""
-    from diffuser_lab.data.images import read_array
+    from diffuser_lab.data.images import read_array, read_depth_png
 
     fns = {"read_cloud": read_cloud, "read_transforms": read_transforms, "read_array": lambda p: read_array(p, "array"),
-           "read_intrinsics_file": read_intrinsics_file, "read_bag": read_bag, "read_colmap": read_colmap}
+           "read_intrinsics_file": read_intrinsics_file, "read_bag": read_bag, "read_colmap": read_colmap,
+           "read_depth_png": lambda p: read_depth_png(p, 1000.0)}
     out = []
     for p in paths:  # loop over corpus files
         try:
@@ -412,6 +414,8 @@ def make_corpus() -> None:
         # found by DIFFUSER_FUZZ_EXAMPLES=1000: lazrs aborted the interpreter (a Rust allocation failure)
         "laz_chunk_size_lies.laz": laz[:771] + struct.pack("<I", 3835953594) + laz[775:],  # laszip VLR chunk_size
         "laz_layer_size_lies.laz": laz[:880] + struct.pack("<I", 1661324470) + laz[884:],  # a layer's byte count
+        # found the same way: Pillow read an IDAT whose length byte was flipped in one 4 GiB call
+        "png_chunk_length_lies.png": mutate(_png("I;16"), "flip", 0.2265625, 255, b""),
         "vertex_count_lies.ply": b"ply\nformat binary_little_endian 1.0\nelement vertex 4000000000\n"
                                  b"property float x\nproperty float y\nproperty float z\nend_header\n" + bytes(24),
         "nan_points.ply": b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
