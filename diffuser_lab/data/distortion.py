@@ -31,6 +31,8 @@ from functools import lru_cache
 import numpy as np
 from scipy.ndimage import map_coordinates
 
+from .geometry import scaled_intrinsics
+
 __all__ = ["PERSPECTIVE", "FISHEYE", "LensModel", "distort_points", "undistort_points", "undistort_map",
            "undistort_image", "focal_scale", "colmap_lens", "COLMAP_LENS_MODELS", "ros_lens", "ROS_LENS_MODELS"]
 
@@ -245,14 +247,19 @@ def ros_lens(model: str, D, where: str) -> LensModel:
 
 
 def undistort_image(img: np.ndarray, K: np.ndarray, model: LensModel, *, order: int, fill=0,
-                    K_out: np.ndarray | None = None) -> np.ndarray:
-    """A distorted image (H, W) or (H, W, C) whose intrinsics at this size are ``K`` -> the pinhole
-    image of intrinsics ``K_out`` (default ``K``) and the same size and dtype: ``order`` 1 = bilinear
-    (colour), 0 = nearest (depth, labels, masks); pixels without a source get ``fill``. The image
+                    K_out: np.ndarray | None = None, K_size: tuple[int, int] | None = None) -> np.ndarray:
+    """A distorted image (H, W) or (H, W, C) whose intrinsics are ``K`` -> the pinhole image of
+    intrinsics ``K_out`` (default ``K``) and the same size and dtype: ``order`` 1 = bilinear
+    (colour), 0 = nearest (depth, labels, masks); pixels without a source get ``fill``. ``K_size``:
+    the (H, W) that ``K`` and ``K_out`` are for (None = this image's); an image of another size takes
+    them scaled with pixel centres aligned (a label image at half the colour's size). The image
     itself when ``model`` is pinhole and ``K_out`` is ``K``."""
+    img = np.asarray(img)
+    if K_size is not None and tuple(img.shape[:2]) != tuple(K_size):
+        K = scaled_intrinsics(K, K_size, img.shape[:2])
+        K_out = None if K_out is None else scaled_intrinsics(K_out, K_size, img.shape[:2])
     if model.is_pinhole and (K_out is None or np.array_equal(K_out, K)):
         return img
-    img = np.asarray(img)
     coords, valid = undistort_map(K, img.shape[:2], model, K_out)
     planes = img[..., None] if img.ndim == 2 else img
     out = np.empty(planes.shape, np.float64 if order else planes.dtype)

@@ -53,7 +53,6 @@ from diffuser_lab.config import SceneConfig, key, rule
 from diffuser_lab.data.capture import CaptureOptions, CapturedFrame, capture_scene
 from diffuser_lab.data.clouds import read_cloud, read_point_cloud_ply
 from diffuser_lab.data.distortion import colmap_lens, focal_scale, undistort_image
-from diffuser_lab.data.geometry import scaled_intrinsics
 from diffuser_lab.data.images import read_label_png, read_rgb
 from diffuser_lab.data.scene import IGNORE, Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
@@ -348,9 +347,7 @@ class _Lens:
         self.K[1, 1] *= self.scale
 
     def __call__(self, image: np.ndarray, order: int, fill=0) -> np.ndarray:
-        shape = image.shape[:2]
-        return undistort_image(image, scaled_intrinsics(self.K0, self.size, shape), self.lens, order=order,
-                               fill=fill, K_out=scaled_intrinsics(self.K, self.size, shape))
+        return undistort_image(image, self.K0, self.lens, order=order, fill=fill, K_out=self.K, K_size=self.size)
 
 
 # ---------------------------------------------------------------------------------------- depth maps

@@ -59,7 +59,6 @@ from diffuser_lab.config import SceneConfig, above, key, rule
 from diffuser_lab.data.capture import CaptureOptions, CapturedFrame, capture_scene
 from diffuser_lab.data.clouds import read_cloud
 from diffuser_lab.data.distortion import FISHEYE, PERSPECTIVE, LensModel, undistort_image
-from diffuser_lab.data.geometry import scaled_intrinsics
 from diffuser_lab.data.images import open_image, read_array, read_depth_png, read_label_png, read_rgb, resize_nearest
 from diffuser_lab.data.scene import IGNORE, Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
@@ -187,10 +186,6 @@ def _read_mask(path: Path) -> np.ndarray:
         return np.asarray(im.convert("L")) > 0
 
 
-def _at(K: np.ndarray, K_size: tuple[int, int], shape: tuple[int, int]) -> np.ndarray:
-    return K if tuple(shape) == tuple(K_size) else scaled_intrinsics(K, K_size, tuple(shape))
-
-
 class _Frame:
     """One frame's files and camera -> its lazy readers (undistorted when the lens distorts)."""
 
@@ -200,17 +195,17 @@ class _Frame:
 
     def rgb(self) -> np.ndarray:
         img = read_rgb(self.image)
-        return undistort_image(img, _at(self.K, self.K_size, img.shape[:2]), self.lens, order=1, fill=0)
+        return undistort_image(img, self.K, self.lens, order=1, fill=0, K_size=self.K_size)
 
     def depth(self) -> np.ndarray:
         d = _read_depth(self.depth_path, self.unit)
         if self.mask is not None:
             d = np.where(resize_nearest(_read_mask(self.mask), d.shape), d, 0).astype(np.float32)
-        return undistort_image(d, _at(self.K, self.K_size, d.shape), self.lens, order=0, fill=0)
+        return undistort_image(d, self.K, self.lens, order=0, fill=0, K_size=self.K_size)
 
     def label_ids(self) -> np.ndarray:
         ids = read_label_png(self.labels_path)
-        return undistort_image(ids, _at(self.K, self.K_size, ids.shape), self.lens, order=0, fill=IGNORE)
+        return undistort_image(ids, self.K, self.lens, order=0, fill=IGNORE, K_size=self.K_size)
 
 
 def _world_maps(meta: dict, o: NerfstudioOptions, src: Path) -> tuple[np.ndarray, np.ndarray]:

@@ -49,7 +49,6 @@ from omegaconf import MISSING
 from diffuser_lab.config import SceneConfig, above, key, rule
 from diffuser_lab.data.capture import CaptureOptions, CapturedFrame, capture_scene
 from diffuser_lab.data.distortion import LensModel, ros_lens, undistort_image
-from diffuser_lab.data.geometry import scaled_intrinsics
 from diffuser_lab.data.poses import associate, interpolate_poses, pose_matrices
 from diffuser_lab.data.scene import IGNORE, Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
@@ -442,12 +441,7 @@ def _undistorted(read: Callable[[], np.ndarray], K: np.ndarray, K_size: tuple[in
                  order: int, fill) -> Callable[[], np.ndarray]:
     """``read`` resampled to the pinhole camera of the same K (the one undistortion, data/distortion.py):
     ``order`` 1 (colour) or 0 (depth, labels); an image of another size than the calibration's takes K scaled."""
-    def undistorted():
-        img = read()
-        shape = img.shape[:2]
-        K_img = K if tuple(shape) == tuple(K_size) else scaled_intrinsics(K, K_size, shape)
-        return undistort_image(img, K_img, lens, order=order, fill=fill)
-    return undistorted
+    return lambda: undistort_image(read(), K, lens, order=order, fill=fill, K_size=K_size)
 
 
 def load_rosbag(o: RosbagOptions, taxonomy: Taxonomy) -> Scene:
