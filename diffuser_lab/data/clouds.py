@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import struct
 import time
+from typing import Optional
 from pathlib import Path
 
 import numpy as np
@@ -81,12 +82,13 @@ _LAS_RECORD = {0: 20, 1: 28, 2: 26, 3: 34, 4: 57, 5: 63, 6: 30, 7: 36, 8: 38, 9:
 _LAZ_MAX_RATIO = 1000  # a LAZ file's points take at most this many times its compressed bytes
 
 
-def check_las_header(path: Path) -> bool:
+def check_las_header(path: Path) -> Optional[int]:
     """What a LAS/LAZ public header declares (ASPRS LAS 1.0-1.4: version, header size, point data
     offset, VLR and EVLR counts, point format, record length, point count) against the file's size,
     before laspy reads it: laspy loops over the declared VLRs and allocates the declared points, so
     a file that is garbage after its ``LASF`` magic would keep it busy for minutes. One line naming
-    the file and the field that lies; else whether the points are compressed (LAZ)."""
+    the file and the field that lies; else the bytes a LAZ file's points decode to (points x record
+    length), None for an uncompressed LAS."""
     size = path.stat().st_size
     with open(path, "rb") as fh:
         h = fh.read(375)
@@ -121,7 +123,7 @@ def check_las_header(path: Path) -> bool:
     if compressed and data > _LAZ_MAX_RATIO * max(size - offset, 1):
         raise ValueError(f"{path}: LAZ header says {n_points:,} points of {rec_len} bytes ({data / 2**20:,.0f} MiB) "
                          f"from {size - offset:,} compressed bytes, more than {_LAZ_MAX_RATIO}x: the header lies")
-    return compressed
+    return data if compressed else None
 
 
 def read_las(path: str | Path) -> dict:
@@ -134,9 +136,8 @@ def read_las(path: str | Path) -> dict:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"point cloud {path} does not exist")
-    if check_las_header(path):
-        return _laz_in_child(path)
-    return _read_las_here(path)
+    decoded = check_las_header(path)
+    return _read_las_here(path) if decoded is None else _laz_in_child(path, decoded)
 
 
 _LAZ_CHILD = """
@@ -152,23 +153,18 @@ np.savez(sys.argv[2], **out)
 """
 
 
-def _laz_in_child(path: Path) -> dict:
+def _laz_in_child(path: Path, decoded: int) -> dict:
     """:func:`_read_las_here` of the LAZ ``path`` in a child interpreter (a fresh one: a fork would
-    inherit the decoder's thread pool without its threads), its address space bounded by the header's
-    decoded size + 2 GiB, the arrays back through a temporary ``.npz``: its arrays, or one line naming
-    the file when it fails or dies (~0.3 s of start-up)."""
+    inherit the decoder's thread pool without its threads), its address space bounded by 3x the
+    ``decoded`` bytes its header declares (:func:`check_las_header`) + 3 GiB, the arrays back through a
+    temporary ``.npz``: its arrays, or one line naming the file when it fails or dies (~0.3 s of start-up)."""
     import resource
     import signal
     import subprocess
     import sys
     import tempfile
 
-    with open(path, "rb") as fh:
-        h = fh.read(375)
-    _, _, _, _, rec_len, n_points = struct.unpack_from("<HIIBHI", h, 94)
-    if h[25] >= 4:
-        n_points = struct.unpack_from("<Q", h, 247)[0] or n_points
-    limit = 3 * n_points * rec_len + (3 << 30)
+    limit = 3 * decoded + (3 << 30)
 
     def bounded():  # in the child: a lying size fails its allocation instead of swapping the machine
         _, hard = resource.getrlimit(resource.RLIMIT_AS)

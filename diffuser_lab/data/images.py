@@ -1,5 +1,6 @@
-"""Depth and colour images shared by the capture formats (label images: :mod:`.prediction_files`), and
-the one resize of every image: :func:`resize_nearest` for label ids, depth and masks (values kept),
+"""Depth, colour and label images and ``.npy``/``.npz`` arrays shared by the capture formats and the
+prediction files, each checked against what its header declares before it is decoded, and the one
+resize of every image: :func:`resize_nearest` for label ids, depth and masks (values kept),
 :func:`resize_bilinear` for colour and class probabilities (Pillow's bilinear)."""
 from __future__ import annotations
 

@@ -7,9 +7,8 @@ export with its mesh (scannet.py), a posed RGB-D folder (rgbd_folder.py), a TUM 
 other layout (templates.py; ScanNet without a mesh and as SensReader writes it are YAMLs of it),
 nerfstudio's transforms.json (nerfstudio.py), Replica as NICE-SLAM ships it (replica.py), COLMAP
 models (colmap.py), ROS 1 / ROS 2 bags (rosbag.py). Each module has a
-``load(cfg, taxonomy, sensor) -> Scene``; the first five read their own keys of the
-:class:`~diffuser_lab.config.SceneConfig` (``scene.options.*``, ``scene.options.*``, ...), the capture
-formats ``scene.options``, an instance of the options dataclass their entry declares.
+``load(cfg, taxonomy, sensor) -> Scene`` that reads ``cfg.options``, an instance of the options
+dataclass its entry declares (every source's keys are ``scene.options.KEY``).
 
 Adding a dataset format is one module with such a ``load`` and an options dataclass (extending
 :class:`~diffuser_lab.data.capture.CaptureOptions` for a frame-based capture), one
