@@ -20,8 +20,8 @@ from __future__ import annotations
 import json
 import struct
 import time
-from typing import Optional
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
