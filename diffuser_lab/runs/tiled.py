@@ -407,12 +407,12 @@ def write_tile(tiles_dir: Path, spec: TileSpec, own: np.ndarray, labels: np.ndar
     return path
 
 
-def read_tile(tiles_dir: Path, spec: TileSpec, own: np.ndarray, features: bool = False
+def read_tile(tiles_dir: Path, spec: TileSpec, own: np.ndarray, features: bool = False, halo: bool = False
               ) -> Optional[tuple[np.ndarray, np.ndarray, dict, Optional[np.ndarray], Optional[tuple]]]:
     """A tile's finished file (labels, Bayesian labels, record, with ``features`` a features
-    run's (own, D) float16 features or None, and its halo's labelled points (indices, labels) or
-    None in a file without them), or None when it is missing or not complete (unreadable,
-    another shape, another set of points)."""
+    run's (own, D) float16 features or None, and with ``halo`` its halo's labelled points
+    (indices, labels) or None in a file without them), or None when it is missing or not complete
+    (unreadable, another shape, another set of points)."""
     path = Path(tiles_dir) / f"{spec.id}.npz"
     if not path.is_file():
         return None
@@ -420,7 +420,7 @@ def read_tile(tiles_dir: Path, spec: TileSpec, own: np.ndarray, features: bool =
         with np.load(path) as z:
             labels, bayes, crc, rec = z["labels"], z["bayesian"], int(z["crc"]), json.loads(str(z["record"]))
             feats = z["features"] if features and "features" in z.files else None
-            halo = (z["halo_index"], z["halo_labels"]) if "halo_index" in z.files else None
+            halo = (z["halo_index"], z["halo_labels"]) if halo and "halo_index" in z.files else None
     except Exception:  # noqa: BLE001 - a truncated or foreign file: the tile is computed again
         return None
     if labels.shape != (own.size,) or bayes.shape != (own.size,) or crc != _crc(own):
@@ -556,7 +556,7 @@ def tiled(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHook
     features = None  # a features run's (N, D) float16 features.npy, a memory map filled tile by tile
     halos, done = [], np.zeros(scene.n_points, bool)  # done: the points whose own tile finished
     for spec in specs:  # loop over tiles: their files -> the scene's labels (and features)
-        got = (read_tile(tiles_dir, spec, owns[spec.id], features=run_dir is not None)
+        got = (read_tile(tiles_dir, spec, owns[spec.id], features=run_dir is not None, halo=True)
                if records[spec.id]["status"] != "error" else None)
         if got is None and records[spec.id]["status"] != "error":
             records[spec.id] = dict(records[spec.id], status="error", error="its tile file is missing or damaged")
