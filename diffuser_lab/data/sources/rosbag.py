@@ -49,7 +49,7 @@ from omegaconf import MISSING
 from diffuser_lab.config import SceneConfig, above, key, rule
 from diffuser_lab.data.capture import CaptureOptions, CapturedFrame, capture_scene
 from diffuser_lab.data.distortion import LensModel, ros_lens, undistort_image
-from diffuser_lab.data.poses import associate, interpolate_poses, pose_matrices
+from diffuser_lab.data.poses import associate, interpolate_poses, pose_matrices, rigid_inverse
 from diffuser_lab.data.scene import IGNORE, Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
 from diffuser_lab.data.validate import check_depth_unit
@@ -251,10 +251,7 @@ def _chain_poses(edges, world, camera, at, tol, interpolate, bag) -> tuple[np.nd
         return T
 
     Tw, Tc = root_from(up_world), root_from(up_cam)
-    Rw = np.transpose(Tw[:, :3, :3], (0, 2, 1))
-    inv = np.tile(np.eye(4), (len(at), 1, 1))
-    inv[:, :3, :3], inv[:, :3, 3] = Rw, -np.einsum("nij,nj->ni", Rw, Tw[:, :3, 3])
-    return inv @ Tc, ok
+    return rigid_inverse(Tw) @ Tc, ok
 
 
 def _tf_values(tr) -> tuple:
@@ -564,9 +561,7 @@ def load_rosbag(o: RosbagOptions, taxonomy: Taxonomy) -> Scene:
     if len(sel) < 0.5 * len(d_st):
         warnings.warn(f"{bag}: {len(d_st) - len(sel)} of {len(d_st)} depth images dropped "
                       f"({info.get('n_no_color', 0)} without colour, {info['n_no_pose']} without pose)", stacklevel=2)
-    R_t = np.transpose(T_wc[:, :3, :3], (0, 2, 1))
-    T_cw = np.tile(np.eye(4), (len(d_st), 1, 1))  # rigid inverse of every pose at once
-    T_cw[:, :3, :3], T_cw[:, :3, 3] = R_t, -np.einsum("nij,nj->ni", R_t, T_wc[:, :3, 3])
+    T_cw = rigid_inverse(T_wc)  # every pose at once
     info["timestamps"] = (d_st[sel] * 1e-9).tolist()
 
     def reader(topic, t, n, convert, order=0, fill=0):
