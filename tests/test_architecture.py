@@ -8,7 +8,7 @@ import ast
 from pathlib import Path
 
 PKG = Path(__file__).resolve().parent.parent / "diffuser_lab"
-LAYERS = ["config", "progress", "hooks", "registry", "backends", "data", "method", "runs", "recording", "cli"]
+LAYERS = ["config", "seeding", "progress", "hooks", "registry", "backends", "data", "method", "runs", "recording", "cli"]
 """Bottom to top: a module imports only its own layer and those below (the package face, the
 package's ``__init__``, may import anything)."""
 

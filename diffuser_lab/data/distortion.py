@@ -93,7 +93,7 @@ def distort_points(x: np.ndarray, y: np.ndarray, model: LensModel) -> tuple[np.n
     r2 = x * x + y * y
     if model.kind == FISHEYE:
         r = np.sqrt(r2)
-        theta = np.arctan(r)
+        theta = np.arctan2(r, 1.0)  # = arctan(r); numpy's float64 arctan and tan round by CPU, arctan2, sin, cos do not
         theta_d = theta * _radial(model, theta * theta)
         with np.errstate(divide="ignore", invalid="ignore"):
             scale = np.where(r > 1e-12, theta_d / r, 1.0)
@@ -118,7 +118,8 @@ def undistort_points(xd: np.ndarray, yd: np.ndarray, model: LensModel, iteration
             t2 = theta * theta
             f = theta * _radial(model, t2) - rd
             theta = theta - f / np.maximum(_radial_slope(model, t2), 1e-9)
-        r = np.tan(np.clip(theta, 0.0, np.pi / 2 - 1e-9))
+        theta = np.clip(theta, 0.0, np.pi / 2 - 1e-9)
+        r = np.sin(theta) / np.cos(theta)
         with np.errstate(divide="ignore", invalid="ignore"):
             scale = np.where(rd > 1e-12, r / rd, 1.0)
         return xd * scale, yd * scale
@@ -149,7 +150,7 @@ def _cached_map(fx: float, fy: float, cx: float, cy: float, h: int, w: int, mode
     src_c, src_r = fx * xd + cx, fy * yd + cy
     s = x * x + y * y
     if model.kind == FISHEYE:
-        s = np.arctan(np.sqrt(s)) ** 2
+        s = np.arctan2(np.sqrt(s), 1.0) ** 2
     limit = _fold_limit(model, float(s.max()) * 1.01 + 1e-12)
     valid = (s < limit) & (src_c >= -0.5) & (src_c <= w - 0.5) & (src_r >= -0.5) & (src_r <= h - 0.5)
     coords = np.stack([src_r, src_c]).astype(np.float32)

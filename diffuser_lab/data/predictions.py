@@ -91,11 +91,10 @@ def _simulated(cfg: PredictionsConfig, taxonomy: Taxonomy) -> Callable[[int, Fra
 
     def fn(i: int, f: Frame) -> Frame:
         _need_gt(f)
-        rng = np.random.default_rng([cfg.seed, i])
         regions = (surface_regions(f.gt_labels, f.depth, f.K, f.T_cw, region_size=cfg.region_size,
                                    view_range_m=cfg.view_range_m, seed=cfg.seed) if correlated else None)
         pred = simulate_predictions(
-            f.gt_labels, taxonomy.num_classes, rng, strength=cfg.strength, jitter_px=cfg.jitter_px,
+            f.gt_labels, taxonomy.num_classes, (cfg.seed, i), strength=cfg.strength, jitter_px=cfg.jitter_px,
             jitter_scale_px=cfg.jitter_scale_px, confuse_prob=cfg.confuse_prob,
             confuse_max_frac=cfg.confuse_max_frac, blob_count=cfg.blob_count, blob_radius=cfg.blob_radius,
             blob_roughness=cfg.blob_roughness, class_names=taxonomy.names, regions=regions,

@@ -14,11 +14,15 @@ a pixel to match.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from diffuser_lab import progress
+from diffuser_lab import seeding
+from diffuser_lab.seeding import Seed
 
-from .meshes import triangle_normals
+from .meshes import closed_components, inside_closed, triangle_normals
 from .o3d import open3d
 from .scene import IGNORE
 
@@ -44,31 +48,38 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     Returns:
         (4, 4) float64 ``T_cw`` with rows of the rotation = camera x, y, z axes in world.
     """
+    # Norms and products written out, not through BLAS (np.linalg.norm of a vector and @ call
+    # OpenBLAS, whose kernels round differently on AVX2 and AVX-512 CPUs): the same pose everywhere.
     eye = np.asarray(eye, np.float64)
     z = np.asarray(target, np.float64) - eye
-    norm = np.linalg.norm(z)
+    norm = _norm3(z)
     if norm < 1e-12:
         raise ValueError("look_at: eye and target coincide")
     z /= norm
     up = np.asarray(up, np.float64)
     x = np.cross(z, up)
-    if np.linalg.norm(x) < 1e-6 * np.linalg.norm(up):
+    if _norm3(x) < 1e-6 * _norm3(up):
         # Looking straight along up: any horizontal right vector will do.
         alt = np.array([0.0, 1.0, 0.0]) if abs(z[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
         x = np.cross(z, alt)
-    x /= np.linalg.norm(x)
+    x /= _norm3(x)
     y = np.cross(z, x)  # image down = forward x right
     T = np.eye(4)
     T[:3, :3] = np.stack([x, y, z])
-    T[:3, 3] = -T[:3, :3] @ eye
+    T[:3, 3] = -(T[:3, :3] * eye).sum(1)
     return T
+
+
+def _norm3(v: np.ndarray) -> float:
+    """|v| of a (3,) vector, summed in a fixed order."""
+    return float(np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]))
 
 
 def intrinsics(width: int, height: int, fov_deg: float) -> np.ndarray:
     """(3, 3) float64 pinhole K with square pixels, horizontal field of view
     ``fov_deg`` (degrees) and principal point at the image centre ((w-1)/2, (h-1)/2),
     pixel centres at integer coordinates."""
-    f = 0.5 * width / np.tan(np.deg2rad(fov_deg) / 2.0)
+    f = 0.5 * width / math.tan(math.radians(fov_deg) / 2.0)  # libm: numpy's tan rounds by CPU
     return np.array([[f, 0.0, (width - 1) / 2.0], [0.0, f, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
 
 
@@ -99,6 +110,7 @@ class MeshRenderer:
         self.scene.add_triangles(o3d.core.Tensor(self.vertices), o3d.core.Tensor(self.triangles))
         # Label lookup with a trailing IGNORE slot for "no hit" (INVALID_ID).
         self._label_lut = np.append(self.triangle_labels, np.int16(IGNORE))
+        self._planes: tuple[np.ndarray, np.ndarray] | None = None  # float64 normals and offsets, on first render
 
     def _cast(self, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         ans = self.scene.cast_rays(_open3d().core.Tensor(np.ascontiguousarray(rays, np.float32)))
@@ -154,20 +166,64 @@ class MeshRenderer:
         camera frame (winding-order sign, as the mesh has it; zero where nothing is hit)."""
         depth, labels, prim = self._render(K, T_cw, width, height)
         hit = prim < len(self.triangles)
-        n = self.normals[np.where(hit, prim, 0)] @ np.asarray(T_cw, np.float32)[:3, :3].T
+        R = np.asarray(T_cw, np.float64)[:3, :3]
+        n = _rotate(self._normals64[np.where(hit, prim, 0)], R)  # written-out sums, no BLAS
         return depth, labels, np.where(hit[..., None], n, 0.0).astype(np.float32)
 
     def _render(self, K, T_cw, width, height):
+        """Depth, labels and hit triangles of a view. The ray caster decides which triangle a pixel
+        sees; the depth is then the exact z of that triangle's plane along the pixel's ray, in
+        float64 rounded to float32, not the caster's own t (Embree's AVX2 and AVX-512 kernels round
+        t differently, ~1e-7 relative): the same depth image on every CPU."""
         K_o3d = np.array(K, np.float64)
         K_o3d[:2, 2] += 0.5  # Open3D casts pixel (u, v) through (u + 0.5, v + 0.5)
         o3d = _open3d()
+        T = np.asarray(T_cw, np.float64)
         rays = o3d.t.geometry.RaycastingScene.create_rays_pinhole(
-            o3d.core.Tensor(K_o3d), o3d.core.Tensor(np.asarray(T_cw, np.float64)),
-            int(width), int(height))
-        # Open3D scales each ray direction to unit camera-z, so t_hit is already z-depth.
-        t_hit, prim = self._cast(rays.numpy())
-        depth = np.where(np.isfinite(t_hit), t_hit, 0.0).astype(np.float32)
+            o3d.core.Tensor(K_o3d), o3d.core.Tensor(T), int(width), int(height))
+        _, prim = self._cast(rays.numpy())
+        hit = prim < len(self.triangles)
+        # the pixel's ray in the world, z = 1 in the camera: eye + z * dirs
+        Kf = np.asarray(K, np.float64)
+        u = (np.arange(width, dtype=np.float64) - Kf[0, 2]) / Kf[0, 0]
+        v = (np.arange(height, dtype=np.float64) - Kf[1, 2]) / Kf[1, 1]
+        cam = np.empty((height, width, 3))
+        cam[..., 0], cam[..., 1], cam[..., 2] = u[None, :], v[:, None], 1.0
+        R = T[:3, :3]
+        dirs = _rotate(cam, R.T)
+        eye = -_rotate(T[:3, 3], R.T)
+        p = np.where(hit, prim, 0)
+        n = self._normals64[p]
+        num = self._offsets64[p] - _dot3(n, eye)
+        den = _dot3(n, dirs)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = num / den
+        depth = np.where(hit & np.isfinite(z) & (z > 0), z, 0.0).astype(np.float32)
         return depth, self._label_lut[prim], prim
+
+    @property
+    def _normals64(self) -> np.ndarray:
+        """(T, 3) float64 unit normals of the triangles (the planes :meth:`_render` intersects)."""
+        if self._planes is None:
+            n, _ = triangle_normals(self.vertices, self.triangles)
+            self._planes = (n, _dot3(n, self.vertices.astype(np.float64)[self.triangles[:, 0]]))
+        return self._planes[0]
+
+    @property
+    def _offsets64(self) -> np.ndarray:
+        """(T,) float64 plane offsets n . v0 of the triangles."""
+        self._normals64
+        return self._planes[1]
+
+
+def _dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a . b over the last axis (size 3), summed in a fixed order (no BLAS, no SIMD reordering)."""
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+
+
+def _rotate(x: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """(..., 3) vectors x multiplied by the (3, 3) matrix R (R @ x), summed in a fixed order."""
+    return np.stack([_dot3(x, R[i]) for i in range(3)], -1)
 
 
 def sample_surface(
@@ -175,7 +231,7 @@ def sample_surface(
     triangles: np.ndarray,
     triangle_labels: np.ndarray,
     spacing: float,
-    rng: np.random.Generator,
+    seed: Seed,
     noise: float = 0.0,
     *,
     occlusion_offset: float = 1e-3,
@@ -188,19 +244,26 @@ def sample_surface(
     Each triangle gets ``area / spacing^2`` points in expectation (stochastic rounding
     of the count, uniform barycentric positions). Points whose surface is covered by
     other geometry (wall behind a picture, floor under a cabinet, touching box faces)
-    are dropped: a ray from each point along its normal (starting ``occlusion_offset``
-    off the surface) that hits geometry within ``occlusion_dist``, or hits the back
-    face of a triangle (the point lies inside another closed solid), marks it hidden.
-    Normals must therefore point to the visible side (outward winding).
+    are dropped: a point is hidden when a ray from it along its normal (starting
+    ``occlusion_offset`` off the surface) hits geometry within ``occlusion_dist``, or when
+    that start lies inside a closed solid of the mesh (a leg top under a table top, the end
+    of a shelf against a side panel: :func:`~diffuser_lab.data.meshes.inside_closed`, decided
+    in float64 from the geometry, not from which of two coincident faces the ray caster reports
+    first), or when the ray first hits the back of an open surface (it starts behind a
+    one-sided wall). Normals must therefore point to the visible side (outward winding).
+
+    Every draw is keyed (:mod:`diffuser_lab.seeding`): a triangle's count by (seed, triangle),
+    a sample's position and noise by (seed, triangle, sample number), so a point that is kept
+    on one machine and dropped on another changes nothing else.
 
     Args:
         vertices: (V, 3) world metres. triangles: (T, 3) int. triangle_labels: (T,) int.
         spacing: metres; density is one point per ``spacing^2`` of area.
-        rng: random generator (all randomness comes from it).
+        seed: the draws' seed, an int or a key prefix (e.g. ``(seed, bx, by)``).
         noise: std of isotropic gaussian position noise, metres (applied after the
             visibility test; normals stay the exact triangle normals).
         occlusion_offset, occlusion_dist: metres, see above.
-        backface_occludes: apply the back-face rule (needs closed, outward-wound
+        backface_occludes: apply the inside and back-face rules (needs outward-wound
             solids; turn off for open scanned meshes with unreliable winding).
         renderer: a :class:`MeshRenderer` of the same mesh to reuse, else one is built.
 
@@ -213,13 +276,15 @@ def sample_surface(
     tri_lab = np.asarray(triangle_labels, np.int16)
     n_tri, area = triangle_normals(v, tri)
 
+    tid = np.arange(len(tri))
     expected = area / float(spacing) ** 2
     counts = np.floor(expected).astype(np.int64)
-    counts += rng.random(len(tri)) < (expected - counts)
-    idx = np.repeat(np.arange(len(tri)), counts)
+    counts += seeding.uniform(seed, "surface.count", tid) < (expected - counts)
+    idx = np.repeat(tid, counts)
+    j = np.arange(len(idx)) - np.repeat(np.cumsum(counts) - counts, counts)  # sample number in its triangle
 
     # Uniform barycentric sampling: fold the unit square onto the triangle.
-    uv = rng.random((len(idx), 2))
+    uv = seeding.uniform(seed, "surface.uv", idx[:, None], j[:, None], np.arange(2)[None])
     flip = uv.sum(1) > 1.0
     uv[flip] = 1.0 - uv[flip]
     a, b, c = v[tri[idx, 0]], v[tri[idx, 1]], v[tri[idx, 2]]
@@ -229,16 +294,18 @@ def sample_surface(
     with progress.stage(f"sampling surface points ({len(idx):,} candidates)"):
         if renderer is None:
             renderer = MeshRenderer(v, tri, tri_lab)
-        t, prim = renderer.cast_full(pts + occlusion_offset * nrm, nrm)
-        # Near hit = covered by a touching/hung object; back-face hit = the ray starts
-        # inside another closed solid (e.g. a leg top under a table top).
-        keep = t > occlusion_dist
+        start = pts + occlusion_offset * nrm
+        t, prim = renderer.cast_full(start, nrm)
+        keep = t > occlusion_dist  # near hit = covered by a touching or hung object
         if backface_occludes:
-            keep &= ~renderer.hits_back_face(nrm, prim)
-    pts, nrm, idx = pts[keep], nrm[keep], idx[keep]
+            comp, closed = closed_components(v, tri)
+            keep &= ~inside_closed(start, v, tri, (comp, closed))
+            open_face = np.append(~closed[comp], False)  # the no-hit slot: not a face
+            keep &= ~(renderer.hits_back_face(nrm, prim) & open_face[prim])
+    pts, nrm, idx, j = pts[keep], nrm[keep], idx[keep], j[keep]
 
     if noise > 0:
-        pts = pts + rng.normal(scale=noise, size=pts.shape)
+        pts = pts + noise * seeding.normal(seed, "surface.noise", idx[:, None], j[:, None], np.arange(3)[None])
     return pts.astype(np.float32), nrm.astype(np.float32), tri_lab[idx]
 
 
@@ -254,7 +321,7 @@ def _fibonacci_sphere(n: int) -> np.ndarray:
 def camera_trajectory(
     vertices: np.ndarray,
     n_views: int,
-    rng: np.random.Generator,
+    seed: Seed,
     *,
     width: int,
     height: int,
@@ -282,10 +349,16 @@ def camera_trajectory(
     Accepted views are chained greedily by nearest neighbour on (eye, point 1 m
     ahead), so consecutive views overlap.
 
+    Candidate c's draws (eye, height, targets, pitch) are keyed by (seed, c)
+    (:mod:`diffuser_lab.seeding`), so rejecting or accepting one candidate changes no other.
+    "Inside" is decided from the geometry where it can be: an eye inside a closed solid
+    (:func:`~diffuser_lab.data.meshes.inside_closed`); only back faces of open surfaces are
+    counted (a face coincident with another's reads front or back by a rounding).
+
     Args:
         vertices: (V, 3) mesh vertices, world metres (z up).
         n_views: number of poses to return.
-        rng: random generator.
+        seed: the draws' seed, an int or a key prefix.
         width, height, K: image size (pixels) and (3, 3) intrinsics used for coverage.
         renderer: :class:`MeshRenderer` of the mesh.
         max_tries_factor: at most ``max_tries_factor * n_views`` candidates are tried.
@@ -311,6 +384,8 @@ def camera_trajectory(
     cdf /= cdf[-1]
 
     probe = _fibonacci_sphere(64)
+    comp, closed = closed_components(tv, tri)
+    open_face = np.append(~closed[comp], False)  # the no-hit slot: not a face
     max_tries = int(max_tries_factor * n_views)
     batch = max(8, 2 * n_views)
     poses: list[np.ndarray] = []
@@ -319,30 +394,37 @@ def camera_trajectory(
     with progress.stage("choosing camera views", total=n_views, unit="view") as bar:
         while len(poses) < n_views and tried < max_tries:
             m = min(batch, max_tries - tried)
+            cand = np.arange(tried, tried + m)[:, None]  # the candidates' numbers: their draws' keys
             tried += m
             eyes = np.empty((m, 3))
-            eyes[:, :2] = rng.uniform(xy_lo, xy_hi, size=(m, 2))
-            eyes[:, 2] = np.clip(lo[2] + rng.uniform(*eye_height_range, size=m), lo[2], hi[2])
+            eyes[:, :2] = xy_lo + (xy_hi - xy_lo) * seeding.uniform(seed, "camera.eye", cand, np.arange(2))
+            h = eye_height_range[0] + (eye_height_range[1] - eye_height_range[0]) * seeding.uniform(
+                seed, "camera.height", cand[:, 0])
+            eyes[:, 2] = np.clip(lo[2] + h, lo[2], hi[2])
 
             # Clearance / inside test for the whole batch in one cast.
             dirs = np.broadcast_to(probe, (m, len(probe), 3))
             t_hit, prim = renderer.cast_full(np.repeat(eyes[:, None], len(probe), 1), dirs)
             hit = np.isfinite(t_hit)
-            back = renderer.hits_back_face(dirs, prim)
+            back = renderer.hits_back_face(dirs, prim) & open_face[prim]
             below = np.isfinite(renderer.cast(eyes, np.array([0.0, 0.0, -1.0])))
             close = np.where(hit, t_hit, np.inf).min(1) < min_clearance
             inside = (back.sum(1) > 0.3 * np.maximum(hit.sum(1), 1)) | ~below
+            inside |= inside_closed(eyes, tv, tri, (comp, closed))
 
             # Heading towards a content point; a few draws to get one far enough away.
-            tgt_idx = np.searchsorted(cdf, rng.random((m, 4)))
+            tgt_idx = np.searchsorted(cdf, seeding.uniform(seed, "camera.target", cand, np.arange(4)))
             tgt_idx = np.minimum(tgt_idx, len(tri) - 1)
-            w = rng.dirichlet(np.ones(3), size=(m, 4))  # uniform point in each triangle
+            r = seeding.uniform(seed, "camera.target_point", cand[..., None], np.arange(4)[:, None], np.arange(2))
+            r = np.where(r.sum(-1, keepdims=True) > 1.0, 1.0 - r, r)  # uniform in the triangle (folded square)
+            w = np.concatenate([1.0 - r.sum(-1, keepdims=True), r], -1)  # (m, 4, 3) barycentric
             tgt = np.einsum("mjk,mjkd->mjd", w, tv[tri[tgt_idx]])  # (m, 4, 3)
             hd = np.linalg.norm(tgt[..., :2] - eyes[:, None, :2], axis=-1)
             pick = np.argmax(hd >= min_target_dist, axis=1)  # first far one (0 if none)
             heading = tgt[np.arange(m), pick, :2] - eyes[:, :2]
             heading /= np.maximum(np.linalg.norm(heading, axis=1, keepdims=True), 1e-9)
-            pitch = np.deg2rad(rng.uniform(*pitch_range_deg, size=m))
+            pitch = np.deg2rad(pitch_range_deg[0] + (pitch_range_deg[1] - pitch_range_deg[0]) * seeding.uniform(
+                seed, "camera.pitch", cand[:, 0]))
             fwd = np.concatenate([heading * np.cos(pitch)[:, None], np.sin(pitch)[:, None]], axis=1)
 
             for i in range(m):

@@ -113,7 +113,8 @@ def incidence_angles(normals: np.ndarray, K: np.ndarray) -> np.ndarray:
     num = np.abs(np.einsum("hwk,hwk->hw", r, n))
     den = np.linalg.norm(r, axis=-1) * np.linalg.norm(n, axis=-1)
     cos = np.where(den > 0, num / np.maximum(den, 1e-30), 0.0)
-    return np.arccos(np.clip(cos, 0.0, 1.0))
+    c = np.clip(cos, 0.0, 1.0)
+    return np.arctan2(np.sqrt(1.0 - c * c), c)  # = arccos(c); numpy's float64 arccos rounds by CPU
 
 
 def depth_jumps(depth: np.ndarray, rel: float) -> np.ndarray:

@@ -3,7 +3,8 @@
 A real network's errors are spatially coherent, not salt noise: blurry/shifted
 object boundaries, whole objects given a plausible wrong class, and blotches of a
 wrong class inside large surfaces. :func:`simulate_predictions` draws all three
-from a seeded generator, by default independently per call (i.e. per view).
+from streams keyed by the view's seed and by what each draw is for, by default
+independently per call (i.e. per view).
 
 A real network's mistakes are also correlated across views: a chair it calls a sofa in
 one frame it calls a sofa in the next ones. With ``regions`` (:func:`surface_regions`:
@@ -20,6 +21,9 @@ from typing import Mapping, Sequence
 
 import numpy as np
 from scipy import ndimage
+
+from diffuser_lab import seeding
+from diffuser_lab.seeding import Seed, hash64
 
 from .scene import IGNORE, SCANNET20
 
@@ -84,15 +88,14 @@ def _confusion_lut(num_classes: int, class_names: Sequence[str] | None,
     return out
 
 
-def _wrong_class(c: int, present: np.ndarray, lut: list[np.ndarray], num_classes: int,
-                 rng: np.random.Generator) -> int:
+def _wrong_class(c: int, present: np.ndarray, lut: list[np.ndarray], num_classes: int, u: float) -> int:
     """A plausible wrong class for class c: from the confusion table, else a class
-    present elsewhere in the image, else any other class."""
+    present elsewhere in the image, else any other class; ``u`` in (0, 1) picks which."""
     for cand in (lut[c] if c < len(lut) else np.zeros(0, np.int64), present[present != c]):
         if len(cand):
-            return int(rng.choice(cand))
+            return int(cand[min(int(u * len(cand)), len(cand) - 1)])
     others = np.delete(np.arange(num_classes), c)
-    return int(rng.choice(others)) if len(others) else c
+    return int(others[min(int(u * len(others)), len(others) - 1)]) if len(others) else c
 
 
 def _bspline_matrix(n: int, scale_px: float) -> np.ndarray:
@@ -101,7 +104,8 @@ def _bspline_matrix(n: int, scale_px: float) -> np.ndarray:
     g = int(np.ceil(n / scale_px)) + 3
     u = (np.arange(n) + 0.5) / scale_px + 1.0  # pixel position in knot units
     d = np.abs(u[:, None] - np.arange(g)[None, :])
-    w = np.where(d < 1, 2 / 3 - d**2 + d**3 / 2, np.where(d < 2, (2 - d) ** 3 / 6, 0.0))
+    e = 2 - d  # cubes as products: numpy's float64 power rounds differently on AVX-512 CPUs
+    w = np.where(d < 1, 2 / 3 - d * d + d * d * d / 2, np.where(d < 2, e * e * e / 6, 0.0))
     return w.astype(np.float32)
 
 
@@ -112,36 +116,17 @@ def _smooth_field(shape: tuple[int, int], scale_px: float, rng: np.random.Genera
     (separable, two small matrix products)."""
     Ay, Ax = _bspline_matrix(shape[0], scale_px), _bspline_matrix(shape[1], scale_px)
     coarse = rng.standard_normal((n, Ay.shape[1], Ax.shape[1])).astype(np.float32)
-    f = Ay @ coarse @ Ax.T
+    # einsum's own loops, not BLAS: OpenBLAS's kernels round differently on AVX2 and AVX-512 CPUs,
+    # and a warp rounded to whole pixels would move a pixel where the two disagree
+    f = np.einsum("nhx,wx->nhw", np.einsum("hy,nyx->nhx", Ay, coarse), Ax)
     # B-spline smoothing shrinks the variance (to ~0.3); renormalise.
     return f / max(float(f.std()), 1e-6)
-
-
-_M1, _M2, _GOLD = np.uint64(0xBF58476D1CE4E5B9), np.uint64(0x94D049BB133111EB), np.uint64(0x9E3779B97F4A7C15)
-
-
-def _mix64(x: np.ndarray) -> np.ndarray:
-    """splitmix64's finaliser on uint64 arrays: a fixed, well-mixed hash (wraps mod 2**64)."""
-    x = np.asarray(x, np.uint64)
-    with np.errstate(over="ignore"):
-        x = (x ^ (x >> np.uint64(30))) * _M1
-        x = (x ^ (x >> np.uint64(27))) * _M2
-    return x ^ (x >> np.uint64(31))
-
-
-def _hash(*parts) -> np.ndarray:
-    """uint64 hash of a tuple of integer arrays (broadcast), order-sensitive."""
-    h = np.uint64(0)
-    with np.errstate(over="ignore"):
-        for p in parts:
-            h = _mix64(np.asarray(h, np.uint64) * _GOLD + np.asarray(p).astype(np.int64).astype(np.uint64))
-    return h
 
 
 def _unit(seed: int, keys: np.ndarray, stream: int) -> np.ndarray:
     """Uniform [0, 1) float64 per key: a counter-based generator seeded by (seed, key, stream),
     so a key gets the same draw in every frame, whatever the order frames are simulated in."""
-    return (_hash(seed, stream, keys.astype(np.uint64)) >> np.uint64(11)).astype(np.float64) * 2.0**-53
+    return (hash64(seed, stream, keys.astype(np.uint64)) >> np.uint64(11)).astype(np.float64) * 2.0**-53
 
 
 @dataclass(frozen=True)
@@ -182,7 +167,7 @@ def surface_regions(gt: np.ndarray, depth: np.ndarray, K: np.ndarray, T_cw: np.n
     valid = gt != IGNORE
     has = d > 0
     if not has.any():  # no geometry at all: one region per class, seen head-on
-        key = np.where(valid, _hash(gt.astype(np.int64) + 1) | np.uint64(1), np.uint64(0))
+        key = np.where(valid, hash64(gt.astype(np.int64) + 1) | np.uint64(1), np.uint64(0))
         return SurfaceRegions(key, key, np.zeros((H, W), np.float32))
     if not has[valid].all():  # labelled pixels without depth: the nearest pixel with depth
         idx = ndi.distance_transform_edt(~has, return_distances=False, return_indices=True)
@@ -198,8 +183,8 @@ def surface_regions(gt: np.ndarray, depth: np.ndarray, K: np.ndarray, T_cw: np.n
     vox = np.floor((pw + shift) / region_size).astype(np.int64)
     cell = np.floor((pw + shift) / (region_size / 3.0)).astype(np.int64)
     cls = gt.astype(np.int64) + 1
-    region = _hash(cls, vox[..., 0], vox[..., 1], vox[..., 2]) | np.uint64(1)
-    sub = _hash(cls, cell[..., 0], cell[..., 1], cell[..., 2]) | np.uint64(1)
+    region = hash64(cls, vox[..., 0], vox[..., 1], vox[..., 2]) | np.uint64(1)
+    sub = hash64(cls, cell[..., 0], cell[..., 1], cell[..., 2]) | np.uint64(1)
     zero = np.uint64(0)
     region, sub = np.where(valid, region, zero), np.where(valid, sub, zero)
     # incidence from the organised depth image's tangent vectors (a garbage normal at depth
@@ -226,7 +211,7 @@ def _wrong_classes(cls: np.ndarray, u: np.ndarray, lut: list[np.ndarray], num_cl
 
 
 def _region_confusion(gt: np.ndarray, valid: np.ndarray, regions: SurfaceRegions, num_classes: int,
-                      rng: np.random.Generator, lut: list[np.ndarray], *, p: float, max_frac: float,
+                      seed: Seed, lut: list[np.ndarray], *, p: float, max_frac: float,
                       region_seed: int, persistence: float, region_frac: float, view_gain: float) -> np.ndarray:
     """Step 1 with view-correlated mistakes: (H, W) int16 labels (see :func:`simulate_predictions`)."""
     out = gt.astype(np.int16, copy=True)
@@ -238,17 +223,17 @@ def _region_confusion(gt: np.ndarray, valid: np.ndarray, regions: SurfaceRegions
     size = np.bincount(inv, minlength=n_r)
     view = np.bincount(inv, weights=regions.viewing[valid], minlength=n_r) / np.maximum(size, 1)
     p_r = np.minimum(1.0, p * (1.0 + view_gain * view))
-    # the region's persistent decision (same in every frame) and this frame's own draw
-    shown = rng.random(n_r) < persistence
-    u = np.where(shown, _unit(region_seed, uniq, 1), rng.random(n_r))
-    u_cls = np.where(shown, _unit(region_seed, uniq, 2), rng.random(n_r))
+    # the region's persistent decision (same in every frame) and this frame's own draw, each keyed
+    # by the region
+    shown = seeding.uniform(seed, "predictions.region_shown", uniq) < persistence
+    u = np.where(shown, _unit(region_seed, uniq, 1), seeding.uniform(seed, "predictions.region", uniq))
+    u_cls = np.where(shown, _unit(region_seed, uniq, 2), seeding.uniform(seed, "predictions.region_class", uniq))
     confused = (u < p_r) & (size <= max_frac * valid.sum())
     wrong = _wrong_classes(cls, u_cls, lut, num_classes)
     bad = confused[inv]
     if region_frac < 1.0:  # only part of a confused region: its finer world cells, also persistent
         cells = regions.cell[valid]
-        salt = int(rng.integers(2**62))
-        u_cell = np.where(shown[inv], _unit(region_seed, cells, 3), _unit(salt, cells, 3))
+        u_cell = np.where(shown[inv], _unit(region_seed, cells, 3), seeding.uniform(seed, "predictions.cell", cells))
         bad &= u_cell < region_frac
     vals = out[valid]
     vals[bad] = wrong[inv[bad]]
@@ -279,7 +264,7 @@ def coarse_output(labels: np.ndarray, valid: np.ndarray, stride: int, num_classe
 def simulate_predictions(
     gt: np.ndarray,
     num_classes: int,
-    rng: np.random.Generator,
+    seed: Seed,
     *,
     strength: float = 1.0,
     jitter_px: float = 3.0,
@@ -325,7 +310,10 @@ def simulate_predictions(
     Args:
         gt: (H, W) int ground-truth class ids, IGNORE = no label.
         num_classes: number of classes C.
-        rng: random generator; the only source of randomness.
+        seed: the view's seed, an int or a key (``(predictions.seed, frame index)``); every draw is
+            keyed by it and by what it is for (:mod:`diffuser_lab.seeding`): each 2D region by its
+            class and first pixel, each 3D region by its key, each blob by its number, the warp by
+            the view, so one region more or less changes no other draw.
         strength: global scale of all mistakes, >= 0; 0 returns ``gt`` exactly.
         jitter_px: std of the displacement field, pixels (times ``strength``).
         jitter_scale_px: correlation length of the displacement field, pixels
@@ -350,7 +338,7 @@ def simulate_predictions(
             generator seeded by (``region_seed``, region): the same in every view.
         region_seed: seed of the regions' persistent decisions (the run's ``predictions.seed``).
         persistence: probability, per region and view, that the view shows the region's
-            persistent decision; otherwise the view draws its own (from ``rng``), [0, 1].
+            persistent decision; otherwise the view draws its own (keyed by ``seed``), [0, 1].
         confuse_region_frac: share of a confused region that is wrong, (0, 1]: the region's
             finer world cells (edge ``region_size / 3``) each wrong with this probability
             (persistent as the region's decision is).
@@ -380,7 +368,7 @@ def simulate_predictions(
     # 1. whole-region confusion (loop over classes and regions, not pixels)
     p = min(1.0, confuse_prob * strength)
     if p > 0 and regions is not None:
-        out = _region_confusion(gt, valid, regions, num_classes, rng, lut, p=p, max_frac=confuse_max_frac,
+        out = _region_confusion(gt, valid, regions, num_classes, seed, lut, p=p, max_frac=confuse_max_frac,
                                 region_seed=region_seed, persistence=persistence,
                                 region_frac=confuse_region_frac, view_gain=view_gain)
     elif p > 0:
@@ -391,20 +379,29 @@ def simulate_predictions(
             comp[lab > 0] = lab[lab > 0] + len(comp_class)
             comp_class += [int(c)] * n
         sizes = np.bincount(comp.ravel(), minlength=len(comp_class) + 1)[1:]
-        flip = (rng.random(len(comp_class)) < p) & (sizes <= confuse_max_frac * n_valid)
-        region_lut = np.concatenate([[IGNORE], np.array(comp_class, np.int64)]).astype(np.int16)
+        ids, at = np.unique(comp.ravel(), return_index=True)
+        first = np.zeros(len(comp_class) + 1, np.int64)
+        first[ids] = at
+        first = first[1:]  # each region's first pixel in raster order (region 0: the IGNORE pixels)
+        cls = np.array(comp_class, np.int64)
+        # a region's draws keyed by (class, first pixel): the same region, the same draws
+        flip = (seeding.uniform(seed, "predictions.component", cls, first) < p) & (sizes <= confuse_max_frac * n_valid)
+        u_cls = seeding.uniform(seed, "predictions.component_class", cls, first)
+        region_lut = np.concatenate([[IGNORE], cls]).astype(np.int16)
         for r in np.flatnonzero(flip):  # loop over confused regions
-            region_lut[r + 1] = _wrong_class(comp_class[r], present, lut, num_classes, rng)
+            region_lut[r + 1] = _wrong_class(comp_class[r], present, lut, num_classes, u_cls[r])
         out = region_lut[comp]
 
     # 2. blobs with irregular outlines
-    n_blobs = rng.poisson(blob_count * strength) if blob_count > 0 else 0
+    n_blobs = seeding.rng(seed, "predictions.blob_count").poisson(blob_count * strength) if blob_count > 0 else 0
     if n_blobs:
         yy, xx = np.mgrid[0:H, 0:W].astype(np.float32)
-        rough = _smooth_field((H, W), max(4.0, blob_radius * W / 2), rng, n_blobs)
+        rough = _smooth_field((H, W), max(4.0, blob_radius * W / 2), seeding.rng(seed, "predictions.blob_shapes"),
+                              n_blobs)
         for k in range(n_blobs):  # loop over blobs
-            cy, cx = rng.uniform(0, H), rng.uniform(0, W)
-            rad = blob_radius * W * rng.uniform(0.5, 1.5)
+            u = seeding.uniform(seed, "predictions.blob", k, np.arange(4))  # centre y, x, radius, class
+            cy, cx = H * u[0], W * u[1]
+            rad = blob_radius * W * (0.5 + u[2])
             d = np.hypot(yy - cy, xx - cx) / rad
             mask = valid & (d + blob_roughness * rough[k] < 1.0)
             if not mask.any():
@@ -412,12 +409,12 @@ def simulate_predictions(
             under = gt[min(int(cy), H - 1), min(int(cx), W - 1)]
             if under == IGNORE:  # centre in a hole: use the blob's majority class
                 under = np.bincount(gt[mask].astype(np.int64)).argmax()
-            out[mask] = _wrong_class(int(under), present, lut, num_classes, rng)
+            out[mask] = _wrong_class(int(under), present, lut, num_classes, u[3])
 
     # 3. boundary jitter: nearest-neighbour resampling through a smooth warp
     amp = jitter_px * strength
     if amp > 0:
-        disp = _smooth_field((H, W), jitter_scale_px, rng, 2) * amp
+        disp = _smooth_field((H, W), jitter_scale_px, seeding.rng(seed, "predictions.jitter"), 2) * amp
         ys = np.clip(np.rint(np.arange(H)[:, None] + disp[0]), 0, H - 1).astype(np.intp)
         xs = np.clip(np.rint(np.arange(W)[None, :] + disp[1]), 0, W - 1).astype(np.intp)
         warped = out[ys, xs]

@@ -29,7 +29,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from diffuser_lab import progress
+from diffuser_lab import progress, seeding
 from diffuser_lab.data.frames import LazyFrames
 from diffuser_lab.data.geometry import voxel_downsample
 from diffuser_lab.data.render import MeshRenderer, camera_trajectory, intrinsics, sample_surface
@@ -114,10 +114,10 @@ def tiled_frames(base: Sequence[Frame], offsets: np.ndarray) -> LazyFrames:
     return LazyFrames(len(base) * len(offsets), load)
 
 
-def _room_cloud(n_points: int, rng: np.random.Generator, verts, tris, labs, renderer):
+def _room_cloud(n_points: int, seed: int, verts, tris, labs, renderer):
     vs = math.sqrt(ROOM_AREA_M2 / n_points)
-    for _ in range(3):  # secant on the voxel size: a couple of tries land within ~1 %
-        pts, nrm, lab = sample_surface(verts, tris, labs, vs / 2.0, rng, noise=0.002, renderer=renderer)
+    for attempt in range(3):  # secant on the voxel size: a couple of tries land within ~1 %
+        pts, nrm, lab = sample_surface(verts, tris, labs, vs / 2.0, (seed, attempt), noise=0.002, renderer=renderer)
         grid = voxel_downsample(pts, vs)
         m = grid.points.shape[0]
         if abs(m - n_points) <= 0.02 * n_points:
@@ -139,18 +139,17 @@ def room_workload(n_points: int, *, seed: int = 0, n_views: int = 30, width: int
     many = num_classes > 21
     tax = taxonomy21() if num_classes == 21 else SCANNET20 if num_classes == 20 else taxonomy_many(num_classes)
     base_classes = 21 if many else num_classes
-    rng = np.random.default_rng(seed)
     verts, tris, labs = demo_mesh(seed)
     renderer = MeshRenderer(verts, tris, labs)
     tiles = max(1, math.ceil(n_points / tile_points))
-    pts, nrm, gt, vs = _room_cloud(round(n_points / tiles), rng, verts, tris, labs, renderer)
+    pts, nrm, gt, vs = _room_cloud(round(n_points / tiles), seed, verts, tris, labs, renderer)
     K = intrinsics(width, height, 70.0)
-    poses = camera_trajectory(verts, n_views, rng, width=width, height=height, K=K, renderer=renderer)
+    poses = camera_trajectory(verts, n_views, seed, width=width, height=height, K=K, renderer=renderer)
     frames = []
     with progress.stage("workload views: rendering + simulated 2D predictions", total=len(poses), unit="view") as bar:
         for i, T in enumerate(poses):
             depth, lab = renderer.render(K, T, width, height)
-            pred = simulate_predictions(lab, base_classes, np.random.default_rng([seed, i]),
+            pred = simulate_predictions(lab, base_classes, (seed, i),
                                         class_names=taxonomy21().names if many else tax.names)
             frames.append(Frame(name=f"view_{i:04d}", K=K.copy(), T_cw=T, depth=depth, labels=pred, gt_labels=lab))
             bar.update()
@@ -167,9 +166,9 @@ def room_workload(n_points: int, *, seed: int = 0, n_views: int = 30, width: int
             many_mass = np.zeros((len(pts), num_classes), np.float32)
             np.put_along_axis(many_mass, sub, mass, axis=1)
             mass = many_mass
-        seen = np.flatnonzero(mass.any(1))
-        noisy = rng.choice(seen, size=int(noise_votes * len(seen)), replace=False)
-        mass[noisy, rng.integers(0, num_classes, len(noisy))] += 1.0
+        seen = np.flatnonzero(mass.any(1))  # a share noise_votes of them get one vote of a random class
+        noisy = seen[seeding.uniform(seed, "workload.noise_vote", seen) < noise_votes]
+        mass[noisy, seeding.integers(seed, "workload.noise_class", num_classes, noisy)] += 1.0
     if many:
         gt = split_classes(pts, gt, num_classes).astype(np.int16)
     if tiles > 1:

@@ -456,8 +456,7 @@ def block_points(cfg: CityOptions, bx: int, by: int) -> tuple[np.ndarray, np.nda
     every ``point_spacing`` metres (covered surfaces dropped), seeded by (seed, bx, by)."""
     v, t, lab = block_mesh(cfg, bx, by)
     renderer = MeshRenderer(v, t, lab)
-    rng = np.random.default_rng([cfg.seed, bx, by, 1])
-    return sample_surface(v, t, lab, cfg.point_spacing, rng, noise=cfg.point_noise, renderer=renderer)
+    return sample_surface(v, t, lab, cfg.point_spacing, (cfg.seed, bx, by), noise=cfg.point_noise, renderer=renderer)
 
 
 # ---------------------------------------------------------------- views

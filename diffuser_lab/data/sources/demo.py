@@ -282,6 +282,8 @@ def demo_mesh(seed: int = 0, room_size=(5.0, 4.0, 2.6)) -> tuple[np.ndarray, np.
         vertices (V, 3) float32 metres, triangles (T, 3) int32 with outward winding
         (shell quads face the room), triangle_labels (T,) int16 SCANNET20 ids.
     """
+    # the layout's own stream, the seed alone (the room every figure so far shows): nothing else
+    # draws from it, and its draws depend on the layout's own decisions only
     rng = np.random.default_rng(seed)
     L = np.asarray(room_size, np.float64)
     b = _Builder()
@@ -296,8 +298,8 @@ def demo_mesh(seed: int = 0, room_size=(5.0, 4.0, 2.6)) -> tuple[np.ndarray, np.
         b.quads.append((np.array([[*p0, 0], [*p1, 0], [*p1, Lz], [*p0, Lz]], float),
                         np.array([n[0], n[1], 0.0]), _C["wall"]))
 
-    # Layouts are rejection-sampled: retry the whole furnishing (same rng stream,
-    # so still deterministic per seed) when a required piece does not fit.
+    # Layouts are rejection-sampled: retry the whole furnishing (the layout's own stream,
+    # decided by the layout alone) when a required piece does not fit.
     shell = list(b.quads)
     for _ in range(50):
         b.boxes, b.quads = [], list(shell)
@@ -401,7 +403,8 @@ def make_demo_scene(
     """Procedural labelled room with a point cloud and rendered ground-truth views.
 
     Args:
-        seed: makes mesh, points and cameras deterministic.
+        seed: makes mesh, points and cameras deterministic: the layout, each triangle's samples
+            and each camera candidate draw from their own keyed streams (:mod:`diffuser_lab.seeding`).
         room_size: (Lx, Ly, Lz) room extent, metres.
         n_views: number of frames along a handheld-like camera path.
         image_width, image_height: frame size, pixels. fov_deg: horizontal FOV, degrees.
@@ -416,13 +419,12 @@ def make_demo_scene(
             (z-depth, metres, 0 = no hit), ``labels=None`` and ``gt_labels`` (label image).
         renderer: :class:`MeshRenderer` of the room mesh (for more views).
     """
-    rng = np.random.default_rng(seed)
     verts, tris, tri_labels = demo_mesh(seed, room_size)
     renderer = MeshRenderer(verts, tris, tri_labels)
-    points, normals, labels = sample_surface(verts, tris, tri_labels, point_spacing, rng,
+    points, normals, labels = sample_surface(verts, tris, tri_labels, point_spacing, seed,
                                              noise=point_noise, renderer=renderer)
     K = intrinsics(image_width, image_height, fov_deg)
-    poses = camera_trajectory(verts, n_views, rng, width=image_width, height=image_height,
+    poses = camera_trajectory(verts, n_views, seed, width=image_width, height=image_height,
                               K=K, renderer=renderer)
     views = render_views(renderer, K, poses, image_width, image_height, sensor=sensor)
     frames = [Frame(name=f"view_{i:04d}", K=K.copy(), T_cw=T, depth=depth, labels=None, gt_labels=lab)

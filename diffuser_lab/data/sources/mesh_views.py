@@ -91,8 +91,7 @@ def load_mesh_views(path: str | Path, *, taxonomy: Taxonomy = SCANNET20, mapping
             raise ValueError(f"{path}: labels in [{gt.min()}, {gt.max()}] are not {taxonomy.name} ids; set a mapping")
     renderer = MeshRenderer(vertices, triangles, triangle_labels(gt, triangles))
     K = intrinsics(image_width, image_height, fov_deg)
-    rng = np.random.default_rng(seed)
-    poses = camera_trajectory(vertices, n_views, rng, width=image_width, height=image_height, K=K,
+    poses = camera_trajectory(vertices, n_views, seed, width=image_width, height=image_height, K=K,
                               renderer=renderer, min_coverage=min_coverage, eye_height_range=eye_height_range)
     views = render_views(renderer, K, poses, image_width, image_height, sensor=sensor)
     frames = [Frame(name=f"view_{i:04d}", K=K, T_cw=T, depth=depth, gt_labels=labels)
