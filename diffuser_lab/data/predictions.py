@@ -19,6 +19,7 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 
+from diffuser_lab import seeding
 from diffuser_lab.config import MistakeCorrelation, PredictionsConfig
 from diffuser_lab.registry import Registry
 
@@ -168,7 +169,7 @@ def feature_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonom
 
     def simulated(i: int, f: Frame) -> Frame:
         g = labelled(i, f)
-        fmap = simulate_features(g.labels, protos, np.random.default_rng([cfg.seed, i, 37]), stride=cfg.stride,
+        fmap = simulate_features(g.labels, protos, seeding.rng(cfg.seed, "predictions.features", i), stride=cfg.stride,
                                  boundary_mix=cfg.boundary_mix, rotation_deg=cfg.rotation_deg,
                                  rotation_dims=min(cfg.rotation_dims, cfg.dim), noise=cfg.noise)
         return dataclasses.replace(f, labels=None, probs=None, features=fmap)
