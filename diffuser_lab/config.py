@@ -677,8 +677,8 @@ def claim_run_dir(parent: str, name: str, now: Any = None) -> str:
         try:
             os.mkdir(path)
             return path
-        except FileExistsError:
-            now = max(now + datetime.timedelta(microseconds=1), datetime.datetime.now())
+        except FileExistsError:  # the next microsecond: sorts after the taken one (the wall clock may be another day)
+            now = now + datetime.timedelta(microseconds=1)
 
 
 def register() -> None:

@@ -35,7 +35,7 @@ def rrd_class_ids(path: Path) -> dict:
 
 
 def as_class_ids(labels: np.ndarray) -> np.ndarray:
-    return np.where(labels < 0, UNLABELED_ID, labels)
+    return np.where(labels < 0, UNLABELED_ID, np.asarray(labels, np.int64))  # int16 would wrap 65535 to -1
 
 
 def recorded(cfg, scene, run_dir):

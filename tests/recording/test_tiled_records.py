@@ -72,7 +72,7 @@ def test_a_tiled_run_records_its_labels_and_tiles(cli_run):
     # run.rrd: the same labels, one green box per tile, the figures on the tile timeline
     st = rrd_static(d / "run.rrd")
     ids = np.asarray(st["/world/tiled/labels"].column("Points3D:class_ids").to_pylist()[0])
-    np.testing.assert_array_equal(ids, np.where(labels < 0, UNLABELED_ID, labels))
+    np.testing.assert_array_equal(ids, np.where(labels < 0, UNLABELED_ID, labels.astype(np.int64)))  # not int16: 65535
     boxes = st["/world/tiled/tiles"]
     assert boxes.column("Boxes3D:labels").to_pylist()[0] == [f"{t['id']} done" for t in tiles]
     assert {rgb(c) for c in boxes.column("Boxes3D:colors").to_pylist()[0]} == {rec_tiled.STATUS_RGB["done"]}

@@ -316,7 +316,7 @@ def test_live_stream_reaches_a_running_viewer_and_run_rrd_is_still_written(small
     assert sorted(got) == sorted(local) == [1, 10, 20, 30]
     for it in got:
         np.testing.assert_array_equal(got[it], local[it])
-    final = np.where(res.labels < 0, UNLABELED_ID, res.labels)
+    final = np.where(res.labels < 0, UNLABELED_ID, res.labels.astype(np.int64))  # int16 would wrap 65535
     np.testing.assert_array_equal(got[30], final)
     missing = set(columns(tmp_path / "run" / "run.rrd")) - set(columns(saved))
     assert not missing  # the static part too: cameras, scene, evidence

