@@ -2,8 +2,11 @@
 
     python -m analysis.collect logs/multirun/k/2026-... [more folders] --out results/k
 
-writes ``<out>.csv`` (one row per run: overrides, status, metrics, timings) and ``<out>.md``
-(one row per configuration: mean and standard deviation over seeds, number of runs and failures).
+writes ``<out>_runs.csv`` (one row per run: overrides, status, metrics, timings, and where it ran:
+host, cpu, isa, blas, versions, commit), ``<out>.csv`` and ``<out>.md`` (one row per configuration:
+mean and standard deviation over seeds, number of runs and failures). When the runs ran on
+different machines, ISA levels or versions, the Markdown ends with one line saying what differs
+and how many runs per value (nothing when they agree).
 """
 from __future__ import annotations
 
@@ -12,7 +15,16 @@ import csv
 import sys
 from pathlib import Path
 
-from diffuser_lab.runs.results import METRICS, aggregate, find_runs, is_nan, markdown, run_rows, swept_keys  # noqa: F401
+from diffuser_lab.runs.results import (  # noqa: F401
+    METRICS,
+    aggregate,
+    find_runs,
+    is_nan,
+    markdown,
+    provenance_line,
+    run_rows,
+    swept_keys,
+)
 
 
 def write_csv(path: Path, cols: list[str], rows: list[dict]) -> None:
@@ -35,6 +47,9 @@ def collect(paths: list[str], out: str | Path) -> tuple[list[dict], list[dict], 
     acols, arows = aggregate(runs)
     write_csv(out.with_suffix(".csv"), acols, arows)
     md = markdown(acols, arows)
+    mixed = provenance_line(runs, "runs")
+    if mixed:  # figures of different machines or versions may differ at the same seed
+        md += "\n\n" + mixed
     out.with_suffix(".md").write_text(md + "\n")
     return rrows, arows, md
 

@@ -1,9 +1,12 @@
-"""Two runs side by side: per-class IoU deltas, the points whose label differs, and an .rrd
-showing both label sets on the same cloud.
+"""Two runs side by side: where they ran, per-class IoU deltas, the points whose label differs,
+and an .rrd showing both label sets on the same cloud.
 
     python -m analysis.compare RUN_A RUN_B [--rrd compare.rrd]
 
-Both runs must label the same cloud (same scene, same number of points).
+Both runs must label the same cloud (same scene, same number of points). The first line says
+whether they ran on the same machine and versions (summary.json ``provenance``) or which fields
+differ (CPU, ISA, numba target, numpy SIMD, BLAS, a package's version, the commit, ...): runs of
+one seed on different machines may differ in their figures.
 """
 from __future__ import annotations
 
@@ -13,6 +16,8 @@ import sys
 from pathlib import Path
 
 import numpy as np
+
+from diffuser_lab.backends import provenance
 
 
 def _load(run: Path) -> tuple[dict, np.ndarray]:
@@ -39,11 +44,42 @@ def compare(run_a: str | Path, run_b: str | Path, rrd: str | Path | None = None)
     out = {"a": str(run_a), "b": str(run_b), "miou_a": (sa.get("metrics") or {}).get("miou"),
            "miou_b": (sb.get("metrics") or {}).get("miou"), "n_points": int(la.size),
            "n_differ": int(differ.sum()), "share_differ": float(differ.mean()) if la.size else 0.0,
-           "per_class": per_class}
+           "per_class": per_class, "provenance": _provenance(sa, sb)}
     if rrd is not None:
         _write_rrd(Path(run_a), Path(run_b), la, lb, Path(rrd), sa)
         out["rrd"] = str(rrd)
     return out
+
+
+def _provenance(sa: dict, sb: dict) -> dict:
+    """Where both ran (:func:`diffuser_lab.backends.provenance.summary_line`), ``same`` (None when a
+    run has no block), ``differs``: [{field, a, b}] of the compared fields that differ, and the tile
+    machines unlike its driver's of a tiled run (``tiles_a``, ``tiles_b``: [{tiles, nodes, differs}])."""
+    pa, pb = sa.get("provenance"), sb.get("provenance")
+    differs = [{"field": f, "a": va, "b": vb} for f, va, vb in provenance.blocks_differ(pa, pb)]
+    out = {"a": provenance.summary_line(pa), "b": provenance.summary_line(pb),
+           "same": None if not pa or not pb else not differs, "differs": differs}
+    for side, s in (("tiles_a", sa), ("tiles_b", sb)):
+        other = [m for m in ((s.get("tiling") or {}).get("machines") or []) if m.get("differs")]
+        if other:
+            out[side] = [{k: m.get(k) for k in ("tiles", "nodes", "differs")} for m in other]
+    return out
+
+
+def provenance_lines(p: dict) -> list[str]:
+    """What :func:`main` prints of :func:`_provenance`'s dict."""
+    if p["same"] is None:
+        lines = [f"ran on: A {p['a']}", f"        B {p['b']}"]
+    elif p["same"]:
+        lines = [f"ran on the same machine and versions: {p['a']}"]
+    else:
+        lines = [f"ran on different machines or versions: {', '.join(d['field'] for d in p['differs'])} differ"]
+        lines += [f"  {d['field']:22s} A {d['a']}\n  {'':22s} B {d['b']}" for d in p["differs"]]
+    for side in ("a", "b"):
+        for m in p.get(f"tiles_{side}", []):
+            lines.append(f"{side.upper()}: {len(m['tiles'])} tiles ran on {', '.join(map(str, m['nodes']))} "
+                         f"({', '.join(m['differs'])} differ from the run's)")
+    return lines
 
 
 def _write_rrd(run_a: Path, run_b: Path, la: np.ndarray, lb: np.ndarray, rrd: Path, summary: dict) -> None:
@@ -110,6 +146,7 @@ def main(argv=None) -> int:
         return 0
     f = lambda v: "-" if v is None else f"{v:.1f}"  # noqa: E731
     print(f"A: {res['a']}\nB: {res['b']}")
+    print("\n".join(provenance_lines(res["provenance"])))
     print(f"mIoU  A {f(res['miou_a'])}  B {f(res['miou_b'])}   labels differ on {res['n_differ']:,} of "
           f"{res['n_points']:,} points ({100 * res['share_differ']:.1f}%)")
     print(f"{'class':16s}{'A':>7s}{'B':>7s}{'B-A':>7s}")

@@ -1,3 +1,4 @@
+import json
 import os
 import subprocess
 import sys
@@ -146,3 +147,28 @@ def compose(*overrides):
     with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
         return to_object(hcompose("config", overrides=list(overrides)))
 
+
+PROVENANCE_ISA = {"avx512", "avx2", "avx", "sse4.2", "sve", "neon", "baseline"}
+
+
+def check_provenance(b: dict) -> None:
+    """What every run's ``provenance`` holds (also used on real runs' summaries)."""
+    assert set(b) == {"host", "machine", "versions", "diffuser_lab"}
+    m = b["machine"]
+    assert {"cpu_model", "cpu_vendor", "arch", "libc", "cpus", "cpus_usable", "isa", "numba", "numpy_simd",
+            "blas"} == set(m)
+    assert m["cpu_model"] and isinstance(m["cpus"], int) and 1 <= m["cpus_usable"] <= m["cpus"]
+    assert m["isa"] in PROVENANCE_ISA
+    if m["numba"] is not None:
+        assert {"target", "host", "env_cpu_name", "avx512", "avx2", "fma", "enabled"} == set(m["numba"])
+        assert all(isinstance(m["numba"][k], bool) for k in ("avx512", "avx2", "fma", "enabled"))
+    assert set(m["numpy_simd"]) == {"baseline", "dispatched"}
+    assert all({"library", "internal_api", "version", "architecture", "threading_layer"} == set(e) for e in m["blas"])
+    from diffuser_lab.backends.provenance import DISTRIBUTIONS
+
+    assert set(b["versions"]) == {"python", *DISTRIBUTIONS}
+    assert b["versions"]["numpy"] and b["versions"]["hydra-core"]
+    d = b["diffuser_lab"]
+    assert set(d) == {"version", "commit", "dirty"}
+    assert d["commit"] is None and d["dirty"] is None or len(d["commit"]) == 40 and isinstance(d["dirty"], bool)
+    json.dumps(b)  # plain values only

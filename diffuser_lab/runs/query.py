@@ -26,6 +26,7 @@ from typing import Optional
 
 import numpy as np
 
+from diffuser_lab.backends import provenance
 from diffuser_lab.data.frames import first_line
 from diffuser_lab.data.scene import IGNORE
 from diffuser_lab.method.metrics import score
@@ -98,6 +99,7 @@ class QueryResult:
             "metrics": self.metrics,
             "files": self.files,
             "timings_s": {k: round(v, 4) for k, v in self.timings_s.items()},
+            "provenance": provenance.collect(),  # the relabelling's machine, maybe not the run's
         }
 
 

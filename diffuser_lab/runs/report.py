@@ -8,6 +8,7 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 
+from diffuser_lab.backends import provenance
 from diffuser_lab.config import Config
 from diffuser_lab.data.scene import IGNORE
 
@@ -159,7 +160,8 @@ def single_frame_summary(sf) -> dict:
 
 class SummaryFile:
     """A run folder's summary.json, the one place it is built. Written as soon as the run starts
-    (``status: running``: a run that dies leaves it), rewritten atomically at every change, and
+    (``status: running``: a run that dies leaves it; with the ``provenance`` block of
+    :func:`diffuser_lab.backends.provenance.collect`), rewritten atomically at every change, and
     finished ``ok`` with the result (:meth:`result`, :meth:`single_frame`) or ``failed`` with the
     error (:meth:`failed`). Never overwrites an earlier run's summary."""
 
@@ -167,8 +169,10 @@ class SummaryFile:
         self.path = Path(run_dir) / "summary.json"
         if self.path.exists():
             raise FileExistsError(f"{run_dir} already holds a run (summary.json); refusing to overwrite it")
+        # provenance: the machine and versions, there from the start (a failed run's too); cached per process
         self.data: dict[str, Any] = {"status": "running", "overrides": list(overrides),
-                                     "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+                                     "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+                                     "provenance": provenance.collect()}
         self.write()
 
     def write(self) -> None:

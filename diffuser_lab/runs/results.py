@@ -9,10 +9,11 @@ import re
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
-from typing import Iterable
+from typing import Iterable, Optional
 
 import numpy as np
 
+from diffuser_lab.backends import provenance
 from diffuser_lab.method.fusion import METHODS
 
 SEED_KEYS = ("seed",)  # overrides that only repeat a configuration
@@ -37,6 +38,12 @@ class Run:
     @property
     def status(self) -> str:
         return self.summary.get("status", "unknown")
+
+    @property
+    def provenance(self) -> Optional[dict]:
+        """summary.json's ``provenance`` block (machine, versions, commit), None in an older run's."""
+        block = self.summary.get("provenance")
+        return block if isinstance(block, dict) else None
 
     def metric(self, dotted: str):
         """A value of summary.json by dotted path, e.g. ``baseline.bayesian.miou``; None if absent.
@@ -211,6 +218,30 @@ def swept_keys(runs: list[Run]) -> list[str]:
     return [k for k, vals in keys.items() if len(vals) > 1 or k in SEED_KEYS]
 
 
+PROVENANCE_COLUMNS = ("host", "cpu", "isa", "blas", "versions", "commit")
+"""A run's row's machine and version columns (summary.json ``provenance``; empty in an older run's)."""
+
+
+def provenance_cells(block: Optional[dict]) -> dict:
+    """The :data:`PROVENANCE_COLUMNS` of a provenance block: ``versions`` as ``numpy 2.4.6; scipy
+    1.17.1; ...``, ``commit`` the short hash with ``+dirty`` for a changed tree."""
+    if not block:
+        return dict.fromkeys(PROVENANCE_COLUMNS, "")
+    f = provenance.flat(block)
+    versions = "; ".join(f"{name} {f[name]}" for name in ("python", *provenance.DISTRIBUTIONS, "diffuser-lab")
+                         if f[name] != "unknown")
+    commit = "" if f["commit"] == "unknown" else f["commit"] + ("+dirty" if f["dirty tree"] == "yes" else "")
+    return {"host": block.get("host") or "", "cpu": f["CPU"], "isa": f["ISA"], "blas": f["BLAS"],
+            "versions": versions, "commit": commit}
+
+
+def provenance_line(runs: list[Run], noun: str = "jobs") -> Optional[str]:
+    """One line when the runs ran on different machines, ISA levels or versions: what differs and
+    how many runs per value (:func:`diffuser_lab.backends.provenance.differences_line`); None when
+    they agree (runs without a provenance block are left out)."""
+    return provenance.differences_line([r.provenance for r in runs], noun)
+
+
 def run_rows(runs: list[Run]) -> tuple[list[str], list[dict]]:
     keys = sorted({k for r in runs for k in r.overrides})
     rows = []
@@ -219,8 +250,9 @@ def run_rows(runs: list[Run]) -> tuple[list[str], list[dict]]:
                "method": r.summary.get("method", ""), "scene": r.summary.get("scene", "")}
         row.update({k: r.overrides.get(k, "") for k in keys})
         row.update({name: r.metric(path) for name, path in METRICS.items()})
+        row.update(provenance_cells(r.provenance))
         rows.append(row)
-    return ["run", "status", "error", "method", "scene", *keys, *METRICS], rows
+    return ["run", "status", "error", "method", "scene", *keys, *METRICS, *PROVENANCE_COLUMNS], rows
 
 
 def aggregate(runs: list[Run]) -> tuple[list[str], list[dict]]:

@@ -39,6 +39,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from diffuser_lab import progress
+from diffuser_lab.backends import provenance
 from diffuser_lab.config import Config, SparseClasses
 from diffuser_lab.data import validate
 from diffuser_lab.data.frames import FrameLoop, LazyFrames, first_line
@@ -99,6 +100,7 @@ class TiledResult:
     tile_m: float = 0.0  # the tiles' edge, metres: tiling.size fitted to the cloud (fitted_edge)
     files: dict = field(default_factory=dict)  # what the run wrote beside the tiles (a features run: features.npy)
     from_halo: int = 0  # points their tile left unlabelled, labelled from a neighbour's halo (fill_from_halos)
+    machines: list = field(default_factory=list)  # where the tiles ran: one entry per provenance (tile_machines)
 
     @property
     def failed(self) -> list[dict]:
@@ -349,9 +351,38 @@ def diffuse_tile(cfg: Config, inp: TileInput, frames, taxonomy, name: str, spec:
         msgs = sorted({first_line(w.message) for w in caught})
         if msgs:
             rec["warnings"] = msgs
+    # provenance: the tile's own process (a Ray worker may run on another node); tile_machines groups them
     rec.update(time_s=round(time.perf_counter() - t0, 3), node=socket.gethostname(), pid=os.getpid(),
-               status="done", peak_rss_gb=round(_peak_rss_gb(), 3))
+               status="done", peak_rss_gb=round(_peak_rss_gb(), 3), provenance=provenance.collect())
     return labels, bayes, rec, feats, halo
+
+
+def tile_machines(tiles: list[dict]) -> list[dict]:
+    """Where the tiles ran. Takes each tile record's ``provenance`` block out of it (the block of the
+    process that computed the tile; a resumed tile's from its earlier run) and leaves ``machine``, the
+    block's key (:func:`~diffuser_lab.backends.provenance.key`); returns one entry per distinct
+    block: ``machine`` (the key), ``tiles`` (ids), ``nodes`` (host names), ``differs`` (the fields in
+    which it differs from this process's block) and, when some do, the block itself (``provenance``)."""
+    here = provenance.collect()
+    groups: dict[str, dict] = {}
+    blocks: dict[str, dict] = {}
+    for rec in tiles:  # loop over tile records
+        block = rec.pop("provenance", None)
+        if not block:  # a failed tile, or a file of an older version
+            continue
+        k = provenance.key(block)
+        rec["machine"] = k
+        g = groups.setdefault(k, {"machine": k, "tiles": [], "nodes": []})
+        blocks.setdefault(k, block)
+        g["tiles"].append(rec["id"])
+        node = rec.get("node") or block.get("host")
+        if node not in g["nodes"]:
+            g["nodes"].append(node)
+    for k, g in groups.items():
+        g["differs"] = [name for name, _, _ in provenance.blocks_differ(here, blocks[k])]
+        if g["differs"]:
+            g["provenance"] = blocks[k]
+    return list(groups.values())
 
 
 def fill_from_halos(labels: np.ndarray, halos: list[tuple[np.ndarray, np.ndarray]],
@@ -577,10 +608,11 @@ def tiled(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHook
         del features
         res_files["features"] = "features.npy"
     t["labels"] = time.perf_counter() - tl
+    tiles = [records[s.id] for s in specs]
     res = TiledResult(scene=scene, method=cfg.method.name, labels=labels, bayesian_labels=bayes, grid=shape,
                       tile_m=float(cells.size),
-                      tiles=[records[s.id] for s in specs], tiles_dir=tiles_dir, resumed_from=tc.resume, rho=rho,
-                      halo=tc.halo, files=res_files, from_halo=from_halo)
+                      tiles=tiles, tiles_dir=tiles_dir, resumed_from=tc.resume, rho=rho,
+                      halo=tc.halo, files=res_files, from_halo=from_halo, machines=tile_machines(tiles))
     if scene.gt_labels is not None:
         tm = time.perf_counter()
         res.metrics = score(labels, scene.gt_labels, scene.taxonomy.names)
@@ -663,7 +695,7 @@ def summary(res: TiledResult, cfg: Config) -> dict:
         "tiling": {"size": cfg.tiling.size, "tile_m": res.tile_m, "halo": res.halo, "halo_factor": cfg.tiling.halo_factor, "grid": list(res.grid),
                    "n_tiles": len(res.tiles), "failed": len(failed), "workers": cfg.tiling.workers,
                    "address": cfg.tiling.address, "tiles_dir": str(res.tiles_dir), "resumed_from": res.resumed_from,
-                   "rho_m": res.rho, "from_halo": res.from_halo, "tiles": res.tiles},
+                   "rho_m": res.rho, "from_halo": res.from_halo, "machines": res.machines, "tiles": res.tiles},
     }
 
 
@@ -687,6 +719,11 @@ def table(res: TiledResult, run_dir: Optional[Path] = None) -> str:
                  f"{min(frames, default=0)}-{max(frames, default=0)} of {len(s.frames)}")
     for r in res.failed:  # loop over failed tiles
         lines.append(f"tile {r['id']} failed: {r['error']}")
+    for m in res.machines:  # loop over machines unlike this process's: their figures may differ
+        if m["differs"]:
+            n = len(m["tiles"])
+            lines.append(f"{n} tile{'s' if n != 1 else ''} ran on another machine or versions "
+                         f"({', '.join(m['nodes'])}: {', '.join(m['differs'])} differ)")
     lines.append("time [s]  " + "  ".join(f"{k} {v:.2f}" for k, v in res.timings_s.items()))
     if run_dir is not None:
         lines.append(f"run folder: {run_dir}")

@@ -85,3 +85,91 @@ def test_launcher_configs_compose(launcher, plugin):
         cfg = compose("config", overrides=["+experiment=k", f"hydra/launcher={launcher}"], return_hydra_config=True)
     assert "Launcher" in cfg.hydra.launcher._target_
     assert cfg.hydra.sweeper.params["graph.k"] == "8,16,24,32,48"
+
+
+def _mixed_copy(sweep, tmp_path):
+    """The smoke sweep copied, one job's summary as if run on an AMD AVX2 machine and another's with
+    an older numpy: (the copy, {job folder name: what was changed})."""
+    import json
+    import shutil
+
+    copy = tmp_path / "mixed"
+    shutil.copytree(sweep / "smoke", copy)
+    jobs = sorted(p.parent for p in copy.glob("*/summary.json"))
+    assert len(jobs) == 4
+    for job, change in ((jobs[2], "cpu"), (jobs[3], "numpy")):
+        s = json.loads((job / "summary.json").read_text())
+        if change == "cpu":
+            s["provenance"]["machine"].update(cpu_model="AMD EPYC 7742 64-Core Processor", cpu_vendor="AuthenticAMD")
+        else:
+            s["provenance"]["versions"]["numpy"] = "1.26.4"
+        (job / "summary.json").write_text(json.dumps(s))
+    return copy, jobs
+
+
+@pytest.mark.slow
+def test_collect_and_the_sweep_table_say_when_jobs_ran_on_different_machines(sweep, tmp_path):
+    import io
+    import json
+
+    from analysis.collect import collect
+    from analysis.report import report
+    from conftest import check_provenance
+    from diffuser_lab.runs import sweep as sweep_mod
+
+    here = json.loads(next((sweep / "smoke").glob("*/summary.json")).read_text())["provenance"]
+    check_provenance(here)
+    cpu, numpy_v = here["machine"]["cpu_model"], here["versions"]["numpy"]
+    rrows, _, md = collect([str(sweep / "smoke")], tmp_path / "same")
+    assert "mixed" not in md  # all jobs agree: nothing extra
+    assert {(r["cpu"], r["isa"]) for r in rrows} == {(cpu, here["machine"]["isa"])}
+    assert all(f"numpy {numpy_v}" in r["versions"] for r in rrows)
+    with open(tmp_path / "same_runs.csv") as fh:
+        assert {"host", "cpu", "isa", "blas", "versions", "commit"} <= set(next(csv.DictReader(fh)))
+
+    mixed, jobs = _mixed_copy(sweep, tmp_path)
+    line = (f"mixed machines or versions: CPU {cpu} (3 {{n}}), AMD EPYC 7742 64-Core Processor (1 {{one}}) "
+            f"(with it: vendor); numpy {numpy_v} (3 {{n}}), 1.26.4 (1 {{one}})")
+    rrows, _, md = collect([str(mixed)], tmp_path / "mixed")
+    assert md.endswith("\n\n" + line.format(n="runs", one="run"))
+    assert (tmp_path / "mixed.md").read_text().strip().endswith(line.format(n="runs", one="run"))
+    assert sorted(r["cpu"] for r in rrows).count("AMD EPYC 7742 64-Core Processor") == 1
+    assert line.format(n="runs", one="run") in (report([str(mixed)], tmp_path / "rep").read_text())
+
+    out = io.StringIO()  # the end-of-sweep table, as the launching process prints it
+    saved = dict(sweep_mod._started)
+    try:
+        for folder, expect in ((sweep / "smoke", None), (mixed, line.format(n="jobs", one="job"))):
+            sweep_mod._started.clear()
+            sweep_mod._started["dir"] = folder
+            out = io.StringIO()
+            sweep_mod.print_table(file=out)
+            text = out.getvalue().strip()
+            assert "| graph.use_normals |" in text
+            if expect is None:
+                assert "mixed" not in text
+            else:
+                assert text.splitlines()[-1] == expect
+    finally:
+        sweep_mod._started.clear()
+        sweep_mod._started.update(saved)
+
+
+@pytest.mark.slow
+def test_compare_says_which_fields_differ(sweep, tmp_path, capsys):
+    from analysis.compare import compare, main
+
+    mixed, jobs = _mixed_copy(sweep, tmp_path)  # jobs 0 and 2 have seed 0 (one room), 1 and 3 seed 1
+    smoke = [sweep / "smoke" / j.name for j in jobs]
+    same = compare(smoke[0], smoke[2])["provenance"]
+    assert same["same"] is True and same["differs"] == []
+    assert main([str(smoke[0]), str(smoke[2])]) == 0
+    assert "ran on the same machine and versions: " in capsys.readouterr().out
+    p = compare(smoke[2], jobs[2])["provenance"]
+    assert p["same"] is False and [d["field"] for d in p["differs"]] == ["CPU", "vendor"]
+    assert p["differs"][0]["b"] == "AMD EPYC 7742 64-Core Processor"
+    p = compare(jobs[1], jobs[3])["provenance"]
+    assert [(d["field"], d["b"]) for d in p["differs"]] == [("numpy", "1.26.4")]
+    assert main([str(smoke[0]), str(jobs[2])]) == 0
+    out = capsys.readouterr().out
+    assert "ran on different machines or versions: CPU, vendor differ" in out and "B AMD EPYC 7742" in out

@@ -6,10 +6,10 @@ import zipfile
 
 import numpy as np
 import pytest
-from conftest import ROOT, SMALL_DEMO, run_cli
+from conftest import ROOT, SMALL_DEMO, check_provenance, run_cli
 
 SUMMARY_KEYS = {"method", "scene", "n_points", "n_frames", "n_classes", "metrics", "baseline", "predictions_2d",
-                "diffusion", "timings_s", "records", "overrides", "status"}
+                "diffusion", "timings_s", "records", "overrides", "status", "provenance"}
 
 
 @pytest.mark.slow
@@ -26,6 +26,7 @@ def test_run_writes_its_folder(tmp_path):
     assert {"load", "evidence", "graph", "diffusion", "total"} <= set(s["timings_s"])
     assert s["diffusion"]["iterations"] == 60
     assert "scene.options.n_views=10" in s["overrides"]
+    check_provenance(s["provenance"])  # the machine, ISA and versions of this process
     labels = np.load(run_dir / "labels.npy")
     assert labels.shape == (s["n_points"],) and labels.dtype == np.int16
     assert (labels >= -1).all() and (labels < s["n_classes"]).all()
@@ -131,6 +132,7 @@ def test_summary_file_is_built_in_one_place(tmp_path):
     s = SummaryFile(tmp_path, ["graph.k=8"])
     first = json.loads((tmp_path / "summary.json").read_text())
     assert first["status"] == "running" and first["overrides"] == ["graph.k=8"] and "started" in first
+    check_provenance(first["provenance"])  # there from the start: a run that fails keeps it
     s.warn("depth looks like millimetres")
     s.update(method="diffuser")
     s.failed("ValueError: bad frame")

@@ -178,3 +178,35 @@ def test_a_sweeps_jobs_share_one_config_repository_and_compose_the_same_configs(
         return out
 
     assert composed(True) == composed(False)
+
+
+def test_the_sweep_table_names_jobs_on_other_machines(tmp_path, monkeypatch):
+    """print_table: one line when the jobs' provenance differs (what and how many jobs per value),
+    nothing when they agree; a job without the block (an older run's) is left out."""
+    import copy
+
+    from diffuser_lab.backends import provenance
+    from diffuser_lab.runs import sweep
+
+    here = provenance.collect()
+    amd = copy.deepcopy(here)
+    amd["machine"]["cpu_model"] = "AMD EPYC 7742 64-Core Processor"
+
+    def table(blocks) -> str:
+        d = tmp_path / str(len(list(tmp_path.iterdir())))
+        for i, block in enumerate(blocks):
+            (d / f"{i}_seed={i}").mkdir(parents=True)
+            s = {"status": "ok", "overrides": [f"seed={i}"], "metrics": {"miou": 50.0 + i}}
+            if block is not None:
+                s["provenance"] = block
+            (d / f"{i}_seed={i}" / "summary.json").write_text(json.dumps(s))
+        monkeypatch.setitem(sweep._started, "dir", d)
+        out = io.StringIO()
+        sweep.print_table(file=out)
+        return out.getvalue().strip()
+
+    agree = table([here, here, None])
+    assert "| miou |" in agree and "3 of 3 jobs ok" in agree and "mixed" not in agree
+    assert table([here, amd, here, None]).splitlines()[-1] == (
+        f"mixed machines or versions: CPU {here['machine']['cpu_model']} (2 jobs), AMD EPYC 7742 64-Core "
+        f"Processor (1 job)")

@@ -10,6 +10,7 @@ import time
 import numpy as np
 import pytest
 
+from diffuser_lab.backends import provenance
 from diffuser_lab.config import default_config
 from diffuser_lab.data import validate
 from diffuser_lab.data.frames import LazyFrames
@@ -18,7 +19,7 @@ from diffuser_lab.method import evidence as evidence_mod
 from diffuser_lab.method.graph import nearest_distinct
 from diffuser_lab.runs import pipeline, tiled
 from diffuser_lab.runs.tiled import TileSpec, frames_meeting, tile_points
-from conftest import ROOT, SMALL_DEMO, run_cli
+from conftest import ROOT, SMALL_DEMO, check_provenance, run_cli
 
 SMALL = {"scene.options.n_views": 12, "scene.options.point_spacing": 0.07, "solver.max_iter": 60}
 TILED = {**SMALL, "protocol.name": "tiled", "tiling.size": 1.9}  # a 3x3 grid of 1.67 m (the room is 5.01 x 4.01 m)
@@ -160,6 +161,37 @@ def test_resume_keeps_finished_tiles_and_redoes_damaged_ones(local_tiled, tmp_pa
     assert not (tmp_path / "tiles").exists()  # the tiles stay in the resumed folder
 
 
+def test_a_tile_from_another_machine_is_named(local_tiled, tmp_path):
+    """Each tile keeps the provenance of the process that computed it: a tile resumed from a run on
+    another machine (here: its record's CPU and numpy version rewritten) is listed apart."""
+    import shutil
+
+    res, run_dir = local_tiled
+    here = provenance.collect()
+    assert [m["tiles"] for m in res.machines] == [[r["id"] for r in res.tiles]]
+    assert res.machines[0]["differs"] == [] and "provenance" not in res.machines[0]
+    assert all(r["machine"] == provenance.key(here) and "provenance" not in r for r in res.tiles)
+    shutil.copytree(run_dir / "tiles", tmp_path / "earlier" / "tiles")
+    path = tmp_path / "earlier" / "tiles" / f"{res.tiles[0]['id']}.npz"
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    rec = json.loads(str(arrays["record"]))
+    check_provenance(rec["provenance"])
+    rec["provenance"]["machine"]["cpu_model"] = "AMD EPYC 7742 64-Core Processor"
+    rec["provenance"]["versions"]["numpy"] = "1.26.4"
+    arrays["record"] = np.array(json.dumps(rec))
+    np.savez(path, **arrays)
+    again = tiled.tiled(default_config(**TILED, **{"tiling.resume": str(tmp_path / "earlier")}),
+                        run_dir=tmp_path / "again")
+    other = [m for m in again.machines if m["differs"]]
+    assert len(again.machines) == 2 and len(other) == 1
+    assert other[0]["tiles"] == [res.tiles[0]["id"]] and other[0]["differs"] == ["CPU", "numpy"]
+    assert other[0]["provenance"]["machine"]["cpu_model"] == "AMD EPYC 7742 64-Core Processor"
+    assert f"1 tile ran on another machine or versions ({here['host']}: CPU, numpy differ)" in \
+        tiled.table(again, tmp_path / "again")
+    assert tiled.summary(again, default_config(**TILED))["tiling"]["machines"] == again.machines
+
+
 def test_resume_with_another_config_is_refused(local_tiled, tmp_path):
     _, run_dir = local_tiled
     with pytest.raises(ValueError, match="another config"):
@@ -197,7 +229,10 @@ def test_the_command_line_writes_the_tiles_and_their_records(tmp_path):
     s = json.loads((tmp_path / "summary.json").read_text())
     assert s["status"] == "ok" and s["protocol"] == "tiled" and s["tiling"]["grid"] == [3, 2]
     rec = s["tiling"]["tiles"][0]
-    assert {"id", "points", "frames_read", "iterations", "time_s", "node", "pid", "status"} <= set(rec)
+    assert {"id", "points", "frames_read", "iterations", "time_s", "node", "pid", "status", "machine"} <= set(rec)
+    check_provenance(s["provenance"])  # tiles in this process: one machine, the run's
+    assert s["tiling"]["machines"] == [{"machine": provenance.key(s["provenance"]), "tiles": [t["id"] for t in
+                                        s["tiling"]["tiles"]], "nodes": [rec["node"]], "differs": []}]
     assert len(list((tmp_path / "tiles").glob("*.npz"))) == 6 and (tmp_path / "labels.npy").is_file()
 
 
@@ -231,6 +266,8 @@ def test_tiles_on_a_two_node_ray_cluster(cluster, local_tiled, tmp_path):
     out = tiled.tiled(cfg, run_dir=tmp_path / "a")
     np.testing.assert_array_equal(out.labels, res.labels)
     assert {r["status"] for r in out.tiles} == {"done"} and len({r["pid"] for r in out.tiles}) >= 2
+    # each worker collected its own provenance (both "nodes" are this machine: the same block)
+    assert [m["tiles"] for m in out.machines] == [[r["id"] for r in out.tiles]] and out.machines[0]["differs"] == []
     # each task read its tile's points from tiles/inputs/<id>.npz, removed once the tile was done
     assert (tmp_path / "a" / "tiles" / "inputs").is_dir() and not list((tmp_path / "a" / "tiles" / "inputs").iterdir())
     # a tile that fails (its memory estimate over the budget) is retried, then reported; the others are kept
