@@ -162,6 +162,27 @@ def test_paths_agree_on_ties(monkeypatch):
     _assert_paths_agree(a, b)
 
 
+def test_a_new_point_at_the_kth_distance_changes_nothing(path):
+    """A sparse lattice beside a dense one (its rows reach beyond the compiled grid's cells) and a
+    new point exactly at one sparse row's K-th distance: that row keeps its older neighbour (the
+    tie goes to the smaller index) and is not reported; every reported old row did change."""
+
+    def lat(nx, ny, nz, step, off):
+        g = np.stack(np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij"), -1).reshape(-1, 3)
+        return (g * step + np.asarray(off)).astype(np.float32)
+
+    g = IncrementalKnnGraph(K, sigma_d=0.5)
+    g.add(np.vstack([lat(20, 20, 3, 1, 0), lat(4, 4, 2, 4, [100, 0, 0])]), None)
+    prev, kth = g.neighbors.copy(), g.dist2[:, -1].copy()
+    new = np.array([[88, -4, -4], [5, 5, 1.5]], np.float32)
+    d2 = ((g.points.astype(np.float64) - new[0]) ** 2).sum(1)
+    assert np.all(d2 >= kth) and np.count_nonzero(d2 == kth) == 1  # a tie, never closer
+    changed = g.add(new, None)
+    moved = np.flatnonzero(np.any(prev != g.neighbors[: len(prev)], 1))
+    np.testing.assert_array_equal(changed[changed < len(prev)], moved)
+    assert np.flatnonzero(d2 == kth)[0] not in changed
+
+
 def test_ring_search_alone_gives_the_rows(frames):
     """Every row of a grown graph recomputed by the ring search alone (cell_search.ring_knn, which
     the batch grid kNN shares) is the row the compiled path holds."""
