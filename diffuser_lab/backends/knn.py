@@ -111,15 +111,24 @@ def kdtree_rows(tree: cKDTree, points: np.ndarray, rows: np.ndarray, k: int,
         while todo.size:
             own = rows[todo]
             dist, cand = tree.query(points[own], k=m, workers=workers)
-            # by index, then a stable sort by d2: rows by (d2, index) (cheaper than lexsort)
-            cand.sort(1)
             dd = _summed(*(x[cand] - x[own][:, None] for x in cols))  # sq_dist, axis by axis
-            dd[cand == own[:, None]] = np.inf  # the point itself: last
-            o = np.argsort(dd, axis=1, kind="stable")[:, :k]
-            ci, cd = np.take_along_axis(cand, o, 1), np.take_along_axis(dd, o, 1)
+            is_self = cand == own[:, None]
+            dd[is_self] = -1.0
+            # most rows come as the rule has them: self first, then strictly increasing d2
+            ci, cd = cand[:, 1:k + 1], dd[:, 1:k + 1]
+            tied = np.flatnonzero(np.any(dd[:, 1:] <= dd[:, :-1], axis=1))
+            if tied.size:  # by index, then a stable sort by d2: by (d2, index), self last
+                c = np.sort(cand[tied], 1)
+                e = _summed(*(x[c] - x[own[tied]][:, None] for x in cols))
+                e[c == own[tied][:, None]] = np.inf
+                o = np.argsort(e, axis=1, kind="stable")[:, :k]
+                ci[tied], cd[tied] = np.take_along_axis(c, o, 1), np.take_along_axis(e, o, 1)
             # a point not returned is at least as far as the last returned, by the tree's distance
             done = np.square(dist[:, -1]) * (1 - TIE_MARGIN) > cd[:, -1] if m < n else np.ones(todo.size, bool)
-            idx[todo[done]], d2[todo[done]] = ci[done], cd[done]
+            if done.all() and todo[-1] - todo[0] == todo.size - 1:  # the usual case: one block of rows
+                idx[todo[0]:todo[-1] + 1], d2[todo[0]:todo[-1] + 1] = ci, cd
+            else:
+                idx[todo[done]], d2[todo[done]] = ci[done], cd[done]
             todo = todo[~done]
             m = min(2 * m, n)
     return idx, d2
