@@ -3,25 +3,28 @@ instead of rebuilt (its points come from :class:`~diffuser_lab.data.voxel_map.Vo
 
 :class:`IncrementalKnnGraph` appends the new points and keeps the graph equal to
 :func:`~diffuser_lab.method.graph.build_graph` on the same points (neighbour sets per row, up to
-exact distance ties): the new rows get their K nearest among all points, and an old row is
-recomputed only when a new point is closer than its K-th neighbour (points only arrive, so no
-other row can change).
+which of the points tied at the K-th distance a row keeps: the smaller index, which is the
+insertion index here and the Morton index there): the new rows get their K nearest among all
+points, and an old row is recomputed only when a new point is strictly closer than its K-th
+neighbour (points only arrive, so no other row can change).
 
 The rows and their weights are computed by a backend (:func:`diffuser_lab.backends.growing.rows_backend`,
 decided when a graph is made): a compiled hash grid, or scipy's cKDTree (rebuilt per add; slower,
-same results).
+the same rows element for element, by the rule of :mod:`diffuser_lab.backends.knn`).
 """
 from __future__ import annotations
 
 import numpy as np
 
 from diffuser_lab.backends.growing import rows_backend
+from diffuser_lab.backends.knn import sq_dist
 
 
 class IncrementalKnnGraph:
     """K-nearest-neighbour graph of a growing point set, rows in insertion order (capacity grows
     by doubling). Same definition as :func:`~diffuser_lab.method.graph.build_graph`: K nearest by
-    Euclidean distance (self excluded, duplicates kept, ties by index), Eq. 4 weights.
+    Euclidean distance (self excluded, duplicates kept), rows by (d2, index) with the insertion
+    index (the rule of :mod:`diffuser_lab.backends.knn`), Eq. 4 weights.
 
     While the set has at most K points, a row has fewer than K real neighbours: the missing
     entries are the row's own index with squared distance inf and weight 0 (row sums count only
@@ -30,7 +33,7 @@ class IncrementalKnnGraph:
     Attributes (views of the first ``n`` rows):
         n: points so far; k.
         points: (n, 3) float32 world points, metres; normals: (n, 3) float32 or None.
-        neighbors: (n, K) int32, each row sorted by distance (ties by index).
+        neighbors: (n, K) int32, each row ascending by (squared distance, index).
         dist2: (n, K) float64 squared distances of those neighbours, m^2.
         weights: (n, K) float32 Eq. 4 with the current sigma_d; row_sums: (n,) float64.
         rho: mean distance of a point to its nearest distinct neighbour (0 distances skipped),
@@ -214,8 +217,8 @@ class IncrementalKnnGraph:
     def _small(self) -> None:
         """Every row of a set of n <= K points: all others by (d2, index), then the row itself at inf."""
         n, k = self.n, self.k
-        p = self._P[:n].astype(np.float64)
-        d2 = ((p[:, None, :] - p[None, :, :]) ** 2).sum(-1)
+        p = self._P[:n]
+        d2 = sq_dist(p[:, None, :], p[None, :, :])  # the rule of every kNN row
         np.fill_diagonal(d2, np.inf)
         idx = np.broadcast_to(np.arange(n), (n, n))
         o = np.lexsort((idx, d2), axis=-1)

@@ -92,7 +92,7 @@ def fit_view(mass: np.ndarray, names: Sequence[str], embeddings: np.ndarray, que
     mean = X.mean(0)
     X -= mean
     w, v = np.linalg.eigh(X.T @ X)
-    basis = v[:, np.argsort(w)[::-1][:3]].T  # (3, D)
+    basis = v[:, np.argsort(-w, kind="stable")[:3]].T  # (3, D); stable: the same order at ties on any CPU
     flip = np.sign(basis[np.arange(3), np.argmax(np.abs(basis), axis=1)])
     basis *= flip[:, None]
     P = X @ basis.T

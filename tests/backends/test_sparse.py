@@ -136,3 +136,26 @@ def test_memory_estimate_3m_200_classes():
     with pytest.raises(MemoryError, match=r"about 20\.\d GiB .*200 classes, dense scores.*sparse_classes=on"):
         check_memory(3_000_000, 3_000_000, 200, 24, 16.0)
     check_memory(3_000_000, 3_000_000, 200, 24, 16.0, sparse_classes=16)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_truncation_keeps_the_lower_classes_at_exact_ties(backend):
+    """A row whose scores tie exactly beyond its M slots keeps the lowest classes, on both twins
+    (the numpy one by a stable sort, the compiled one by (score, class) in its insertion; it kept
+    the first class its neighbours brought): rows 0-2 hold classes 8, 3, 6, row 3 takes a third
+    of each from them in that order (equal weights), with M = 1 slot."""
+    from diffuser_lab.method.diffusion import System
+
+    nbr = np.array([[0, 0, 0], [1, 1, 1], [2, 2, 2], [0, 1, 2]], np.int32)
+    w = np.array([[0, 0, 0], [0, 0, 0], [0, 0, 0], [1, 1, 1]], np.float32)
+    mass = np.zeros((4, 10), np.float32)
+    mass[[0, 1, 2], [8, 3, 6]] = 1.0
+    s = System(nbr, w, w.sum(1, dtype=np.float64), mass, 1e-3)
+    s.start(backend=backend, tol=0.0, sparse_classes="on", classes_per_point=1)
+    s.steps(2)
+    Z = s.scores()
+    assert Z[3, 3] > 0 and Z[3, 6] == 0 and Z[3, 8] == 0
+    out = np.zeros(4, np.int16)
+    s.labels(out)
+    np.testing.assert_array_equal(out, [8, 3, 6, 3])
+    s.close()

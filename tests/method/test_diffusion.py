@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from diffuser_lab.backends import BACKENDS
+from diffuser_lab.backends import numba as nb
 from diffuser_lab.method.diffusion import System, diffuse, normalise
 from diffuser_lab.method.graph import build_graph
 
@@ -155,3 +156,41 @@ def test_rows_appended_while_running_agree_with_scipy(cloud, backend):
     a, b = _grow_while_running(g, mass, backend), _grow_while_running(g, mass, "scipy")
     np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7 * float(np.abs(b).max()))
     assert (a[g.order[: g.n // 2]] > 0).any() and (a[g.order[g.n // 2:]] > 0).any()
+
+
+TIE_BACKENDS = [(b, sparse) for b in BACKEND_NAMES for sparse in ("off", "on")] + [("torch", "off")]
+
+
+@pytest.mark.parametrize("classes", [12, 40], ids=["one-block", "several-blocks"])
+@pytest.mark.parametrize("backend,sparse", TIE_BACKENDS, ids=[f"{b}-sparse" if s == "on" else b for b, s in TIE_BACKENDS])
+def test_labels_take_the_first_class_at_exact_ties(backend, sparse, classes):
+    """Eq. 16 at exact ties in Z: the lowest class of the row's equal maxima, on every backend (the
+    numba kernels scan class blocks in ascending order and keep a strictly larger score only; 40
+    classes make several blocks there, with ties across them), IGNORE where the row is all 0."""
+    if backend == "numba" and not nb.available():
+        pytest.skip("numba not importable or DIFFUSER_LAB_NUMBA=0")
+    device = None
+    if backend == "torch":
+        pytest.importorskip("torch", reason="torch is not installed: the torch backend's ties are not checked")
+        device = "cpu"
+    rng = np.random.default_rng(classes)
+    n, k = 500, 8
+    nbr = rng.integers(0, n, (n, k)).astype(np.int32)
+    w = np.ones((n, k), np.float32)
+    mass = np.zeros((n, classes), np.float32)
+    mass[np.arange(n), np.arange(n) % classes] = 1.0  # every class active
+    s = System(nbr, w, w.sum(1, dtype=np.float64), mass, 1e-3)
+    s.start(backend=backend, device=device, tol=0.0, sparse_classes=sparse, classes_per_point=classes)
+    Z = rng.integers(0, 3, (n, classes)).astype(np.float32) * np.float32(0.25)  # many equal maxima
+    Z[:40] = 0.0  # nothing reached these
+    Z[40:60, :] = 0.5  # all classes tie
+    Z[60:80, [classes - 1, classes // 2, classes // 2 + 1]] = 2.0  # ties across the middle (block edges)
+    s.backend.load(Z)
+    out = np.full(n, 99, np.int16)
+    s.labels(out)
+    top = Z.max(1, keepdims=True)
+    first = np.where(Z == top, np.arange(classes), classes).min(1)  # the lowest class at the maximum
+    expect = np.where(top[:, 0] > 0, s.active[np.minimum(first, classes - 1)], -1)
+    np.testing.assert_array_equal(out, expect)
+    assert out[40] == 0 and out[60] == classes // 2 and np.all(out[:40] == -1)
+    s.close()

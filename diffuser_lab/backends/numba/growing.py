@@ -10,17 +10,24 @@ add). A query scans its cell's 3x3x3 block keeping the K best by (squared distan
 threshold guessed from the previous row, and is exact when the K-th distance is within the
 block's guaranteed radius (``h`` + the point's distance to its cell's faces); the other points are
 searched again ring by ring (:func:`~.cell_search.ring_knn`, the batch grid kNN's search) until no
-closer point can remain. Squared distances are float64 from the float32 coordinates, as in
-:func:`~diffuser_lab.method.graph.build_graph`.
+closer point can remain. Rows follow the rule of :mod:`diffuser_lab.backends.knn` (float64
+``((dx*dx + dy*dy) + dz*dz)`` from the float32 coordinates, no fastmath; by (d2, index)), as
+:func:`~diffuser_lab.method.graph.build_graph` and the scipy twin
+(:class:`~diffuser_lab.backends.growing.TreeRows`).
 """
 from __future__ import annotations
 
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..knn import TIE_MARGIN, closer_rows
 from . import NB, n_threads
 from .hashing import OFF, HashTable
 from .weights import row_weights
+
+FACE_SLACK = 1e-9
+"""Relative amount by which a point's distance to its cell's faces is taken short: the computed
+distance rounds (~1e-16 of the coordinates), and a row is exact only if no point beyond it can tie."""
 
 if NB is not None:
     from numba import njit, prange
@@ -177,8 +184,10 @@ if NB is not None:
                     bd[e] = np.inf
                     bj[e] = i
                 cx, cy, cz = cell_c[c, 0], cell_c[c, 1], cell_c[c, 2]
-                fd = min(_face(px, cx, h), _face(py, cy, h), _face(pz, cz, h)) + h
-                fail[i] = 1 if (cnt < k or bd[k - 1] > fd * fd) else 0
+                # a point outside the block may be at exactly fd (and win a tie by index): >=, and
+                # a relative slack for the faces' rounding
+                fd = (min(_face(px, cx, h), _face(py, cy, h), _face(pz, cz, h)) + h) * (1.0 - FACE_SLACK)
+                fail[i] = 1 if (cnt < k or bd[k - 1] >= fd * fd) else 0
                 thr = bd[k - 1] * 1.5 if cnt == k else 0.5 * h2
                 _store_row(i, bd, bj, k, nbr, d2, d0, kth2)
 
@@ -233,8 +242,10 @@ if NB is not None:
             lx = np.float64(cx - OFF) * h
             ly = np.float64(cy - OFF) * h
             lz = np.float64(cz - OFF) * h
-            ring_knn(i, px, py, pz, (cx, cy, cz), (px - lx, py - ly, pz - lz), (lx + h - px, ly + h - py, lz + h - pz),
-                     h, cmin, cmax, no_dims, hk, hv, bits, cstart, cend, X, Y, Z, J, k, bd, bj)
+            e = FACE_SLACK * h  # the faces' distances a little short (rounding): never one too far
+            ring_knn(i, px, py, pz, (cx, cy, cz), (px - lx - e, py - ly - e, pz - lz - e),
+                     (lx + h - px - e, ly + h - py - e, lz + h - pz - e), h, cmin, cmax, no_dims, hk, hv, bits,
+                     cstart, cend, X, Y, Z, J, k, bd, bj)
             _store_row(i, bd, bj, k, nbr, d2, d0, kth2)
 
 
@@ -277,17 +288,18 @@ class GridRows:
         aff = self._query(arrays, n, np.arange(n_old, n, dtype=np.int64), n_old, mark=True)
         if wide.size:
             # their nearest new point, searched no farther than their own reach (bounds the
-            # KD-tree's work for the many far from this add); the few near ones are recomputed
-            # by rings, exactly (one at a tie of its K-th distance is reported though unchanged)
+            # KD-tree's work for the many far from this add); the few near ones are checked
+            # exactly (a new point at a tie of the K-th distance loses to the older index)
             tree = cKDTree(P[n_old:n])
-            reach = np.sqrt(kth2[wide]) * (1 + 1e-9)
+            reach = np.sqrt(kth2[wide]) * (1 + TIE_MARGIN)
             short = reach <= 2 * self._grid["h"]
             dn = np.full(wide.size, np.inf)
             if short.any():
                 dn[short] = tree.query(P[wide[short]], k=1, distance_upper_bound=float(reach[short].max()))[0]
             if (~short).any():
                 dn[~short] = tree.query(P[wide[~short]], k=1)[0]
-            aff[wide[dn < reach]] = 1
+            near = wide[dn < reach]
+            aff[near[closer_rows(P, kth, near, n_old, n)]] = 1  # strictly closer by the rule, as the twin
         return np.flatnonzero(aff).astype(np.int64)
 
     def update(self, arrays: tuple, rows: np.ndarray) -> None:

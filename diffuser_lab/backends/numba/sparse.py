@@ -58,7 +58,8 @@ def sparse_rows(nbr, wts, cls, val, cnt, err, rs, ncls, nval, ncnt, nerr, nrs, b
             oldv[cls[i, s]] = val[i, s]
             ostamp[cls[i, s]] = key
         # keep the M largest scores >= max(floor, rel * the row's largest): insertion into a
-        # descending list of at most M; what falls below rel is dropped mass, below floor flushed
+        # list of at most M by (descending score, class), so an exact tie keeps the lower class
+        # (as the numpy twin's stable sort); what falls below rel is dropped mass, below floor flushed
         cut = z
         if rel > 0:
             for q in range(t):
@@ -79,13 +80,13 @@ def sparse_rows(nbr, wts, cls, val, cnt, err, rs, ncls, nval, ncnt, nerr, nrs, b
             if n < M:
                 p = n
                 n += 1
-            elif v > nval[i, M - 1]:
+            elif v > nval[i, M - 1] or (v == nval[i, M - 1] and c < ncls[i, M - 1]):
                 d += nval[i, M - 1]
                 p = M - 1
             else:
                 d += v
                 continue
-            while p > 0 and nval[i, p - 1] < v:
+            while p > 0 and (nval[i, p - 1] < v or (nval[i, p - 1] == v and ncls[i, p - 1] > c)):
                 nval[i, p] = nval[i, p - 1]
                 ncls[i, p] = ncls[i, p - 1]
                 p -= 1
