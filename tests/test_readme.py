@@ -137,7 +137,9 @@ def check_run(c: Command, p, work):
         assert said and f"labelled {said.group(1)} of {said.group(2)} points" in p.stdout, p.stdout[-2000:]
     if "predictions=model" in c.text:
         assert re.search(r"model \S+, \d+ frames run, \d+ from cache", p.stdout), p.stdout[-2000:]
-    # the README's sample outputs are what the command prints (seeded; 0.2 for another CPU's rounding)
+    # the README's sample outputs are what the command prints, to the printed digit: the spread measured
+    # across the forced instruction sets (numba/OpenBLAS/numpy at host, avx2 and generic x86-64;
+    # tests/test_isa.py) and under an emulated AVX2 CPU (qemu: the ray caster's kernels) is 0.0
     for marker, cond in (("It prints", c.text.startswith("bash scripts/dev.sh demo")),
                          ("The global protocol prints", c.text == ".venv/bin/diffuser-lab scene=scannet0470"),
                          ("The first prints", c.text == ".venv/bin/diffuser-lab scene=scannet0470 protocol=online")):
@@ -146,7 +148,7 @@ def check_run(c: Command, p, work):
             assert want and set(want) == set(got), (want, got)
             for k in want:
                 worst = max(abs(a - b) for a, b in zip(want[k], got[k]))
-                assert worst <= 0.2, f"README prints {k} {want[k]}, the run {got[k]}"
+                assert worst < 0.05, f"README prints {k} {want[k]}, the run {got[k]}"
 
 
 def _sweep(p, work) -> tuple[int, Path, list[dict]]:
