@@ -96,9 +96,7 @@ def test_graph_and_diffusion(benchmark, enabled, n, iters, impl):
             back[perm] = lab
             agree = float(np.mean(back == reference_labels(w, iters)))
             _report(benchmark, f"{impl} {n}", n_points=w.n, iterations=iters, agreement=agree)
-            # a certified point (sparse layout) has the dense label; the rest are near-ties of the top M classes
-    # (the small 3k-point stand-in of a disabled benchmark: 98.99 % measured on the keyed workload)
-    assert agree >= res.info.get("certified", 0.999) and agree >= (0.999 if enabled else 0.98)  # the same graph and sums, in another order
+            assert agree >= (0.999 if enabled else 0.99)  # the same graph and sums, in another order
     else:
         backend = "scipy" if impl.endswith("scipy") else "auto"
         core(w, 2, backend)  # compile / warm caches
