@@ -2,6 +2,7 @@
 import csv
 import importlib.util
 
+import numpy as np
 import pytest
 from conftest import ROOT, run_cli
 
@@ -66,7 +67,9 @@ def test_report_and_compare(sweep, tmp_path):
     runs = sorted((sweep / "smoke").glob("*seed=0"))  # same seed = same room: normals on vs off
     assert len(runs) == 2
     res = compare(runs[0], runs[1], tmp_path / "cmp.rrd")
-    assert res["n_points"] > 0 and 0 <= res["share_differ"] <= 1
+    la, lb = (np.load(r / "labels.npy") for r in runs)
+    assert res["n_points"] == la.size and res["n_differ"] == int((la != lb).sum())
+    assert res["share_differ"] == pytest.approx(res["n_differ"] / la.size) and 0 < res["share_differ"] < 0.5
     assert (tmp_path / "cmp.rrd").stat().st_size > 1000
 
 

@@ -3,6 +3,7 @@ efficiency figures built on them."""
 import json
 
 import numpy as np
+import pytest
 
 from diffuser_lab.backends import roof
 from diffuser_lab.cli import bench
@@ -25,9 +26,16 @@ def test_step_model_is_the_issues_arithmetic():
     assert e["bound"] == "memory" and abs(e["floor_s"] - 200 * 108e6 / 20.5e9) < 1e-3
 
 
-def test_measured_roof_is_positive_and_plausible():
-    r = roof.measure_roof(copy_mb=16, matmul_n=256, repeat=2)
-    assert 0.1 < r.copy_gbps < 10_000 and 0.1 < r.fma_gflops < 1_000_000
+def test_measured_roof_is_bytes_and_flops_over_the_best_time(monkeypatch):
+    """The roof is what its two timings say: 2 x the copied bytes (read + write) and 2 n^3 flops over
+    the best of the repeats (the clock replaced by one whose every interval is known)."""
+    ticks = iter([0.0, 0.50, 1.0, 1.25, 2.0, 2.40,  # copy: 0.5, 0.25, 0.4 s -> best 0.25
+                  3.0, 3.1, 4.0, 4.2, 5.0, 5.05])  # matmul: 0.1, 0.2, 0.05 s -> best 0.05
+    monkeypatch.setattr(roof.time, "perf_counter", lambda: next(ticks))
+    r = roof.measure_roof(copy_mb=4, matmul_n=64, repeat=3)
+    assert r.copy_gbps == pytest.approx(2 * 4 * 2**20 / 0.25 / 1e9)
+    assert r.fma_gflops == pytest.approx(2 * 64**3 / 0.05 / 1e9)
+    assert (r.copy_mb, r.matmul_n) == (4, 64)
 
 
 def test_bench_reports_efficiency(tmp_path, capsys):

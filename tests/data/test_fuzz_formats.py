@@ -12,8 +12,6 @@ import contextlib
 import io
 import os
 import json
-import resource
-import signal
 import struct
 import subprocess
 import sys
@@ -25,39 +23,15 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from bounded import SPARE_BYTES, Hung, bounded
+
 from diffuser_lab.data.clouds import read_cloud, write_las
 from diffuser_lab.data.intrinsics import read_intrinsics_file
 from diffuser_lab.data.sources.nerfstudio import read_transforms
 
 FUZZ = settings(max_examples=int(os.environ.get("DIFFUSER_FUZZ_EXAMPLES", 25)),  # deeper: DIFFUSER_FUZZ_EXAMPLES=2000
                 deadline=None, suppress_health_check=list(HealthCheck), database=None)
-LIMIT_S = 5.0  # per case
-SPARE_BYTES = 2 << 30  # address space a case may add
 CORPUS = Path(__file__).with_name("fuzz_corpus")
-
-
-class Hung(BaseException):
-    """A reader ran over its time: a BaseException, so that no reader's ``except Exception`` turns it into a line."""
-
-
-@contextlib.contextmanager
-def bounded(seconds: float = LIMIT_S, spare: int = SPARE_BYTES):
-    """Raise :class:`Hung` after ``seconds``; MemoryError beyond ``spare`` more bytes of address space."""
-    def _alarm(*_):
-        raise Hung(f"a reader ran over {seconds} s")
-
-    vm = next(int(line.split()[1]) * 1024 for line in Path("/proc/self/status").read_text().splitlines()
-              if line.startswith("VmSize:"))
-    soft, hard = resource.getrlimit(resource.RLIMIT_AS)
-    old = signal.signal(signal.SIGALRM, _alarm)
-    signal.setitimer(signal.ITIMER_REAL, seconds)
-    resource.setrlimit(resource.RLIMIT_AS, (vm + spare if hard == resource.RLIM_INFINITY else min(hard, vm + spare), hard))
-    try:
-        yield
-    finally:
-        resource.setrlimit(resource.RLIMIT_AS, (soft, hard))
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, old)
 
 
 def ends_clearly(reader, path: Path) -> None:
@@ -390,9 +364,10 @@ def test_the_corpus_of_bad_files_replays_in_seconds():
     """The generated bad files (tiny, kept under tests/data/fuzz_corpus) in a fresh interpreter."""
     paths = sorted(CORPUS.iterdir())
     assert len(paths) >= 10
-    code = ("import sys; sys.path[:0] = [sys.argv[1]]; from test_fuzz_formats import replay, CORPUS; "
+    code = ("import sys; sys.path[:0] = sys.argv[1:]; from test_fuzz_formats import replay, CORPUS; "
             "print('\\n'.join(replay(sorted(CORPUS.iterdir()))))")
-    out = subprocess.run([sys.executable, "-c", code, str(Path(__file__).parent)], capture_output=True, text=True,
+    here = Path(__file__).parent
+    out = subprocess.run([sys.executable, "-c", code, str(here), str(here.parent)], capture_output=True, text=True,
                          timeout=60, cwd=Path(__file__).parents[2])
     lines = out.stdout.strip().splitlines()
     assert out.returncode == 0 and len(lines) == len(paths), out.stderr[-2000:]

@@ -13,6 +13,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from PIL import Image
 
+from bounded import Hung, bounded
+
 from diffuser_lab.data.mapping import load_mapping
 from diffuser_lab.data.images import read_depth_png, read_label_png
 from diffuser_lab.data.scene import SCANNET20
@@ -22,7 +24,9 @@ from diffuser_lab.data.meshes import read_labelled_mesh
 from diffuser_lab.data.poses import read_pose_c2w
 from diffuser_lab.data.sources.rgbd_folder import load_rgbd_folder
 
-FUZZ = settings(max_examples=int(os.environ.get("DIFFUSER_FUZZ_EXAMPLES", 40)), deadline=2000,  # deeper: DIFFUSER_FUZZ_EXAMPLES=2000
+# a hang is a failure: every case runs under bounded()'s alarm (a hypothesis deadline is checked only
+# after the call returns, so it never stops one that does not)
+FUZZ = settings(max_examples=int(os.environ.get("DIFFUSER_FUZZ_EXAMPLES", 40)), deadline=None,  # deeper: DIFFUSER_FUZZ_EXAMPLES=2000
                 suppress_health_check=[HealthCheck.function_scoped_fixture])
 CLEAR = (ValueError, FileNotFoundError)
 
@@ -33,12 +37,15 @@ PLY_LINES = ["ply", "format ascii 1.0", "format binary_little_endian 1.0", "form
              "0 0 0", "1 2", "nan nan nan", "3 0 1 2", "garbage \x00\xff"]
 
 
-def _check(reader, data: bytes, suffix: str):
+def _check(reader, data: bytes, suffix: str, seconds: float = 5.0):
     with tempfile.TemporaryDirectory() as d:
         path = Path(d) / f"f{suffix}"
         path.write_bytes(data)
         try:
-            reader(path)
+            with bounded(seconds):
+                reader(path)
+        except (Hung, MemoryError) as exc:
+            raise AssertionError(f"{path.name}: {type(exc).__name__}: {exc}") from exc
         except CLEAR as exc:
             assert str(path) in str(exc) or path.name in str(exc), str(exc)
             assert "\n" not in str(exc).strip()
@@ -94,3 +101,13 @@ def test_empty_folders(tmp_path):
     (tmp_path / "camera-intrinsics.txt").write_text("")
     with pytest.raises(CLEAR):
         load_rgbd_folder(tmp_path)
+
+
+def test_a_reader_that_hangs_fails_the_check():
+    """The alarm stops a reader that does not return (a deadline would wait for it): a failure."""
+    import time
+
+    t0 = time.perf_counter()
+    with pytest.raises(AssertionError, match="Hung: a reader ran over 0.2 s"):
+        _check(lambda p: time.sleep(30), b"x", ".txt", seconds=0.2)
+    assert time.perf_counter() - t0 < 10

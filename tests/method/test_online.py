@@ -114,11 +114,19 @@ def _many_class_frames(frames, classes: int, seed: int = 0):
     return out
 
 
-@pytest.mark.slow
-def test_every_backend_runs_the_online_system(demo):
-    """The online Diffuser is a user of the one diffusion core: the compiled backend for more than
-    32 active classes (several class blocks), the sparse class set and torch (on the CPU) give the
-    numpy/scipy path's result."""
+TORCH_MISSING = ("torch is not installed: the test extra leaves it out (PyPI's default torch is a multi-GB "
+                 "CUDA build); `pip install torch` (a CPU build will do) and this runs")
+
+
+def _torch_missing() -> bool:
+    import importlib.util
+
+    return importlib.util.find_spec("torch") is None
+
+
+@pytest.fixture(scope="module")
+def many_online(demo):
+    """60 classes over the demo's first 6 frames, and the scipy path's online run of them."""
     from diffuser_lab.data.taxonomy import Taxonomy
 
     cfg, scene, frames, pts, nrm = demo
@@ -135,19 +143,25 @@ def test_every_backend_runs_the_online_system(demo):
 
     ref = play("scipy")
     assert len(ref.system.active) > 32
-    runs = {"numba": play("numba"), "numba-sparse": play("numba", sparse_classes="on", classes_per_point=60),
-            "scipy-sparse": play("scipy", sparse_classes="on", classes_per_point=60)}
-    try:
-        import torch  # noqa: F401
+    return play, ref
 
-        runs["torch"] = play("torch", device="cpu")
-    except ImportError:
-        pass
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["numba", "numba-sparse", "scipy-sparse",
+                                  pytest.param("torch", marks=pytest.mark.skipif(_torch_missing(), reason=TORCH_MISSING))])
+def test_every_backend_runs_the_online_system(many_online, name):
+    """The online Diffuser is a user of the one diffusion core: the compiled backend for more than
+    32 active classes (several class blocks), the sparse class set and torch (on the CPU) give the
+    numpy/scipy path's result."""
+    play, ref = many_online
+    kw = {"numba": dict(backend="numba"), "numba-sparse": dict(backend="numba", sparse_classes="on", classes_per_point=60),
+          "scipy-sparse": dict(backend="scipy", sparse_classes="on", classes_per_point=60),
+          "torch": dict(backend="torch", device="cpu")}[name]
+    od = play(**kw)
     zr = ref.scores()
-    for name, od in runs.items():
-        assert od.backend_name == name, (od.backend_name, name)
-        assert np.mean(od.labels == ref.labels) >= 0.999, name
-        assert np.abs(od.scores() - zr).max() <= 1e-3 * np.abs(zr).max(), name
+    assert od.backend_name == name, (od.backend_name, name)
+    assert np.mean(od.labels == ref.labels) >= 0.999, name
+    assert np.abs(od.scores() - zr).max() <= 1e-3 * np.abs(zr).max(), name
 
 
 FEW = {"online.rate": 0.0, "online.finish": 0}  # each frame's steps only: no idle steps, no finishing pass
@@ -167,7 +181,10 @@ def test_final_labels_match_the_batch_diffuser(demo):
     # the online Bayesian on a given cloud is exactly the batch one on the same frames
     assert res.bayesian["miou"] == pytest.approx(b["bayesian"]["miou"])
     assert len(res.frames) == len(frames) and res.latency_ms["frames"] == len(frames)
-    assert all(f["diffuser_miou"] >= 0 for f in res.frames)
+    # each frame's mIoU is of the labels it left: the last one's are the run's (no finishing pass here),
+    # and the first frames, seeing little of the room, score less
+    assert res.frames[-1]["diffuser_miou"] == pytest.approx(res.metrics["miou"])
+    assert res.frames[0]["diffuser_miou"] < res.frames[-1]["diffuser_miou"]
 
 
 def test_idle_steps_fill_the_sensors_frame_time_and_the_finishing_pass_reaches_the_batch(demo):
@@ -320,12 +337,14 @@ def test_growing_numpy_path_agrees(grow_demo):
     assert np.mean(a.labels == b.labels) >= 0.999
 
 
-def test_growing_map_matches_the_batch_run_on_its_final_cloud(grow_demo):
+def test_a_coarse_growing_map_only_grows_and_stays_near_the_batch_run(grow_demo):
+    """A small stand-in (8 frames, 6 cm voxels): the map only grows, and its labels stay near the
+    batch run's on the final cloud. The documented targets are checked at full size below
+    (test_the_documented_accuracy_targets_at_full_size)."""
     cfg, scene, frames = grow_demo
     res = online(cfg, scene=scene)
     assert res.mode == "growing" and res.points.shape[0] == res.frames[-1]["points"]
     assert [f["points"] for f in res.frames] == sorted(f["points"] for f in res.frames)  # it only grows
-    # small room, 8 frames, 6 cm voxels (measured 93.8%, mIoU 39.0 vs 37.8; full size: docs/online.md)
     assert res.batch["equal_labels"] >= 92.0, res.batch
     assert abs(res.metrics["miou"] - res.batch["diffuser"]["miou"]) <= 3.0, (res.metrics, res.batch)
 
@@ -397,3 +416,43 @@ def test_online_run_keeps_blas_on_one_thread_while_it_plays(demo):
         assert seen and all(s and max(s) == 1 for s in seen), seen
         assert blas_threads() == before
     assert max(before) == 2 or len(os.sched_getaffinity(0)) == 1, before  # BLAS ran on 2 threads before the run
+
+
+ACCURACY_TARGETS = {  # docs/online.md's accuracy targets; their latency: tests/benchmarks/test_online_targets.py
+    "scannet0470-given": (["scene=scannet0470"], 99.0, 0.5, SHARED / "data" / "scannet" / "scene0470_00"),
+    "7scenes-growing": (["scene=rgbd_folder", f"scene.options.root={SHARED / 'data' / '7scenes_sample'}",
+                         "online.map=growing", "predictions=model",
+                         "predictions.model._target_=tests.toy_networks.grey_levels", "predictions.cache_dir=null"],
+                        97.0, None, SHARED / "data" / "7scenes_sample"),
+    "demo-growing": (["online.map=growing"], 97.0, 0.5, None),
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", list(ACCURACY_TARGETS))
+def test_the_documented_accuracy_targets_at_full_size(case):
+    """The targets docs/online.md states, on the sequences it states them for (not a smaller stand-in):
+    final labels equal to the batch Diffuser's on >= 99 % (a given map) or >= 97 % (a growing one) of
+    the points, mIoU within 0.5 of the batch run's where there is ground truth."""
+    from conftest import compose
+
+    args, equal_t, miou_t, data = ACCURACY_TARGETS[case]
+    if data is not None and not data.is_dir():
+        pytest.skip(f"real data absent: {data} not found")
+    res = online(compose(*args, "protocol=online", "record=off"))
+    b = res.batch
+    assert b["equal_labels"] >= equal_t, b
+    if miou_t is None:
+        return
+    gap = abs(res.metrics["miou"] - b["diffuser"]["miou"])
+    if case in MIOU_NOT_MET:
+        assert gap > miou_t, f"the target is met now ({gap:.2f} <= {miou_t}): take {case} out of MIOU_NOT_MET"
+        pytest.xfail(f"target not met (issue 53): mIoU {res.metrics['miou']:.1f} vs the batch's "
+                     f"{b['diffuser']['miou']:.1f}, {gap:.1f} apart > {miou_t}")
+    assert gap <= miou_t, (res.metrics["miou"], b)
+
+
+MIOU_NOT_MET = {"demo-growing"}
+"""Cases whose mIoU target is not met today (measured 2026-12-07: the demo's growing map 78.3 vs 81.3,
+labels equal on 98.6 %): reported as expected failures, with the figure, until issue 53 meets it
+(then remove the case from here: the test asserts the target)."""

@@ -147,7 +147,8 @@ def test_solver_config_dispatch(small_demo_scene):
 def test_torch_code_path_on_cpu():
     """The torch backend behind the one diffusion loop, on the CPU: the same steps as scipy
     (float32 sums in another order), the same early stop, observers called as on the CPU."""
-    pytest.importorskip("torch")
+    pytest.importorskip("torch", reason="torch is not installed: the test extra leaves it out (PyPI's default "
+                                  "torch is a multi-GB CUDA build); `pip install torch` (a CPU build will do) and this runs")
     pts, nrm, mass = cloud(500)
     s = normalise(build_graph(pts, 8, nrm), mass, 1e-4)
     seen = {}
@@ -250,14 +251,18 @@ def test_compiled_runner_stops_where_the_python_loop_would():
     pts, nrm, mass = cloud(3000)
     s = normalise(build_graph(pts, 12, nrm), mass, 1e-4)
     full = diffuse(s, max_iter=400, tol=0.0, backend="numba")
-    tol = full.residuals[57] * 1.0000001  # converges at iteration 58 exactly
+    r = full.residuals
+    assert r[56] > r[57] * 1.001  # still falling by more than the backends' rounding differs
+    tol = float(np.sqrt(r[56] * r[57]))  # between steps 57 and 58: the first step at or under it is 58
     a = diffuse(s, max_iter=400, tol=tol, backend="numba")
     seen = []
     b = diffuse(s, max_iter=400, tol=tol, backend="numba", observer=lambda it, Z, st: seen.append(it))
     assert a.converged and a.iterations == b.iterations == 58 and seen == list(range(1, 59))
-    assert a.residuals == b.residuals == full.residuals[:58]
+    assert a.residuals == b.residuals == r[:58]
     np.testing.assert_array_equal(a.Z, b.Z)
     sc = diffuse(s, max_iter=400, tol=tol, backend="scipy")
+    # scipy's float32 sums run in another order: its residuals agree to ~1e-6, far inside the margin
+    np.testing.assert_allclose(sc.residuals, r[:len(sc.residuals)], rtol=1e-4)
     assert sc.iterations == 58
 
 

@@ -75,7 +75,12 @@ def test_city_scale_and_the_blueprint_component():
     pos, target, up = overview_geometry(city)
     check_oblique(city, pos, target, up)
     eye = overview_eye(city)
-    assert eye.kind is not None and eye.position is not None and eye.look_target is not None
+    import rerun.blueprint as rrb
+
+    # the blueprint component carries the geometry: an orbital eye at pos looking at target, up up
+    for comp, want in ((eye.position, pos), (eye.look_target, target), (eye.eye_up, up)):
+        np.testing.assert_allclose(comp.as_arrow_array().to_pylist()[0], want, rtol=1e-6)
+    assert eye.kind.as_arrow_array().to_pylist() == [rrb.Eye3DKind.Orbital.value]
     assert overview_eye(np.zeros((0, 3))) is None  # nothing to frame: Rerun's own eye
 
 
