@@ -3,7 +3,7 @@
 A method turns the frames' pixel evidence into point labels. Each entry says in code
 
 - whether it diffuses over the kNN graph (Eqs. 3-4, 10-16) or labels from the evidence alone,
-- which part of the graph and evidence it fixes (LDLS: no normal term, a 3x3 pixel window),
+- which part of the graph and evidence it fixes (LDLS: no normal term, K = 10, a 5x5 pixel window),
 - which evidence it reads (the frames' evidence as configured, the Bayesian baseline's, one view's),
 - the rows it has in the single-frame protocol (1 view, W views; paper Table II),
 
@@ -31,14 +31,15 @@ ONE_VIEW = "one_view"  # the evidence of one frame (method.view)
 
 @dataclass(frozen=True)
 class FusionMethod:
-    """One fusion method. ``normals`` / ``pixel_radius``: None = as ``graph.use_normals`` /
-    ``evidence.pixel_radius`` say; a value = fixed by the method's definition."""
+    """One fusion method. ``normals`` / ``k`` / ``pixel_radius``: None = as ``graph.use_normals`` /
+    ``graph.k`` / ``evidence.pixel_radius`` say; a value = fixed by the method's definition."""
 
     name: str
     description: str
     graph: bool
     evidence: str = EVIDENCE
     normals: Optional[bool] = None
+    k: Optional[int] = None  # neighbours of the kNN graph (Eq. 3)
     pixel_radius: Optional[int] = None
     multi_view_row: bool = True  # a W-view row in the single-frame protocol besides the 1-view one
 
@@ -48,6 +49,8 @@ class FusionMethod:
         (:func:`diffuser_lab.runs.resolve.with_method`)."""
         if self.normals is not None:
             cfg.graph.use_normals = self.normals
+        if self.k is not None:
+            cfg.graph.k = self.k
         if self.pixel_radius is not None:
             cfg.evidence.pixel_radius = self.pixel_radius
 
@@ -68,8 +71,13 @@ class FusionMethod:
 METHODS: Registry = Registry("method.name", "fusion method", [  # the order of the paper's Table II
     FusionMethod("direct", "labels projected from a single view (method.view)", graph=False, evidence=ONE_VIEW,
                  multi_view_row=False),
-    FusionMethod("ldls", "LDLS (Wang et al. 2019): distance-only graph, 3x3 pixel window", graph=True,
-                 normals=False, pixel_radius=1, multi_view_row=False),
+    # LDLS as its authors' implementation runs it (github.com/brian-h-wang/LDLS,
+    # lidar_segmentation/segmentation.py: LidarSegmentation(num_neighbors=10,
+    # pixel_to_lidar_kernel_size=5), 200 iterations): a distance-only kNN graph of 10 neighbours and
+    # every point linked to the 5x5 pixels around its projection; the distance kernel (sigma_d),
+    # lambda and the iterations are the run's, as for Diffuser
+    FusionMethod("ldls", "LDLS (Wang et al. 2019): distance-only kNN graph of K = 10, 5x5 pixel window", graph=True,
+                 normals=False, k=10, pixel_radius=2, multi_view_row=False),
     FusionMethod("bayesian", "per-point sum of pixel likelihoods (or votes), argmax", graph=False,
                  evidence=BASELINE),
     FusionMethod("diffuser", "the paper's method: the evidence diffused over the kNN graph", graph=True),

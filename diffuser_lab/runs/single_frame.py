@@ -162,24 +162,25 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None, on_frame=None) -> S
                                                          pixel_radius=radius, **ev_kw)
                 t["evidence"] += time.perf_counter() - te
             system = None
+            gkey = (mc.graph.use_normals, mc.graph.k)  # LDLS: no normals, K = 10; Diffuser: the run's graph
             if m.graph:
-                if mc.graph.use_normals not in graphs:
+                if gkey not in graphs:
                     tg = time.perf_counter()
                     nrm = None
                     if mc.graph.use_normals and cfg.protocol.normals == FrameNormals.depth_image:
                         nrm = image_normals(f, pix, to_work, work.shape[0], cfg.protocol.normal_window_px)
                     with graph_stage(work.shape[0], mc.graph, mc.graph.use_normals):
-                        graphs[mc.graph.use_normals] = make_graph(work, nrm, mc.graph)[1]
+                        graphs[gkey] = make_graph(work, nrm, mc.graph)[1]
                     t["graph"] += time.perf_counter() - tg
             ev, key = evidence[ekey], (name, views)
             if lift is None and m.graph:
-                system = normalise(graphs[mc.graph.use_normals], ev.mass, lam)
+                system = normalise(graphs[gkey], ev.mass, lam)
             td = time.perf_counter()
             if lift is None:
                 work_labels[key], diff = m.label(ev.mass, system=system, solver=solver)
                 work_scores[key] = diff.Z if diff is not None else ev.mass
             else:  # a features run, as the global protocol's (method/features.py; the rows share ev: a copy)
-                F = (features_mod.diffuse_features(graphs[mc.graph.use_normals], ev.mass.copy(), ev.links, lam,
+                F = (features_mod.diffuse_features(graphs[gkey], ev.mass.copy(), ev.links, lam,
                                                    solver)[0] if m.graph else ev.mass)
                 work_labels[key], work_scores[key] = lift.labels(F), lift.scores(F)
             if m.graph:

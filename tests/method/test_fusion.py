@@ -17,6 +17,8 @@ def test_every_method_has_its_yaml_and_the_yaml_shows_what_the_method_fixes():
         assert y.method.name == name
         if m.normals is not None:
             assert y.graph.use_normals == m.normals
+        if m.k is not None:
+            assert y.graph.k == m.k
         if m.pixel_radius is not None:
             assert y.evidence.pixel_radius == m.pixel_radius
 
@@ -25,8 +27,9 @@ def test_config_takes_the_registry_names_and_applies_what_a_method_fixes():
     from diffuser_lab import default_config
     from diffuser_lab.config import ConfigError
 
-    cfg = default_config(**{"method.name": "ldls", "graph.use_normals": True, "evidence.pixel_radius": 3})
-    assert cfg.graph.use_normals is False and cfg.evidence.pixel_radius == 1  # LDLS's definition
+    cfg = default_config(**{"method.name": "ldls", "graph.use_normals": True, "graph.k": 24,
+                            "evidence.pixel_radius": 3})
+    assert (cfg.graph.use_normals, cfg.graph.k, cfg.evidence.pixel_radius) == (False, 10, 2)  # LDLS's definition
     assert default_config(**{"method.name": "diffuser", "evidence.pixel_radius": 3}).evidence.pixel_radius == 3
     with pytest.raises(ConfigError, match="method.name='foo': expected one of bayesian, diffuser, direct, ldls"):
         default_config(**{"method.name": "foo"})
