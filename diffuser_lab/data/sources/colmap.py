@@ -448,6 +448,7 @@ def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) ->
         label_path = root / o.labels.format(name=im.name, stem=stem) if o.labels else None
         frames.append(CapturedFrame(
             name=stem, T_cw=T, K=K, K_size=(int(cam.height), int(cam.width)),
+            K_from=f"{cams_file} (camera {cid})", K_image=img_path,
             depth=_reader(read_depth_map, depth_path, und, 0) if use_depth else None,
             rgb=_reader(read_rgb, img_path, und, 1),
             labels=_reader(read_label_png, label_path, und, 0, IGNORE) if label_path is not None and label_path.is_file()

@@ -189,10 +189,10 @@ def _scannet_frames(root: Path, frame_step: int, max_frames: int | None, mapping
     has_labels = (root / L.labels.format(frame=kept[0])).is_file()
     checked = {"done": False}
 
-    def load(i: int) -> Frame:
+    def load(i: int, skip: frozenset = frozenset()) -> Frame:
         fid = kept[i]
         depth = read_depth_png(root / L.depth.format(frame=fid), L.depth_scale, 0, (0,))
-        rgb = read_rgb(root / L.color.format(frame=fid), depth.shape) if has_color else None
+        rgb = read_rgb(root / L.color.format(frame=fid), depth.shape) if has_color and "rgb" not in skip else None
         gt = None
         if has_labels:
             lp = root / L.labels.format(frame=fid)
@@ -211,7 +211,8 @@ def _scannet_frames(root: Path, frame_step: int, max_frames: int | None, mapping
         return Frame(name=fid, K=K.copy(), T_cw=poses[i], depth=depth, gt_labels=gt, rgb=rgb)
 
     return LazyFrames(kept, load, info={"n_invalid_pose": n_invalid, "n_frames_found": len(ids),
-                                   "has_color": has_color, "has_labels": has_labels})
+                                        "has_color": has_color, "has_labels": has_labels},
+                      poses=poses, parts=("rgb",))
 
 
 def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) -> Scene:

@@ -208,7 +208,7 @@ def _intrinsics(o: TemplatesOptions, root: Path, scene: str, numbers: list[int])
         if size is not None and want is not None and size != want:
             raise ValueError(f"{p}: intrinsics for {size[0]}x{size[1]} (H x W) but scene.options.intrinsics_size="
                              f"{list(want)}: expected one statement of the size (set intrinsics_size: null)")
-        out.append((K, size or want))
+        out.append((K, size or want, str(p) if size is not None else "scene.options.intrinsics_size"))
     shift = scannet_depth_shift(paths[0]) if (fmt if fmt != "auto" else detect_format(paths[0])) == "scannet_info" \
         else None
     return (out if per_frame else out * len(numbers)), shift
@@ -235,7 +235,7 @@ def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) ->
     conv = o.pose_convention.value
     frames, n_invalid, no_labels = [], 0, 0
     with progress.stage("reading poses", total=len(found), unit="pose") as bar:
-        for (n, name), (K, K_size) in zip(found, Ks):  # one pass over the frames' small files
+        for (n, name), (K, K_size, K_from) in zip(found, Ks):  # one pass over the frames' small files
             bar.update()
             path = {k: root / getattr(o, k).format(scene=scene, frame=n)
                     for k in ("depth", "color", "pose", "labels") if getattr(o, k) is not None}
@@ -253,8 +253,12 @@ def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) ->
             if lp is not None and not lp.is_file():
                 no_labels, lp = no_labels + 1, None
             dp, cp = path.get("depth"), path.get("color")
+            # the stated size is the colour camera's with intrinsics_camera=color (ScanNet's _info.txt), else
+            # the depth image's (the colour's without depth)
+            described = cp if (o.intrinsics_camera.value == "color" or dp is None) else dp
             frames.append(CapturedFrame(
-                name=name, T_cw=pose_to_world_to_camera(T, conv), K=K, K_size=K_size,
+                name=name, T_cw=pose_to_world_to_camera(T, conv), K=K, K_size=K_size, K_from=K_from,
+                K_image=described if K_size is not None else None,
                 depth=(lambda p=dp: read_depth(p, depth_scale, o.invalid_depth)) if dp is not None else None,
                 rgb=(lambda p=cp: read_rgb(p)) if cp is not None else None,
                 labels=(lambda p=lp: read_label_png(p)) if lp is not None else None))
