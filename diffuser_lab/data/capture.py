@@ -207,33 +207,33 @@ def check_stated_size(K_size: tuple[int, int], image: tuple[int, int], stated_in
                      f"that size or a downscale of it that keeps the aspect ratio {W / H:.4g}")
 
 
-def _frame_shape(cf: CapturedFrame, rgb: Optional[np.ndarray], labels: Optional[np.ndarray]) -> tuple[int, int]:
-    if cf.size is not None:
-        return int(cf.size[0]), int(cf.size[1])
-    for img in (rgb, labels):
-        if img is not None:
-            return tuple(img.shape[:2])
-    if cf.K_size is not None:
-        return int(cf.K_size[0]), int(cf.K_size[1])
-    raise ValueError(f"frame {cf.name}: no depth, colour or label image and no image size")
-
-
 def _build_frame(cf: CapturedFrame, mapping, taxonomy: Taxonomy, render, skip: frozenset = frozenset(),
                  info: Optional[dict] = None) -> Frame:
     """A :class:`Frame` at the depth's resolution (else the colour's), K scaled to it (its stated size
     checked first: :func:`check_stated_size`); ``skip``: parts left out (``rgb``: not read)."""
     depth = cf.depth() if cf.depth is not None else None
-    no_size = depth is None and cf.size is None
-    rgb = np.asarray(cf.rgb(), np.uint8) if cf.rgb is not None and ("rgb" not in skip or no_size) else None
+    stated = cf.K_size is not None
+    seen = image_size(cf.K_image, "image") if stated and cf.K_image is not None else None  # its header
+    # without depth the frame takes the colour image's size: the stated image's header, else the image read
+    sized = depth is not None or cf.size is not None or seen is not None
+    rgb = np.asarray(cf.rgb(), np.uint8) if cf.rgb is not None and ("rgb" not in skip or not sized) else None
     ids = np.asarray(cf.labels()) if cf.labels is not None else None
-    shape = depth.shape[:2] if depth is not None else _frame_shape(cf, rgb, ids)
+    if depth is not None:
+        shape = depth.shape[:2]
+    elif cf.size is not None or seen is not None:
+        shape = tuple(int(v) for v in (cf.size if cf.size is not None else seen))
+    elif rgb is not None or ids is not None:
+        shape = (rgb if rgb is not None else ids).shape[:2]
+    elif stated:
+        shape = (int(cf.K_size[0]), int(cf.K_size[1]))
+    else:
+        raise ValueError(f"frame {cf.name}: no depth, colour or label image and no image size")
     K = np.array(cf.K, np.float64)
-    if cf.K_size is not None:
-        if cf.K_image is not None:
-            seen, name = image_size(cf.K_image, "image"), str(cf.K_image)
-        else:
-            seen, name = shape, f"frame {cf.name}'s {'depth' if depth is not None else 'colour'} image"
-        said = check_stated_size(cf.K_size, seen, cf.K_from or f"frame {cf.name}'s intrinsics", name)
+    if stated:
+        name = str(cf.K_image) if seen is not None else \
+            f"frame {cf.name}'s {'depth' if depth is not None else 'colour'} image"
+        said = check_stated_size(cf.K_size, seen if seen is not None else shape,
+                                 cf.K_from or f"frame {cf.name}'s intrinsics", name)
         if tuple(cf.K_size) != tuple(shape):
             K = scaled_intrinsics(K, tuple(cf.K_size), tuple(shape))
             if info is not None:
@@ -241,10 +241,7 @@ def _build_frame(cf: CapturedFrame, mapping, taxonomy: Taxonomy, render, skip: f
                                 f"{cf.K_from or 'the intrinsics'}, scaled to the frames' {shape[1]}x{shape[0]}")
     if render is not None:  # visibility=mesh / cloud: rendered, at the depth image's size when there is one
         depth = render(K, cf.T_cw, shape)
-    if rgb is not None and "rgb" not in skip:
-        rgb = resize_bilinear(rgb, shape)
-    else:
-        rgb = None
+    rgb = resize_bilinear(rgb, shape) if rgb is not None and "rgb" not in skip else None
     gt = None
     if ids is not None:
         gt = to_taxonomy(resize_nearest(ids, shape), mapping, taxonomy, f"frame {cf.name} labels")
@@ -329,6 +326,10 @@ def capture_scene(name: str, frames: Sequence[CapturedFrame], options: CaptureOp
     if mapping is not None:
         taxonomy = mapping.target
     has_depth = all(f.depth is not None for f in frames)
+    first = frames[0]
+    if first.K_size is not None and first.K_image is not None:  # the stated size against the first image, now
+        check_stated_size(first.K_size, image_size(first.K_image, "image"), first.K_from or f"frame {first.name}'s "
+                          f"intrinsics", str(first.K_image))
     if options.cloud:
         with progress.stage(f"reading point cloud {Path(options.cloud).name}"):
             cloud = read_cloud(options.cloud)

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import io
 import math
+import re
 import threading
 import warnings
 from contextlib import contextmanager
@@ -109,6 +110,7 @@ def max_pixels() -> int | None:
 
 # the bound on decoded bytes per byte of the file for each of Pillow's compressed decoders (module doc)
 _RATIO = {"zip": 1032, "libtiff": 1400}
+_CODEC = {"zip": "deflated (PNG)", "libtiff": "compressed TIFF"}
 
 
 def _bits(rawmode: str, mode: str) -> int | None:
@@ -144,10 +146,10 @@ def _check_declared(im, size: int, where: str, what: str) -> None:
             how = "raw pixel data"
         elif codec in _RATIO and bits is not None:
             need = math.ceil(math.ceil(tw * bits / 8) * th / _RATIO[codec])
-            how = f"{codec} data at most {_RATIO[codec]:,}:1"
+            how = f"{_CODEC[codec]} data, at most {_RATIO[codec]:,}:1,"
         elif codec == "jpeg":
             need = math.ceil(math.ceil(tw / 8) * math.ceil(th / 8) / 64)
-            how = "JPEG data (1/8 bit per 8x8 block at least)"
+            how = "JPEG data, 1/8 bit per 8x8 block at least,"
         else:
             continue
         if need > left:
@@ -205,9 +207,10 @@ def _opened(source: Source, what: str, name: str | None):
         with _QUIET, warnings.catch_warnings():  # the size is refused below in one line, not warned of
             warnings.simplefilter("ignore", Image.DecompressionBombWarning)
             im = Image.open(fh)
-    except Image.DecompressionBombError as exc:
-        raise ValueError(f"{where}: {what} declares more pixels than Pillow opens ({str(exc).split(',')[0]}): "
-                         f"a damaged or lying header") from None
+    except Image.DecompressionBombError as exc:  # over twice the cap: Pillow's own sentence names no file
+        n = re.search(r"\((\d+) pixels\)", str(exc))
+        raise ValueError(f"{where}: {what} declares {int(n.group(1)) if n else 0:,} pixels, expected at most "
+                         f"{max_pixels() or 0:,} (Image.MAX_IMAGE_PIXELS): a damaged or lying header") from None
     except (OSError, UnidentifiedImageError, SyntaxError, ValueError, EOFError, MemoryError) as exc:
         raise ValueError(f"{where}: unreadable {what} ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
     try:
