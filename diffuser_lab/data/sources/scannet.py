@@ -31,6 +31,7 @@ ones do not need it), without ``label-filt/`` they carry no ground truth.
 from __future__ import annotations
 
 import re
+import threading
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -187,7 +188,7 @@ def _scannet_frames(root: Path, frame_step: int, max_frames: int | None, mapping
     # colour and labels are optional: present when the first frame has them (then every frame must)
     has_color = (root / L.color.format(frame=kept[0])).is_file()
     has_labels = (root / L.labels.format(frame=kept[0])).is_file()
-    checked = {"done": False}
+    once = threading.Lock()  # the colour K is checked at the first frame read (frames are read on several threads)
 
     def load(i: int, skip: frozenset = frozenset()) -> Frame:
         fid = kept[i]
@@ -197,8 +198,7 @@ def _scannet_frames(root: Path, frame_step: int, max_frames: int | None, mapping
         if has_labels:
             lp = root / L.labels.format(frame=fid)
             ids_img = read_label_png(lp)
-            if K_color is not None and not checked["done"]:
-                checked["done"] = True
+            if K_color is not None and once.acquire(blocking=False):  # never released: once
                 Ks = scaled_intrinsics(K_color, ids_img.shape, depth.shape)
                 err = np.abs(Ks[:2, :3] - K[:2, :3]).max()
                 if err > 2.0:  # label pixels would not line up with depth pixels

@@ -35,7 +35,7 @@ from omegaconf import MISSING
 from diffuser_lab import progress
 from diffuser_lab.config import PoseConvention, SceneConfig, above, key, rule
 from diffuser_lab.data.capture import CaptureOptions, CapturedFrame, capture_scene
-from diffuser_lab.data.images import read_depth_png, read_label_png, read_rgb
+from diffuser_lab.data.images import read_array, read_depth_png, read_label_png, read_rgb
 from diffuser_lab.data.intrinsics import detect_format, read_intrinsics_file, scannet_depth_shift
 from diffuser_lab.data.poses import pose_to_world_to_camera, read_pose_c2w
 from diffuser_lab.data.scene import Scene, Taxonomy
@@ -172,12 +172,7 @@ def read_depth(path: Path, depth_scale: float, invalid) -> np.ndarray:
     units per metre (``invalid`` raw values = none), or ``.npy`` float metres (non-finite, <= 0 = none)."""
     suffix = path.suffix.lower()
     if suffix == ".npy":
-        if not path.is_file():
-            raise FileNotFoundError(f"depth image {path} does not exist")
-        try:
-            d = np.load(path, allow_pickle=False)
-        except ValueError as e:
-            raise ValueError(f"{path}: unreadable .npy depth ({e})") from None
+        d = read_array(path, "depth image")  # its header's shape checked against the file first
         if d.ndim != 2 or d.dtype.kind not in "fiu":
             raise ValueError(f"{path}: .npy depth of dtype {d.dtype} shape {d.shape}, expected (H, W) float metres")
         d = d.astype(np.float32)
