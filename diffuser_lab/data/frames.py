@@ -27,7 +27,7 @@ threads (:class:`concurrent.futures.ThreadPoolExecutor`; Pillow's decoders, zlib
 GIL), at most ``read_ahead`` frames ahead of the one in use, and hands them out in order: the frames and
 everything computed from them are those of one thread (each frame is computed from its index alone, the
 rule above); an error is raised when the loop reaches its frame, as it would be in one thread. The depth
-is the run's ``frames.read_ahead`` (:func:`read_ahead`; null: twice the cores this process may use;
+is the run's ``scene.read_ahead`` (:func:`read_ahead`; null: twice the cores this process may use;
 0 = one thread). A per-frame function that keeps state (a network, its cache) is made ``serial``
 (:meth:`LazyFrames.mapped`): one thread at a time runs it, the decoding around it still overlaps.
 
@@ -42,7 +42,6 @@ its predictions or records read it.
 """
 from __future__ import annotations
 
-import collections
 import contextlib
 import dataclasses
 import os
@@ -73,12 +72,12 @@ def cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-_READ_AHEAD: list[Optional[int]] = [None]  # the run's frames.read_ahead (None: from the cores)
+_READ_AHEAD: list[Optional[int]] = [None]  # the run's scene.read_ahead (None: from the cores)
 
 
 @contextlib.contextmanager
 def read_ahead(depth: Optional[int]) -> Iterator[None]:
-    """The frame loops started inside read ``depth`` frames ahead (the run's ``frames.read_ahead``;
+    """The frame loops started inside read ``depth`` frames ahead (the run's ``scene.read_ahead``;
     None: :func:`default_read_ahead`; 0: one thread)."""
     old = _READ_AHEAD[0]
     _READ_AHEAD[0] = depth
