@@ -288,6 +288,9 @@ class SceneConfig(Section):
     voxel_size: Any = key(0.0, rule("metres >= 0 (0 = off) or auto", lambda v: v == "auto" or (
         isinstance(v, (int, float)) and not isinstance(v, bool) and v >= 0)))  # metres; > 0: voxel-downsample before diffusion, labels transferred back; auto = 2.7 x the cloud's point spacing (docs/results/defaults.md)
     options: Dict[str, Any] = field(default_factory=dict)  # the source's keys (conf/scene/<source>.yaml sets its dataclass)
+    keyframe_translation: Optional[float] = key(None, above(0, "metres", null=True))  # keyframes: keep a frame when the camera moved this far since the last kept one; null = off (docs/datasets.md)
+    keyframe_rotation_deg: Optional[float] = key(None, within(0, 180, "degrees", open_lo=True, null=True))  # keyframes: ... or when it turned this much since the last kept one; null = off
+    read_ahead: Optional[int] = key(None, at_least(0, null=True))  # frames decoded ahead of the one in use, on a pool of threads; null = 2 x the cores; 0 = one thread
 
 
 SPECIAL_TAXONOMIES = ("file", "ids")

@@ -22,6 +22,10 @@ import numpy as np
 class RunHooks:
     """No-op base: subclass and override what you need."""
 
+    reads_rgb = True
+    """Whether :meth:`on_frame` reads ``frame.rgb`` (False: a run that needs no colour otherwise reads
+    its frames without it, :meth:`~diffuser_lab.data.frames.LazyFrames.without`)."""
+
     def on_scene(self, scene: Any) -> None:
         """scene: :class:`~diffuser_lab.data.scene.Scene` (original points, gt labels, taxonomy)."""
 

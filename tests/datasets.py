@@ -203,3 +203,107 @@ def write_tum(parent: Path, world: dict, name: str = "rgbd_dataset_freiburg2_fix
     (root / "groundtruth.txt").write_text("\n".join(gt_lines) + "\n")
     expected = {"views": views, "rgb_stems": [f"{t:.6f}" for t in t_rgb[:-2]], "t_depth": t_depth[:-2]}
     return root, expected
+
+
+def scannet_mesh(folder: Path) -> dict:
+    """A real ScanNet mesh (``<scene>_vh_clean_2.ply`` and its ``.labels.ply``, e.g. ../shared/data's
+    scene0470_00) as :func:`write_scannet_sequence` takes it: vertices, triangles, per-vertex NYU40
+    labels and colours."""
+    from diffuser_lab.data.meshes import read_labelled_mesh
+
+    folder = Path(folder)
+    verts, tris, _, colors = read_labelled_mesh(folder / f"{folder.name}_vh_clean_2.ply")
+    _, _, labels, _ = read_labelled_mesh(folder / f"{folder.name}_vh_clean_2.labels.ply")
+    return dict(verts=verts, tris=tris, labels=labels, colors=colors)
+
+
+def demo_room_mesh() -> dict:
+    """The demo room as :func:`write_scannet_sequence` takes it (colours: its classes' palette)."""
+    verts, tris, tri_lab = demo_mesh(0)
+    world = dict(verts=verts, tris=tris, tri_lab=tri_lab)
+    labels = _vertex_nyu(world)
+    colors = SCANNET20.colorize(np.clip(np.searchsorted(NYU[:-1], labels), 0, len(NYU) - 2)).astype(np.uint8)
+    return dict(verts=verts, tris=tris, labels=labels, colors=colors)
+
+
+def sweep_poses(verts: np.ndarray, n_views: int, *, arc_deg: float = 100.0, track_m: float = 1.0) -> list[np.ndarray]:
+    """``n_views`` world-to-camera poses of a hand-held sweep across a room: from a third of the way
+    along its long axis the camera walks ``track_m`` further along it, at three quarters of the mesh's
+    height, panning ``arc_deg`` about the long axis' direction and looking 25 degrees down (even steps:
+    with 100 views, 1 cm and 1 degree a frame: a slow hand at 30 Hz)."""
+    lo, hi = verts.min(0).astype(np.float64), verts.max(0).astype(np.float64)
+    a = 0 if hi[0] - lo[0] >= hi[1] - lo[1] else 1
+    out = []
+    for s in np.linspace(-0.5, 0.5, n_views):  # loop over views
+        eye = (lo + hi) / 2
+        eye[a] = lo[a] + (hi[a] - lo[a]) / 3 + (s + 0.5) * track_m
+        eye[2] = lo[2] + 0.75 * (hi[2] - lo[2])
+        yaw = np.deg2rad(s * arc_deg) + (np.pi / 2 if a == 1 else 0.0)
+        out.append(look_at(eye, eye + [np.cos(yaw), np.sin(yaw), -np.tan(np.deg2rad(25.0))]))
+    return out
+
+
+def write_scannet_sequence(parent: Path, n_frames: int, mesh: dict | None = None, *, n_views: int = 12,
+                           name: str = "scene0998_00", depth_size=(60, 80), color_size=(150, 200),
+                           fov_deg: float = 60.0, mistakes: float = 0.1, seed: int = 0) -> Path:
+    """A ScanNet export of ``n_frames`` frames at sensor rate: ``parent/name`` with the mesh's PLYs,
+    ``depth/<i>.png`` (16-bit mm, ``depth_size`` = (H, W)), ``color/<i>.jpg`` (``color_size``, the
+    mesh's colours with sensor noise, quality 90), ``pose/<i>.txt``, ``intrinsic/`` (depth and colour K)
+    and beside it ``predictions/<i>.png``: a network's NYU40 labels at depth resolution (the rendered
+    truth with a ``mistakes`` share of each image, one seeded rectangle, set to another class).
+
+    The camera sweeps back and forth (:func:`sweep_poses`, ``n_views`` distinct views, ping-pong:
+    frame i shows view ``i mod (2 n_views - 2)`` folded), as a hand-held scan does; each view is
+    rendered once and a frame that repeats one is a hard link to its files (a 5,000-frame export
+    costs the disk of ``n_views`` frames). ``mesh``: :func:`scannet_mesh` or :func:`demo_room_mesh`
+    (default). ScanNet's full sizes: ``depth_size=(480, 640), color_size=(968, 1296)``."""
+    import os
+
+    mesh = mesh if mesh is not None else demo_room_mesh()
+    root = Path(parent) / name
+    for sub in ("color", "depth", "pose", "intrinsic"):
+        (root / sub).mkdir(parents=True, exist_ok=True)
+    preds = Path(parent) / "predictions"
+    preds.mkdir(exist_ok=True)
+    verts, tris, vlab, vcol = mesh["verts"], mesh["tris"], mesh["labels"], mesh["colors"]
+    world = dict(verts=verts, tris=tris, tri_lab=np.zeros(len(tris), np.int64))
+    _write_mesh(root / f"{name}_vh_clean_2.ply", verts, tris)
+    _write_mesh(root / f"{name}_vh_clean_2.labels.ply", verts, tris, vlab)
+    (H, W), (CH_, CW_) = depth_size, color_size
+    K = intrinsics(W, H, fov_deg)
+    Kc = scaled_intrinsics(K, (H, W), (CH_, CW_))
+    for fname, k in (("intrinsic_depth.txt", K), ("intrinsic_color.txt", Kc)):
+        K4 = np.eye(4)
+        K4[:3, :3] = k
+        np.savetxt(root / "intrinsic" / fname, K4)
+    r = MeshRenderer(verts, tris, np.zeros(len(tris), np.int64))
+    tri_nyu = np.asarray(vlab, np.int64)[tris[:, 0]]
+    tri_col = np.append(vcol[tris].mean(1), [[0, 0, 0]], 0).astype(np.float32)  # no hit: black
+    poses = sweep_poses(verts, n_views)
+    period = max(2 * n_views - 2, 1)
+    for i in range(n_frames):  # loop over frames: a view's files are written once, then linked
+        v = i % period
+        v = v if v < n_views else period - v
+        files = [root / "depth" / f"{i}.png", root / "color" / f"{i}.jpg", root / "pose" / f"{i}.txt",
+                 preds / f"{i}.png"]
+        if i != v:
+            for f, src in zip(files, (root / "depth" / f"{v}.png", root / "color" / f"{v}.jpg",
+                                      root / "pose" / f"{v}.txt", preds / f"{v}.png")):
+                os.link(src, f)
+            continue
+        T = poses[v]
+        depth, _, prim = r._render(K, T, W, H)
+        nyu = np.where(prim < len(tris), np.append(tri_nyu, 0)[prim], 0)
+        _, _, prim_c = r._render(Kc, T, CW_, CH_)
+        rng = np.random.default_rng([seed, v])
+        rgb = tri_col[prim_c] + rng.normal(0, 4.0, (CH_, CW_, 3))
+        Image.fromarray(np.clip(np.rint(rgb), 0, 255).astype(np.uint8)).save(files[1], quality=90)
+        _save_u16(files[0], np.rint(depth * 1000))
+        np.savetxt(files[2], _c2w(T))
+        pred = nyu.copy()
+        if mistakes > 0:  # one rectangle of a wrong class over a ``mistakes`` share of the image
+            h, w = max(1, int(H * np.sqrt(mistakes))), max(1, int(W * np.sqrt(mistakes)))
+            r0, c0 = rng.integers(0, H - h + 1), rng.integers(0, W - w + 1)
+            pred[r0:r0 + h, c0:c0 + w] = NYU[rng.integers(0, len(NYU) - 1)]
+        _save_u16(files[3], pred)
+    return root

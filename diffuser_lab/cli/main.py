@@ -19,6 +19,7 @@ from diffuser_lab.recording import make_hooks, record_result
 from diffuser_lab.recording.heap import retain_freed_memory
 from diffuser_lab.runs import launchers, report
 from diffuser_lab.runs.pipeline import reuse_scenes
+from diffuser_lab.data.frames import read_ahead
 from diffuser_lab.runs.protocols import PROTOCOLS
 from diffuser_lab.runs.resolve import resolve
 from diffuser_lab.runs.sweep import job_line, job_tag, print_table, say
@@ -140,7 +141,8 @@ def _task(cfg: Any) -> Optional[float]:
         protocol = PROTOCOLS[conf.protocol.name]
         hooks = _record_hooks(conf, run_dir, hc) if protocol.records else None
         try:
-            result = protocol.run(conf, hooks=hooks, **({"run_dir": run_dir} if protocol.run_dir else {}))
+            with read_ahead(conf.scene.read_ahead):  # every protocol's frame loops
+                result = protocol.run(conf, hooks=hooks, **({"run_dir": run_dir} if protocol.run_dir else {}))
         finally:
             if hooks is not None:
                 hooks.close()

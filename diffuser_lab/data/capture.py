@@ -11,6 +11,13 @@ calls :func:`capture_scene`, which makes
   label) image's; the intrinsics scaled to it with pixel centres aligned wherever they were given
   for another size (ScanNet's 1296x968 colour intrinsics beside 640x480 depth, 320x240 labels);
   colour resized bilinearly, labels nearest;
+- **the stated size checked against the image**: where a format states the size its K is for
+  (transforms.json ``w h``, COLMAP's cameras, a ROS CameraInfo, an intrinsics file that says it),
+  the image it describes (``CapturedFrame.K_image``, its header read, else the frame's own image)
+  must be that size or a downscale of it that keeps the aspect ratio (nerfstudio's ``images_2``,
+  Record3D's 7.5x smaller depth): K is then scaled and ``scene.frames.info["intrinsics"]`` (the
+  summary's ``capture.intrinsics``) says so; anything else is one line naming both files
+  (:func:`check_stated_size`);
 - **the cloud**: a file (``options.cloud``: PLY, LAS or LAZ; else the format's own, e.g. nerfstudio's
   ``ply_file_path`` or COLMAP's points), else the frames' depth back-projected and merged on a
   ``options.cloud_voxel`` grid (:func:`fuse_depth`);
@@ -35,15 +42,15 @@ import numpy as np
 from diffuser_lab import progress
 from diffuser_lab.config import Section, at_least, key, above
 from diffuser_lab.data.clouds import read_cloud
-from diffuser_lab.data.frames import LazyFrames
+from diffuser_lab.data.frames import FrameLoop, LazyFrames, without
 from diffuser_lab.data.geometry import backproject, scaled_intrinsics, visible_projection, voxel_downsample
 from diffuser_lab.data.mapping import ClassMapping, load_mapping, native_mapping
-from diffuser_lab.data.images import resize_bilinear, resize_nearest
+from diffuser_lab.data.images import image_size, resize_bilinear, resize_nearest
 from diffuser_lab.data.scene import IGNORE, Frame, Scene, Taxonomy
 from diffuser_lab.data.visibility import CloudDepth, MeshDepth
 
 __all__ = ["Visibility", "CaptureOptions", "CapturedFrame", "capture_scene", "carry_frame_labels",
-           "taxonomy_mapping", "to_taxonomy", "fuse_depth"]
+           "taxonomy_mapping", "to_taxonomy", "fuse_depth", "check_stated_size"]
 
 
 class Visibility(Enum):
@@ -90,6 +97,9 @@ class CapturedFrame:
         rgb: reader -> (h, w, 3) uint8 colour, any size; None = no colour.
         labels: reader -> (h, w) integer label ids (the mapping's source ids), any size; None = none.
         size: (H, W) of the frame when it has no depth (colour / label image size); None = read it.
+        K_from: where ``K_size`` is stated (the file, or the bag and its CameraInfo topic), for errors.
+        K_image: the image file ``K_size`` describes (its header is read); None = the frame's own
+            image (depth, else colour) as read.
     """
 
     name: str
@@ -100,6 +110,8 @@ class CapturedFrame:
     rgb: Optional[Callable[[], np.ndarray]] = None
     labels: Optional[Callable[[], np.ndarray]] = None
     size: Optional[tuple[int, int]] = None
+    K_from: Optional[str] = None
+    K_image: Optional[str | Path] = None
 
 
 def taxonomy_mapping(mapping, taxonomy: Taxonomy) -> Optional[ClassMapping]:
@@ -154,18 +166,13 @@ def fuse_depth(frames: Sequence[Frame], voxel_size: float, stride: int, max_dept
     scene's extent, not the number of frames.
     Returns (M, 3) float32 points and (M, 3) uint8 colours (grey 128 without colour).
     """
-    with progress.stage(f"fusing depth into a cloud ({voxel_size:g} m voxels)", total=len(frames),
-                        unit="frame") as bar:
-        return _fuse_depth_frames(frames, voxel_size, stride, max_depth, bar)
+    return _fuse_depth_frames(frames, voxel_size, stride, max_depth)
 
 
-def _fuse_depth_frames(frames: Sequence[Frame], voxel_size: float, stride: int, max_depth: float | None,
-                       bar: progress.Stage):
+def _fuse_depth_frames(frames: Sequence[Frame], voxel_size: float, stride: int, max_depth: float | None):
     acc_p, acc_c, acc_w = [], [], []
     merged_size, pending = 0, 0
-    for k in range(len(frames)):  # loop over frames
-        bar.update()
-        f = frames[k]
+    for _, f in FrameLoop(frames, f"fusing depth into a cloud ({voxel_size:g} m voxels)"):  # loop over frames
         depth = f.depth
         if max_depth is not None:
             depth = np.where(depth <= max_depth, depth, 0).astype(np.float32)
@@ -187,32 +194,57 @@ def _fuse_depth_frames(frames: Sequence[Frame], voxel_size: float, stride: int, 
     return p, np.clip(np.rint(c), 0, 255).astype(np.uint8)
 
 
-def _frame_shape(cf: CapturedFrame) -> tuple[int, int]:
-    if cf.size is not None:
-        return int(cf.size[0]), int(cf.size[1])
-    for reader in (cf.rgb, cf.labels):
-        if reader is not None:
-            return tuple(reader().shape[:2])
-    if cf.K_size is not None:
-        return int(cf.K_size[0]), int(cf.K_size[1])
-    raise ValueError(f"frame {cf.name}: no depth, colour or label image and no image size")
+def check_stated_size(K_size: tuple[int, int], image: tuple[int, int], stated_in: str, image_name: str) -> str:
+    """A size stated for K against the image it describes: equal (``""``), or the image a downscale of
+    it by one factor that keeps the aspect ratio (each side the stated one / s, rounded: a text saying
+    so); anything else is one ValueError naming both."""
+    (H, W), (h, w) = (int(K_size[0]), int(K_size[1])), (int(image[0]), int(image[1]))
+    if (h, w) == (H, W):
+        return ""
+    if 0 < h <= H and 0 < w <= W and abs(H * w / W - h) < 1.0 and abs(W * h / H - w) < 1.0:
+        return f"K stated for {W}x{H} in {stated_in}, scaled by 1/{W / w:.4g} to the {w}x{h} images"
+    raise ValueError(f"{stated_in}: K is stated for {W}x{H} (W x H) images, {image_name} is {w}x{h}: expected "
+                     f"that size or a downscale of it that keeps the aspect ratio {W / H:.4g}")
 
 
-def _build_frame(cf: CapturedFrame, mapping, taxonomy: Taxonomy, render) -> Frame:
-    """A :class:`Frame` at the depth's resolution (else the colour's), K scaled to it."""
+def _build_frame(cf: CapturedFrame, mapping, taxonomy: Taxonomy, render, skip: frozenset = frozenset(),
+                 info: Optional[dict] = None) -> Frame:
+    """A :class:`Frame` at the depth's resolution (else the colour's), K scaled to it (its stated size
+    checked first: :func:`check_stated_size`); ``skip``: parts left out (``rgb``: not read)."""
     depth = cf.depth() if cf.depth is not None else None
-    shape = depth.shape[:2] if depth is not None else _frame_shape(cf)
+    stated = cf.K_size is not None
+    seen = image_size(cf.K_image, "image") if stated and cf.K_image is not None else None  # its header
+    # without depth the frame takes the colour image's size: the stated image's header, else the image read
+    sized = depth is not None or cf.size is not None or seen is not None
+    rgb = np.asarray(cf.rgb(), np.uint8) if cf.rgb is not None and ("rgb" not in skip or not sized) else None
+    ids = np.asarray(cf.labels()) if cf.labels is not None else None
+    if depth is not None:
+        shape = depth.shape[:2]
+    elif cf.size is not None or seen is not None:
+        shape = tuple(int(v) for v in (cf.size if cf.size is not None else seen))
+    elif rgb is not None or ids is not None:
+        shape = (rgb if rgb is not None else ids).shape[:2]
+    elif stated:
+        shape = (int(cf.K_size[0]), int(cf.K_size[1]))
+    else:
+        raise ValueError(f"frame {cf.name}: no depth, colour or label image and no image size")
     K = np.array(cf.K, np.float64)
-    if cf.K_size is not None and tuple(cf.K_size) != tuple(shape):
-        K = scaled_intrinsics(K, tuple(cf.K_size), tuple(shape))
+    if stated:
+        name = str(cf.K_image) if seen is not None else \
+            f"frame {cf.name}'s {'depth' if depth is not None else 'colour'} image"
+        said = check_stated_size(cf.K_size, seen if seen is not None else shape,
+                                 cf.K_from or f"frame {cf.name}'s intrinsics", name)
+        if tuple(cf.K_size) != tuple(shape):
+            K = scaled_intrinsics(K, tuple(cf.K_size), tuple(shape))
+            if info is not None:
+                info.setdefault("intrinsics", said or f"K stated for {cf.K_size[1]}x{cf.K_size[0]} in "
+                                f"{cf.K_from or 'the intrinsics'}, scaled to the frames' {shape[1]}x{shape[0]}")
     if render is not None:  # visibility=mesh / cloud: rendered, at the depth image's size when there is one
         depth = render(K, cf.T_cw, shape)
-    rgb = None
-    if cf.rgb is not None:
-        rgb = resize_bilinear(np.asarray(cf.rgb(), np.uint8), shape)
+    rgb = resize_bilinear(rgb, shape) if rgb is not None and "rgb" not in skip else None
     gt = None
-    if cf.labels is not None:
-        gt = to_taxonomy(resize_nearest(np.asarray(cf.labels()), shape), mapping, taxonomy, f"frame {cf.name} labels")
+    if ids is not None:
+        gt = to_taxonomy(resize_nearest(ids, shape), mapping, taxonomy, f"frame {cf.name} labels")
     return Frame(name=cf.name, K=K, T_cw=np.asarray(cf.T_cw, np.float64), depth=np.asarray(depth, np.float32),
                  gt_labels=gt, rgb=rgb)
 
@@ -234,16 +266,13 @@ def carry_frame_labels(points: np.ndarray, frames: Sequence[Frame], num_classes:
     """
     n = points.shape[0]
     votes = np.zeros(n * num_classes, np.int32)
-    with progress.stage("carrying the frames' labels to the points", total=len(frames), unit="frame") as bar:
-        for i in range(len(frames)):  # loop over frames
-            bar.update()
-            f = frames[i]
-            if f.gt_labels is None:
-                continue
-            idx, rows, cols = visible_projection(points, f, depth_tol)
-            lab = f.gt_labels[rows, cols].astype(np.int64)
-            ok = lab >= 0
-            votes += np.bincount(idx[ok] * num_classes + lab[ok], minlength=n * num_classes).astype(np.int32)
+    for _, f in FrameLoop(without(frames, "rgb"), "carrying the frames' labels to the points"):  # loop over frames
+        if f.gt_labels is None:
+            continue
+        idx, rows, cols = visible_projection(points, f, depth_tol)
+        lab = f.gt_labels[rows, cols].astype(np.int64)
+        ok = lab >= 0
+        votes += np.bincount(idx[ok] * num_classes + lab[ok], minlength=n * num_classes).astype(np.int32)
     votes = votes.reshape(n, num_classes)
     total = votes.sum(1)
     labels = np.where(total > 0, votes.argmax(1), IGNORE).astype(np.int16)
@@ -297,12 +326,17 @@ def capture_scene(name: str, frames: Sequence[CapturedFrame], options: CaptureOp
     if mapping is not None:
         taxonomy = mapping.target
     has_depth = all(f.depth is not None for f in frames)
+    first = frames[0]
+    if first.K_size is not None and first.K_image is not None:  # the stated size against the first image, now
+        check_stated_size(first.K_size, image_size(first.K_image, "image"), first.K_from or f"frame {first.name}'s "
+                          f"intrinsics", str(first.K_image))
     if options.cloud:
         with progress.stage(f"reading point cloud {Path(options.cloud).name}"):
             cloud = read_cloud(options.cloud)
     info = dict(info or {})
-    plain = LazyFrames([f.name for f in frames], lambda i: _build_frame(frames[i], mapping, taxonomy, None),
-                       info=info)
+    names, poses = [f.name for f in frames], [np.asarray(f.T_cw, np.float64) for f in frames]
+    plain = LazyFrames(names, lambda i, skip: _build_frame(frames[i], mapping, taxonomy, None, skip, info),
+                       info=info, poses=poses, parts=("rgb",))
     if cloud is None:
         if not has_depth:
             raise ValueError(f"{root}: frames have no depth images and no cloud is given "
@@ -318,7 +352,8 @@ def capture_scene(name: str, frames: Sequence[CapturedFrame], options: CaptureOp
     text, render = _renderer(options, points, has_depth, root)
     info["visibility"] = text
     out = plain if render is None else LazyFrames(
-        [f.name for f in frames], lambda i: _build_frame(frames[i], mapping, taxonomy, render), info=info)
+        names, lambda i, skip: _build_frame(frames[i], mapping, taxonomy, render, skip, info), info=info,
+        poses=poses, parts=("rgb",))
     gt = None
     if cloud.get("labels") is not None:
         gt = to_taxonomy(np.asarray(cloud["labels"]), mapping, taxonomy, f"{cloud.get('source', 'cloud')} labels")

@@ -281,3 +281,25 @@ def load_queries(path: str | Path, dim: int | None = None) -> tuple[list[str], n
         raise ValueError(f"{path}: names of shape {names.shape} dtype {names.dtype}, expected a (Q,) array of strings")
     names = [n.decode("utf-8") if isinstance(n, bytes) else str(n) for n in names.tolist()]
     return check_queries(names, emb, str(path), dim)
+
+
+def query_dim(queries: str | Path | None, encoder: str | None, names: Sequence[str]) -> int | None:
+    """D of a run's queries before any frame is read: a query file's embeddings (``predictions.queries``,
+    read), else a text encoder's output on ``names`` (``predictions.encoder``: ``module.fn``, called
+    once on the names); None without either (the simulated network's prototypes take the frames' D)
+    or when the encoder cannot say (the run's queries then report why, with the frames' D)."""
+    if queries:
+        return int(load_queries(queries)[1].shape[1])
+    if not encoder:
+        return None
+    import importlib
+
+    module, _, name = str(encoder).rpartition(".")
+    try:
+        out = getattr(importlib.import_module(module), name)([str(n) for n in names])
+        if hasattr(out, "detach"):  # a torch tensor
+            out = out.detach().float().cpu().numpy()
+        shape = np.shape(out)
+    except Exception:  # noqa: BLE001 - the queries' own loading names the encoder and its error
+        return None
+    return int(shape[1]) if len(shape) == 2 else None

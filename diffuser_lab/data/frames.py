@@ -21,18 +21,77 @@ Two dicts travel with a sequence: ``info``, the loader's statistics (frames foun
 pipeline (every frame), the online runner (every frame, a bad one skipped or stopping the run) and
 the single-frame protocol (target frames, each with the window of frames around it) iterate their
 frames through it; only the current window stays in memory.
+
+**Read-ahead.** A loop over a :class:`LazyFrames` decodes the frames it will need next on a pool of
+threads (:class:`concurrent.futures.ThreadPoolExecutor`; Pillow's decoders, zlib and numpy release the
+GIL), at most ``read_ahead`` frames ahead of the one in use, and hands them out in order: the frames and
+everything computed from them are those of one thread (each frame is computed from its index alone, the
+rule above); an error is raised when the loop reaches its frame, as it would be in one thread. The depth
+is the run's ``scene.read_ahead`` (:func:`read_ahead`; null: twice the cores this process may use;
+0 = one thread). A per-frame function that keeps state (a network, its cache) is made ``serial``
+(:meth:`LazyFrames.mapped`): one thread at a time runs it, the decoding around it still overlaps.
+
+**Parts a loop does not read.** :meth:`LazyFrames.without` gives the frames without some of their
+parts (``rgb``): a source that declares the part optional does not read it (a ScanNet export's
+1296x968 colour JPEG is two thirds of its decoding); the batch pipeline asks for colour only when
+its predictions or records read it.
+
+**Poses up front.** A source that knows its poses before reading its images gives them
+(``poses=``, world-to-camera); they follow the frames through :meth:`~LazyFrames.mapped`,
+:meth:`~LazyFrames.subset` and slices, so :func:`keyframes` picks frames without decoding any.
 """
 from __future__ import annotations
 
+import contextlib
+import dataclasses
+import os
+import threading
 import time
 import warnings
-from typing import Callable, Iterator, Optional, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
+from typing import Callable, Iterable, Iterator, Optional, Sequence
+
+import numpy as np
 
 from diffuser_lab import progress
 
 from .scene import Frame
 
-__all__ = ["LazyFrames", "FrameLoop", "first_line", "index_of"]
+__all__ = ["LazyFrames", "FrameLoop", "first_line", "index_of", "poses_of", "without", "keyframes", "read_ahead",
+           "cores", "OPTIONAL_PARTS"]
+
+OPTIONAL_PARTS = ("rgb",)
+"""The frame parts a loop may do without (:meth:`LazyFrames.without`)."""
+
+
+def cores() -> int:
+    """The CPU cores this process may run on (its affinity mask; ``os.cpu_count()`` where there is none)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+_READ_AHEAD: list[Optional[int]] = [None]  # the run's scene.read_ahead (None: from the cores)
+
+
+@contextlib.contextmanager
+def read_ahead(depth: Optional[int]) -> Iterator[None]:
+    """The frame loops started inside read ``depth`` frames ahead (the run's ``scene.read_ahead``;
+    None: :func:`default_read_ahead`; 0: one thread)."""
+    old = _READ_AHEAD[0]
+    _READ_AHEAD[0] = depth
+    try:
+        yield
+    finally:
+        _READ_AHEAD[0] = old
+
+
+def default_read_ahead() -> int:
+    """Frames read ahead when the run does not say: twice the cores (a frame waiting for each core
+    while each core decodes one), 0 on one core."""
+    n = cores()
+    return 2 * n if n > 1 else 0
 
 
 class LazyFrames(Sequence[Frame]):
@@ -41,13 +100,21 @@ class LazyFrames(Sequence[Frame]):
     Args:
         n: the number of frames, or the frames' names (kept as ``names``: a source's frames
             are known by name before any is read).
-        load: ``i -> Frame`` for ``0 <= i < n``.
+        load: ``i -> Frame`` for ``0 <= i < n``; with ``parts``, ``(i, skip) -> Frame`` where ``skip``
+            (a frozenset of those parts) are left out (None) and not read.
         info: the loader's statistics (kept by reference: a loader may add to it).
         stats: what ``load`` counts as frames are read (kept by reference).
+        poses: the frames' (4, 4) world-to-camera poses when known without reading them (kept as
+            ``poses``; :func:`keyframes`), else None.
+        parts: the optional parts (:data:`OPTIONAL_PARTS`) ``load`` can leave out.
+
+    Item i may be read from several threads at once (:class:`FrameLoop`'s read-ahead): ``load``
+    must be safe to call so (it reads files; state it keeps goes behind a lock).
     """
 
-    def __init__(self, n: int | Sequence[str], load: Callable[[int], Frame], *, info: Optional[dict] = None,
-                 stats: Optional[dict] = None):
+    def __init__(self, n: int | Sequence[str], load: Callable[..., Frame], *, info: Optional[dict] = None,
+                 stats: Optional[dict] = None, poses: Optional[Sequence[np.ndarray]] = None,
+                 parts: Iterable[str] = ()):
         if isinstance(n, int):
             self.names: Optional[list[str]] = None
             self._n = n
@@ -60,17 +127,28 @@ class LazyFrames(Sequence[Frame]):
         self.fn: Optional[Callable[[int, Frame], Frame]] = None  # mapped(): the per-frame function
         # the frames' indices in the sequence they were cut from (subset()); None = their positions
         self.source_index: Optional[list[int]] = None
+        self.poses: Optional[list[np.ndarray]] = None if poses is None else list(poses)
+        if self.poses is not None and len(self.poses) != self._n:
+            raise ValueError(f"{len(self.poses)} poses for {self._n} frames")
+        self._parts = frozenset(parts)  # what load can leave out
+        self._skip: frozenset = frozenset()  # what this sequence's frames leave out (without())
+        self._derive: Optional[Callable[[frozenset], "LazyFrames"]] = None  # without() of a derived sequence
 
     @classmethod
     def mapped(cls, frames: Sequence[Frame], fn: Callable[[int, Frame], Frame], *, stats: Optional[dict] = None,
-               info: Optional[dict] = None) -> "LazyFrames":
+               info: Optional[dict] = None, serial: bool = False) -> "LazyFrames":
         """Item i is ``fn(j, frames[i])`` (predictions attached, depth corrupted, ...) where j is the
         frame's index in the whole sequence (``frames.source_index[i]`` for a subset, else i); ``fn`` is kept
-        as the sequence's ``fn`` (e.g. a network predictor, with its model once built)."""
+        as the sequence's ``fn`` (e.g. a network predictor, with its model once built). ``serial``: ``fn``
+        keeps state (a network, its cache): one thread at a time runs it (``frames[i]`` is still read
+        beside it by the others)."""
+        if serial and not getattr(fn, "_serial", False):
+            fn = _serialised(fn)
         ids = index_of(frames)
         out = cls(len(frames), (lambda i: fn(i, frames[i])) if ids is None else (lambda i: fn(ids[i], frames[i])),
-                  info=info, stats=stats)
+                  info=info, stats=stats, poses=poses_of(frames))
         out.fn, out.source_index = fn, ids
+        out._derive = lambda skip: cls.mapped(without(frames, *skip), fn, stats=out.stats, info=out.info)
         return out
 
     @classmethod
@@ -78,10 +156,28 @@ class LazyFrames(Sequence[Frame]):
         """Item i is ``frames[keep[i]]``; its ``source_index`` is that frame's index in the whole sequence."""
         keep = [int(k) for k in keep]
         names = getattr(frames, "names", None)
+        poses = poses_of(frames)
         out = cls([names[k] for k in keep] if names is not None else len(keep), lambda i: frames[keep[i]],
-                  info=info)
+                  info=info, poses=None if poses is None else [poses[k] for k in keep])
         ids = index_of(frames)
         out.source_index = keep if ids is None else [ids[k] for k in keep]
+        out._derive = lambda skip: cls.subset(without(frames, *skip), keep, info=out.info)
+        return out
+
+    def without(self, *parts: str) -> "LazyFrames":
+        """These frames without ``parts`` (of :data:`OPTIONAL_PARTS`: None in every frame), not read
+        where the source can leave them out; the same names, poses, indices and statistics."""
+        bad = [p for p in parts if p not in OPTIONAL_PARTS]
+        if bad:
+            raise ValueError(f"frame parts {bad}: expected some of {', '.join(OPTIONAL_PARTS)}")
+        skip = frozenset(parts) | self._skip
+        if skip == self._skip:
+            return self
+        if self._derive is not None:
+            return self._derive(skip)
+        out = LazyFrames(self.names if self.names is not None else self._n, self._load, info=self.info,
+                         stats=self.stats, poses=self.poses, parts=self._parts)
+        out.fn, out.source_index, out._skip = self.fn, self.source_index, skip
         return out
 
     def __len__(self) -> int:
@@ -91,13 +187,20 @@ class LazyFrames(Sequence[Frame]):
         if isinstance(i, slice):  # a lazy subset with the same names and statistics
             idx = range(self._n)[i]
             names = [self.names[k] for k in idx] if self.names is not None else len(idx)
-            out = LazyFrames(names, lambda k: self._load(idx[k]), info=self.info, stats=self.stats)
+            out = LazyFrames(names, lambda k: self[idx[k]], info=self.info, stats=self.stats,
+                             poses=None if self.poses is None else [self.poses[k] for k in idx])
             # a slice of a whole sequence is a sequence of its own (its frames counted from 0, as before)
             out.source_index = None if self.source_index is None else [self.source_index[k] for k in idx]
+            out._derive = lambda skip: self.without(*skip)[i]
             return out
         if not -self._n <= i < self._n:
             raise IndexError(f"frame index {i} out of range for {self._n} frames")
-        return self._load(i % self._n)
+        i %= self._n
+        if not self._skip:
+            return self._load(i, skip=frozenset()) if self._parts else self._load(i)
+        f = self._load(i, skip=self._skip & self._parts) if self._parts else self._load(i)
+        left = [p for p in self._skip if getattr(f, p) is not None]  # parts the source read anyway
+        return dataclasses.replace(f, **{p: None for p in left}) if left else f
 
     def __repr__(self) -> str:
         return f"LazyFrames({self._n} frames)"
@@ -109,13 +212,75 @@ def index_of(frames: Sequence[Frame]) -> Optional[list[int]]:
     return getattr(frames, "source_index", None)
 
 
+def poses_of(frames: Sequence[Frame]) -> Optional[list[np.ndarray]]:
+    """The frames' (4, 4) world-to-camera poses without reading their images: a list's own, a
+    :class:`LazyFrames`' ``poses`` (None when its source does not know them up front)."""
+    if isinstance(frames, LazyFrames):
+        return frames.poses
+    if isinstance(frames, (list, tuple)):
+        return [f.T_cw for f in frames]
+    return None
+
+
+def without(frames: Sequence[Frame], *parts: str) -> Sequence[Frame]:
+    """``frames`` without ``parts`` (:meth:`LazyFrames.without`); a list is returned as it is (its
+    frames are in memory already)."""
+    return frames.without(*parts) if isinstance(frames, LazyFrames) and parts else frames
+
+
+def _serialised(fn: Callable[[int, Frame], Frame]) -> Callable[[int, Frame], Frame]:
+    """``fn`` behind a lock (one thread at a time), keeping its attributes (a predictor's ``stats``)."""
+    lock = threading.Lock()
+
+    class Serial:
+        _serial = True
+
+        def __call__(self, i: int, f: Frame) -> Frame:
+            with lock:
+                return fn(i, f)
+
+        def __getattr__(self, name):
+            return getattr(fn, name)
+
+    return Serial()
+
+
+def keyframes(frames: Sequence[Frame], translation: Optional[float], rotation_deg: Optional[float]) -> list[int]:
+    """The indices of the frames a keyframe rule keeps: the first frame, then each frame whose camera
+    moved at least ``translation`` metres or turned at least ``rotation_deg`` degrees since the last
+    frame kept (a None threshold is not used; both None: every frame). The poses come from
+    :func:`poses_of` when the source knows them (nothing is decoded), else from reading the frames
+    (through :class:`FrameLoop`)."""
+    n = len(frames)
+    if translation is None and rotation_deg is None:
+        return list(range(n))
+    poses = poses_of(frames)
+    if poses is None:
+        poses = [f.T_cw for _, f in FrameLoop(frames, "keyframes: reading the poses")]
+    T = np.asarray(poses, np.float64).reshape(n, 4, 4)
+    R, t = T[:, :3, :3], T[:, :3, 3]
+    centres = -np.einsum("nji,nj->ni", R, t)  # camera centres: -R^T t
+    cos_min = np.cos(np.deg2rad(rotation_deg)) if rotation_deg is not None else None
+    kept, last = [0], 0
+    for i in range(1, n):  # loop over frames: one comparison with the last kept each
+        moved = translation is not None and np.linalg.norm(centres[i] - centres[last]) >= translation - 1e-9
+        if not moved and cos_min is not None:  # the angle of R_i R_last^T: trace = 1 + 2 cos(angle)
+            c = (np.einsum("ij,ij->", R[i], R[last]) - 1.0) / 2.0
+            moved = c <= cos_min + 1e-9
+        if moved:
+            kept.append(i)
+            last = i
+    return kept
+
+
 def first_line(exc: BaseException) -> str:
     """An error's first line (its type's name when it has no message)."""
     return (str(exc).strip().splitlines() or [type(exc).__name__])[0]
 
 
 class FrameLoop:
-    """Iterate ``(index, frame)`` over ``frames`` (a lazy sequence) under a progress line ``label``.
+    """Iterate ``(index, frame)`` over ``frames`` (a lazy sequence) under a progress line ``label``,
+    the frames it will need next read ahead on a pool of threads (module doc).
 
     Args:
         targets: the frame indices to visit, in order (default: every frame).
@@ -125,24 +290,34 @@ class FrameLoop:
             makes the frame bad.
         skip_bad: a bad frame is skipped with one warning line (``"<warn_prefix>frame i skipped:
             <reason>"``) and ``on_skip(index, reason)`` is called; False: the error stops the loop.
-        note: called with the frame's index before it is yielded; what it returns (if anything)
-            is shown beside the progress bar.
+        read_ahead: frames read ahead of the one in use (None: the run's, :func:`read_ahead`;
+            0: each frame read when it is needed, in this thread). A list of frames is never read ahead.
 
     Attributes:
-        read_s: seconds spent loading and checking target frames (their predictions included).
+        read_s: seconds this thread spent loading (or waiting for) and checking target frames
+            (their predictions included): with read-ahead, only what the other threads did not hide.
         bar: the progress stage (its ``note`` may be called inside the loop).
     """
 
     def __init__(self, frames: Sequence[Frame], label: str, *, targets: Optional[Sequence[int]] = None,
                  window: int = 1, check: Optional[Callable[[Frame], None]] = None, skip_bad: bool = False,
-                 warn_prefix: str = "", on_skip: Optional[Callable[[int, str], None]] = None):
+                 warn_prefix: str = "", on_skip: Optional[Callable[[int, str], None]] = None,
+                 read_ahead: Optional[int] = None):
         self.frames, self.label = frames, label
         self.targets = list(range(len(frames))) if targets is None else list(targets)
         self.window = max(1, int(window))
         self.check, self.skip_bad, self.warn_prefix, self.on_skip = check, skip_bad, warn_prefix, on_skip
+        depth = read_ahead if read_ahead is not None else _READ_AHEAD[0]
+        self.read_ahead = 0 if not isinstance(frames, LazyFrames) else (
+            default_read_ahead() if depth is None else max(0, int(depth)))
         self.read_s = 0.0
         self.bar = progress.Stage()
         self._cache: dict[int, Frame] = {}
+        self._pending: dict[int, tuple[int, Future]] = {}  # frame index -> (its place in the schedule, its read)
+        self._seq = 0
+        self._keep: set[int] = set()
+        self._schedule: Optional[Iterator[int]] = None
+        self._pool: Optional[ThreadPoolExecutor] = None
 
     def __len__(self) -> int:
         return len(self.targets)
@@ -154,10 +329,44 @@ class FrameLoop:
         start = min(max(i - w // 2, 0), n - w)
         return list(range(start, start + w))
 
+    def _reads(self) -> Iterator[int]:
+        """The frame indices in the order the loop will first need them: each target, then the rest of
+        its window (what a frame kept from the last window does not need again)."""
+        held: set[int] = set()
+        for i in self.targets:  # loop over targets: the cache the loop keeps, replayed
+            need = [i] + [j for j in self.window_of(i) if j != i] if self.window > 1 else [i]
+            held &= set(need)
+            for j in need:
+                if j not in held:
+                    held.add(j)
+                    yield j
+
+    def _fill(self) -> None:
+        """Schedule reads until ``read_ahead`` are pending."""
+        while self._schedule is not None and len(self._pending) < self.read_ahead:
+            j = next(self._schedule, None)
+            if j is None:
+                self._schedule = None
+                return
+            if j not in self._pending:
+                self._seq += 1
+                self._pending[j] = (self._seq, self._pool.submit(self.frames.__getitem__, j))
+
     def _frame(self, j: int) -> Frame:
-        if j not in self._cache:
-            self._cache[j] = self.frames[j]
-        return self._cache[j]
+        if j in self._cache:
+            return self._cache[j]
+        got = self._pending.pop(j, None)
+        if got is None:
+            f = self.frames[j]
+        else:
+            # reads scheduled before this one for frames the loop no longer holds: the caller went on
+            # without them (a target it left without reading its window); dropped, read again if asked
+            for k in [k for k, (seq, _) in self._pending.items() if seq < got[0] and k not in self._keep]:
+                self._pending.pop(k)[1].cancel()
+            f = got[1].result()
+        self._cache[j] = f
+        self._fill()
+        return f
 
     def window_frames(self, i: int) -> list[Frame]:
         """The frames of :meth:`window_of` (read once, kept while the window holds them)."""
@@ -165,28 +374,42 @@ class FrameLoop:
 
     def __iter__(self) -> Iterator[tuple[int, Frame]]:
         unit = "frame"
-        with progress.stage(self.label, total=len(self.targets), unit=unit) as bar:
-            self.bar = bar
-            for i in self.targets:
-                t0 = time.perf_counter()
-                keep = set(self.window_of(i)) if self.window > 1 else {i}
-                for j in [j for j in self._cache if j not in keep]:  # only the current window in memory
-                    del self._cache[j]
-                try:
-                    f = self._frame(i)
-                    if self.check is not None:
-                        self.check(f)
-                except (ValueError, OSError) as exc:
-                    if not self.skip_bad:
-                        raise
-                    msg = first_line(exc)
-                    warnings.warn(f"{self.warn_prefix}frame {i} skipped: {msg}", stacklevel=2)
-                    self._cache.pop(i, None)
-                    if self.on_skip is not None:
-                        self.on_skip(i, msg)
+        threads = min(self.read_ahead, cores())
+        if self.read_ahead > 0 and threads > 0 and len(self.targets) > 1:
+            self._pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="frames")
+            self._schedule = self._reads()
+        try:
+            with progress.stage(self.label, total=len(self.targets), unit=unit) as bar:
+                self.bar = bar
+                for i in self.targets:
+                    t0 = time.perf_counter()
+                    self._keep = set(self.window_of(i)) if self.window > 1 else {i}
+                    for j in [j for j in self._cache if j not in self._keep]:  # only the current window in memory
+                        del self._cache[j]
+                    self._fill()
+                    try:
+                        f = self._frame(i)
+                        if self.check is not None:
+                            self.check(f)
+                    except (ValueError, OSError) as exc:
+                        if not self.skip_bad:
+                            raise
+                        msg = first_line(exc)
+                        warnings.warn(f"{self.warn_prefix}frame {i} skipped: {msg}", stacklevel=2)
+                        self._cache.pop(i, None)
+                        if self.on_skip is not None:
+                            self.on_skip(i, msg)
+                        bar.update()
+                        continue
+                    self.read_s += time.perf_counter() - t0
+                    yield i, f
                     bar.update()
-                    continue
-                self.read_s += time.perf_counter() - t0
-                yield i, f
-                bar.update()
+        finally:
             self._cache.clear()
+            if self._pool is not None:
+                for _, fut in self._pending.values():
+                    fut.cancel()
+                self._pending.clear()
+                self._schedule = None
+                self._pool.shutdown(wait=True, cancel_futures=True)
+                self._pool = None

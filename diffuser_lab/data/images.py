@@ -1,16 +1,36 @@
 """Depth, colour and label images and ``.npy``/``.npz`` arrays shared by the capture formats and the
 prediction files, each checked against what its header declares before it is decoded, and the one
 resize of every image: :func:`resize_nearest` for label ids, depth and masks (values kept),
-:func:`resize_bilinear` for colour and class probabilities (Pillow's bilinear)."""
+:func:`resize_bilinear` for colour and class probabilities (Pillow's bilinear).
+
+:func:`open_image` is the one image reader: every image a capture holds (PNG, PGM/PPM, JPEG, TIFF,
+any format Pillow reads; a ROS message's compressed bytes too) is opened through it. Pillow reads
+the header first; before a pixel is decoded the declared size is checked: at most
+:func:`max_pixels` pixels (Pillow's ``Image.MAX_IMAGE_PIXELS``, 89 million: 70 times a 1296x968
+colour image), and no more pixel bytes than the file's bytes can hold (raw PGM/PPM/TIFF data: the
+bytes themselves; PNG: deflate's 1,032 : 1; TIFF strips: 1,400 : 1, LZW's bound; JPEG: an 8x8
+block per 1/8 bit). A file that declares more, is truncated or unreadable is one ValueError naming
+it and what was expected (Pillow's own "decompression bomb" error included). :func:`image_size`
+reads a header's size alone (the cross-file checks of :mod:`diffuser_lab.data.capture`).
+EXR is read by no format (``scene=templates`` refuses ``.exr`` depth with one line)."""
 from __future__ import annotations
 
+import io
+import math
+import re
+import threading
+import warnings
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Union
 
 import numpy as np
 
-__all__ = ["read_depth_png", "read_rgb", "read_label_png", "label_ids_in", "read_array", "open_image", "resize_nearest",
-           "resize_bilinear"]
+__all__ = ["read_depth_png", "read_rgb", "read_label_png", "label_ids_in", "read_array", "open_image", "image_size",
+           "max_pixels", "resize_nearest", "resize_bilinear"]
+
+Source = Union[str, Path, bytes]
+"""An image file's path, or an image's bytes (a ROS CompressedImage's)."""
 
 
 def resize_nearest(img: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -58,47 +78,147 @@ def resize_bilinear(img: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
-def _check_png_chunks(path: Path, what: str) -> None:
+def _check_png_chunks(fh, size: int, where: str, what: str) -> None:
     """A PNG's chunk lengths (big-endian uint32 before each chunk's type) against the file's size,
     before Pillow reads them: Pillow reads a chunk it skips at its declared length in one call, so a
     damaged length after the pixels asked for up to 4 GiB (MemoryError, no file named). One line
     naming the file and the chunk; nothing for another format. A loop over chunks, not pixels."""
-    size = path.stat().st_size
-    with open(path, "rb") as fh:
-        if fh.read(8) != _PNG_MAGIC:
-            return
-        pos = 8
-        while pos + 8 <= size:  # loop over chunks (tens to a few thousand)
-            fh.seek(pos)
-            head = fh.read(8)
-            n, kind = int.from_bytes(head[:4], "big"), head[4:]
-            if n > 2**31 - 1 or pos + 12 + n > size:
-                raise ValueError(f"{path}: {what}: PNG chunk {kind!r} at byte {pos:,} says {n:,} bytes; the file "
-                                 f"has {size - pos - 12:,} after its header (truncated or damaged)")
-            if kind == b"IEND":
-                return
-            pos += 12 + n
+    fh.seek(0)
+    if fh.read(8) != _PNG_MAGIC:
+        fh.seek(0)
+        return
+    pos = 8
+    while pos + 8 <= size:  # loop over chunks (tens to a few thousand)
+        fh.seek(pos)
+        head = fh.read(8)
+        n, kind = int.from_bytes(head[:4], "big"), head[4:]
+        if n > 2**31 - 1 or pos + 12 + n > size:
+            raise ValueError(f"{where}: {what}: PNG chunk {kind!r} at byte {pos:,} says {n:,} bytes; the file "
+                             f"has {size - pos - 12:,} after its header (truncated or damaged)")
+        if kind == b"IEND":
+            break
+        pos += 12 + n
+    fh.seek(0)
+
+
+def max_pixels() -> int | None:
+    """The most pixels an image may declare: Pillow's ``Image.MAX_IMAGE_PIXELS`` (None: no cap)."""
+    from PIL import Image
+
+    return Image.MAX_IMAGE_PIXELS
+
+
+# the bound on decoded bytes per byte of the file for each of Pillow's compressed decoders (module doc)
+_RATIO = {"zip": 1032, "libtiff": 1400}
+_CODEC = {"zip": "deflated (PNG)", "libtiff": "compressed TIFF"}
+
+
+def _bits(rawmode: str, mode: str) -> int | None:
+    """Bits per pixel of a Pillow raw mode ("I;16B": 16, "RGB": 24, "L;4": 4); None when unknown."""
+    from PIL import ImageMode
+
+    base, _, rest = str(rawmode).partition(";")
+    try:
+        info = ImageMode.getmode(base if base else mode)
+    except KeyError:
+        return None
+    digits = "".join(c for c in rest if c.isdigit())
+    if digits:
+        return int(digits) * (len(info.bands) if int(digits) >= 8 else 1)
+    return 1 if info.mode == "1" else len(info.bands) * np.dtype(info.typestr).itemsize * 8
+
+
+def _check_declared(im, size: int, where: str, what: str) -> None:
+    """The size ``im``'s header declares against the cap and the file's ``size`` bytes (module doc)."""
+    w, h = im.size
+    cap = max_pixels()
+    if w <= 0 or h <= 0 or (cap is not None and w * h > cap):
+        raise ValueError(f"{where}: {what} declares {w:,} x {h:,} pixels, expected at most {cap:,} "
+                         f"(Image.MAX_IMAGE_PIXELS): a damaged or lying header")
+    for tile in getattr(im, "tile", None) or []:  # loop over the file's tiles / strips (one to hundreds)
+        codec, box, offset, args = tile[0], tile[1], int(tile[2] or 0), tile[3]
+        tw, th = box[2] - box[0], box[3] - box[1]
+        rawmode = args[0] if isinstance(args, tuple) else args
+        bits = _bits(rawmode, im.mode) if isinstance(rawmode, str) else None
+        left = size - offset
+        if codec == "raw" and bits is not None and im.format in ("PPM", "TIFF"):
+            need = math.ceil(tw * bits / 8) * th
+            how = "raw pixel data"
+        elif codec in _RATIO and bits is not None:
+            need = math.ceil(math.ceil(tw * bits / 8) * th / _RATIO[codec])
+            how = f"{_CODEC[codec]} data, at most {_RATIO[codec]:,}:1,"
+        elif codec == "jpeg":
+            need = math.ceil(math.ceil(tw / 8) * math.ceil(th / 8) / 64)
+            how = "JPEG data, 1/8 bit per 8x8 block at least,"
+        else:
+            continue
+        if need > left:
+            raise ValueError(f"{where}: {what} declares {w:,} x {h:,} pixels ({im.format} {im.mode}): {how} needs "
+                             f"{need:,} bytes, the file has {max(left, 0):,} (a damaged or lying header)")
 
 
 @contextmanager
-def open_image(path: str | Path, what: str):
-    """PIL image of ``path`` whose pixels are loaded; an unreadable, truncated or corrupt file
-    is one ValueError naming it (Pillow raises OSError and friends)."""
+def open_image(source: Source, what: str, name: str | None = None):
+    """PIL image of ``source`` (a file, or an image's bytes named ``name``) whose pixels are loaded,
+    its declared size checked before they are decoded (module doc); an unreadable, truncated,
+    corrupt or lying file is one ValueError naming it (Pillow raises OSError, its decompression-bomb
+    error and friends)."""
     from PIL import Image, UnidentifiedImageError
 
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{what} {path} does not exist")
-    _check_png_chunks(path, what)
+    im, where = _opened(source, what, name)
     try:
-        im = Image.open(path)
         im.load()
-    except (OSError, UnidentifiedImageError, SyntaxError, ValueError) as exc:
-        raise ValueError(f"{path}: unreadable {what} ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
+    except (OSError, UnidentifiedImageError, SyntaxError, ValueError, MemoryError, EOFError,
+            Image.DecompressionBombError) as exc:
+        im.close()
+        raise ValueError(f"{where}: unreadable {what} ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
     with im:
         yield im
 
 
+def image_size(source: Source, what: str, name: str | None = None) -> tuple[int, int]:
+    """(H, W) an image's header declares, checked as :func:`open_image` checks it, no pixel decoded."""
+    im, _ = _opened(source, what, name)
+    with im:
+        return int(im.size[1]), int(im.size[0])
+
+
+_QUIET = threading.Lock()  # warnings.catch_warnings is process-wide: one reader's at a time
+
+
+def _opened(source: Source, what: str, name: str | None):
+    """(the lazily opened PIL image, the name errors give), its declared size checked."""
+    from PIL import Image, UnidentifiedImageError
+
+    if isinstance(source, (bytes, bytearray, memoryview)):
+        where, size = name or "<image bytes>", len(source)
+        fh = io.BytesIO(bytes(source))
+        _check_png_chunks(fh, size, where, what)
+    else:
+        path = Path(source)
+        where = str(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"{what} {path} does not exist")
+        size = path.stat().st_size
+        with open(path, "rb") as chunks:
+            _check_png_chunks(chunks, size, where, what)
+        fh = path  # Pillow opens (and closes) the file itself
+    try:
+        with _QUIET, warnings.catch_warnings():  # the size is refused below in one line, not warned of
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            im = Image.open(fh)
+    except Image.DecompressionBombError as exc:  # over twice the cap: Pillow's own sentence names no file
+        n = re.search(r"\((\d+) pixels\)", str(exc))
+        raise ValueError(f"{where}: {what} declares {int(n.group(1)) if n else 0:,} pixels, expected at most "
+                         f"{max_pixels() or 0:,} (Image.MAX_IMAGE_PIXELS): a damaged or lying header") from None
+    except (OSError, UnidentifiedImageError, SyntaxError, ValueError, EOFError, MemoryError) as exc:
+        raise ValueError(f"{where}: unreadable {what} ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
+    try:
+        _check_declared(im, size, where, what)
+    except ValueError:
+        im.close()
+        raise
+    return im, where
 
 
 def read_depth_png(path: str | Path, depth_scale: float, bit_shift: int = 0,
@@ -119,15 +239,20 @@ def read_depth_png(path: str | Path, depth_scale: float, bit_shift: int = 0,
         raw = np.asarray(im)
     if raw.ndim != 2 or raw.dtype.kind not in "ui" or raw.dtype.itemsize < 2:
         raise ValueError(f"{path}: depth image of dtype {raw.dtype} shape {raw.shape}, expected single-channel 16-bit")
-    raw = raw.astype(np.uint32) & 0xFFFF
-    bad = np.isin(raw, np.asarray(invalid, np.uint32))
+    if raw.dtype != np.uint16 or bit_shift:  # 16 bits of a wider type (a 16-bit PGM reads as int32), shifts
+        raw = raw.astype(np.uint32) & 0xFFFF
+    bad = None
+    for v in invalid:  # the raw values meaning "no depth" (one or two): a comparison each
+        if 0 <= int(v) <= 0xFFFF:
+            bad = (raw == v) if bad is None else bad | (raw == v)
     if bit_shift and shift_kind == "plain":
         raw = raw >> int(bit_shift)
     elif bit_shift:
         s = int(bit_shift) % 16
         raw = ((raw >> s) | (raw << (16 - s))) & 0xFFFF  # 16-bit rotate right
-    depth = raw.astype(np.float32) / np.float32(depth_scale)
-    depth[bad] = 0.0
+    depth = np.divide(raw, np.float32(depth_scale), dtype=np.float32)
+    if bad is not None:
+        depth[bad] = 0.0
     return depth
 
 
@@ -139,14 +264,18 @@ def read_rgb(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndarr
     return rgb if shape is None else resize_bilinear(rgb, shape)
 
 
-def read_label_png(path: str | Path) -> np.ndarray:
-    """Single-channel label image -> (H, W) int64 ids (8/16-bit grey, 32-bit int, or palette indices)."""
+def read_label_png(path: str | Path, stored: bool = False) -> np.ndarray:
+    """Single-channel label image -> (H, W) int64 ids (8/16-bit grey, 32-bit int, or palette indices);
+    ``stored``: in the integer type the image holds them (uint8 / uint16 / int32: a mapping's lookup
+    reads them as they are)."""
     path = Path(path)
     with open_image(path, "label image") as im:
         if im.mode not in ("L", "P", "I", "I;16", "I;16B", "I;16L"):
             raise ValueError(f"{path}: label image mode {im.mode}, expected single-channel 8/16-bit ids "
                              f"(grey or palette), not colour-coded labels")
         arr = np.asarray(im)
+    if stored:
+        return arr if arr.dtype.kind in "iu" and arr.dtype.byteorder in "=|" else arr.astype(arr.dtype.newbyteorder("="))
     return arr.astype(np.int64)
 
 

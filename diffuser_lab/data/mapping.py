@@ -28,6 +28,9 @@ _HEADER = ["source_id", "source_name", "target"]
 _IGNORE_WORDS = {"", "ignore"}
 
 
+_OUTSIDE = np.int16(-32768)  # apply()'s fast table: an id the table does not list
+
+
 @dataclass
 class ClassMapping:
     """Lookup table from source class ids to target class ids.
@@ -60,6 +63,18 @@ class ClassMapping:
                              f"0..{self.target.num_classes - 1} of taxonomy {self.target.name}")
         self.known = np.array([n is not None for n in self.source_names], bool)
 
+    def _table(self, dtype) -> np.ndarray:
+        """The lookup over every value of a small unsigned ``dtype``: target id, IGNORE, or
+        ``_OUTSIDE`` for an id the table does not list (built once per dtype)."""
+        key = np.dtype(dtype).str
+        cache = self.__dict__.setdefault("_tables", {})
+        if key not in cache:
+            t = np.full(np.iinfo(dtype).max + 1, _OUTSIDE, np.int16)
+            n = min(self.num_source, t.size)
+            t[:n] = np.where(self.known[:n], self.lut[:n], _OUTSIDE)
+            cache[key] = t
+        return cache[key]
+
     @property
     def num_source(self) -> int:
         """Size S of the table (largest listed source id + 1)."""
@@ -77,6 +92,11 @@ class ClassMapping:
         ids = np.asarray(ids)
         if ids.dtype.kind not in "iub":
             raise ValueError(f"{self.source}: class ids must be integers, got dtype {ids.dtype}")
+        if ids.dtype in (np.uint8, np.uint16) and ids.size:  # label images as stored: one gather per pixel
+            table = self._table(ids.dtype)
+            mapped = table[ids]
+            if not (mapped == _OUTSIDE).any():
+                return mapped, int(np.count_nonzero(mapped == IGNORE))
         flat = ids.reshape(-1).astype(np.int64)
         inside = (flat >= 0) & (flat < self.num_source)
         safe = np.where(inside, flat, 0)

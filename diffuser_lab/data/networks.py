@@ -518,4 +518,4 @@ def _predicted(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy: Taxono
     pred = NetworkPredictor(build, key, ident, label, cache_dir=cfg.cache_dir, scene_name=scene_name,
                             pass_depth=pass_depth, mapping=mapping, taxonomy=taxonomy,
                             features=cfg.layout if features else None)
-    return LazyFrames.mapped(frames, pred, stats=pred.stats)
+    return LazyFrames.mapped(frames, pred, stats=pred.stats, serial=True)  # the network and its cache: one frame at a time

@@ -45,7 +45,7 @@ def load_label_prediction(path: str | Path, mapping: ClassMapping | None,
         labels: (H, W) int16 evaluation class ids, IGNORE for unmapped classes;
         n_unmapped: pixels whose source class maps to ignore.
     """
-    ids = resize_nearest(read_label_png(path), shape)
+    ids = resize_nearest(read_label_png(path, stored=True), shape)
     if mapping is not None:
         try:
             return mapping.apply(ids)
@@ -117,9 +117,10 @@ def load_feature_prediction(path: str | Path, *, key: str = "features", layout: 
     Args:
         path: ``.npy`` or ``.npz`` (the array ``key``, else the only array), float16 or float32.
         layout: ``hwd`` (h, w, D), ``dhw`` (D, h, w, channel first) or ``auto``: the axis that is
-            not spatial is the one of size ``dim`` when given, else the last unless the first is
-            smaller than both others (a (512, 60, 80) map is channel first).
-        dim: the expected D (e.g. the first frame's), or None.
+            not spatial is the one of size ``dim`` when given (the last when both are: a (30, 40, 64)
+            patch grid with D = 64 is (h, w, D)), else the last unless the first is smaller than both
+            others (a (512, 60, 80) map is channel first).
+        dim: the expected D (the run's queries', else the first frame's), or None.
         mask_key: in an ``.npz``, an optional (h, w) bool array: False cells have no feature.
     Returns:
         (h, w, D) float16/float32 as stored (NaN cells: no feature; masked cells set to NaN).
@@ -150,8 +151,10 @@ def load_feature_prediction(path: str | Path, *, key: str = "features", layout: 
     if arr.ndim != 3 or arr.dtype not in (np.float16, np.float32):
         raise ValueError(f"{path}: features of shape {arr.shape} dtype {arr.dtype}, expected float16/float32 "
                          f"(h, w, D) or (D, h, w)")
-    first = layout == "dhw" or (layout == "auto" and (arr.shape[0] == dim if dim is not None and arr.shape[2] != dim
-                                                      else arr.shape[0] < min(arr.shape[1:])))
+    if layout == "auto" and dim is not None and dim in (arr.shape[0], arr.shape[2]):
+        first = arr.shape[2] != dim  # the axis of size D (the last when both are)
+    else:
+        first = layout == "dhw" or (layout == "auto" and arr.shape[0] < min(arr.shape[1:]))
     if first:
         arr = np.moveaxis(arr, 0, 2)
     if dim is not None and arr.shape[2] != dim:

@@ -13,6 +13,7 @@ Adding a prediction source is one function ``attach(frames, cfg, taxonomy, scene
 from __future__ import annotations
 
 import dataclasses
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Optional, Sequence
@@ -23,7 +24,7 @@ from diffuser_lab import seeding
 from diffuser_lab.config import MistakeCorrelation, PredictionsConfig
 from diffuser_lab.registry import Registry
 
-from .embeddings import prototypes, simulate_features
+from .embeddings import prototypes, query_dim, simulate_features
 from .frames import LazyFrames
 from .mapping import load_mapping, native_mapping
 from .networks import model_predictions, onnx_predictions
@@ -33,7 +34,7 @@ from .prediction_files import (find_prediction, load_feature_prediction, load_la
 from .scene import Frame, Taxonomy
 from .simulate import simulate_predictions, surface_regions
 
-__all__ = ["PredictionSource", "SOURCES", "register", "get", "with_predictions", "describe"]
+__all__ = ["PredictionSource", "SOURCES", "register", "get", "with_predictions", "describe", "reads_rgb"]
 
 
 @dataclass(frozen=True)
@@ -49,6 +50,8 @@ class PredictionSource:
         describe: ``predictions config -> str``: what the labels are, for progress lines.
         label_ids: for ``taxonomy=ids``: ``(predictions config, n) -> [(unique label ids, where found)]``
             from the first ``n`` label images it reads; None = none.
+        reads_rgb: ``predictions config -> bool``: whether it reads the frames' colour (a network on
+            RGB); when nothing else does, a run's frames are read without it (:func:`reads_rgb`).
     """
 
     name: str
@@ -56,11 +59,17 @@ class PredictionSource:
     attach: Callable[[Sequence[Frame], PredictionsConfig, Taxonomy, str], Sequence[Frame]]
     describe: Callable[[PredictionsConfig], str]
     label_ids: Optional[Callable[[PredictionsConfig, int], list[tuple[np.ndarray, str]]]] = None
+    reads_rgb: Callable[[PredictionsConfig], bool] = lambda cfg: False
 
 
 def describe(cfg: PredictionsConfig) -> str:
     """What the frames' 2D labels are, in a few words (progress lines name the frame stage with it)."""
     return get(cfg.source).describe(cfg)
+
+
+def reads_rgb(cfg: PredictionsConfig) -> bool:
+    """Whether the configured predictions read the frames' colour (a network run on RGB)."""
+    return get(cfg.source).reads_rgb(cfg)
 
 
 def with_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy: Taxonomy,
@@ -118,20 +127,23 @@ def file_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy: 
     mapping = load_mapping(cfg.mapping, taxonomy) if cfg.mapping else native_mapping(taxonomy)
     stats = {"unmapped_pixels": 0, "label_files": 0, "probability_files": 0}
     seen: set[int] = set()
+    counting = threading.Lock()  # frames are read on several threads (FrameLoop's read-ahead)
 
     def fn(i: int, f: Frame) -> Frame:
         path = find_prediction(folder, f.name, cfg.pattern)
         if path.suffix in (".npy", ".npz"):
             probs = load_probability_prediction(path, taxonomy.num_classes, f.shape)
-            if i not in seen:
-                stats["probability_files"] += 1
-                seen.add(i)
+            with counting:
+                if i not in seen:
+                    stats["probability_files"] += 1
+                    seen.add(i)
             return dataclasses.replace(f, labels=None, probs=probs)
         labels, n_unmapped = load_label_prediction(path, mapping, f.shape)
-        if i not in seen:  # count each frame once, however often it is read
-            stats["label_files"] += 1
-            stats["unmapped_pixels"] += int(n_unmapped)
-            seen.add(i)
+        with counting:
+            if i not in seen:  # count each frame once, however often it is read
+                stats["label_files"] += 1
+                stats["unmapped_pixels"] += int(n_unmapped)
+                seen.add(i)
         return dataclasses.replace(f, labels=labels, probs=None)
 
     return LazyFrames.mapped(frames, fn, stats=stats)
@@ -151,12 +163,17 @@ def feature_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonom
         folder = Path(cfg.folder)
         if not folder.is_dir():
             raise FileNotFoundError(f"predictions.folder={folder}: no such folder")
-        dim: list[int] = []
+        # D: the run's queries' (a query file, an encoder's output on the taxonomy's names), else the
+        # first frame's map by the auto rule; every frame must have it (read on any thread, any order)
+        dim = query_dim(cfg.queries, cfg.encoder, taxonomy.names)
+        if dim is None:
+            first = frames.names[0] if getattr(frames, "names", None) else frames[0].name
+            dim = load_feature_prediction(find_prediction(folder, first, cfg.pattern), key=cfg.npz_key,
+                                          layout=cfg.layout).shape[2]
 
         def from_file(i: int, f: Frame) -> Frame:
             fmap = load_feature_prediction(find_prediction(folder, f.name, cfg.pattern), key=cfg.npz_key,
-                                           layout=cfg.layout, dim=dim[0] if dim else None)
-            dim[:] = [fmap.shape[2]]
+                                           layout=cfg.layout, dim=dim)
             return dataclasses.replace(f, labels=None, probs=None, features=fmap)
 
         return LazyFrames.mapped(frames, from_file)
@@ -210,12 +227,15 @@ SOURCES: Registry = Registry("predictions.source", "prediction source", [
     PredictionSource("files", "a 2D network's label images (mapped) or class probabilities (.npy/.npz)",
                      file_predictions, lambda cfg: f"2D predictions from {cfg.folder}", label_ids=file_label_ids),
     PredictionSource("model", "a Python callable (Hydra _target_) run on each frame's RGB", model_predictions,
-                     lambda cfg: f"2D predictions of {(cfg.model or {}).get('_target_')}"),
+                     lambda cfg: f"2D predictions of {(cfg.model or {}).get('_target_')}",
+                     reads_rgb=lambda cfg: True),
     PredictionSource("onnx", "an exported ONNX segmentation network run with onnxruntime on the CPU",
-                     onnx_predictions, lambda cfg: f"2D predictions of {Path(cfg.onnx.path).name} (onnx)"),
+                     onnx_predictions, lambda cfg: f"2D predictions of {Path(cfg.onnx.path).name} (onnx)",
+                     reads_rgb=lambda cfg: True),
     PredictionSource("features", "per-pixel embeddings (simulated, a network's .npy/.npz maps, a callable or ONNX "
                      "network), queried with words",
-                     feature_predictions, _describe_features),
+                     feature_predictions, _describe_features,
+                     reads_rgb=lambda cfg: cfg.embeddings in ("model", "onnx")),
 ])
 """The prediction sources by name (``predictions.source``)."""
 

@@ -15,6 +15,7 @@ a pixel to match.
 from __future__ import annotations
 
 import math
+import threading
 
 import numpy as np
 
@@ -111,9 +112,11 @@ class MeshRenderer:
         # Label lookup with a trailing IGNORE slot for "no hit" (INVALID_ID).
         self._label_lut = np.append(self.triangle_labels, np.int16(IGNORE))
         self._planes: tuple[np.ndarray, np.ndarray] | None = None  # float64 normals and offsets, on first render
+        self._lock = threading.Lock()  # one cast at a time (open3d's own threads cast each batch)
 
     def _cast(self, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        ans = self.scene.cast_rays(_open3d().core.Tensor(np.ascontiguousarray(rays, np.float32)))
+        with self._lock:  # frames read ahead on several threads may render from one scene
+            ans = self.scene.cast_rays(_open3d().core.Tensor(np.ascontiguousarray(rays, np.float32)))
         t_hit = ans["t_hit"].numpy()
         prim = ans["primitive_ids"].numpy().astype(np.int64)
         prim[~np.isfinite(t_hit)] = len(self.triangles)

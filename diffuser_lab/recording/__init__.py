@@ -51,6 +51,8 @@ ASYNC = True
 class _Off(RunHooks):
     """record=off: records nothing."""
 
+    reads_rgb = False
+
     def files(self) -> dict:
         return {}
 

@@ -17,11 +17,11 @@ from diffuser_lab import progress
 from diffuser_lab.backends import resolve_backend
 from diffuser_lab.config import Config, DepthNoiseConfig, SceneConfig, SolverName, SparseClasses
 from diffuser_lab.data import sources, validate
-from diffuser_lab.data.frames import FrameLoop
+from diffuser_lab.data.frames import FrameLoop, LazyFrames, keyframes, read_ahead, without
 from diffuser_lab.data.geometry import VoxelGrid, nearest_transfer, voxel_downsample, voxel_edge
 from diffuser_lab.data.embeddings import prototypes
 from diffuser_lab.data.predictions import describe as describe_predictions
-from diffuser_lab.data.predictions import with_predictions
+from diffuser_lab.data.predictions import reads_rgb, with_predictions
 from diffuser_lab.data.scene import IGNORE, SCANNET20, Frame, Scene, Taxonomy
 from diffuser_lab.data.sensor import noisy_frames, sensor_model
 from diffuser_lab.data.taxonomy import resolve_taxonomy
@@ -53,6 +53,7 @@ class _SceneReuse:
 
     @staticmethod
     def key_of(cfg: SceneConfig, taxonomy: Taxonomy, depth: Optional[DepthNoiseConfig]) -> tuple:
+        cfg = dataclasses.replace(cfg, keyframe_translation=None, keyframe_rotation_deg=None, read_ahead=None)
         return (repr(cfg), taxonomy.name, taxonomy.names, taxonomy.colors.tobytes(), taxonomy.ids,
                 taxonomy.ignore_ids, repr(depth))
 
@@ -108,9 +109,29 @@ def load_scene(cfg: SceneConfig, taxonomy: Taxonomy = SCANNET20, depth: Optional
     With :func:`reuse_scenes` on, the same keys give the scene loaded last (new Scene and Frame
     objects over the same, read-only arrays)."""
     cfg = sources.typed_options(cfg)  # a library caller's dict of options: typed and checked here
-    if _REUSE.on:
-        return _REUSE.get(_REUSE.key_of(cfg, taxonomy, depth), lambda: _load_scene(cfg, taxonomy, depth))
-    return _load_scene(cfg, taxonomy, depth)
+    with read_ahead(cfg.read_ahead):
+        if _REUSE.on:
+            scene = _REUSE.get(_REUSE.key_of(cfg, taxonomy, depth), lambda: _load_scene(cfg, taxonomy, depth))
+        else:
+            scene = _load_scene(cfg, taxonomy, depth)
+        scene.frames = keyframes_of(scene.frames, cfg)
+    return scene
+
+
+def keyframes_of(frames: Sequence[Frame], cfg: SceneConfig) -> Sequence[Frame]:
+    """The frames ``scene.keyframe_translation`` / ``scene.keyframe_rotation_deg`` keep
+    (:func:`~diffuser_lab.data.frames.keyframes`: a frame whose camera moved or turned that much since
+    the last kept one), as a subset that keeps each frame's index (its simulated predictions, its seeds);
+    ``info["keyframes"]`` says what was kept (summary.json's ``keyframes``). Both null: ``frames``."""
+    t, r = cfg.keyframe_translation, cfg.keyframe_rotation_deg
+    if t is None and r is None:
+        return frames
+    keep = keyframes(frames, t, r)
+    names = getattr(frames, "names", None) or ([f.name for f in frames] if isinstance(frames, list) else None)
+    info = dict(getattr(frames, "info", None) or {})
+    info["keyframes"] = {"translation_m": t, "rotation_deg": r, "kept": len(keep), "of": len(frames),
+                         "kept_frames": [names[k] for k in keep] if names is not None else keep}
+    return LazyFrames.subset(frames, keep, info=info)
 
 
 def _load_scene(cfg: SceneConfig, taxonomy: Taxonomy, depth: Optional[DepthNoiseConfig]) -> Scene:
@@ -131,7 +152,7 @@ def load_frames(cfg: SceneConfig, taxonomy: Taxonomy = SCANNET20, depth: Optiona
     source, sensor = sources.get(cfg.source), sensor_model(depth) if depth is not None else None
     if source.frames is None:
         return load_scene(cfg, taxonomy, depth).frames
-    return _real_depth(source.frames(cfg, taxonomy, sensor), source, sensor, depth)
+    return keyframes_of(_real_depth(source.frames(cfg, taxonomy, sensor), source, sensor, depth), cfg)
 
 
 def _real_depth(frames, source, sensor, depth):
@@ -288,6 +309,13 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
     ``hooks`` (see :mod:`diffuser_lab.hooks`) watch the run without changing it. ``cfg`` is
     resolved first (:func:`~diffuser_lab.runs.resolve.resolve`: registry names, the method's fixed keys)."""
     cfg = resolve(cfg)
+    with read_ahead(cfg.scene.read_ahead):  # every frame loop of the run (the loader's too)
+        return _run(cfg, scene, observer, hooks)
+
+
+def _run(cfg: Config, scene: Optional[Scene], observer: Optional[Observer], hooks: Optional[RunHooks]) -> RunResult:
+    # colour is read only when something reads it: the predictions (a network on RGB) or the hooks (records)
+    colour = reads_rgb(cfg.predictions) or (hooks is not None and hooks.reads_rgb)
     hooks = hooks or RunHooks()
     t = {}
     t0 = time.perf_counter()
@@ -300,7 +328,8 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
 
     # One pass over the frames: each is loaded (and its predictions made) once, scored in 2D
     # against its ground truth, and added to the evidence; memory stays independent of their number.
-    frames = with_predictions(scene.frames, cfg.predictions, tax, scene_name=scene.name)
+    frames = with_predictions(scene.frames if colour else without(scene.frames, "rgb"), cfg.predictions, tax,
+                              scene_name=scene.name)
     pts, nrm, grid = _work_cloud(scene, cfg.scene.voxel_size)
     validate.check_memory(scene.n_points, pts.shape[0], tax.num_classes, cfg.graph.k, cfg.memory_budget_gb,
                           _sparse_classes(cfg.solver, pts.shape[0], tax.num_classes))

@@ -91,6 +91,9 @@ def _finish_online(result, cfg: Config, run_dir: Path, summary: report.SummaryFi
         np.save(run_dir / "map.npy", result.points)
         files["map"] = "map.npy"
     summary.data.update(online_mod.summary(result))
+    kept = report.keyframes_kept(result.scene)
+    if kept:
+        summary.data["keyframes"] = kept
     summary.update(records=records, files=files, status="ok")
     return summary.data
 
@@ -104,6 +107,9 @@ def _finish_tiled(result, cfg: Config, run_dir: Path, summary: report.SummaryFil
     files.update(result.files)
     result.timings_s["write"] = time.perf_counter() - t
     summary.data.update(tiled.summary(result, cfg))
+    kept = report.keyframes_kept(result.scene)
+    if kept:
+        summary.data["keyframes"] = kept
     summary.update(records=records, files=files, status="incomplete" if result.failed else "ok")
     return summary.data
 

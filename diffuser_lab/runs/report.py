@@ -41,6 +41,9 @@ def summary(res: RunResult, cfg: Config) -> dict:
     capture = _capture(scene)
     if capture:
         out["capture"] = capture
+    kept = keyframes_kept(scene)
+    if kept:
+        out["keyframes"] = kept
     if res.diffusion is not None:
         out["diffusion"] = {"iterations": res.diffusion.iterations, "converged": res.diffusion.converged,
                             "residual": res.diffusion.residual,
@@ -58,8 +61,13 @@ def summary(res: RunResult, cfg: Config) -> dict:
     return out
 
 
-CAPTURE_KEYS = ("cloud", "visibility", "gt_from_frames")
+CAPTURE_KEYS = ("cloud", "visibility", "gt_from_frames", "intrinsics")
 """What a capture format's loader reports (diffuser_lab/data/capture.py), in summary.json's ``capture``."""
+
+
+def keyframes_kept(scene) -> Optional[dict]:
+    """The keyframe rule's thresholds and the frames it kept (summary.json's ``keyframes``), None when off."""
+    return (getattr(scene.frames, "info", None) or {}).get("keyframes")
 
 
 def _capture(scene) -> dict:
@@ -72,6 +80,8 @@ def _capture_line(scene) -> Optional[str]:
     if not c:
         return None
     parts = [f"cloud {c['cloud']}" if "cloud" in c else "", f"visibility: {c['visibility']}" if "visibility" in c else ""]
+    if "intrinsics" in c:
+        parts.append(c["intrinsics"])
     g = c.get("gt_from_frames")
     if g:
         parts.append(f"ground truth carried from the frames' labels ({g['points_labelled']:,} points, "
@@ -86,8 +96,10 @@ def _fmt(x, spec=".1f") -> str:
 def table(res: RunResult, run_dir: Path | None = None) -> str:
     """A short human-readable result table."""
     s = res.scene
+    kf = keyframes_kept(s)
+    of = f" (keyframes of {kf['of']})" if kf else ""
     lines = [f"diffuser-lab | scene {s.name} | {s.n_points:,} points ({res.work_points.shape[0]:,} diffused) | "
-             f"{len(res.frames)} frames | {s.taxonomy.num_classes} classes"]
+             f"{len(res.frames)} frames{of} | {s.taxonomy.num_classes} classes"]
     if res.metrics is None:  # e.g. a posed RGB-D folder without label images: nothing to score
         lab = res.labels[res.labels != IGNORE].astype(np.int64)
         counts = np.bincount(lab, minlength=s.taxonomy.num_classes)
@@ -155,6 +167,7 @@ def single_frame_summary(sf) -> dict:
         "diffusion": {},
         "timings_s": {k: round(v, 4) for k, v in sf.timings_s.items()},
         "records": {},
+        **({"keyframes": keyframes_kept(sf.scene)} if keyframes_kept(sf.scene) else {}),
     }
 
 

@@ -1,11 +1,14 @@
 """The capture core (diffuser_lab/data/capture.py): frames at one resolution with K scaled to it, the
 cloud from a file / the format / the depth, depth rendered when frames have none, ground truth carried
 from the frames' label images, and the summary's capture line."""
+import dataclasses
+
 import numpy as np
 import pytest
 from datasets import make_world
 
-from diffuser_lab.data.capture import CaptureOptions, CapturedFrame, capture_scene, carry_frame_labels
+from diffuser_lab.data.capture import (CaptureOptions, CapturedFrame, capture_scene, carry_frame_labels,
+                                      check_stated_size)
 from diffuser_lab.data.clouds import read_cloud, write_las
 from diffuser_lab.data.geometry import scaled_intrinsics
 from diffuser_lab.data.render import MeshRenderer, sample_surface
@@ -128,3 +131,23 @@ def test_a_laz_cloud_is_the_points_to_label(world, tmp_path):
     s = capture_scene("w", _frames(world, depth=False, labels=False), CaptureOptions(cloud=str(path)), SCANNET20)
     assert np.abs(s.points - ref.points).max() < 1e-4 and (s.gt_labels == ref.gt_labels).all()
     assert s.frames.info["cloud"] == f"{len(ref.points):,} points from scan.laz"
+
+
+def test_a_stated_size_is_the_image_or_a_downscale_that_keeps_its_aspect(world):
+    """Issue 52 item 4: the size a format states for K against the image it describes."""
+    assert check_stated_size((480, 640), (480, 640), "t.json", "a.png") == ""
+    for image, factor in (((240, 320), "1/2"), ((192, 256), "1/2.5"), ((121, 161), "1/3.975")):  # images_2, 7.5x, odd
+        assert f"scaled by {factor} to the {image[1]}x{image[0]} images" in check_stated_size((480, 640), image, "t.json", "a.png")
+    for image in ((480, 480), (960, 1280), (1, 640), (478, 640)):  # aspect changed, an upscale, a row short
+        with pytest.raises(ValueError, match=rf"^t\.json: K is stated for 640x480 \(W x H\) images, a\.png is "
+                                             rf"{image[1]}x{image[0]}: expected that size or a downscale"):
+            check_stated_size((480, 640), image, "t.json", "a.png")
+    # through the capture builder: K for a 2x larger image is scaled and said; one for another aspect is refused
+    s = capture_scene("w", _frames(world, k_scale=2), CaptureOptions(), SCANNET20, cloud={"points": world["verts"]})
+    f = s.frames[0]
+    np.testing.assert_allclose(f.K, world["K"], atol=1e-9)
+    assert "scaled by 1/2" in s.frames.info["intrinsics"]
+    bad = [dataclasses.replace(cf, K_size=(cf.K_size[0], cf.K_size[1] + 7), K_from="cam.yaml")
+           for cf in _frames(world, k_scale=2)]
+    with pytest.raises(ValueError, match=r"^cam\.yaml: K is stated for .* frame v0's depth image is 80x60"):
+        capture_scene("w", bad, CaptureOptions(), SCANNET20, cloud={"points": world["verts"]}).frames[0]

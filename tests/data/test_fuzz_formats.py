@@ -16,6 +16,7 @@ import struct
 import subprocess
 import sys
 import tempfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -288,6 +289,144 @@ def test_depth_and_label_images_whose_header_lies(mode, field, value, m):
             ends_clearly(read_label_png, _write(d, name, b))
 
 
+def image_bytes(fmt: str) -> bytes:
+    """A valid 64 x 48 image of every format a capture holds: 16-bit PGM (ScanNet's C++ SensReader
+    depth), 8-bit PGM, RGB PPM, 16-bit PNG, 16-bit TIFF raw and deflated, JPEG."""
+    from PIL import Image
+
+    a = np.arange(48 * 64).reshape(48, 64)
+    buf = io.BytesIO()
+    if fmt == "pgm16":
+        Image.fromarray(a.astype(np.uint16)).save(buf, format="PPM")
+    elif fmt == "pgm8":
+        Image.fromarray(a.astype(np.uint8)).save(buf, format="PPM")
+    elif fmt == "ppm":
+        Image.fromarray(np.stack([a.astype(np.uint8)] * 3, -1)).save(buf, format="PPM")
+    elif fmt == "png16":
+        Image.fromarray(a.astype(np.uint16)).save(buf, format="PNG")
+    elif fmt in ("tif16", "tif_deflate"):
+        Image.fromarray(a.astype(np.uint16)).save(buf, format="TIFF", **({"compression": "tiff_deflate"}
+                                                                         if fmt == "tif_deflate" else {}))
+    else:
+        Image.fromarray(np.stack([a.astype(np.uint8)] * 3, -1)).save(buf, format="JPEG", quality=90)
+    return buf.getvalue()
+
+
+IMAGE_SUFFIX = {"pgm16": ".pgm", "pgm8": ".pgm", "ppm": ".ppm", "png16": ".png", "tif16": ".tif", "tif_deflate": ".tif",
+                "jpeg": ".jpg"}
+
+
+def lie_about_size(data: bytes, fmt: str, w: int, h: int) -> bytes:
+    """The image's header saying ``w`` x ``h`` (its pixel data unchanged): the PNM text header, the
+    PNG's IHDR (with its CRC), the TIFF's ImageWidth / ImageLength entries (tags 256, 257), the JPEG's
+    SOF0 height and width."""
+    if fmt in ("pgm16", "pgm8", "ppm"):
+        return data.replace(b"64 48", b"%d %d" % (w, h), 1)
+    if fmt == "png16":  # IHDR's width and height, its CRC made right again (the lie is not a damaged chunk)
+        ihdr = data[12:16] + struct.pack(">II", w & 0xFFFFFFFF, h & 0xFFFFFFFF) + data[24:29]
+        return data[:12] + ihdr + struct.pack(">I", zlib.crc32(ihdr)) + data[33:]
+    if fmt.startswith("tif"):
+        out = bytearray(data)
+        ifd = struct.unpack_from("<I", data, 4)[0]
+        for k in range(struct.unpack_from("<H", data, ifd)[0]):  # loop over the IFD's entries
+            tag, kind = struct.unpack_from("<HH", data, ifd + 2 + 12 * k)
+            if tag in (256, 257):
+                v = w if tag == 256 else h
+                if kind == 3:
+                    struct.pack_into("<H", out, ifd + 2 + 12 * k + 8, v & 0xFFFF)
+                else:
+                    struct.pack_into("<I", out, ifd + 2 + 12 * k + 8, v & 0xFFFFFFFF)
+        return bytes(out)
+    i = data.index(b"\xff\xc0")  # SOF0: length (2), precision (1), height (2), width (2)
+    return data[:i + 5] + struct.pack(">HH", h & 0xFFFF, w & 0xFFFF) + data[i + 9:]
+
+
+def read_image_any(path: Path):
+    """What a capture's reader does with the file: its header's size (the cross-file check), then the
+    pixels as depth (a 16-bit grey image), colour or label ids."""
+    from diffuser_lab.data.images import image_size, read_depth_png, read_label_png, read_rgb
+
+    image_size(path, "image")
+    if path.suffix in (".jpg", ".ppm"):
+        read_rgb(path)
+    else:
+        read_depth_png(path, 1000.0)
+        read_label_png(path)
+
+
+@FUZZ
+@given(st.sampled_from(sorted(IMAGE_SUFFIX)), st.sampled_from([0, 1, 63, 65, 640, 60000, 2**16 - 1, 2**31 - 1])
+       | st.integers(0, 2**32 - 1), st.sampled_from([0, 1, 47, 49, 480, 60000]) | st.integers(0, 2**16 - 1), MUTATION)
+def test_images_of_every_format_whose_header_lies(fmt, w, h, m):
+    """PGM / PPM / TIFF / JPEG (the PNG cases are above): width and height overwritten with lies (the
+    issue's depth PGM declaring 60000 x 60000 among them), or the file damaged; every reader of the
+    one image reader ends in one line naming the file, in bounded time and memory."""
+    data = image_bytes(fmt)
+    with tempfile.TemporaryDirectory() as d:
+        for name, b in ((f"lied{IMAGE_SUFFIX[fmt]}", lie_about_size(data, fmt, w, h)),
+                        (f"damaged{IMAGE_SUFFIX[fmt]}", mutate(data, *m))):
+            ends_clearly(read_image_any, _write(d, name, b))
+
+
+def test_a_depth_pgm_declaring_60000_squared_pixels_is_one_line_naming_it(tmp_path):
+    """Issue 52's damaged file: Pillow's own decompression-bomb sentence named no file."""
+    from diffuser_lab.data.images import read_depth_png
+
+    p = _write(str(tmp_path), "frame-000000.depth.pgm", lie_about_size(image_bytes("pgm16"), "pgm16", 60000, 60000))
+    with pytest.raises(ValueError, match=r"frame-000000\.depth\.pgm: depth image declares .*pixels.*a damaged or lying "
+                                         r"header"):
+        read_depth_png(p, 1000.0)
+    for w, h in ((10000, 10000), (640, 480)):  # over the pixel cap; under it but more than the file holds
+        p.write_bytes(lie_about_size(image_bytes("pgm16"), "pgm16", w, h))
+        with pytest.raises(ValueError, match=rf"depth\.pgm: depth image declares {w:,} x {h:,} pixels"):
+            read_depth_png(p, 1000.0)
+
+
+def nerfstudio_files(w: float = 64, h: float = 48) -> dict[str, bytes]:
+    """A two-frame nerfstudio capture (transforms.json stating ``w`` x ``h``, 64 x 48 images and depth)."""
+    from PIL import Image
+
+    files = {}
+    for n in ("a", "b"):  # loop over frames
+        for kind, arr in (("images", np.full((48, 64, 3), 128, np.uint8)), ("depth", np.full((48, 64), 1500, np.uint16))):
+            buf = io.BytesIO()
+            Image.fromarray(arr).save(buf, format="PNG")
+            files[f"{kind}/{n}.png"] = buf.getvalue()
+    meta = {"fl_x": 50.0, "fl_y": 50.0, "cx": 32.0, "cy": 24.0, "w": w, "h": h,
+            "frames": [{"file_path": f"images/{n}.png", "depth_file_path": f"depth/{n}.png",
+                        "transform_matrix": np.eye(4).tolist()} for n in ("a", "b")]}
+    files["transforms.json"] = json.dumps(meta).encode()
+    return files
+
+
+def read_nerfstudio(folder: Path):
+    """scene=nerfstudio on the folder: transforms.json, then its images (the cross-file checks)."""
+    from diffuser_lab.config import SceneConfig
+    from diffuser_lab.runs.pipeline import load_scene
+
+    load_scene(SceneConfig(source="nerfstudio", options={"root": str(folder)}))
+
+
+@FUZZ
+@given(st.sampled_from([1, 8, 32, 63, 65, 128, 640, 1_000_000, 2**31 - 1]), st.sampled_from([1, 24, 47, 48, 96, 480, 1_000_000]))
+def test_a_transforms_json_whose_w_h_lie_about_its_images(w, h):
+    """transforms.json's w h against the 64 x 48 images: equal or an aspect-keeping downscale of them
+    reads (K scaled), anything else is one line naming transforms.json and the image."""
+    with tempfile.TemporaryDirectory() as d:
+        for name, data in nerfstudio_files(w, h).items():
+            (Path(d) / name).parent.mkdir(parents=True, exist_ok=True)
+            (Path(d) / name).write_bytes(data)
+        try:
+            with bounded():
+                read_nerfstudio(Path(d))
+            ok = True
+        except ValueError as exc:
+            ok = False
+            assert "transforms.json" in str(exc) and "images/a.png" in str(exc) and "\n" not in str(exc), str(exc)
+        downscale = w >= 64 and h >= 48 and abs(h * 64 / w - 48) < 1 and abs(w * 48 / h - 64) < 1
+        assert ok == downscale, (w, h)
+
+
 @FUZZ
 @given(st.sampled_from([b"64&48&1&", b"4000000000&48&1&", b"64&-1&1&", b"0&0&1&", b"64&48&3&", b"nan&48&1&"]),
        MUTATION, st.sampled_from([np.nan, np.inf, -1.0, 1.5]))
@@ -338,7 +477,8 @@ def test_probability_and_depth_arrays_whose_header_lies(shape, m, npz):
 
 READERS = {".las": "read_cloud", ".laz": "read_cloud", ".ply": "read_cloud", ".json": "read_transforms",
            ".yaml": "read_intrinsics_file", ".txt": "read_intrinsics_file", ".npy": "read_array",
-           ".png": "read_depth_png"}
+           ".png": "read_depth_png", ".pgm": "read_image_any", ".ppm": "read_image_any", ".tif": "read_image_any",
+           ".jpg": "read_image_any"}
 
 
 def replay(paths: list[Path]) -> list[str]:
@@ -347,11 +487,13 @@ def replay(paths: list[Path]) -> list[str]:
 
     fns = {"read_cloud": read_cloud, "read_transforms": read_transforms, "read_array": lambda p: read_array(p, "array"),
            "read_intrinsics_file": read_intrinsics_file, "read_bag": read_bag, "read_colmap": read_colmap,
-           "read_depth_png": lambda p: read_depth_png(p, 1000.0)}
+           "read_depth_png": lambda p: read_depth_png(p, 1000.0), "read_image_any": read_image_any,
+           "read_nerfstudio": read_nerfstudio}
     out = []
     for p in paths:  # loop over corpus files
         try:
-            name = READERS[p.suffix] if p.is_file() else "read_bag" if (p / "metadata.yaml").exists() else "read_colmap"
+            name = READERS[p.suffix] if p.is_file() else "read_bag" if (p / "metadata.yaml").exists() else \
+                "read_nerfstudio" if (p / "transforms.json").exists() else "read_colmap"
             ends_clearly(fns[name], p)
             out.append(f"ok {p.name}")
         except AssertionError as exc:
@@ -399,6 +541,12 @@ def make_corpus() -> None:
         "nan_focal.yaml": INTRINSICS["camera_info.yaml"].replace(b"500", b".nan"),
         "huge_size.yaml": INTRINSICS["camera_info.yaml"].replace(b"64", b"4000000000"),
         "shape_lies.npy": _npy().replace(b"(6, 8, 20), }", b"(6, 8, 999),}", 1),
+        # issue 52: Pillow's decompression-bomb sentence named no file; other formats' headers that lie
+        "pgm_size_lies.pgm": lie_about_size(image_bytes("pgm16"), "pgm16", 60000, 60000),
+        "pgm_size_lies_under_the_cap.pgm": lie_about_size(image_bytes("pgm16"), "pgm16", 640, 480),
+        "tiff_size_lies.tif": lie_about_size(image_bytes("tif16"), "tif16", 60000, 60000),
+        "jpeg_size_lies.jpg": lie_about_size(image_bytes("jpeg"), "jpeg", 65000, 65000),
+        "png_size_lies_crc_right.png": lie_about_size(image_bytes("png16"), "png16", 20000, 4000),
     }
     for name, data in files.items():  # loop over corpus files
         (CORPUS / name).write_bytes(data)
@@ -415,6 +563,10 @@ def make_corpus() -> None:
             if name.startswith("points3D"):
                 data = lie + data[8:] if lie else data.replace(b"\n", b"\nNaN x\n", 3)
             (d / name).write_bytes(data)
+    d = CORPUS / "transforms_size_lies"  # issue 52: w = h = 1,000,000 over 64 x 48 images ran to the end
+    for name, data in nerfstudio_files(1_000_000, 1_000_000).items():
+        (d / name).parent.mkdir(parents=True, exist_ok=True)
+        (d / name).write_bytes(data)
     d = CORPUS / "colmap_bin_track_lies"  # the file size adds up; record 3's track length says 2^32 - 1
     d.mkdir(exist_ok=True)
     for name, data in colmap_files("bin").items():

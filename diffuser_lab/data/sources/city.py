@@ -24,6 +24,7 @@ the cloud itself.
 from __future__ import annotations
 
 import math
+import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 from typing import List, Optional
@@ -503,6 +504,7 @@ class City:
         self._meshes: OrderedDict = OrderedDict()
         self._renderer: tuple[Optional[tuple[int, int]], Optional[MeshRenderer]] = (None, None)
         self.K = intrinsics(cfg.image_width, cfg.image_height, cfg.fov_deg)
+        self._lock = threading.Lock()  # frames read ahead on several threads share the caches below
         self.views: list[tuple[str, int, int, np.ndarray]] = []  # (name, bx, by, T_cw)
         for bx in range(cfg.blocks_x):
             for by in range(cfg.blocks_y):
@@ -537,6 +539,10 @@ class City:
     def frame(self, i: int) -> Frame:
         """View i rendered: z-depth (0 = no hit or beyond ``view_distance``), cityscapes19 labels
         (``sky`` where a ray looking up hits nothing, with ``cfg.sky``; IGNORE where there is no depth)."""
+        with self._lock:  # the block meshes and the ray caster are one cache (open3d casts on every core)
+            return self._frame(i)
+
+    def _frame(self, i: int) -> Frame:
         name, bx, by, T = self.views[i]
         c = self.cfg
         rend = self.renderer(bx, by)
@@ -578,7 +584,7 @@ def make_city_scene(cfg: CityOptions, sensor: Optional[SensorModel] = None) -> t
     del pts
     normals = np.concatenate(nrm)
     del nrm
-    frames = LazyFrames([v[0] for v in city.views], city.frame)
+    frames = LazyFrames([v[0] for v in city.views], city.frame, poses=[v[3] for v in city.views])
     scene = Scene(name=f"city_seed{cfg.seed}_{cfg.blocks_x}x{cfg.blocks_y}", points=points, taxonomy=CITYSCAPES19,
                   frames=frames, normals=normals, gt_labels=np.concatenate(lab))
     return scene, city
@@ -621,4 +627,5 @@ def frames(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) 
     """The frames of :func:`load`'s scene without sampling the cloud (a tiled run's worker):
     rendered when read from the blocks around each camera."""
     city = City(cfg.options, sensor)
-    return _frames_in(LazyFrames([v[0] for v in city.views], city.frame), _lut(taxonomy))
+    return _frames_in(LazyFrames([v[0] for v in city.views], city.frame, poses=[v[3] for v in city.views]),
+                      _lut(taxonomy))

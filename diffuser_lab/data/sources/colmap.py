@@ -448,11 +448,11 @@ def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) ->
         label_path = root / o.labels.format(name=im.name, stem=stem) if o.labels else None
         frames.append(CapturedFrame(
             name=stem, T_cw=T, K=K, K_size=(int(cam.height), int(cam.width)),
+            K_from=f"{cams_file} (camera {cid})", K_image=img_path,
             depth=_reader(read_depth_map, depth_path, und, 0) if use_depth else None,
             rgb=_reader(read_rgb, img_path, und, 1),
             labels=_reader(read_label_png, label_path, und, 0, IGNORE) if label_path is not None and label_path.is_file()
-            else None,
-            size=None if use_depth else (int(cam.height), int(cam.width))))
+            else None))
     if missing:
         raise FileNotFoundError(f"image {missing[0]} of the model does not exist ({len(missing)} of {len(images)} "
                                 f"missing; scene.options.images={o.images!r} is the folder the model's names are "

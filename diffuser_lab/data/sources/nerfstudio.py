@@ -294,7 +294,8 @@ def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) ->
             lenses[lens.text()] = lenses.get(lens.text(), 0) + 1
         frames.append(CapturedFrame(name=name, T_cw=T_cw, K=K, K_size=K_size,
                                     depth=fr.depth if depth is not None else None, rgb=fr.rgb,
-                                    labels=fr.label_ids if labels is not None else None))
+                                    labels=fr.label_ids if labels is not None else None,
+                                    K_from=f"{src} (frame {rel}: w h)", K_image=image))
     cloud = None
     if not o.cloud and meta.get("ply_file_path"):
         cloud = read_cloud(root / meta["ply_file_path"])

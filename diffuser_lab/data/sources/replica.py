@@ -160,7 +160,7 @@ def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) ->
         labels = root / o.labels.format(frame=i) if o.labels else None
         frames.append(CapturedFrame(
             name=color.stem,
-            T_cw=rigid_inverse(c2w), K=K, K_size=K_size,
+            T_cw=rigid_inverse(c2w), K=K, K_size=K_size, K_from=f"{cam_src} (w h)", K_image=depth,
             depth=lambda p=depth: read_depth_png(p, scale, invalid=(0,)),
             rgb=lambda p=color: read_rgb(p),
             labels=(lambda p=labels: read_label_png(p)) if labels is not None and labels.is_file() else None))

@@ -185,11 +185,11 @@ def load_rgbd_folder(
             kept.append(name)
             bar.update()
 
-    def load(i: int) -> Frame:
+    def load(i: int, skip: frozenset = frozenset()) -> Frame:
         name = kept[i]
         depth = read_depth_png(root / f"{name}.{depth_suffix}", depth_scale, depth_bit_shift, invalid_depth,
                                depth_shift_kind)
-        rgb = read_rgb(root / f"{name}.{color_suffix}", depth.shape) if color_suffix else None
+        rgb = read_rgb(root / f"{name}.{color_suffix}", depth.shape) if color_suffix and "rgb" not in skip else None
         gt = None
         if label_suffix:
             lp = root / f"{name}.{label_suffix}"
@@ -198,7 +198,7 @@ def load_rgbd_folder(
                                  _MAPPING_HINT)
         return Frame(name=name, K=K.copy(), T_cw=poses[i], depth=depth, gt_labels=gt, rgb=rgb)
 
-    frames = LazyFrames(kept, load, info={"n_frames_found": len(depth_stems)})
+    frames = LazyFrames(kept, load, info={"n_frames_found": len(depth_stems)}, poses=poses, parts=("rgb",))
     # checked here, before a wrong unit scales the back-projected cloud; the pipeline skips it then
     check_depth_unit(frames[0], hint=f"depth_scale={depth_scale} (units per metre) / depth_bit_shift="
                                      f"{depth_bit_shift} / depth_shift_kind={depth_shift_kind}")

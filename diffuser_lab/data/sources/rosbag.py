@@ -34,7 +34,6 @@ The labelled points go out as a PointCloud2 bag through
 """
 from __future__ import annotations
 
-import io
 import mmap
 import struct
 import threading
@@ -49,6 +48,7 @@ from omegaconf import MISSING
 from diffuser_lab.config import SceneConfig, above, key, rule
 from diffuser_lab.data.capture import CaptureOptions, CapturedFrame, capture_scene
 from diffuser_lab.data.distortion import LensModel, ros_lens, undistort_image
+from diffuser_lab.data.images import open_image
 from diffuser_lab.data.poses import associate, interpolate_poses, pose_matrices, rigid_inverse
 from diffuser_lab.data.scene import IGNORE, Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
@@ -93,14 +93,9 @@ class RosbagOptions(CaptureOptions):
 
 
 def _pil(data: bytes, what: str) -> np.ndarray:
-    from PIL import Image, UnidentifiedImageError
-
-    try:
-        with Image.open(io.BytesIO(bytes(data))) as im:
-            im.load()
-            return np.asarray(im.convert("RGB") if im.mode in ("P", "CMYK", "YCbCr", "LA", "RGBA") else im).copy()
-    except (OSError, UnidentifiedImageError, SyntaxError, ValueError) as exc:
-        raise ValueError(f"{what}: unreadable compressed image ({type(exc).__name__}: {exc})") from None
+    """A CompressedImage's bytes through the one image reader (declared size checked, one line naming ``what``)."""
+    with open_image(bytes(data), "compressed image", name=what) as im:
+        return np.asarray(im.convert("RGB") if im.mode in ("P", "CMYK", "YCbCr", "LA", "RGBA") else im).copy()
 
 
 _RAW = {"rgb8": ("u1", 3), "bgr8": ("u1", 3), "rgba8": ("u1", 4), "bgra8": ("u1", 4), "mono8": ("u1", 1),
@@ -574,7 +569,7 @@ def load_rosbag(o: RosbagOptions, taxonomy: Taxonomy) -> Scene:
     for i in sel:  # one CapturedFrame (readers only) per kept depth message
         name = f"{d_st[i] // 1_000_000_000}.{d_st[i] % 1_000_000_000:09d}"
         frames.append(CapturedFrame(
-            name=name, T_cw=T_cw[i], K=K, K_size=K_size,
+            name=name, T_cw=T_cw[i], K=K, K_size=K_size, K_from=f"{bag}: {info_t} (width x height)",
             depth=reader(depth_t, d_rt[i], d_ord[i], lambda a, e, w: _to_depth(a, e, scale, w)),
             rgb=reader(color_t, c_rt[cj[i]], c_ord[cj[i]], _to_rgb, order=1) if color_t else None,
             labels=reader(label_t, l_rt[lj[i]], l_ord[lj[i]], _to_labels, fill=IGNORE)

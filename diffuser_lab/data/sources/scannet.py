@@ -31,6 +31,7 @@ ones do not need it), without ``label-filt/`` they carry no ground truth.
 from __future__ import annotations
 
 import re
+import threading
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -187,18 +188,17 @@ def _scannet_frames(root: Path, frame_step: int, max_frames: int | None, mapping
     # colour and labels are optional: present when the first frame has them (then every frame must)
     has_color = (root / L.color.format(frame=kept[0])).is_file()
     has_labels = (root / L.labels.format(frame=kept[0])).is_file()
-    checked = {"done": False}
+    once = threading.Lock()  # the colour K is checked at the first frame read (frames are read on several threads)
 
-    def load(i: int) -> Frame:
+    def load(i: int, skip: frozenset = frozenset()) -> Frame:
         fid = kept[i]
         depth = read_depth_png(root / L.depth.format(frame=fid), L.depth_scale, 0, (0,))
-        rgb = read_rgb(root / L.color.format(frame=fid), depth.shape) if has_color else None
+        rgb = read_rgb(root / L.color.format(frame=fid), depth.shape) if has_color and "rgb" not in skip else None
         gt = None
         if has_labels:
             lp = root / L.labels.format(frame=fid)
             ids_img = read_label_png(lp)
-            if K_color is not None and not checked["done"]:
-                checked["done"] = True
+            if K_color is not None and once.acquire(blocking=False):  # never released: once
                 Ks = scaled_intrinsics(K_color, ids_img.shape, depth.shape)
                 err = np.abs(Ks[:2, :3] - K[:2, :3]).max()
                 if err > 2.0:  # label pixels would not line up with depth pixels
@@ -211,7 +211,8 @@ def _scannet_frames(root: Path, frame_step: int, max_frames: int | None, mapping
         return Frame(name=fid, K=K.copy(), T_cw=poses[i], depth=depth, gt_labels=gt, rgb=rgb)
 
     return LazyFrames(kept, load, info={"n_invalid_pose": n_invalid, "n_frames_found": len(ids),
-                                   "has_color": has_color, "has_labels": has_labels})
+                                        "has_color": has_color, "has_labels": has_labels},
+                      poses=poses, parts=("rgb",))
 
 
 def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) -> Scene:

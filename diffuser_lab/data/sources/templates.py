@@ -35,7 +35,7 @@ from omegaconf import MISSING
 from diffuser_lab import progress
 from diffuser_lab.config import PoseConvention, SceneConfig, above, key, rule
 from diffuser_lab.data.capture import CaptureOptions, CapturedFrame, capture_scene
-from diffuser_lab.data.images import read_depth_png, read_label_png, read_rgb
+from diffuser_lab.data.images import read_array, read_depth_png, read_label_png, read_rgb
 from diffuser_lab.data.intrinsics import detect_format, read_intrinsics_file, scannet_depth_shift
 from diffuser_lab.data.poses import pose_to_world_to_camera, read_pose_c2w
 from diffuser_lab.data.scene import Scene, Taxonomy
@@ -172,12 +172,7 @@ def read_depth(path: Path, depth_scale: float, invalid) -> np.ndarray:
     units per metre (``invalid`` raw values = none), or ``.npy`` float metres (non-finite, <= 0 = none)."""
     suffix = path.suffix.lower()
     if suffix == ".npy":
-        if not path.is_file():
-            raise FileNotFoundError(f"depth image {path} does not exist")
-        try:
-            d = np.load(path, allow_pickle=False)
-        except ValueError as e:
-            raise ValueError(f"{path}: unreadable .npy depth ({e})") from None
+        d = read_array(path, "depth image")  # its header's shape checked against the file first
         if d.ndim != 2 or d.dtype.kind not in "fiu":
             raise ValueError(f"{path}: .npy depth of dtype {d.dtype} shape {d.shape}, expected (H, W) float metres")
         d = d.astype(np.float32)
@@ -208,7 +203,7 @@ def _intrinsics(o: TemplatesOptions, root: Path, scene: str, numbers: list[int])
         if size is not None and want is not None and size != want:
             raise ValueError(f"{p}: intrinsics for {size[0]}x{size[1]} (H x W) but scene.options.intrinsics_size="
                              f"{list(want)}: expected one statement of the size (set intrinsics_size: null)")
-        out.append((K, size or want))
+        out.append((K, size or want, str(p) if size is not None else "scene.options.intrinsics_size"))
     shift = scannet_depth_shift(paths[0]) if (fmt if fmt != "auto" else detect_format(paths[0])) == "scannet_info" \
         else None
     return (out if per_frame else out * len(numbers)), shift
@@ -235,7 +230,7 @@ def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) ->
     conv = o.pose_convention.value
     frames, n_invalid, no_labels = [], 0, 0
     with progress.stage("reading poses", total=len(found), unit="pose") as bar:
-        for (n, name), (K, K_size) in zip(found, Ks):  # one pass over the frames' small files
+        for (n, name), (K, K_size, K_from) in zip(found, Ks):  # one pass over the frames' small files
             bar.update()
             path = {k: root / getattr(o, k).format(scene=scene, frame=n)
                     for k in ("depth", "color", "pose", "labels") if getattr(o, k) is not None}
@@ -253,8 +248,12 @@ def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) ->
             if lp is not None and not lp.is_file():
                 no_labels, lp = no_labels + 1, None
             dp, cp = path.get("depth"), path.get("color")
+            # the stated size is the colour camera's with intrinsics_camera=color (ScanNet's _info.txt), else
+            # the depth image's (the colour's without depth)
+            described = cp if (o.intrinsics_camera.value == "color" or dp is None) else dp
             frames.append(CapturedFrame(
-                name=name, T_cw=pose_to_world_to_camera(T, conv), K=K, K_size=K_size,
+                name=name, T_cw=pose_to_world_to_camera(T, conv), K=K, K_size=K_size, K_from=K_from,
+                K_image=described if K_size is not None else None,
                 depth=(lambda p=dp: read_depth(p, depth_scale, o.invalid_depth)) if dp is not None else None,
                 rgb=(lambda p=cp: read_rgb(p)) if cp is not None else None,
                 labels=(lambda p=lp: read_label_png(p)) if lp is not None else None))

@@ -223,14 +223,14 @@ def load_tum(
     rgb_files = [root / f_c[rgb_idx[k]] for k in sel] if rgb_idx is not None else None
     names = [p.stem for p in (rgb_files if rgb_files is not None else depth_files)]
 
-    def load(i: int) -> Frame:
+    def load(i: int, skip: frozenset = frozenset()) -> Frame:
         depth = read_depth_png(depth_files[i], depth_scale, 0, (0,))
-        rgb = read_rgb(rgb_files[i], depth.shape) if rgb_files is not None else None
+        rgb = read_rgb(rgb_files[i], depth.shape) if rgb_files is not None and "rgb" not in skip else None
         return Frame(name=names[i], K=K.copy(), T_cw=T_cw[i], depth=depth, gt_labels=None, rgb=rgb)
 
     info = {"n_frames_found": len(t_d), "n_no_pose": n_no_pose, "n_no_rgb": n_no_rgb,
             "timestamps": t_d[sel].tolist()}
-    frames = LazyFrames(names, load, info=info)
+    frames = LazyFrames(names, load, info=info, poses=list(T_cw), parts=("rgb",))
     check_depth_unit(frames[0], hint=f"scene.options.depth_scale={depth_scale} (units per metre)")
     frames.info["depth_unit_checked"] = True
     points, colors = fuse_depth(frames, voxel_size, cloud_stride, max_depth)

@@ -367,3 +367,23 @@ def write_readme_fixture(root, frames, labels):
     for f in frames:  # loop over frames
         Image.fromarray(np.asarray(labels[f["name"]], np.uint8)).save(root / "labels" / f"{f['name']}.png")
     return root
+
+
+def test_the_cameras_size_against_the_images(tmp_path):
+    """Issue 52 item 4: a COLMAP camera's WIDTH HEIGHT (640 x 480) describe its images: half-size images
+    take K scaled (and said), images of another aspect are one line naming cameras.bin and the image."""
+    from PIL import Image
+
+    root = _tiny(tmp_path, images=False)
+    (root / "images").mkdir()
+    for size in ((240, 320), (300, 300)):  # loop over the two cases
+        for i in range(2):  # loop over frames
+            Image.fromarray(np.full((*size, 3), 90, np.uint8)).save(root / "images" / f"im{i}.png")
+        if size == (240, 320):
+            s = _load(root)
+            assert s.frames[0].rgb.shape == (240, 320, 3) and "scaled by 1/2" in s.frames.info["intrinsics"]
+            np.testing.assert_allclose(s.frames[0].K[0, 0], 250.0)
+        else:
+            with pytest.raises(ValueError, match=r"cameras\.bin \(camera 1\): K is stated for 640x480 \(W x H\) "
+                                                 r"images, .*images/im0\.png is 300x300"):
+                _load(root)

@@ -341,3 +341,25 @@ def test_bad_transforms_is_one_cli_line(tiny, tmp_path):
     assert r.returncode != 0 and len(lines) == 1, r.stderr[-2000:]
     assert "transforms.json: frame images/a.png: camera_model 'VR180_L' is not supported" in lines[0]
     assert "Traceback" not in r.stderr
+
+
+def test_the_stated_size_against_the_images(tiny, tmp_path):
+    """Issue 52 item 4: transforms.json's w h describe its images: equal, or images that are a downscale
+    of them keeping the aspect (K scaled and said); w = h = 1,000,000 over 32 x 24 images is one line
+    naming both files (it ran to the end with K scaled by 32e-6 x 24e-6)."""
+    root, meta = tiny
+    src = root / "transforms.json"
+    src.write_text(json.dumps({**meta, "w": 64, "h": 48, "fl_x": 60.0, "fl_y": 60.0, "cx": 32.0, "cy": 24.0}))
+    s = _load(root)
+    assert s.frames[0].K[0, 0] == 30.0 and "scaled by 1/2 to the 32x24 images" in s.frames.info["intrinsics"]
+    for w, h in ((1_000_000, 1_000_000), (64, 24), (16, 12)):  # a lie, another aspect, an upscale
+        src.write_text(json.dumps({**meta, "w": w, "h": h}))
+        with pytest.raises(ValueError, match=rf"transforms\.json \(frame images/a\.png: w h\): K is stated for {w}x{h} "
+                                             rf"\(W x H\) images, .*images/a\.png is 32x24: expected that size or a "
+                                             rf"downscale of it"):
+            _load(root)
+    src.write_text(json.dumps({**meta, "w": 1_000_000, "h": 1_000_000}))
+    r = run_cli("scene=nerfstudio", f"scene.options.root={root}", "record=off", f"hydra.run.dir={tmp_path / 'out'}")
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert r.returncode != 0 and len(lines) == 1 and "Traceback" not in r.stderr, r.stderr[-2000:]
+    assert lines[0].startswith("diffuser-lab: error: ") and "transforms.json" in lines[0] and "images/a.png" in lines[0]

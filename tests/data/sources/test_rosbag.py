@@ -80,13 +80,14 @@ def _distort(depth, K, lens):
     return np.where(inside, depth[np.clip(cv, 0, h - 1), np.clip(cu, 0, w - 1)], 0)
 
 
-def write_ros2_bag(path, frames, storage="mcap", extra_depth=True, rigid=True, D=None):
+def write_ros2_bag(path, frames, storage="mcap", extra_depth=True, rigid=True, D=None, info_size=None):
     """The frames as a ROS 2 bag: depth Image 16UC1 (mm), colour CompressedImage (the JPEG files' bytes),
     label images mono16 at half size (the toy network's grey-level classes), CameraInfo (``D``: plumb_bob
     coefficients, the depth images distorted by them), /tf world -> base_link
     per frame (samples 10 ms before and after each stamp), /tf_static
     base_link -> camera_optical; colour stamped 5 ms after depth. ``extra_depth``: one more depth image
-    with no colour near it (skipped)."""
+    with no colour near it (skipped). ``info_size``: the (height, width) CameraInfo states (default: the depth's).
+    """
     from PIL import Image as PILImage
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
@@ -111,7 +112,7 @@ def write_ros2_bag(path, frames, storage="mcap", extra_depth=True, rigid=True, D
 
             depth = _distort(depth, K, ros_lens("plumb_bob", D, "test"))
         msgs.append((t, "/camera/depth/image_rect_raw", image(t, "camera_optical", depth, "16UC1")))
-        msgs.append((t, "/camera/depth/camera_info", info(t, "camera_optical", K, *depth.shape,
+        msgs.append((t, "/camera/depth/camera_info", info(t, "camera_optical", K, *(info_size or depth.shape),
                                                           *(() if D is None else (D,)))))
         jpeg = np.frombuffer(f["color_path"].read_bytes(), np.uint8)
         grey = np.asarray(PILImage.open(f["color_path"]).convert("RGB"))[::2, ::2].mean(axis=2)
@@ -380,3 +381,18 @@ def test_a_distorted_camera_info_undistorts_the_frames(tmp_path, seven):
     # the images as the bag holds them (read as if rectified) are far from the pinhole ones
     raw = _distort(np.rint(want * 1000).astype(np.uint16), seven[0]["K"], ros_lens("plumb_bob", D, "t")) / 1000
     assert (np.abs(raw[both] - want[both]) < 0.002).mean() < close.mean() - 0.05
+
+
+@needs_7scenes
+def test_a_camera_info_size_that_lies_is_one_line(tmp_path, seven):
+    """Issue 52 item 4: CameraInfo's width x height describe the depth images (640 x 480): twice that
+    takes K scaled (and said); a size no downscale of them can be is one line naming the bag and topic."""
+    opts = dict(world_frame="world", cloud_stride=16)
+    big = write_ros2_bag(tmp_path / "big", seven[:2], extra_depth=False, info_size=(960, 1280))
+    s = load_rosbag(RosbagOptions(path=str(big), **opts), SCANNET20)
+    assert "scaled by 1/2 to the 640x480 images" in s.frames.info["intrinsics"]
+    np.testing.assert_allclose(s.frames[0].K[0, 0], seven[0]["K"][0, 0] / 2)
+    lie = write_ros2_bag(tmp_path / "lie", seven[:2], extra_depth=False, info_size=(1_000_000, 1_000_000))
+    with pytest.raises(ValueError, match=r"lie.*: /camera/depth/camera_info \(width x height\): K is stated for "
+                                         r"1000000x1000000 \(W x H\) images, frame .*'s depth image is 640x480"):
+        load_rosbag(RosbagOptions(path=str(lie), **opts), SCANNET20)

@@ -165,6 +165,12 @@ def test_bad_input_is_one_line(seven, tmp_path):
     _write(root / "nok.yaml", cam.replace("camera_matrix:", "cam_matrix:"))
     with pytest.raises(ValueError, match=r"nok\.yaml: no camera_matrix, expected a ROS camera_info YAML"):
         load("scene.options.intrinsics=nok.yaml")
+    # a size stated for K that no downscale of the depth images can be (issue 52): one line naming both
+    _write(root / "big.json", json.dumps({"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2],
+                                          "w": 1_000_000, "h": 1_000_000}))
+    with pytest.raises(ValueError, match=r"big\.json: K is stated for 1000000x1000000 \(W x H\) images, .*\.png is "
+                                         r"640x480: expected that size or a downscale of it"):
+        load("scene.options.intrinsics=big.json")
     # _info.txt: a field missing, 15 numbers, not key = value
     info = _write(tmp_path / "a" / "_info.txt", _info(K, K, m_calibrationDepthIntrinsic=None))
     with pytest.raises(ValueError, match=r"_info\.txt: no m_calibrationDepthIntrinsic, expected ScanNet's _info\.txt"):
