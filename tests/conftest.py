@@ -102,9 +102,12 @@ def pytest_collection_modifyitems(config, items):
 
 
 _over_budget: list[tuple[float, str]] = []
+_unit_seconds: dict[str, float] = {}
 
 
 def pytest_runtest_logreport(report):
+    # setup + call + teardown of each work unit: what the suite's 10 minutes are spent on (CI prints it)
+    _unit_seconds[work_unit(report.nodeid)] = _unit_seconds.get(work_unit(report.nodeid), 0.0) + report.duration
     if report.when == "call" and report.passed and report.duration > QUICK_BUDGET_S \
             and "slow" not in report.keywords:
         _over_budget.append((report.duration, report.nodeid))
@@ -115,6 +118,11 @@ def pytest_terminal_summary(terminalreporter):
         terminalreporter.write_sep("-", f"tests without the slow marker over {QUICK_BUDGET_S:g} s (docs/testing.md)")
         for d, nodeid in sorted(_over_budget, reverse=True):
             terminalreporter.write_line(f"{d:6.1f} s  {nodeid}")
+    if _unit_seconds:
+        total = sum(_unit_seconds.values())
+        terminalreporter.write_sep("-", f"the 20 longest work units of {total:.0f} s on all workers")
+        for unit, d in sorted(_unit_seconds.items(), key=lambda kv: -kv[1])[:20]:
+            terminalreporter.write_line(f"{d:6.1f} s  {unit}")
 
 
 def run_cli(*args: str, cwd: Path | None = None, env: dict | None = None) -> subprocess.CompletedProcess:
