@@ -47,7 +47,6 @@ from diffuser_lab.data.scene import IGNORE, Scene
 from diffuser_lab.data.taxonomy import resolve_taxonomy
 from diffuser_lab.hooks import RunHooks
 from diffuser_lab.method import fusion
-from diffuser_lab.method.features import unit_float16
 from diffuser_lab.method.graph import nearest_distinct
 from diffuser_lab.method.metrics import score
 
@@ -344,7 +343,8 @@ def diffuse_tile(cfg: Config, inp: TileInput, frames, taxonomy, name: str, spec:
         in_halo &= res.labels != IGNORE
         halo = (rows[in_halo].astype(np.int64), res.labels[in_halo].astype(np.int16))
         if res.lifted is not None:  # a features run (method/features.py)
-            feats = unit_float16(res.lifted.method[res.rows[pos]])
+            feats = res.lifted.unit_rows(res.lifted.method, res.rows[pos])
+            rec["basis"] = res.lifted.basis_info  # the tile's own basis (predictions.basis=auto) and what it kept
         rec["iterations"] = int(res.diffusion.iterations) if res.diffusion is not None else 0
         if res.diffusion is not None:  # the tile's last relative residual (run.rrd's per-tile chart)
             rec["residual"] = float(res.diffusion.residual)
