@@ -9,8 +9,9 @@ against the labels run of the same scene, side by side in one script, repeated.
 overrides and the common ones after ``--``) in its own process, in turn, ``--repeat`` rounds
 (round-robin: a load change hits every case alike), under ``/usr/bin/time -f %M`` (the peak RSS
 of the command's process, KB); it prints per case the median of the command's wall time, of
-summary.json's ``timings_s`` (total, evidence, diffusion, ...) and of the peak, and the ratio of
-each case to the first (the labels run) per round, median over rounds. Each case may run on its
+``end_to_end`` (summary.json's ``timings_s.total`` + ``write``: the run and its files), of
+``timings_s`` (total, evidence, diffusion, ...) and of the peak, and the ratio of each case to the
+first (the labels run) per round, median over rounds. Each case may run on its
 own source tree (``--tree``: PYTHONPATH, e.g. a checkout of the commit before a change), so a
 before/after pair is measured in the same rounds on the same machine.
 
@@ -52,8 +53,9 @@ def _run_case(tree: str, overrides: list[str], run_dir: Path) -> dict:
     s = json.loads((run_dir / "summary.json").read_text())
     out = {"wall": wall, "peak_gb": kb[-1] / 2**20 if kb else float("nan")}
     out.update({k: float(v) for k, v in s["timings_s"].items()})
+    out["end_to_end"] = out.get("total", 0.0) + out.get("write", 0.0)  # the run and writing its files
     out["miou"] = s.get("metrics", {}).get("miou")
-    out["basis"] = (s.get("features") or {}).get("basis")
+    out["basis_info"] = (s.get("features") or {}).get("basis")
     return out
 
 
@@ -76,7 +78,7 @@ def speed(args) -> None:
             print(f"round {r} {name}: wall {res['wall']:.2f} s total {res.get('total', 0):.2f} evidence "
                   f"{res.get('evidence', 0):.2f} diffusion {res.get('diffusion', 0):.2f} peak {res['peak_gb']:.2f} GB "
                   f"mIoU {res['miou']}", flush=True)
-    keys = ("wall", "total", "predictions", "evidence", "diffusion", "write", "metrics", "peak_gb")
+    keys = ("wall", "end_to_end", "total", "predictions", "evidence", "diffusion", "write", "metrics", "peak_gb")
     ref = cases[0][0]
     print(f"\nmedians of {args.repeat} rounds (load average at the end: {os.getloadavg()[0]:.1f}); "
           f"ratio = case / {ref} per round, median")

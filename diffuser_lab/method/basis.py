@@ -37,7 +37,7 @@ from diffuser_lab import seeding
 from diffuser_lab.backends.records import to_float16
 from diffuser_lab.backends.threads import blas_one_thread
 
-__all__ = ["FeatureBasis", "BasisFeatures", "fit_basis", "query_span", "range_finder", "SAMPLE_ROWS"]
+__all__ = ["FeatureBasis", "BasisFeatures", "fit_basis", "query_span", "range_finder", "unit_rows_float16", "SAMPLE_ROWS"]
 
 SAMPLE_ROWS = 20_000
 """Feature cells the principal directions are fitted on at most (a seeded subsample)."""
@@ -195,20 +195,28 @@ class BasisFeatures:
 
     def unit_float16(self, basis: FeatureBasis, rows: Optional[np.ndarray] = None, out: Optional[np.ndarray] = None,
                      chunk: int = 32768) -> np.ndarray:
-        """(M', D) float16 unit rows in R^D of the projections (coords @ vectors.T, normalised; 0 rows
-        without a feature), of ``rows`` (default all), a chunk of rows at a time (no (M, D) float32
-        temporary); into ``out`` (e.g. a memory map) when given. Many calls of a few thousand rows
-        (a file written in chunks) run faster inside one ``blas_one_thread()``."""
-        n = len(self) if rows is None else len(rows)
-        out = np.empty((n, basis.dim), np.float16) if out is None else out
-        V = np.ascontiguousarray(basis.vectors.T, np.float32)  # (k, D)
-        for lo in range(0, n, chunk):  # chunks of rows: bounded float32 temporaries
-            sel = slice(lo, min(lo + chunk, n)) if rows is None else rows[lo:lo + chunk]
-            c = self.coords[sel].astype(np.float32)
-            norm = np.sqrt(np.einsum("ij,ij->i", c, c))
-            c *= np.divide(1.0, norm, out=np.zeros_like(norm), where=norm > 0)[:, None]
-            to_float16(c @ V, out[lo:lo + len(c)])
-        return out
+        """(M', D) float16 unit rows in R^D of the projections, of ``rows`` (default all):
+        :func:`unit_rows_float16` of the coordinates on ``basis.vectors``."""
+        return unit_rows_float16(self.coords, basis.vectors, rows, out, chunk)
+
+
+def unit_rows_float16(coords: np.ndarray, vectors: np.ndarray, rows: Optional[np.ndarray] = None,
+                      out: Optional[np.ndarray] = None, chunk: int = 32768) -> np.ndarray:
+    """(M, k) coordinates on (D, k) orthonormal ``vectors`` -> (M', D) float16 unit rows in R^D
+    (coords @ vectors.T, normalised; 0 rows where the coordinates are 0) of ``rows`` (default all), a
+    chunk of rows at a time (no (M, D) float32 temporary); into ``out`` (e.g. a memory map's rows)
+    when given. Many calls of a few thousand rows (a file written in chunks) run faster inside one
+    ``blas_one_thread()``."""
+    n = len(coords) if rows is None else len(rows)
+    out = np.empty((n, vectors.shape[0]), np.float16) if out is None else out
+    V = np.ascontiguousarray(np.asarray(vectors, np.float32).T)  # (k, D)
+    for lo in range(0, n, chunk):  # chunks of rows: bounded float32 temporaries
+        sel = slice(lo, min(lo + chunk, n)) if rows is None else rows[lo:lo + chunk]
+        c = np.asarray(coords[sel], np.float32).copy()
+        norm = np.sqrt(np.einsum("ij,ij->i", c, c))
+        c *= np.divide(1.0, norm, out=np.zeros_like(norm), where=norm > 0)[:, None]
+        to_float16(c @ V, out[lo:lo + len(c)])
+    return out
 
 
 def fit_basis(sample: np.ndarray, embeddings: np.ndarray, principal: int, probes: int, seed: int) -> FeatureBasis:

@@ -103,21 +103,23 @@ def test_the_command_line_writes_features_and_the_query_command_relabels_the_run
 
 
 @pytest.mark.slow
-def test_a_tiled_features_run_writes_the_whole_scenes_features(small_demo_scene, tmp_path):
+@pytest.mark.parametrize("dim,basis", [(32, "full"), (96, "auto")])
+def test_a_tiled_features_run_writes_the_whole_scenes_features(small_demo_scene, tmp_path, dim, basis):
     """protocol=tiled with features: each tile's points' features go into one features.npy through a
-    memory map; labels as the untiled run's (the halo gives the tiles' borders their neighbours)."""
+    memory map (a reduced basis' tiles keep their coordinates and basis, made (N, D) there); labels
+    as the untiled run's (the halo gives the tiles' borders their neighbours)."""
     from diffuser_lab.runs.tiled import tiled
 
-    cfg = default_config(**SMALL, **{"predictions.source": "features", "predictions.dim": 32})
-    whole = run(cfg, scene=small_demo_scene)
-    t = tiled(default_config(**SMALL, **{"predictions.source": "features", "predictions.dim": 32,
-                                         "protocol.name": "tiled", "tiling.size": 2.0}),
+    keys = {"predictions.source": "features", "predictions.dim": dim}
+    whole = run(default_config(**SMALL, **keys), scene=small_demo_scene)
+    t = tiled(default_config(**SMALL, **keys, **{"protocol.name": "tiled", "tiling.size": 2.0}),
               scene=small_demo_scene, run_dir=tmp_path)
     assert t.files == {"features": "features.npy"} and not t.failed
+    assert {r["basis"]["kind"] for r in t.tiles} == {basis} == {whole.lifted.basis_info["kind"]}
     F = np.load(tmp_path / "features.npy")
-    assert F.shape == (small_demo_scene.n_points, 32) and F.dtype == np.float16
+    assert F.shape == (small_demo_scene.n_points, dim) and F.dtype == np.float16
     assert (t.labels == whole.labels).mean() > 0.98  # 98.9 % measured: each tile stops early on its own
-    unit = whole.lifted.method / np.maximum(np.linalg.norm(whole.lifted.method, axis=1, keepdims=True), 1e-30)
+    unit = whole.lifted.unit_rows(whole.lifted.method).astype(np.float32)
     cos = (F.astype(np.float32) * unit[whole.rows]).sum(1)
     assert np.median(cos) > 0.999
 
