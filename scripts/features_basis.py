@@ -122,7 +122,7 @@ def agree(args) -> dict:
     reuse_scenes(True)
     common = list(args.common)
     variants = [("full", ["predictions.basis=full"])] + [
-        (v.split("=", 1)[0], v.split("=", 1)[1].split()) for v in args.variant]
+        (v.split("=", 1)[0], v.split("=", 1)[1].split()) for v in (args.variant or ["auto=predictions.basis=auto"])]
     res = {}
     for name, ov in variants:
         t0 = time.perf_counter()
@@ -181,7 +181,7 @@ def main(argv=None) -> int:
     s.add_argument("--out", help="folder for the runs (default: a new temporary folder)")
     s.add_argument("common", nargs="*", help="overrides for every case (after --)")
     a = sub.add_parser("agree")
-    a.add_argument("--variant", action="append", default=[], help="NAME=OVERRIDES (space-separated), beside full")
+    a.add_argument("--variant", action="append", default=[], help="NAME=OVERRIDES (space-separated), beside full (default: auto=predictions.basis=auto)")
     a.add_argument("--json", help="write the report here")
     a.add_argument("common", nargs="*", help="the scene's overrides (after --)")
     args = ap.parse_args(argv)
