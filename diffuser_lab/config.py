@@ -388,6 +388,13 @@ class PredictionsConfig(Section):
     query_mapping: Optional[str] = None  # features: CSV query,class (default: a query names its class)
     threshold: Optional[float] = None  # features: a point whose best cosine is below this gets ``background``
     background: Optional[str] = None  # features: that class's name; null = unlabeled
+    # features: the columns a run diffuses (docs/features.md "The basis"): auto = the queries' span + the
+    # leading principal directions of the frames' features + probes of the rest (labels exact, |f| and the
+    # saved features within the error summary.json reports); full = all D (auto too where it would not halve them)
+    basis: str = key("auto", rule("auto or full", lambda v: v in ("auto", "full")))
+    basis_dim: int = key(8, within(0, 1024, steps=True))  # features, basis=auto: principal directions beyond the queries' span
+    basis_probes: int = key(3, within(0, 64, steps=True))  # features, basis=auto: random probe columns estimating |f| outside the basis
+    basis_frames: int = key(6, within(1, 1000, steps=True))  # features, basis=auto: frames (evenly spaced) whose feature cells fit the basis
 
     def _check_keys(self) -> None:
         if isinstance(self.pattern, str):

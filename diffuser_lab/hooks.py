@@ -3,7 +3,7 @@
 :func:`diffuser_lab.runs.pipeline.run` calls, in order:
     on_scene(scene)                                  once, after loading
     on_frame(index, frame)                           for every frame, with its predictions attached
-        (a features run: on_queries(names, embeddings) once, before its first frame)
+        (a features run: on_queries(names, embeddings, basis) once, before its first frame)
     on_evidence(points, grid, evidence, bayesian)    once, on the cloud the diffusion runs on
     wants(iteration) -> bool, observe(iteration, Z, stats)   during the diffusion
         (a features run: observe_features(iteration, F) first, then observe with class scores)
@@ -32,9 +32,11 @@ class RunHooks:
     def on_frame(self, index: int, frame: Any) -> None:
         """frame: :class:`~diffuser_lab.data.scene.Frame` with ``labels``/``probs`` set (predictions)."""
 
-    def on_queries(self, names: Any, embeddings: np.ndarray) -> None:
+    def on_queries(self, names: Any, embeddings: np.ndarray, basis: Optional[np.ndarray] = None) -> None:
         """A features run (predictions=features) only, once, before the first ``on_frame``: the
-        queries' names (Q,) and (Q, D) float32 unit embeddings (read-only)."""
+        queries' names (Q,) and (Q, D) float32 unit embeddings (read-only). With a reduced basis
+        (``predictions.basis=auto``: ``basis`` (D, k) float32 orthonormal columns) every feature
+        the hooks see, the embeddings included, is (.., k) coordinates in it (x @ basis.T: in R^D)."""
 
     def on_evidence(self, points: np.ndarray, grid: Optional[Any], evidence: Any, bayesian: np.ndarray) -> None:
         """points: (M, 3) work cloud (world m); grid: VoxelGrid mapping original -> work points or
@@ -50,7 +52,8 @@ class RunHooks:
 
     def observe_features(self, iteration: int, F: np.ndarray) -> None:
         """A features run (predictions=features) only, before :meth:`observe` of the same iteration:
-        F (M, D) float32 read-only per-point feature sums after ``iteration`` (valid during this call
+        F (M, D) float32 (a reduced basis: (M, k) coordinates, :meth:`on_queries`) read-only
+        per-point feature sums after ``iteration`` (valid during this call
         only); :meth:`observe` then gets the queries' class scores (M, C) of them
         (:meth:`~diffuser_lab.runs.pipeline.FeatureLift.scores`), and ``on_result``'s
         ``result.diffusion.Z`` is those of the final features (``result.lifted.method``)."""

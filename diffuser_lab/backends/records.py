@@ -39,23 +39,28 @@ def transpose_into(a: np.ndarray, out: np.ndarray) -> None:
 _F16_MIN_NORMAL = np.float32(2.0**-14)
 
 
-def to_float16(a: np.ndarray) -> np.ndarray:
-    """``a.astype("<f2")`` for finite float32 ``a`` >= 0, bit for bit, fast: numpy converts
-    values that become float16 subnormals (below 2^-14; Z has many) in a slow path (~50 ms on a
-    1M-value Z state). Compiled for C-contiguous float32 (any sign, inf and nan too); otherwise
-    those values are rounded here as the multiple of 2^-24 nearest (ties to even), which is their
-    float16 bit pattern."""
+def to_float16(a: np.ndarray, out: Optional[np.ndarray] = None) -> np.ndarray:
+    """``a.astype("<f2")`` for finite float32 ``a``, bit for bit, fast: numpy converts values
+    that become float16 subnormals (magnitude below 2^-14; Z has many, so do unit features of
+    hundreds of dimensions) in a slow path (~50 ms on a 1M-value Z state). Compiled for
+    C-contiguous float32 (inf and nan too); otherwise those values are rounded here as the
+    multiple of 2^-24 nearest (ties to even), with their sign: their float16 bit pattern.
+    ``out``: a C-contiguous float16 array of ``a``'s shape to write into (e.g. a memory map's rows)."""
     k = _kernels()
+    dst = out if out is not None and out.flags.c_contiguous else np.empty(a.shape, "<f2")
     if k is not None and a.dtype == np.float32 and a.flags.c_contiguous:
-        out = np.empty(a.shape, "<f2")
-        k.f32_to_f16_bits(a.reshape(-1).view(np.uint32), out.reshape(-1).view(np.uint16))
-        return out
-    sub = a < _F16_MIN_NORMAL
-    with np.errstate(over="ignore"):  # beyond 65504: inf, as numpy
-        out = np.where(sub, np.float32(0.0), a).astype("<f2")
-    bits = out.view(np.uint16)
-    bits[sub] = np.rint(a[sub] * np.float32(2.0**24)).astype(np.uint16)
-    return out
+        k.f32_to_f16_bits(a.reshape(-1).view(np.uint32), dst.reshape(-1).view(np.uint16))
+    else:
+        mag = np.abs(a)
+        sub = mag < _F16_MIN_NORMAL
+        with np.errstate(over="ignore"):  # beyond 65504: inf, as numpy
+            dst[...] = np.where(sub, np.float32(0.0), a).astype("<f2")
+        bits = dst.view(np.uint16)
+        bits[sub] = (np.rint(mag[sub] * np.float32(2.0**24)).astype(np.uint16)
+                     | (np.signbit(a[sub]).astype(np.uint16) << np.uint16(15)))
+    if out is not None and dst is not out:
+        out[...] = dst
+    return dst if out is None else out
 
 
 def shares(a: np.ndarray, bits: int) -> tuple[np.ndarray, np.ndarray]:

@@ -32,6 +32,7 @@ from typing import Iterable
 import numpy as np
 
 from diffuser_lab.backends.evidence import hard_votes
+from diffuser_lab.backends.threads import blas_one_thread
 from diffuser_lab.config import BayesianMode
 from diffuser_lab.data.geometry import visible_projection
 from diffuser_lab.data.scene import IGNORE, Frame
@@ -133,6 +134,83 @@ def sample_features(fmap: np.ndarray, rows: np.ndarray, cols: np.ndarray, shape:
     return f, ok & (total > 0)
 
 
+@dataclass(frozen=True)
+class ProjectedMap:
+    """A feature map projected on a :class:`~diffuser_lab.method.basis.FeatureBasis` (what
+    :func:`sample_basis` reads; :func:`project_features` makes it once per frame).
+
+    Attributes:
+        coords: (h * w, k + s) float32 each cell's coordinates on the basis' columns (0: no feature).
+        gram: (5, h * w) float32 the cells' dot products in R^D with themselves and their neighbours
+            (self, right, down, down-right, and right-with-down: cell (y, x + 1) . cell (y + 1, x);
+            a neighbour past the edge is the edge cell, as the sampler's clipped corners):
+            what makes a bilinear sample's norm in R^D exact without its D values.
+        valid: (h, w) bool cells with a feature.
+    """
+
+    coords: np.ndarray
+    gram: np.ndarray
+    valid: np.ndarray
+
+
+def project_features(fmap: np.ndarray, basis) -> ProjectedMap:
+    """A feature map (h, w, D) (NaN = no feature) -> its :class:`ProjectedMap` on ``basis``: one
+    (h w, D) x (D, k + s) product and five (h, w) dot-product maps (O(h w D) each)."""
+    h, w, D = fmap.shape
+    flat, valid = prepare_features(fmap)
+    coords = flat @ basis.columns
+    f = flat.reshape(h, w, D)
+    xr, yd = np.minimum(np.arange(w) + 1, w - 1), np.minimum(np.arange(h) + 1, h - 1)
+    gram = np.empty((5, h, w), np.float32)
+    gram[0] = np.einsum("yxd,yxd->yx", f, f)
+    gram[1] = np.einsum("yxd,yxd->yx", f, f[:, xr])
+    gram[2] = np.einsum("yxd,yxd->yx", f, f[yd])
+    gram[3] = np.einsum("yxd,yxd->yx", f, f[yd][:, xr])
+    gram[4] = np.einsum("yxd,yxd->yx", f[:, xr], f[yd])
+    return ProjectedMap(coords, gram.reshape(5, h * w), valid)
+
+
+def sample_basis(prep: ProjectedMap, fshape: tuple[int, int], rows: np.ndarray, cols: np.ndarray,
+                 shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`sample_features` on a projected map: the same bilinear sample at the pixel centres,
+    normalised by its exact norm in R^D (from the cells' dot products), in the basis' coordinates.
+
+    Args:
+        prep: the frame's :class:`ProjectedMap`; fshape: the map's (h, w).
+        rows, cols: (M,) int pixel coordinates in the (H, W) image ``shape``.
+    Returns:
+        (M, k + s) float32 the unit samples' coordinates (0 rows where unusable), (M,) bool usable,
+        (M,) float32 each usable sample's squared norm in R^D before normalising (> 0).
+    """
+    h, w = fshape
+    H, W = shape
+    y = np.clip((rows + 0.5) * (h / H) - 0.5, 0, h - 1)
+    x = np.clip((cols + 0.5) * (w / W) - 0.5, 0, w - 1)
+    y0, x0 = np.floor(y).astype(np.int64), np.floor(x).astype(np.int64)
+    y1, x1 = np.minimum(y0 + 1, h - 1), np.minimum(x0 + 1, w - 1)
+    wy, wx = (y - y0).astype(np.float32), (x - x0).astype(np.float32)
+    c00, c01, c10, c11 = y0 * w + x0, y0 * w + x1, y1 * w + x0, y1 * w + x1
+    flat_valid = prep.valid.reshape(-1)
+    wts = []
+    for c, wt in ((c00, (1 - wy) * (1 - wx)), (c01, (1 - wy) * wx), (c10, wy * (1 - wx)), (c11, wy * wx)):
+        wts.append(np.where(flat_valid[c], wt, np.float32(0)))
+    a, b, c, d = wts
+    g = prep.gram
+    n2 = (a * a * g[0, c00] + b * b * g[0, c01] + c * c * g[0, c10] + d * d * g[0, c11]
+          + 2 * (a * b * g[1, c00] + c * d * g[1, c10] + a * c * g[2, c00] + b * d * g[2, c01]
+                 + a * d * g[3, c00] + b * c * g[4, c00]))
+    acc = np.take(prep.coords, c00, axis=0)
+    acc *= a[:, None]
+    for cell, wt in ((c01, b), (c10, c), (c11, d)):
+        part = np.take(prep.coords, cell, axis=0)
+        part *= wt[:, None]
+        acc += part
+    ok = (a + b + c + d > 0) & (n2 > 0) & np.isfinite(n2)
+    inv = np.divide(np.float32(1), np.sqrt(n2, where=ok, out=np.ones_like(n2)), where=ok, out=np.zeros_like(n2))
+    acc *= inv[:, None]
+    return acc, ok, np.where(ok, n2, np.float32(0))
+
+
 class BestView:
     """The most confident view's feature of every point (a baseline of features runs): the unit
     feature of the linked pixel (the projected one; not a window's) whose ``confidence`` is the
@@ -159,15 +237,15 @@ class BestView:
 
 
 def _add_features(ev: Evidence, points: np.ndarray, frame: Frame, depth_tol: float, pixel_radius: int,
-                  best: BestView | None = None) -> np.ndarray:
+                  best: BestView | None = None, basis=None, energy: np.ndarray | None = None) -> np.ndarray:
     fmap = frame.features
-    D = ev.mass.shape[1]
+    D = ev.mass.shape[1] if basis is None else basis.dim
     if fmap.ndim != 3 or fmap.shape[2] != D:
         raise ValueError(f"frame {frame.name}: feature map of shape {fmap.shape}, expected (h, w, {D})")
     idx, rows, cols = visible_projection(points, frame, depth_tol)
     ev.points_per_frame.append(int(idx.size))
     h, w = frame.shape
-    prepared = prepare_features(fmap)
+    prepared = prepare_features(fmap) if basis is None else project_features(fmap, basis)
     r = pixel_radius
     for dr in range(-r, r + 1):
         for dc in range(-r, r + 1):
@@ -176,23 +254,39 @@ def _add_features(ev: Evidence, points: np.ndarray, frame: Frame, depth_tol: flo
             i, rr, cc = idx[ok], rr[ok], cc[ok]
             for lo in range(0, i.size, FEATURE_CHUNK):  # each point once per offset: no repeated rows
                 sl = slice(lo, lo + FEATURE_CHUNK)
-                f, good = sample_features(fmap, rr[sl], cc[sl], (h, w), prepared)
+                if basis is None:
+                    f, good = sample_features(fmap, rr[sl], cc[sl], (h, w), prepared)
+                else:
+                    f, good, _ = sample_basis(prepared, fmap.shape[:2], rr[sl], cc[sl], (h, w))
+                    if energy is not None:  # the share of the pixels' energy the basis keeps
+                        kept = f[good, : basis.k]
+                        energy[0] += float(np.einsum("ij,ij->", kept, kept, dtype=np.float64))
+                        energy[1] += int(good.sum())
                 ev.mass[i[sl][good]] += f[good]
                 ev.links[i[sl][good]] += 1
                 if best is not None and dr == 0 and dc == 0:
-                    best.offer(i[sl][good], f[good])
+                    best.offer(i[sl][good], f[good] if basis is None else f[good, : basis.k])
     return idx
 
 
 def add_frame(ev: Evidence, points: np.ndarray, frame: Frame, *, depth_tol: float = 0.05,
-              pixel_radius: int = 0, hard: bool = False, best: BestView | None = None) -> np.ndarray:
+              pixel_radius: int = 0, hard: bool = False, best: BestView | None = None, basis=None,
+              energy: np.ndarray | None = None) -> np.ndarray:
     """Add one frame's pixel-to-point links to ``ev`` in place (Eq. 12, one term of Eq. 11):
     class masses, or unit features when the frame has a feature map (module docstring).
+
+    ``basis`` (a :class:`~diffuser_lab.method.basis.FeatureBasis`, feature maps only): ``ev.mass``
+    has its k + s columns and each unit feature is added as its coordinates (:func:`sample_basis`:
+    exactly the projection of the full path's unit feature); ``energy`` (2,) float64, when given,
+    gains the linked pixels' kept energy (sum of |coordinates on the k vectors|^2) and their number.
 
     Returns (M,) int64 sorted indices of the points that passed the visibility check (their
     rows of ``ev`` may have changed; the others did not)."""
     if getattr(frame, "features", None) is not None:
-        return _add_features(ev, points, frame, depth_tol, pixel_radius, best)
+        if basis is None:
+            return _add_features(ev, points, frame, depth_tol, pixel_radius, best)
+        with blas_one_thread():  # a basis' products are small: OpenBLAS's spinning workers cost more
+            return _add_features(ev, points, frame, depth_tol, pixel_radius, best, basis, energy)
     n, num_classes = ev.mass.shape
     labels, probs = _class_vectors(frame, num_classes, hard)
     if probs is None and pixel_radius == 0:
@@ -262,6 +356,8 @@ class RunEvidence:
         self._ppf: list[int] = []
         self._base_ppf: list[int] = []
         self.best: BestView | None = None  # set by a features run: the most confident view's feature
+        self.basis = None  # a features run's FeatureBasis (predictions.basis=auto): mass has its k + s columns
+        self.energy = np.zeros(2)  # with a basis: the linked pixels' kept energy and their number
         self.grow(n, max(n, capacity))
 
     @classmethod
@@ -311,8 +407,9 @@ class RunEvidence:
         ev = Evidence(mass=self._mass[lo:hi], links=self._links[lo:hi], points_per_frame=self._ppf)
         best = self.best if lo == 0 and self.best is not None and hi <= self.best.score.size else None
         seen = lo + add_frame(ev, points, frame, depth_tol=self.depth_tol, pixel_radius=self.pixel_radius,
-                              best=None if self.separate else best)
+                              best=None if self.separate else best, basis=self.basis, energy=self.energy)
         if not self.separate:
             return seen, seen
         base = Evidence(mass=self._base_mass[lo:hi], links=self._base_links[lo:hi], points_per_frame=self._base_ppf)
-        return seen, lo + add_frame(base, points, frame, depth_tol=self.depth_tol, hard=self.votes, best=best)
+        return seen, lo + add_frame(base, points, frame, depth_tol=self.depth_tol, hard=self.votes, best=best,
+                                    basis=self.basis)

@@ -30,6 +30,8 @@ import dataclasses
 
 import numpy as np
 
+from diffuser_lab.backends.records import to_float16
+
 from .diffusion import normalise
 from .solvers import solve
 
@@ -51,7 +53,7 @@ def unit_float16(F: np.ndarray, chunk: int = 32768) -> np.ndarray:
     rows at a time: no (N, D) float32 temporaries (what runs keep and write of 300k x 512 features)."""
     out = np.empty(F.shape, np.float16)
     for lo in range(0, F.shape[0], chunk):
-        out[lo:lo + chunk] = normalised(F[lo:lo + chunk])[0]
+        to_float16(normalised(F[lo:lo + chunk])[0], out[lo:lo + chunk])  # numpy's cast of subnormals is slow
     return out
 
 

@@ -23,7 +23,7 @@ from diffuser_lab.data.embeddings import check_queries, load_queries
 from diffuser_lab.data.frames import first_line
 from diffuser_lab.data.scene import IGNORE
 
-__all__ = ["Queries", "similarity", "query_labels", "query_classes", "load_encoder", "CHUNK_ELEMENTS"]
+__all__ = ["Queries", "similarity", "query_labels", "labels_of_cosines", "query_classes", "load_encoder", "CHUNK_ELEMENTS"]
 
 CHUNK_ELEMENTS = 1 << 22
 """Feature values converted to float32 at once (16 MB): 8192 rows at D = 512."""
@@ -172,22 +172,40 @@ def query_labels(features: np.ndarray, queries: Queries | np.ndarray, to_class, 
         reached the point) or not finite.
     """
     E = _embeddings(queries)
+    lut = _class_lut(to_class, E.shape[0], background)
+    out = np.full(features.shape[0], IGNORE, np.int16)
+    for rows, sim, ok in _chunks(features, E):
+        out[rows] = _labels(sim, ok, lut, threshold, background)
+    return out
+
+
+def labels_of_cosines(cos: np.ndarray, to_class, threshold: float | None = None, background: int = IGNORE) -> np.ndarray:
+    """:func:`query_labels` from (N, Q) cosines already computed (NaN rows: no feature; e.g. a
+    reduced basis' :meth:`~diffuser_lab.method.basis.BasisFeatures.cosines`) -> (N,) int16."""
+    lut = _class_lut(to_class, cos.shape[1], background)
+    ok = np.isfinite(cos).all(1)
+    return _labels(np.where(ok[:, None], cos, np.float32(0)), ok, lut, threshold, background)
+
+
+def _class_lut(to_class, n_queries: int, background: int) -> np.ndarray:
     lut = np.asarray(to_class)
-    if lut.shape != (E.shape[0],) or lut.dtype.kind not in "iu" or (lut.size and lut.min() < IGNORE):
-        raise ValueError(f"to_class of shape {lut.shape} dtype {lut.dtype}, expected ({E.shape[0]},) class ids "
+    if lut.shape != (n_queries,) or lut.dtype.kind not in "iu" or (lut.size and lut.min() < IGNORE):
+        raise ValueError(f"to_class of shape {lut.shape} dtype {lut.dtype}, expected ({n_queries},) class ids "
                          f">= {IGNORE}, one per query")
     if int(background) < IGNORE:
         raise ValueError(f"background {background}: expected a class id or {IGNORE} (unlabeled)")
-    lut = lut.astype(np.int16)
-    out = np.full(features.shape[0], IGNORE, np.int16)
-    for rows, sim, ok in _chunks(features, E):
-        best = sim.argmax(1)
-        lab = lut[best]
-        if threshold is not None:
-            lab[sim[np.arange(len(best)), best] < threshold] = background
-        lab[~ok] = IGNORE
-        out[rows] = lab
-    return out
+    return lut.astype(np.int16)
+
+
+def _labels(sim: np.ndarray, ok: np.ndarray, lut: np.ndarray, threshold, background) -> np.ndarray:
+    """(n, Q) cosines, (n,) rows with a feature -> (n,) int16 the best query's class (the rule of
+    :func:`query_labels`)."""
+    best = sim.argmax(1)
+    lab = lut[best]
+    if threshold is not None:
+        lab[sim[np.arange(len(best)), best] < threshold] = background
+    lab[~ok] = IGNORE
+    return lab
 
 
 def query_classes(query_names: Sequence[str], class_names: Sequence[str],

@@ -41,6 +41,7 @@ class BatchHooks(RecordingHooks):
         # (:mod:`.features`) and the last iteration projected with it
         self.query = getattr(conf.record, "query", None)
         self._queries: Optional[tuple] = None
+        self._basis: Optional[np.ndarray] = None
         self._view: Optional[feature_view.FeatureView] = None
         self._projected = 0
         # run.rrd's scalars at every iteration (cheap; the Z states stay on the schedule): the
@@ -48,9 +49,10 @@ class BatchHooks(RecordingHooks):
         self._dense: Optional[SimpleNamespace] = None
         self._pending: list[tuple] = []  # their rows not sent yet (sent in batches: a message per iteration cost more)
 
-    def on_queries(self, names: Any, embeddings: np.ndarray) -> None:
+    def on_queries(self, names: Any, embeddings: np.ndarray, basis: Optional[np.ndarray] = None) -> None:
         feature_view.pick_query(names, self.query)  # an unknown record.query: an error now, not after the run
         self._queries = (tuple(names), embeddings)
+        self._basis = basis  # (D, k): the features are coordinates; the recorded view is lifted to R^D
 
     def on_frame(self, index: int, frame: Any) -> None:
         if self._online is None:  # an online run's frame comes again with its update
@@ -71,7 +73,7 @@ class BatchHooks(RecordingHooks):
         if self._queries is not None and mass is not None and mass.shape[1] == self._queries[1].shape[1] \
                 and self.recording():
             self._view = feature_view.fit_view(mass, *self._queries, self.query)
-            self.lane.send("batch.feature_view", self._view)
+            self.lane.send("batch.feature_view", feature_view.lifted(self._view, self._basis))
 
     def observe_features(self, iteration: int, F: np.ndarray) -> None:
         if self._view is not None and self._scheduled(iteration):
@@ -134,7 +136,7 @@ class BatchHooks(RecordingHooks):
         if self._view is not None and d is not None and self._projected != d.iterations \
                 and getattr(lifted, "method", None) is not None:
             # the last iteration's features were not observed (early stop, or diffused in blocks)
-            self._send_features(d.iterations, lifted.method)
+            self._send_features(d.iterations, lifted.observed(lifted.method))
         self._flush_metrics()
         self.lane.send("batch.result", slim_result(result))
 

@@ -17,6 +17,7 @@ rows' norms: no (M, D) copy), so only (M, 4) bytes per recorded iteration travel
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Optional, Sequence
 
@@ -126,6 +127,17 @@ def project(view: FeatureView, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return rgb, sim
 
 
+def lifted(view: FeatureView, basis: Optional[np.ndarray]) -> FeatureView:
+    """A view fitted on coordinates in a reduced basis ((D, k) orthonormal columns; features runs with
+    ``predictions.basis=auto``) as the same projection of R^D (what run.mcap keeps: 3 x D); ``view``
+    itself when ``basis`` is None."""
+    if basis is None:
+        return view
+    B = np.asarray(basis, np.float32)
+    return dataclasses.replace(view, basis=np.ascontiguousarray(view.basis @ B.T), mean=view.mean @ B.T,
+                               embedding=np.ascontiguousarray(view.embedding @ B.T))
+
+
 def feature_view_of(msg) -> FeatureView:
     """The :class:`FeatureView` of run.mcap's ``diffuser_lab.FeatureView`` message."""
     def f32(b: bytes) -> np.ndarray:
@@ -143,5 +155,5 @@ def similarity_values(view: FeatureView, sim: np.ndarray) -> np.ndarray:
     return out.astype(np.float32)
 
 
-__all__ = ["FeatureView", "feature_view_of", "fit_view", "project", "pick_query", "similarity_values", "PCA_ROWS", "GREY",
+__all__ = ["FeatureView", "feature_view_of", "fit_view", "lifted", "project", "pick_query", "similarity_values", "PCA_ROWS", "GREY",
            "NO_FEATURE", "SIM_STEPS"]

@@ -31,7 +31,8 @@ from diffuser_lab.method import evidence as evidence_mod
 from diffuser_lab.method import features as features_mod
 from diffuser_lab.method.diffusion import DiffusionResult, Observer, labels_from_scores, normalise, sparse_by_size
 from diffuser_lab.method.evidence import RunEvidence
-from diffuser_lab.method.queries import Queries, query_classes, query_labels, similarity
+from diffuser_lab.method.basis import BasisFeatures, FeatureBasis, fit_basis, query_span
+from diffuser_lab.method.queries import Queries, labels_of_cosines, query_classes, query_labels, similarity
 from diffuser_lab.method.graph import KnnGraph, graph_stage, make_graph
 from diffuser_lab.method.metrics import confusion_matrix, score, scores_from_confusion
 
@@ -222,7 +223,7 @@ class _Observe:
             F = features_mod.decode(Z)
             F.flags.writeable = False
             if self.hooks.wants(it):
-                self.hooks.observe_features(it, F)
+                self.hooks.observe_features(it, self.lift.observed(F))
             Z = self.lift.scores(F)
             Z.flags.writeable = False
         if self.fn is not None:
@@ -237,14 +238,23 @@ class FeatureLift:
     per-point features into labels: the query set, each query's class, the background rule; and
     the work points' features it produced.
 
+    Features are (M, D) arrays (``basis`` None: ``predictions.basis=full``, the single-frame
+    protocol) or, with a reduced ``basis`` (:mod:`diffuser_lab.method.basis`), :class:`BasisFeatures`
+    (or the (M, k + s) sums they split from): cosines with the queries exact in f.q, divided by the
+    estimated |f|.
+
     Attributes:
         queries: :class:`~diffuser_lab.method.queries.Queries` (Q names, (Q, D) unit embeddings).
         to_class: (Q,) int64 the taxonomy class of each query (-1: none).
         threshold, background: a point whose best cosine is below ``threshold`` gets ``background``.
-        method: (M, D) float32 the method's per-point feature sums (Diffuser: diffused), set by the run.
-        average: (M, D) float16 unit rows: the averaging baseline's (the mean of the depth-checked pixels'
-            features, normalised).
-        best_view: (M, D) float16 the most confident view's unit feature (:class:`~diffuser_lab.method.evidence.BestView`).
+        basis: the run's :class:`~diffuser_lab.method.basis.FeatureBasis`, or None (full).
+        basis_info: summary.json's ``features.basis`` (what the basis is and what it kept).
+        method: the method's per-point feature sums (Diffuser: diffused), set by the run: (M, D)
+            float32, or :class:`BasisFeatures`.
+        average: the averaging baseline's (the mean of the depth-checked pixels' features): (M, D)
+            float16 unit rows, or :class:`BasisFeatures` of the sums.
+        best_view: the most confident view's unit feature (:class:`~diffuser_lab.method.evidence.BestView`):
+            (M, D) float16, or :class:`BasisFeatures` (its residual exact: 1 - |coords|^2).
     """
 
     queries: Queries
@@ -252,26 +262,74 @@ class FeatureLift:
     num_classes: int
     threshold: Optional[float] = None
     background: int = IGNORE
-    method: Optional[np.ndarray] = None
-    average: Optional[np.ndarray] = None
-    best_view: Optional[np.ndarray] = None
+    basis: Optional[FeatureBasis] = None
+    basis_info: dict = field(default_factory=lambda: {"kind": "full"})
+    method: Optional[np.ndarray | BasisFeatures] = None
+    average: Optional[np.ndarray | BasisFeatures] = None
+    best_view: Optional[np.ndarray | BasisFeatures] = None
 
-    def confidence(self, features: np.ndarray) -> np.ndarray:
-        """(M, D) unit features -> (M,) float32 the top class's probability (softmax over the
-        classes' best cosines at :data:`~diffuser_lab.method.features.CLIP_TEMPERATURE`): what
-        picks a point's most confident view."""
-        s = self.scores(features)
-        total = s.sum(1)
-        return np.divide(s.max(1), total, out=np.zeros_like(total), where=total > 0)
+    def _in_basis(self, features) -> Optional[BasisFeatures]:
+        if self.basis is None:
+            return None
+        if isinstance(features, BasisFeatures):
+            return features
+        if features.shape[1] != self.basis.width:
+            raise ValueError(f"features of shape {features.shape}, expected (M, {self.basis.width}): the basis' "
+                             f"{self.basis.k} + {self.basis.s} columns")
+        return self.basis.split(features)
 
-    def labels(self, features: np.ndarray) -> np.ndarray:
-        """(M, D) features -> (M,) int16 class ids (IGNORE where nothing reached a point)."""
-        return query_labels(features, self.queries, self.to_class, threshold=self.threshold,
-                            background=self.background)
+    def cosines(self, features) -> np.ndarray:
+        """(M, Q) float32 cosines with the queries (NaN rows: no feature)."""
+        b = self._in_basis(features)
+        return similarity(features, self.queries) if b is None else b.cosines(self.basis.queries)
 
-    def scores(self, features: np.ndarray) -> np.ndarray:
-        """(M, D) features -> (M, C) class scores (:func:`~diffuser_lab.method.features.class_scores`)."""
-        return features_mod.class_scores(similarity(features, self.queries), self.to_class, self.num_classes)
+    def unit_confidence(self, features: np.ndarray) -> np.ndarray:
+        """(M, D) unit features, or with a basis their (M, k) coordinates -> (M,) float32 the top
+        class's probability (softmax over the classes' best cosines at
+        :data:`~diffuser_lab.method.features.CLIP_TEMPERATURE`): what picks a point's most confident view."""
+        if self.basis is None:
+            return self.confidence(features)
+        cos = np.asarray(features, np.float32) @ np.ascontiguousarray(self.basis.queries.T)  # |f| = 1 exactly
+        return _top_probability(features_mod.class_scores(cos, self.to_class, self.num_classes))
+
+    def confidence(self, features) -> np.ndarray:
+        """Features -> (M,) float32 the top class's probability (as :meth:`unit_confidence`)."""
+        return _top_probability(self.scores(features))
+
+    def labels(self, features) -> np.ndarray:
+        """Features -> (M,) int16 class ids (IGNORE where nothing reached a point)."""
+        b = self._in_basis(features)
+        if b is None:
+            return query_labels(features, self.queries, self.to_class, threshold=self.threshold,
+                                background=self.background)
+        return labels_of_cosines(b.cosines(self.basis.queries), self.to_class, self.threshold, self.background)
+
+    def scores(self, features) -> np.ndarray:
+        """Features -> (M, C) class scores (:func:`~diffuser_lab.method.features.class_scores`)."""
+        return features_mod.class_scores(self.cosines(features), self.to_class, self.num_classes)
+
+    def observed(self, features) -> np.ndarray:
+        """What the records' feature views see of features: the (M, D) array, or the (M, k) coordinates."""
+        b = self._in_basis(features)
+        return features if b is None else b.coords
+
+    def unit_rows(self, features, rows: Optional[np.ndarray] = None, out: Optional[np.ndarray] = None) -> np.ndarray:
+        """(M', D) float16 unit rows in R^D of ``rows`` (default all) of features (a basis':
+        the projections; :meth:`BasisFeatures.unit_float16`), into ``out`` when given."""
+        b = self._in_basis(features)
+        if b is not None:
+            return b.unit_float16(self.basis, rows, out)
+        part = features if rows is None else features[rows]
+        unit = part if part.dtype == np.float16 else features_mod.unit_float16(part)
+        if out is None:
+            return unit
+        out[...] = unit
+        return out
+
+
+def _top_probability(s: np.ndarray) -> np.ndarray:
+    total = s.sum(1)
+    return np.divide(s.max(1), total, out=np.zeros_like(total), where=total > 0)
 
 
 def feature_lift(cfg: Config, taxonomy: Taxonomy, dim: int) -> FeatureLift:
@@ -289,6 +347,71 @@ def feature_lift(cfg: Config, taxonomy: Taxonomy, dim: int) -> FeatureLift:
     to_class = np.asarray(query_classes(q.names, taxonomy.names, pc.query_mapping), np.int64)
     background = IGNORE if pc.background is None else taxonomy.names.index(pc.background)
     return FeatureLift(q, to_class, taxonomy.num_classes, pc.threshold, background)
+
+
+def basis_frames(n_frames: int, wanted: int) -> list[int]:
+    """The frames a run's basis is fitted on: ``wanted`` evenly spaced indices of ``n_frames``
+    (all of them when fewer), the first and the last included."""
+    m = max(1, min(int(wanted), n_frames))
+    return sorted({int(round(x)) for x in np.linspace(0, n_frames - 1, m)})
+
+
+def feature_basis(cfg: Config, queries: Queries, maps: Sequence[np.ndarray]) -> Optional[FeatureBasis]:
+    """``predictions.basis=auto``: the run's :class:`~diffuser_lab.method.basis.FeatureBasis`, fitted on
+    the valid cells (unit rows) of ``maps`` ((h, w, D) feature maps of the frames :func:`basis_frames`
+    picks) and the queries; None (the full path, exact) when it would not halve the D columns (the
+    queries' rank + ``basis_dim`` + ``basis_probes`` > D / 2)."""
+    pc = cfg.predictions
+    D = queries.dim
+    rank = query_span(queries.embeddings).shape[1]
+    if 2 * (rank + pc.basis_dim + pc.basis_probes) > D:
+        return None
+    cells = []
+    with progress.stage(f"feature basis: {len(maps)} frames' cells, {rank} queries + {pc.basis_dim} "
+                        f"directions + {pc.basis_probes} probes of {D}"):
+        for fmap in maps:  # a few frames
+            if fmap is None or fmap.ndim != 3 or fmap.shape[2] != D:
+                continue  # the evidence reports it
+            cells.append(features_mod.normalised(fmap.reshape(-1, D))[0][np.isfinite(fmap).all(2).reshape(-1)])
+        sample = np.concatenate(cells) if cells else np.zeros((0, D), np.float32)
+        sample = sample[np.einsum("ij,ij->i", sample, sample) > 0]
+        return fit_basis(sample, queries.embeddings, pc.basis_dim, pc.basis_probes, cfg.seed)
+
+
+def _feature_evidence(cfg: Config, lift: FeatureLift, n: int, maps: Sequence[np.ndarray], hooks: RunHooks) -> RunEvidence:
+    """A features run's evidence for ``n`` points: in the basis fitted on ``maps`` (``predictions.basis=auto``,
+    :func:`feature_basis`) or in all D columns; with the most confident view tracked, and the hooks
+    told the queries (in the basis' coordinates when there is one)."""
+    D = lift.queries.dim
+    basis = feature_basis(cfg, lift.queries, maps) if cfg.predictions.basis == "auto" else None
+    if basis is not None:
+        lift.basis, lift.basis_info = basis, basis.record()
+    evidence = RunEvidence.of(cfg, n, basis.width if basis else D)
+    evidence.basis = basis
+    hooks.on_queries(lift.queries.names, lift.queries.embeddings if basis is None else basis.queries,
+                     basis=None if basis is None else basis.vectors)
+    evidence.best = evidence_mod.BestView(n, basis.k if basis else D, lift.unit_confidence)
+    return evidence
+
+
+def basis_kept(lift: FeatureLift, energy: np.ndarray) -> dict:
+    """What a reduced basis kept, for summary.json's ``features.basis``: the share of the linked
+    pixels' energy (exact: each pixel's projection, over all links); per point with a feature, the
+    share of the method's features' and of the averaging baseline's energy, |P f|^2 / |f|^2
+    (``median``, ``p5``), and the relative error of the projection's norm, 1 - |P f| / |f|
+    (``median``, ``p95``), |f| estimated with the probes (random: right on average over their draw,
+    not for one draw: a few times too large or too small where the residual has few directions)."""
+    out = {"energy_pixels": round(float(energy[0] / energy[1]), 6) if energy[1] else None}
+    for name, X in (("features", lift.method), ("average", lift.average)):
+        share = X.energy_kept()
+        share = share[np.isfinite(share)]
+        out[f"energy_{name}"] = {"median": round(float(np.median(share)), 6),
+                                 "p5": round(float(np.percentile(share, 5)), 6)} if share.size else None
+        if name == "features":
+            err = 1 - np.sqrt(share)
+            out["norm_error"] = {"median": round(float(np.median(err)), 6),
+                                 "p95": round(float(np.percentile(err, 95)), 6)} if share.size else None
+    return out
 
 
 def _sparse_classes(solver, n_work: int, num_classes: int) -> int:
@@ -342,7 +465,14 @@ def _run(cfg: Config, scene: Optional[Scene], observer: Optional[Observer], hook
     feats, lift = False, None
     conf2d = None
     t["predictions"] = t["evidence"] = 0.0
-    loop = FrameLoop(frames, f"frames: {describe_predictions(cfg.predictions)} + evidence")
+    # a features run with predictions.basis=auto reads the frames its basis is fitted on first (evenly
+    # spaced) and holds them until it is: their evidence and hooks come after, then the other frames'
+    sample = basis_frames(len(frames), cfg.predictions.basis_frames) \
+        if cfg.predictions.source == "features" and cfg.predictions.basis == "auto" and len(frames) else []
+    first = set(sample)
+    pending: Optional[list] = []
+    loop = FrameLoop(frames, f"frames: {describe_predictions(cfg.predictions)} + evidence",
+                     targets=sample + [j for j in range(len(frames)) if j not in first] if sample else None)
     for i, f in loop:
         tp = time.perf_counter()
         if loop.bar.enabled and "cached_frames" in getattr(frames, "stats", {}):  # a network's outputs
@@ -352,24 +482,36 @@ def _run(cfg: Config, scene: Optional[Scene], observer: Optional[Observer], hook
             validate.check_depth_unit(f)
         centres.append(validate.camera_centre(f))
         inverted.append(np.asarray(f.T_cw, float)[:3, 3])  # the centre if T_cw were camera-to-world
-        if evidence is None:
+        if evidence is None and lift is None:  # the first frame
             feats = f.features is not None
-            evidence = RunEvidence.of(cfg, pts.shape[0], f.features.shape[2] if feats else tax.num_classes)
             if feats:
                 lift = feature_lift(cfg, tax, f.features.shape[2])
-                hooks.on_queries(lift.queries.names, lift.queries.embeddings)
-                evidence.best = evidence_mod.BestView(pts.shape[0], f.features.shape[2], lift.confidence)
+            else:
+                evidence = RunEvidence.of(cfg, pts.shape[0], tax.num_classes)
         elif (f.features is not None) != feats:
             raise ValueError(f"frame {f.name}: {'no ' if feats else ''}feature map, unlike the first frame")
         if f.gt_labels is not None and not feats:
             pred = f.labels if f.labels is not None else np.argmax(f.probs, axis=2)
             c = confusion_matrix(pred, f.gt_labels, tax.num_classes)
             conf2d = c if conf2d is None else conf2d + c
-        hooks.on_frame(i, f)
-        te = time.perf_counter()
-        evidence.add(pts, f)
-        t["predictions"] += te - tp
-        t["evidence"] += time.perf_counter() - te
+        batch = [(i, f)]
+        if evidence is None:  # a features run before its basis: the frames it is fitted on are held
+            pending.append((i, f))
+            if len(pending) < len(sample):
+                t["predictions"] += time.perf_counter() - tp
+                continue
+            tb = time.perf_counter()
+            evidence = _feature_evidence(cfg, lift, pts.shape[0], [g.features for _, g in pending], hooks)
+            t["basis"] = time.perf_counter() - tb
+            tp += t["basis"]
+            batch, pending = pending, None
+        for j, g in batch:
+            hooks.on_frame(j, g)
+            te = time.perf_counter()
+            evidence.add(pts, g)
+            t["evidence"] += time.perf_counter() - te
+            tp += time.perf_counter() - te
+        t["predictions"] += time.perf_counter() - tp
     t["predictions"] += loop.read_s
     if evidence is None:
         evidence = RunEvidence.of(cfg, pts.shape[0], tax.num_classes)
@@ -380,7 +522,8 @@ def _run(cfg: Config, scene: Optional[Scene], observer: Optional[Observer], hook
         warnings.warn(f"no frame sees any point ({len(frames)} frames): nothing is labelled; check the poses "
                       f"(world-to-camera), intrinsics and evidence.depth_tol", stacklevel=2)
     bayes_work = labels_from_scores(ev_base.mass) if lift is None else lift.labels(ev_base.mass)
-    hooks.on_evidence(pts, grid, ev, bayes_work)
+    hooks.on_evidence(pts, grid, ev if lift is None or lift.basis is None else
+                      dataclasses.replace(ev, mass=ev.mass[:, :lift.basis.k]), bayes_work)
 
     graph = diff = system = None
     if method.evidence == fusion.BASELINE:
@@ -396,8 +539,14 @@ def _run(cfg: Config, scene: Optional[Scene], observer: Optional[Observer], hook
     solver = cfg.solver
     if lift is not None:  # every column is a feature's: no per-point class set
         solver = dataclasses.replace(cfg.solver, sparse_classes=SparseClasses.off)
-        lift.average = features_mod.unit_float16(ev_base.mass)  # before F is diffused in place
-        lift.best_view = evidence.best.features
+        if lift.basis is None:
+            lift.average = features_mod.unit_float16(ev_base.mass)  # before F is diffused in place
+            lift.best_view = evidence.best.features
+        else:  # the sums' coordinates (copied: F may be diffused in place); a unit view's residual is exact
+            lift.average = lift.basis.split(ev_base.mass.copy())
+            c = evidence.best.features
+            kept = np.einsum("ij,ij->i", c, c, dtype=np.float32)
+            lift.best_view = BasisFeatures(c, np.where(evidence.best.score > -np.inf, np.maximum(1 - kept, 0), 0))
     if method.graph:
         tg = time.perf_counter()
         with graph_stage(pts.shape[0], cfg.graph, cfg.graph.use_normals and nrm is None):
@@ -409,15 +558,18 @@ def _run(cfg: Config, scene: Optional[Scene], observer: Optional[Observer], hook
     if lift is None:
         work_labels, diff = method.label(chosen.mass, system=system, solver=solver, observer=_Observe(hooks, observer))
     elif method.graph:  # through the unchanged core, encoded (method/features.py), in blocks when large
-        lift.method, diff = features_mod.diffuse_features(graph, chosen.mass, chosen.links, cfg.evidence.pixel_weight,
-                                                          solver, observer=_Observe(hooks, observer, lift))
+        F, diff = features_mod.diffuse_features(graph, chosen.mass, chosen.links, cfg.evidence.pixel_weight,
+                                                solver, observer=_Observe(hooks, observer, lift))
+        lift.method = F if lift.basis is None else lift.basis.split(F)
         work_labels = lift.labels(lift.method)
         diff = dataclasses.replace(diff, Z=lift.scores(lift.method))  # the class scores its observers saw
     else:
-        lift.method = chosen.mass
-        work_labels, diff = lift.labels(chosen.mass), None
+        lift.method = chosen.mass if lift.basis is None else lift.basis.split(chosen.mass)
+        work_labels, diff = lift.labels(lift.method), None
     if method.graph:
         t["diffusion"] = time.perf_counter() - td
+    if lift is not None and lift.basis is not None:
+        lift.basis_info.update(basis_kept(lift, evidence.energy))
 
     tl = time.perf_counter()
     with progress.stage(f"labels to the {scene.n_points:,} original points"):  # instant without voxels

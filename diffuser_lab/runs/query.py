@@ -6,6 +6,9 @@ A features run's folder holds (written by the pipeline, ``predictions=features``
 - ``features.npy`` (N, D) float16, Diffuser's per-point features (an all-zero row: nothing reached
   the point), and the baselines' ``features_average.npy`` (feature averaging, OpenScene's 2D fusion)
   and ``features_best_view.npy`` (the most confident view's feature), each optional;
+- with a reduced basis (``predictions.basis=auto``) ``features_basis.npz`` (the three methods'
+  features in the basis: :func:`diffuser_lab.runs.records.write_features`), read instead of the
+  (N, D) files: a query's cosines are then f.q from the basis' coordinates over the run's estimated |f|;
 - ``gt_labels.npy`` (N,) int16 ground truth (IGNORE = unannotated), when the scene has it;
 - ``summary.json`` with ``class_names`` (the taxonomy's names in id order) and ``taxonomy``.
 
@@ -29,12 +32,13 @@ import numpy as np
 from diffuser_lab.backends import provenance
 from diffuser_lab.data.frames import first_line
 from diffuser_lab.data.scene import IGNORE
+from diffuser_lab.method.basis import BasisFeatures
 from diffuser_lab.method.metrics import score
-from diffuser_lab.method.queries import Queries, query_classes, query_labels
+from diffuser_lab.method.queries import Queries, labels_of_cosines, query_classes, query_labels
 
-from .records import write_json_atomic
+from .records import BASIS_FILE, write_json_atomic
 
-__all__ = ["METHODS", "FEATURES", "RunFeatures", "QueryResult", "read_run", "query_run", "output_names", "table"]
+__all__ = ["METHODS", "FEATURES", "RunFeatures", "QueryResult", "read_run", "query_run", "output_names", "table", "basis_line"]
 
 METHODS = (("diffuser", "features.npy", "diffuser"),
            ("average", "features_average.npy", "average (baseline)"),
@@ -56,6 +60,9 @@ class RunFeatures:
     gt: Optional[np.ndarray]
     class_names: tuple[str, ...]
     taxonomy: str
+    basis: dict = field(default_factory=lambda: {"kind": "full"})  # summary.json's features.basis
+    run_queries: tuple[str, ...] = ()  # the run's own query set's names (summary.json's features.queries)
+    vectors: Optional[np.ndarray] = None  # (D, k) a reduced basis' vectors: ``features`` are then BasisFeatures
 
     @property
     def n_points(self) -> int:
@@ -63,7 +70,16 @@ class RunFeatures:
 
     @property
     def dim(self) -> int:
-        return int(self.features["diffuser"].shape[1])
+        return int(self.features["diffuser"].shape[1] if self.vectors is None else self.vectors.shape[0])
+
+    def labels(self, key: str, queries: Queries, to_class, threshold: Optional[float], background: int) -> np.ndarray:
+        """(N,) int16 the labels of method ``key``'s features (:func:`query_labels`; in a reduced basis:
+        f.q from the coordinates, |f| estimated as the run did)."""
+        f = self.features[key]
+        if self.vectors is None:
+            return query_labels(f, queries, to_class, threshold=threshold, background=background)
+        q = queries.embeddings @ self.vectors  # (Q, k): a query's part in the basis
+        return labels_of_cosines(f.cosines(q), to_class, threshold, background)
 
 
 @dataclass
@@ -96,6 +112,8 @@ class QueryResult:
             "taxonomy": self.run.taxonomy,
             "n_points": self.run.n_points,
             "n_unlabeled": {k: int((v == IGNORE).sum()) for k, v in self.labels.items()},
+            "basis": self.run.basis,
+            "outside_run_queries": [q for q in self.queries.names if q not in set(self.run.run_queries)],
             "metrics": self.metrics,
             "files": self.files,
             "timings_s": {k: round(v, 4) for k, v in self.timings_s.items()},
@@ -157,7 +175,32 @@ def read_run(run_dir: str | Path) -> RunFeatures:
         if gt.size and (gt.min() < IGNORE or gt.max() >= len(names)):
             raise ValueError(f"{run_dir / GT_FILE}: class ids {int(gt.min())}..{int(gt.max())}, expected "
                              f"{IGNORE}..{len(names) - 1} ({len(names)} classes in summary.json)")
-    return RunFeatures(run_dir, features, gt, tuple(names), str(summary.get("taxonomy", "")))
+    feats = summary.get("features") if isinstance(summary.get("features"), dict) else {}
+    basis = feats.get("basis") if isinstance(feats.get("basis"), dict) else {"kind": "full"}
+    vectors = None
+    if (run_dir / BASIS_FILE).is_file():  # a reduced basis: every method's features from it
+        vectors, features = _read_basis(run_dir / BASIS_FILE, features["diffuser"].shape)
+    return RunFeatures(run_dir, features, gt, tuple(names), str(summary.get("taxonomy", "")), basis,
+                       tuple(str(q) for q in feats.get("queries") or ()), vectors)
+
+
+def _read_basis(path: Path, shape: tuple[int, int]) -> tuple[np.ndarray, dict]:
+    """(D, k) vectors and {method key: BasisFeatures} of a run's :data:`BASIS_FILE`; ``shape``:
+    features.npy's (N, D). ValueError (one line naming the file) when it does not fit."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            V = np.asarray(z["vectors"], np.float32)
+            out = {key: BasisFeatures(np.asarray(z[f"{key}_coords"], np.float32), np.asarray(z[f"{key}_residual"], np.float32))
+                   for key, _, _ in METHODS if f"{key}_coords" in z.files}
+    except Exception as exc:  # noqa: BLE001 - a damaged or foreign file: one line
+        raise ValueError(f"{path}: unreadable ({type(exc).__name__}: {first_line(exc)}), expected a features run's "
+                         f"basis (vectors, <method>_coords, <method>_residual)") from None
+    N, D = shape
+    if V.ndim != 2 or V.shape[0] != D or "diffuser" not in out or any(
+            f.coords.shape != (N, V.shape[1]) or f.residual.shape != (N,) for f in out.values()):
+        raise ValueError(f"{path}: vectors {V.shape} and coordinates {[f.coords.shape for f in out.values()]}, expected "
+                         f"({D}, k) and ({N}, k) as features.npy's ({N}, {D})")
+    return V, out
 
 
 def output_names(run_dir: str | Path, out: Optional[str] = None) -> tuple[Path, Path]:
@@ -215,8 +258,7 @@ def query_run(run_dir: str | Path | RunFeatures, queries: Queries, *, threshold:
     to_class = query_classes(queries.names, run.class_names, mapping)
     paths = output_names(run.run_dir, out) if write else None
     t1 = time.perf_counter()
-    labels = {key: query_labels(f, queries, to_class, threshold=threshold, background=background)
-              for key, f in run.features.items()}
+    labels = {key: run.labels(key, queries, to_class, threshold, background) for key in run.features}
     t2 = time.perf_counter()
     metrics = {key: score(lab, run.gt, run.class_names) if run.gt is not None else None
                for key, lab in labels.items()}
@@ -233,6 +275,25 @@ def query_run(run_dir: str | Path | RunFeatures, queries: Queries, *, threshold:
     else:
         res.timings_s["total"] = time.perf_counter() - t0
     return res
+
+
+def basis_line(basis: dict, outside: list[str]) -> Optional[str]:
+    """One line on the run's reduced basis (summary.json's ``features.basis``; None for a full run):
+    its dimension, the share of the evidence's energy it kept, and what that means for ``outside``
+    (the queries not in the run's query set)."""
+    if not basis or basis.get("kind") != "auto":
+        return None
+    pct = lambda x: "-" if x is None else f"{100 * x:.1f} %"  # noqa: E731
+    err = basis.get("norm_error") or {}
+    kept = basis.get("energy_features") or {}
+    line = (f"features from a basis of {basis.get('dim')} of {basis.get('of')} dimensions (the run's "
+            f"{basis.get('queries_span')} queries + {basis.get('principal')} principal directions): it kept "
+            f"{pct(basis.get('energy_pixels'))} of the pixels' energy and ~{pct(kept.get('median'))} of a point's "
+            f"diffused feature (median; |f| within {pct(err.get('median'))}, 95 % within {pct(err.get('p95'))})")
+    if outside:
+        line += (f"; {len(outside)} of these queries are not the run's: their cosines are those of the "
+                 f"projection (what the basis did not keep is lost)")
+    return line
 
 
 def _fmt(x) -> str:
@@ -259,6 +320,9 @@ def table(res: QueryResult) -> str:
             m = res.metrics[key] or {}
             lines.append(f"{title:22s}{_fmt(m.get('miou')):>7s}{_fmt(m.get('accuracy')):>7s}"
                          f"{_fmt(m.get('coverage')):>7s}")
+    line = basis_line(run.basis, [q for q in res.queries.names if q not in set(run.run_queries)])
+    if line:
+        lines.append(line)
     lines.append("time [s]  " + "  ".join(f"{k} {v:.2f}" for k, v in res.timings_s.items()))
     if res.files:
         lines.append(f"wrote {res.files['labels']}, {res.files['record']} in {run.run_dir}")

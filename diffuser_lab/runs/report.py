@@ -56,8 +56,8 @@ def summary(res: RunResult, cfg: Config) -> dict:
     if res.lifted is not None:  # a features run: the bayesian baseline is the averaging of features
         lf = res.lifted
         out["class_names"] = list(scene.taxonomy.names)
-        out["features"] = {"dim": int(lf.method.shape[1]), "queries": list(lf.queries.names),
-                           "threshold": lf.threshold, "baseline": "average"}
+        out["features"] = {"dim": int(lf.queries.dim), "queries": list(lf.queries.names),
+                           "threshold": lf.threshold, "baseline": "average", "basis": lf.basis_info}
     return out
 
 

@@ -40,6 +40,7 @@ from scipy.spatial import cKDTree
 
 from diffuser_lab import progress
 from diffuser_lab.backends import provenance
+from diffuser_lab.backends.threads import blas_one_thread
 from diffuser_lab.config import Config, SparseClasses
 from diffuser_lab.data import validate
 from diffuser_lab.data.frames import FrameLoop, LazyFrames, first_line
@@ -47,12 +48,12 @@ from diffuser_lab.data.scene import IGNORE, Scene
 from diffuser_lab.data.taxonomy import resolve_taxonomy
 from diffuser_lab.hooks import RunHooks
 from diffuser_lab.method import fusion
-from diffuser_lab.method.features import unit_float16
+from diffuser_lab.method.basis import unit_rows_float16
 from diffuser_lab.method.graph import nearest_distinct
 from diffuser_lab.method.metrics import score
 
 from . import pipeline
-from .records import config_yaml, write_json_atomic
+from .records import WRITE_ROWS, config_yaml, write_json_atomic
 from .resolve import resolve
 
 __all__ = ["TileSpec", "TileInput", "TiledResult", "tiled", "tile_grid", "tile_points", "frames_meeting", "summary", "table"]
@@ -318,9 +319,9 @@ def _specs(cfg: Config, scene: Scene, cells: _Cells, boxes: np.ndarray) -> list[
 
 
 def diffuse_tile(cfg: Config, inp: TileInput, frames, taxonomy, name: str, spec: TileSpec
-                 ) -> tuple[np.ndarray, np.ndarray, dict, Optional[np.ndarray], tuple[np.ndarray, np.ndarray]]:
+                 ) -> tuple[np.ndarray, np.ndarray, dict, Optional[dict], tuple[np.ndarray, np.ndarray]]:
     """The pipeline on one tile: its own points' labels and Bayesian labels, its record, (a
-    features run) its own points' features, (own, D) float16 unit rows, else None, and its halo's
+    features run) its own points' features (:func:`write_tile`'s dict), else None, and its halo's
     labelled points: (scene indices int64, labels int16), for :func:`fill_from_halos`.
     ``frames`` is the whole scene's frame sequence: the tile reads only ``spec.frames`` of it."""
     t0 = time.perf_counter()
@@ -344,7 +345,13 @@ def diffuse_tile(cfg: Config, inp: TileInput, frames, taxonomy, name: str, spec:
         in_halo &= res.labels != IGNORE
         halo = (rows[in_halo].astype(np.int64), res.labels[in_halo].astype(np.int16))
         if res.lifted is not None:  # a features run (method/features.py)
-            feats = unit_float16(res.lifted.method[res.rows[pos]])
+            lf = res.lifted
+            rec["basis"] = lf.basis_info  # the tile's own basis (predictions.basis=auto) and what it kept
+            if lf.basis is None:
+                feats = {"features": lf.unit_rows(lf.method, res.rows[pos])}
+            else:  # the coordinates in the tile's basis: (own, k), made (own, D) when features.npy is written
+                feats = {"feature_coords": np.asarray(lf.method.coords[res.rows[pos]], np.float32),
+                         "feature_vectors": lf.basis.vectors}
         rec["iterations"] = int(res.diffusion.iterations) if res.diffusion is not None else 0
         if res.diffusion is not None:  # the tile's last relative residual (run.rrd's per-tile chart)
             rec["residual"] = float(res.diffusion.residual)
@@ -418,13 +425,15 @@ def _crc(own: np.ndarray) -> int:
 
 
 def write_tile(tiles_dir: Path, spec: TileSpec, own: np.ndarray, labels: np.ndarray, bayes: np.ndarray,
-               rec: dict, features: Optional[np.ndarray] = None,
+               rec: dict, features: Optional[dict] = None,
                halo: Optional[tuple[np.ndarray, np.ndarray]] = None) -> Path:
     """``tiles/<id>.npz`` through a temporary file and os.replace (never half-written under its name);
-    a features run's tile also keeps its points' features, every tile its halo's labelled points."""
+    a features run's tile also keeps its points' features (``features``: ``{"features": (own, D)
+    float16 unit rows}``, or in the tile's reduced basis ``{"feature_coords": (own, k) float32,
+    "feature_vectors": (D, k) float32}``), every tile its halo's labelled points."""
     path = Path(tiles_dir) / f"{spec.id}.npz"
     buf = io.BytesIO()
-    extra = {} if features is None else {"features": features}
+    extra = dict(features or {})
     if halo is not None:
         extra.update(halo_index=halo[0], halo_labels=halo[1])
     np.savez(buf, labels=labels.astype(np.int16), bayesian=bayes.astype(np.int16), crc=np.int64(_crc(own)),
@@ -439,9 +448,9 @@ def write_tile(tiles_dir: Path, spec: TileSpec, own: np.ndarray, labels: np.ndar
 
 
 def read_tile(tiles_dir: Path, spec: TileSpec, own: np.ndarray, features: bool = False, halo: bool = False
-              ) -> Optional[tuple[np.ndarray, np.ndarray, dict, Optional[np.ndarray], Optional[tuple]]]:
+              ) -> Optional[tuple[np.ndarray, np.ndarray, dict, Optional[dict], Optional[tuple]]]:
     """A tile's finished file (labels, Bayesian labels, record, with ``features`` a features
-    run's (own, D) float16 features or None, and with ``halo`` its halo's labelled points
+    run's features (:func:`write_tile`'s dict) or None, and with ``halo`` its halo's labelled points
     (indices, labels) or None in a file without them), or None when it is missing or not complete
     (unreadable, another shape, another set of points)."""
     path = Path(tiles_dir) / f"{spec.id}.npz"
@@ -450,17 +459,36 @@ def read_tile(tiles_dir: Path, spec: TileSpec, own: np.ndarray, features: bool =
     try:
         with np.load(path) as z:
             labels, bayes, crc, rec = z["labels"], z["bayesian"], int(z["crc"]), json.loads(str(z["record"]))
-            feats = z["features"] if features and "features" in z.files else None
+            feats = ({k: z[k] for k in TILE_FEATURES if k in z.files} or None) if features else None
             halo = (z["halo_index"], z["halo_labels"]) if halo and "halo_index" in z.files else None
     except Exception:  # noqa: BLE001 - a truncated or foreign file: the tile is computed again
         return None
     if labels.shape != (own.size,) or bayes.shape != (own.size,) or crc != _crc(own):
         return None
-    if feats is not None and feats.shape[0] != own.size:
+    if feats is not None and next(v for k, v in feats.items() if k != "feature_vectors").shape[0] != own.size:
         return None
     if halo is not None and halo[0].shape != halo[1].shape:
         halo = None
     return labels, bayes, rec, feats, halo
+
+
+TILE_FEATURES = ("features", "feature_coords", "feature_vectors")
+"""A features run's tile file's feature arrays (:func:`write_tile`)."""
+
+
+def _features_into(path: Path, own: np.ndarray, feats: dict) -> None:
+    """A tile's features into the rows ``own`` of features.npy (opened as a memory map for this tile
+    only: its pages leave the process when it is closed), a chunk of rows at a time."""
+    mm = np.load(path, mmap_mode="r+")
+    if "features" in feats:
+        mm[own] = feats["features"]
+    else:
+        with blas_one_thread():
+            for lo in range(0, own.size, WRITE_ROWS):  # chunks of rows: (4096, D) temporaries
+                mm[own[lo:lo + WRITE_ROWS]] = unit_rows_float16(feats["feature_coords"][lo:lo + WRITE_ROWS],
+                                                                feats["feature_vectors"])
+    mm.flush()
+    del mm
 
 
 def _run_tile(cfg: Config, inp: TileInput, frames, taxonomy, name: str, spec: TileSpec, tiles_dir: str) -> dict:
@@ -597,15 +625,15 @@ def tiled(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHook
             if got[4] is not None and got[4][0].size and got[4][0].max() < scene.n_points:
                 halos.append(got[4])
             if got[3] is not None:
-                if features is None:
-                    features = np.lib.format.open_memmap(Path(run_dir) / "features.npy", mode="w+", dtype=np.float16,
-                                                         shape=(scene.n_points, got[3].shape[1]))
-                features[owns[spec.id]] = got[3]  # a failed tile's points keep zero rows (unlabeled)
+                if features is None:  # made once, zero rows; each tile's rows written through its own map
+                    features = Path(run_dir) / "features.npy"
+                    fe = got[3]
+                    dim = fe["features"].shape[1] if "features" in fe else fe["feature_vectors"].shape[0]
+                    np.lib.format.open_memmap(features, mode="w+", dtype=np.float16, shape=(scene.n_points, dim)).flush()
+                _features_into(features, owns[spec.id], got[3])  # a failed tile's points keep zero rows (unlabeled)
     from_halo = fill_from_halos(labels, halos, done) if features is None else 0  # features: per-point rows, not labels
     res_files = {}
     if features is not None:
-        features.flush()
-        del features
         res_files["features"] = "features.npy"
     t["labels"] = time.perf_counter() - tl
     tiles = [records[s.id] for s in specs]

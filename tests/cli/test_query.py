@@ -202,3 +202,21 @@ def test_console_script_and_exit_codes(run):
     assert bad.returncode == 2 and bad.stderr.strip().count("\n") == 0 and "Traceback" not in bad.stderr
     help_ = subprocess.run(cmd[:-1] + ["--help"], capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert help_.returncode == 0 and "--threshold" in help_.stdout
+
+
+def test_a_reduced_basis_run_says_what_its_basis_kept(tmp_path, capsys):
+    """A run with predictions.basis=auto: the table and query.json say the basis' dimension and the
+    share of the evidence it kept, and which queries are not the run's."""
+    folder, _, E = make_run(tmp_path / "run")
+    basis = {"kind": "auto", "dim": 13, "of": D, "queries_span": 5, "principal": 8, "probes": 3,
+             "energy_pixels": 0.91, "energy_features": {"median": 0.995, "p5": 0.98}, "norm_error": {"median": 0.001, "p95": 0.004}}
+    (folder / "summary.json").write_text(json.dumps({"status": "ok", "taxonomy": "five", "class_names": NAMES,
+                                                     "features": {"dim": D, "queries": NAMES[:3], "basis": basis}}))
+    q = write_queries(tmp_path / "queries.npz", NAMES, E)
+    assert main([str(folder), "--queries", str(q)]) == 0
+    out = capsys.readouterr().out
+    assert ("features from a basis of 13 of 64 dimensions (the run's 5 queries + 8 principal directions): it kept "
+            "91.0 % of the pixels' energy and ~99.5 % of a point's diffused feature (median; |f| within 0.1 %, 95 % "
+            "within 0.4 %); 2 of these queries are not the run's") in out
+    rec = json.loads((folder / "query.json").read_text())
+    assert rec["basis"] == basis and rec["outside_run_queries"] == ["table", "sofa"]

@@ -17,7 +17,8 @@ CLEAN = {"predictions.source": "features", "predictions.strength": 0.0, "predict
 def test_prototypes_as_queries_reproduce_the_label_paths_labels_on_clean_input(small_demo_scene):
     labels = run(default_config(**SMALL, **{"predictions.source": "gt"}), scene=small_demo_scene)
     feats = run(default_config(**SMALL, **CLEAN), scene=small_demo_scene)
-    assert feats.lifted is not None and feats.lifted.method.shape == (feats.work_points.shape[0], 64)
+    assert feats.lifted is not None and feats.lifted.basis_info["kind"] == "auto"  # 64-D: a reduced basis
+    assert feats.lifted.unit_rows(feats.lifted.method).shape == (feats.work_points.shape[0], 64)
     assert (feats.labels == labels.labels).mean() >= 0.995  # 99.93 % measured: near-ties of mixed points
     assert (feats.bayesian_labels == labels.bayesian_labels).mean() >= 0.995
     assert abs(feats.metrics["miou"] - labels.metrics["miou"]) < 0.5
@@ -46,8 +47,9 @@ def test_a_frame_without_a_feature_map_in_a_features_run_is_one_error(small_demo
     cfg = default_config(**SMALL, **{"predictions.source": "features", "predictions.embeddings": "files",
                                      "predictions.folder": str(tmp_path), "predictions.dim": 32})
     np.save(tmp_path / f"{small_demo_scene.frames[0].name}.npy", np.zeros((4, 5, 8), np.float32))
-    with pytest.raises(FileNotFoundError, match=small_demo_scene.frames[1].name):
-        run(cfg, scene=small_demo_scene)
+    with pytest.raises(FileNotFoundError, match="no prediction for frame 'view_") as err:
+        run(cfg, scene=small_demo_scene)  # the next frame read (basis=auto reads its sample frames first)
+    assert small_demo_scene.frames[0].name not in str(err.value)
 
 
 @pytest.mark.slow
@@ -59,8 +61,10 @@ def test_baselines_side_by_side_and_the_single_frame_protocol(small_demo_scene):
     assert res.baseline["best_view"]["miou"] > 0
     assert set(res.metrics["calibration"]) == {"diffuser", "bayesian", "best_view"}
     seen = res.evidence.links > 0
-    assert np.abs(res.lifted.best_view[~seen].astype(np.float32)).max() == 0
-    np.testing.assert_allclose(np.linalg.norm(res.lifted.best_view[seen].astype(np.float32), axis=1), 1, atol=2e-3)
+    best = res.lifted.unit_rows(res.lifted.best_view).astype(np.float32)  # the basis' projections, in R^D
+    assert np.abs(best[~seen]).max() == 0
+    np.testing.assert_allclose(np.linalg.norm(best[seen], axis=1), 1, atol=2e-3)
+    np.testing.assert_allclose(res.lifted.best_view.norms()[seen], 1, atol=2e-3)  # unit: its residual is exact
 
     from diffuser_lab.runs.single_frame import single_frame
 
@@ -99,20 +103,83 @@ def test_the_command_line_writes_features_and_the_query_command_relabels_the_run
 
 
 @pytest.mark.slow
-def test_a_tiled_features_run_writes_the_whole_scenes_features(small_demo_scene, tmp_path):
+@pytest.mark.parametrize("dim,basis", [(32, "full"), (96, "auto")])
+def test_a_tiled_features_run_writes_the_whole_scenes_features(small_demo_scene, tmp_path, dim, basis):
     """protocol=tiled with features: each tile's points' features go into one features.npy through a
-    memory map; labels as the untiled run's (the halo gives the tiles' borders their neighbours)."""
+    memory map (a reduced basis' tiles keep their coordinates and basis, made (N, D) there); labels
+    as the untiled run's (the halo gives the tiles' borders their neighbours)."""
     from diffuser_lab.runs.tiled import tiled
 
-    cfg = default_config(**SMALL, **{"predictions.source": "features", "predictions.dim": 32})
-    whole = run(cfg, scene=small_demo_scene)
-    t = tiled(default_config(**SMALL, **{"predictions.source": "features", "predictions.dim": 32,
-                                         "protocol.name": "tiled", "tiling.size": 2.0}),
+    keys = {"predictions.source": "features", "predictions.dim": dim}
+    whole = run(default_config(**SMALL, **keys), scene=small_demo_scene)
+    t = tiled(default_config(**SMALL, **keys, **{"protocol.name": "tiled", "tiling.size": 2.0}),
               scene=small_demo_scene, run_dir=tmp_path)
     assert t.files == {"features": "features.npy"} and not t.failed
+    assert {r["basis"]["kind"] for r in t.tiles} == {basis} == {whole.lifted.basis_info["kind"]}
     F = np.load(tmp_path / "features.npy")
-    assert F.shape == (small_demo_scene.n_points, 32) and F.dtype == np.float16
+    assert F.shape == (small_demo_scene.n_points, dim) and F.dtype == np.float16
     assert (t.labels == whole.labels).mean() > 0.98  # 98.9 % measured: each tile stops early on its own
-    unit = whole.lifted.method / np.maximum(np.linalg.norm(whole.lifted.method, axis=1, keepdims=True), 1e-30)
+    unit = whole.lifted.unit_rows(whole.lifted.method).astype(np.float32)
     cos = (F.astype(np.float32) * unit[whole.rows]).sum(1)
     assert np.median(cos) > 0.999
+
+
+@pytest.mark.slow
+def test_a_reduced_basis_agrees_with_the_full_path(tmp_path):
+    """predictions.basis=auto (issue 49) against full on the same frames: the query labels (exact up
+    to rounding), the threshold decisions (|f| from the probes), the saved features (the projection),
+    the baselines' labels and the calibration figures. The demo room's 30 views at 7 cm (16.5k points):
+    with 12 views the features' residual outside the basis is larger and the threshold decisions agree
+    on 96.9-98.9 % only (measured; docs/results/features.md)."""
+    from diffuser_lab.data.taxonomy import resolve_taxonomy
+    from diffuser_lab.runs.pipeline import load_scene
+
+    cfg = {"scene.options.point_spacing": 0.07, "predictions.source": "features", "predictions.dim": 96}
+    c = default_config(**cfg)
+    small_demo_scene = load_scene(c.scene, resolve_taxonomy(c), c.depth)
+    full = run(default_config(**cfg, **{"predictions.basis": "full"}), scene=small_demo_scene)
+    auto = run(c, scene=small_demo_scene)
+    fl, al = full.lifted, auto.lifted
+    assert fl.basis is None and fl.basis_info == {"kind": "full"}
+    info = al.basis_info
+    assert info["kind"] == "auto" and info["dim"] == 20 + 8 and (info["probes"], info["of"]) == (3, 96)
+    assert 0.5 < info["energy_pixels"] < info["energy_features"]["median"] <= 1 and info["norm_error"]["p95"] < 0.05
+    assert (auto.labels == full.labels).mean() >= 0.999
+    assert (auto.bayesian_labels == full.bayesian_labels).mean() >= 0.999
+    cf, ca = fl.cosines(fl.method), al.cosines(al.method)
+    seen = np.isfinite(cf).all(1)
+    bf, ba = cf[seen].max(1), ca[seen].max(1)
+    for t in np.percentile(bf, [25, 50, 75]):  # the threshold test at the run's own quartiles
+        assert ((bf >= t) == (ba >= t)).mean() >= 0.993  # 99.57-99.79 % measured (the target, 99.5 %: results)
+    Ff = fl.unit_rows(fl.method)[seen].astype(np.float32)
+    Fa = al.unit_rows(al.method)[seen].astype(np.float32)
+    cos = (Ff * Fa).sum(1) / (np.linalg.norm(Ff, axis=1) * np.linalg.norm(Fa, axis=1))
+    assert np.median(cos) >= 0.99 and np.percentile(cos, 5) >= 0.9
+    for m in ("diffuser", "bayesian", "best_view"):
+        assert al.basis is not None
+        a, f = auto.metrics["calibration"][m], full.metrics["calibration"][m]
+        assert abs(a["ece"] - f["ece"]) < 0.3 and abs(a["nll"] - f["nll"]) < 0.01, m
+    assert abs(auto.baseline["best_view"]["miou"] - full.baseline["best_view"]["miou"]) < 0.05  # its |f| = 1: exact
+    # the saved run: features.npy (the projections) and features_basis.npz (the three methods in the basis)
+    import json
+
+    from diffuser_lab.data.embeddings import write_queries
+    from diffuser_lab.runs.query import query_run
+    from diffuser_lab.runs.records import write_features
+
+    files = write_features(tmp_path, auto)
+    assert files["features_basis"] == "features_basis.npz" and "features_average" not in files
+    (tmp_path / "summary.json").write_text(json.dumps({"class_names": list(small_demo_scene.taxonomy.names),
+                                                       "features": {"queries": list(al.queries.names),
+                                                                    "basis": al.basis_info}}))
+    q = query_run(tmp_path, al.queries, write=False)  # the run's queries: the run's labels, all three methods
+    np.testing.assert_array_equal(q.labels["diffuser"], auto.labels)
+    np.testing.assert_array_equal(q.labels["average"], auto.bayesian_labels)
+    assert q.metrics["best_view"]["miou"] == pytest.approx(auto.baseline["best_view"]["miou"], abs=1e-6)
+    later = al.queries.embeddings[[4, 6]] + 0.5 * al.queries.embeddings[[6, 4]]  # queries the run did not have
+    from diffuser_lab.method.queries import Queries, query_labels
+
+    other = Queries(("chair", "table"), later)
+    got = query_run(tmp_path, other, write=False).labels["diffuser"]
+    want = query_labels(fl.unit_rows(fl.method), other, np.array([4, 6]))[full.rows]
+    assert (got == want).mean() >= 0.99
