@@ -22,8 +22,8 @@ Entity tree (``world`` is z-up, metres; class colours come from the AnnotationCo
                                    .rrd (``diffuser-lab-inspect RUN --to-rrd OUT --scores chair,table``)
     legend                     Image + values (classes, colors), static: the classes present (ground
                                truth, labels), unlabeled, wrong label; the confidence scale
-    metrics/miou|accuracy|confidence       Scalars at every iteration (the run's side computes them:
-                                           :func:`~.steps.scalar_metrics`), the clouds above on the schedule
+    metrics/miou|accuracy|confidence       Scalars at every iteration (the backend's statistics in its step:
+                                           :func:`~.steps.metrics_rows`), the clouds above on the schedule
     metrics/residual_log10                 log10 of the relative residual (none where it is 0)
     metrics/changed_per_iter_log10         log10 of the labels changed per iteration since the previous
                                            one logged, n_changed / (iteration - previous) (none where 0)
