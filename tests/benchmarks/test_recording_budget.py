@@ -8,7 +8,9 @@ diffused point (map point, online), on four runs:
     demo, protocol=online online.map=growing    budget: per frame <= 1.10x, <= 300 bytes per point
 
 (wall: the command's wall time; per frame: the median update latency of the frames,
-summary.json's ``online.latency_ms.median``). Measure with
+summary.json's ``online.latency_ms.median``; the commands' CPU seconds and the load average are
+printed and kept beside them: on a machine shared with other work the wall ratio measures the
+neighbours as much as the recorder). Measure with
 
     .venv/bin/python -m pytest tests/benchmarks/test_recording_budget.py --benchmark-enable -s
 
@@ -22,6 +24,7 @@ from __future__ import annotations
 
 import json
 import os
+import resource
 import statistics
 import time
 
@@ -41,16 +44,23 @@ CASES = {  # (arguments, budget of record=both / record=off, what is timed)
 BYTES = 300
 
 
-def _one(tmp_path, tag: str, args: list[str]) -> tuple[float, dict, float]:
-    """(wall s, summary.json, recorded bytes per diffused point) of one command."""
+def _cpu() -> float:
+    """CPU seconds (user + system) of the finished commands this process waited for, and theirs."""
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def _one(tmp_path, tag: str, args: list[str]) -> tuple[float, float, dict, float]:
+    """(wall s, CPU s of the command and its recorder process, summary.json, recorded bytes per
+    diffused point) of one command."""
     d = tmp_path / tag
-    t = time.perf_counter()
+    c, t = _cpu(), time.perf_counter()
     p = run_cli(*args, "output.quiet=true", f"hydra.run.dir={d}")
-    wall = time.perf_counter() - t
+    wall, cpu = time.perf_counter() - t, _cpu() - c
     assert p.returncode == 0, p.stderr
     s = json.loads((d / "summary.json").read_text())
     size = sum((d / f).stat().st_size for f in ("run.rrd", "run.mcap") if (d / f).is_file())
-    return wall, s, size / s["n_points_diffused"]
+    return wall, cpu, s, size / s["n_points_diffused"]
 
 
 def _timed(s: dict, wall: float, what: str) -> float:
@@ -70,14 +80,16 @@ def test_recording_budget(benchmark, tmp_path, case):
     rounds = int(os.environ.get("DIFFUSER_LAB_BUDGET_ROUNDS", "5")) if not benchmark.disabled else 1
     times: dict[str, list[float]] = {"off": [], "both": []}
     walls: dict[str, list[float]] = {"off": [], "both": []}
+    cpus: dict[str, list[float]] = {"off": [], "both": []}  # beside the wall: what a loaded machine does not blur
     per_point = None
 
     def measure():
         nonlocal per_point
         for i in range(rounds):
             for rec in ("off", "both"):
-                wall, s, ppt = _one(tmp_path, f"{rec}{i}", [*args, f"record={rec}"])
+                wall, cpu, s, ppt = _one(tmp_path, f"{rec}{i}", [*args, f"record={rec}"])
                 walls[rec].append(wall)
+                cpus[rec].append(cpu)
                 times[rec].append(_timed(s, wall, what))
                 if rec == "both":
                     per_point = ppt
@@ -88,12 +100,16 @@ def test_recording_budget(benchmark, tmp_path, case):
     unit = "s wall" if what == "wall" else "ms per frame (median update latency)"
     scale = 1.0 if what == "wall" else 1e3
     benchmark.extra_info.update(off=off, both=both, ratio=both / off, timed=what, bytes_per_point=per_point,
-                                wall_off_s=statistics.median(walls["off"]), wall_both_s=statistics.median(walls["both"]))
+                                wall_off_s=statistics.median(walls["off"]), wall_both_s=statistics.median(walls["both"]),
+                                cpu_off_s=statistics.median(cpus["off"]), cpu_both_s=statistics.median(cpus["both"]),
+                                load=os.getloadavg()[0])
     print(f"\n[recording budget] {case}: record=off {off * scale:.2f}, both {both * scale:.2f} {unit}: "
           f"{both / off:.2f}x (budget {ratio_budget:.2f}x); {per_point:.0f} bytes per diffused point (budget {BYTES}); "
           f"off {[round(w * scale, 2) for w in times['off']]} both {[round(w * scale, 2) for w in times['both']]}"
           + (f"; walls off {[round(w, 2) for w in walls['off']]} both {[round(w, 2) for w in walls['both']]}"
-             if what != "wall" else ""))
+             if what != "wall" else "")
+          + f"; CPU s off {[round(c, 2) for c in cpus['off']]} both {[round(c, 2) for c in cpus['both']]}, "
+            f"load {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     assert per_point <= BYTES
     if not benchmark.disabled:
         assert both / off <= ratio_budget, f"{case}: {both / off:.2f}x > {ratio_budget:.2f}x"
