@@ -2,13 +2,13 @@
 
     PYTHONPATH=$PWD python scripts/viewer_screenshots.py OUT_DIR [--kinds batch,online] [--keep RUNS_DIR]
 
-The single-frame protocol writes no run.rrd (its records are summary.json's rows), so it has no
-screenshot. Each kind is run with the ``diffuser-lab`` command (its README line, plus
+Each kind is run with the ``diffuser-lab`` command (its README line, plus
 ``hydra.run.dir`` into a scratch folder and ``output.quiet=true``), then its ``run.rrd`` is opened
 in the viewer of the environment (``rerun`` beside the Python that runs this) in Xvfb on Mesa's
 lavapipe Vulkan (``apt-get install xvfb mesa-vulkan-drivers imagemagick``): a picture of the
-screen 12 s later gives ``OUT_DIR/viewer-<kind>.png``, the run's own layout at the recording's
-last time, shrunk to 1200 px wide and quantised to 256 colours (ImageMagick: ~270 KB each).
+screen 12 s later (:data:`WAIT_S`: longer for a kind that loads longer) gives
+``OUT_DIR/viewer-<kind>.png``, the run's own layout at the recording's last time, shrunk to
+1200 px wide and quantised to 256 colours (ImageMagick: ~270 KB each).
 ``scripts/make_pictures.py`` (the documentation's pictures) calls :func:`shoot_all`.
 """
 from __future__ import annotations
@@ -29,12 +29,18 @@ KINDS: dict[str, list[str]] = {
     "online": ["protocol=online", "online.map=growing"],
     # README "Outdoor, tiles, clusters": the demo room in 2 m tiles
     "tiled": ["protocol=tiled", "tiling.size=2"],
+    # README "Real data": the single-frame protocol (Table II), on the demo room, its first 8 target frames
+    "single-frame": ["protocol=single_frame", "protocol.max_targets=8"],
     # the same on a one-block city (cityscapes19, the README's city at a quarter of its size)
     "tiled-city": ["scene=city", "predictions=realistic_city", "scene.options.blocks_x=1", "scene.options.blocks_y=1",
                    "scene.options.point_spacing=0.3", "protocol=tiled", "tiling.size=25"],
 }
 WINDOW = "1600x1000"
 WIDTH = 1200
+WAIT_S = {"single-frame": 40.0}
+"""Seconds from the viewer's start to the picture where a kind needs more than the default 12 s:
+the single-frame record (8 targets' diffusions, ~11 MB) was still loading after 12 s under
+lavapipe on a loaded 2-core machine (empty views, 2026-12-07), whole after 40 s."""
 
 
 def _bin(name: str) -> str:
@@ -106,7 +112,8 @@ def shoot_all(out_dir: Path, kinds: list[str] | None = None, runs_dir: Path | No
     tmp = None if runs_dir is not None else tempfile.TemporaryDirectory(prefix="viewer-shots-")
     base = Path(runs_dir if runs_dir is not None else tmp.name)
     try:
-        return [screenshot(run_kind(k, base / k), out_dir / f"viewer-{k}.png") for k in (kinds or list(KINDS))]
+        return [screenshot(run_kind(k, base / k), out_dir / f"viewer-{k}.png", wait_s=WAIT_S.get(k, 12.0))
+                for k in (kinds or list(KINDS))]
     finally:
         if tmp is not None:
             tmp.cleanup()
@@ -124,7 +131,8 @@ def main(argv: list[str] | None = None) -> int:
     if bad:
         ap.error(f"--kinds: unknown {', '.join(bad)}; expected some of {', '.join(KINDS)}")
     try:
-        shots = ([screenshot(a.rrd, a.out_dir / f"viewer-{kinds[0]}.png")] if a.rrd is not None
+        shots = ([screenshot(a.rrd, a.out_dir / f"viewer-{kinds[0]}.png", wait_s=WAIT_S.get(kinds[0], 12.0))]
+                 if a.rrd is not None
                  else shoot_all(a.out_dir, kinds, a.keep))
     except (RuntimeError, subprocess.SubprocessError, OSError) as exc:
         print(f"viewer_screenshots: error: {exc}", file=sys.stderr)

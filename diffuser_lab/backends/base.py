@@ -15,8 +15,7 @@ from typing import Optional
 
 import numpy as np
 
-NONE = -1
-"""The label of a row nothing reached (all its scores 0): the data layer's ``IGNORE``."""
+from .stats import NONE, no_truth, step_statistics, width  # NONE (-1): a row nothing reached (IGNORE)
 
 
 @dataclass
@@ -86,6 +85,15 @@ def argmax_labels(Z: np.ndarray, active: np.ndarray, labels: np.ndarray) -> int:
     return changed
 
 
+class Tracking:
+    """What a backend keeps while it computes per-step statistics (:meth:`JacobiBackend.track`):
+    ``truth`` (:class:`~diffuser_lab.backends.stats.Truth`), ``labels`` (capacity,) int16 the last
+    step's labels in row order (the first N in use), ``width`` the statistics rows' columns."""
+
+    def __init__(self, truth, labels: np.ndarray, width: int):
+        self.truth, self.labels, self.width = truth, labels, int(width)
+
+
 class JacobiBackend:
     """Steps of Eq. 10 ``Z <- P Z + B`` (entries below ``floor`` flushed to 0) from Z = 0, or from
     the state it has (warm start).
@@ -93,7 +101,10 @@ class JacobiBackend:
     ``steps(count)`` runs up to ``count`` steps and returns their (done, 2) float32 array of
     (max change, max Z), stopping after the first step whose :func:`residual` is <= ``tol``; a
     backend gives ``step()`` (one step, its (change, top)) or, to run many steps in compiled
-    code, its own ``steps``. ``paper_units(out)`` gives Z (N, C) float32 in the caller's order
+    code, its own ``steps``. After ``track(truth)`` every ``steps`` call also leaves its steps'
+    statistics in :attr:`stats` (:mod:`diffuser_lab.backends.stats`: labels changed, labelled
+    rows, confidence, correct and predicted counts per class; a compiled backend computes them in
+    its step, this class beside each ``step()`` on the row-order state). ``paper_units(out)`` gives Z (N, C) float32 in the caller's order
     and the paper's units (``out``, if given, is filled: its inactive columns must be 0);
     ``state()`` / ``load(Z)`` read and set Z / scale (N, A) in row order; ``update(inputs, rows,
     moved)`` takes a changed system (rows renormalised, new rows, new classes, re-ordered rows:
@@ -104,9 +115,28 @@ class JacobiBackend:
 
     name = "?"
 
+    tracking: Optional[Tracking] = None
+    stats: Optional[np.ndarray] = None
+    """(done, width) float64 the statistics of the last ``steps`` call's steps while tracking, else None."""
+
     def __init__(self, inputs: IterationInputs, tol: float, rows_hint: int = 0):
         self.tol, self.rows_hint = float(tol), int(rows_hint)
         self.setup(inputs)
+
+    def track(self, truth) -> None:
+        """From the next step on, compute each step's statistics (:mod:`diffuser_lab.backends.stats`)
+        against ``truth`` (a :class:`~diffuser_lab.backends.stats.Truth` in row order; None: no
+        ground truth) into :attr:`stats`; labels changed count from the current state's labels."""
+        n, c = self.inputs.shape
+        if truth is None:
+            truth = no_truth(n, c)
+        labels = np.full(max(n, self.rows_hint), NONE, np.int16)
+        self.labels(labels[:n])
+        self.tracking = Tracking(truth, labels, width(c))
+
+    def untrack(self) -> None:
+        """No more statistics."""
+        self.tracking, self.stats = None, None
 
     def setup(self, inputs: IterationInputs) -> None:
         """Take ``inputs`` (a new system); Z starts at 0."""
@@ -129,11 +159,18 @@ class JacobiBackend:
 
     def steps(self, count: int) -> np.ndarray:
         out = []
-        for _ in range(count):
+        t = self.tracking
+        rows = np.zeros((count, t.width), np.float64) if t is not None else None
+        n = self.inputs.shape[0]
+        for s in range(count):
             change, top = self.step()
             out.append((change, top))
+            if t is not None:  # beside the step, on the state in row order
+                step_statistics(self.state(), self.inputs.active, t.labels[:n], t.truth, rows[s])
             if residual(change, top) <= self.tol:
                 break
+        if t is not None:
+            self.stats = rows[:len(out)]
         return np.array(out, np.float32).reshape(-1, 2)
 
     def state(self) -> np.ndarray:  # pragma: no cover - interface

@@ -13,7 +13,10 @@ A tiled run (protocol=tiled) prints its grid and a line per tile (status, points
 iterations, time, node); ``--at`` and ``--to-rrd`` refuse (it records no iterations: open its run.rrd).
 An online run (protocol=online) prints a per-frame summary instead (frames, latency, final
 mIoU, the frames whose Z was kept); ``--at FRAME`` takes a frame index; ``--to-rrd`` refuses
-(its run.mcap keeps the map's labels only on the kept frames: open its run.rrd).
+(its run.mcap keeps the map's labels only on the kept frames: open its run.rrd). A single-frame
+run (protocol=single_frame) prints its targets, Table II and a line per target; ``--at STEP``
+takes a step of the run's timeline (target k's iteration t is its start + t); ``--to-rrd``
+re-logs every target's recorded iterations, images and Table II.
 
 Everything is read from run.mcap (no summary section needed): a truncated file (killed run,
 cut copy) gives its complete leading iterations and a warning on stderr, exit code 0.
@@ -43,6 +46,7 @@ from diffuser_lab.recording.mcap_encode import (
     TOPIC_ONLINE_FRAME,
     TOPIC_RUN,
     TOPIC_SCENE,
+    TOPIC_TARGET,
     TOPIC_Z,
     camera_index,
     decode_label_png,
@@ -54,6 +58,7 @@ from diffuser_lab.recording.mcap_read import RunLog, iter_run, metrics_dict, rea
 from diffuser_lab.recording.mcap_write import FOXGLOVE_LAYOUT, online_foxglove_layout
 from diffuser_lab.recording.rerun_log import RerunRecorder
 from diffuser_lab.recording.schedule import describe
+from diffuser_lab.recording.single_frame import replay as replay_single_frame
 from diffuser_lab.recording.steps import StepTracker
 from diffuser_lab.recording.tiled import tiled_meta
 
@@ -204,6 +209,61 @@ def is_tiled_mcap(mcap_path: Path | str) -> bool:
         if topic in (TOPIC_RUN, TOPIC_Z, TOPIC_ONLINE_FRAME):
             return False
     return False
+
+
+def is_single_frame_mcap(mcap_path: Path | str) -> bool:
+    """Whether a run.mcap is a single-frame run's (its ``diffuser_lab.single_frame`` metadata or a
+    target, before any iteration)."""
+    log = RunLog(path=Path(mcap_path))
+    for topic, _ in iter_run(mcap_path, log):
+        if topic in ("metadata:diffuser_lab.single_frame", TOPIC_TARGET):
+            return True
+        if topic in (TOPIC_RUN, TOPIC_Z, TOPIC_ONLINE_FRAME, "metadata:diffuser_lab.tiled"):
+            return False
+    return False
+
+
+def single_frame_text(log: Any) -> str:
+    """A single-frame run at a glance: the targets, what was recorded, the result."""
+    meta, run, s, tg = log.single_frame or {}, log.run, log.summary, log.targets
+    lines = [f"run.mcap: {log.path} ({_size(log.path)}, {'complete' if log.complete else 'TRUNCATED'})"]
+    method = f"{tg[0]['method']} ({tg[0]['views']} views)" if tg else "diffuser"
+    pts = np.mean([t["n_points"] for t in tg]) if tg else 0
+    lines.append(f"scene     {run.get('scene', '?')} | single-frame protocol (Table II): {len(tg)} target frames of "
+                 f"{meta.get('n_frames', '?')}, window {meta.get('window', '?')}, {pts:,.0f} points a target | "
+                 f"{len(log.class_names)} classes ({run.get('taxonomy', '')})")
+    lines.append(f"overrides {' '.join(log.overrides) if log.overrides else '(none)'}")
+    dts = sorted(set(log.z_dtype.values()), key=lambda d: d == "float32")
+    its = log.z_iterations
+    interval = meta.get("interval")
+    lines.append(f"recorded  the {method} diffusion of every target: {len(its)} Z states ({describe(interval)} of "
+                 f"each, first and last; Z {' / last '.join(dts) if dts else '-'}), on the run's steps "
+                 f"{_iters(its)} (target k's iteration t = its start + t)")
+    if s is not None:
+        pick = {(r["method"], r["views"]): r for r in s.get("rows") or []}
+        m = pick.get(("diffuser", meta.get("window"))) or {}
+        b = pick.get(("bayesian", meta.get("window"))) or {}
+        lines.append(f"result    2D mIoU {_f(m.get('miou'))}  acc {_f(m.get('accuracy'))} (Diffuser, "
+                     f"{meta.get('window')} views) | Bayesian {_f(b.get('miou'))}")
+    else:
+        lines.append("result    (no summary: the run did not finish)")
+    return "\n".join(lines)
+
+
+def single_frame_table_text(log: Any) -> str:
+    """Table II (the summary's rows, else the last target's rows so far) and a line per target."""
+    rows = (log.summary or {}).get("rows") or next((t["rows"] for t in reversed(log.targets) if "rows" in t), [])
+    out = [f"{'method':12s}{'views':>6s}{'2D mIoU':>9s}{'acc':>7s}{'frame mean':>12s}"]
+    for r in rows:
+        out.append(f"{r['method']:12s}{r['views']:>6d}{_f(r.get('miou')):>9s}{_f(r.get('accuracy')):>7s}"
+                   f"{_f(r.get('mean_frame_miou')):>12s}")
+    out.append(f"{'target':>6s}  {'name':<16s}  {'points':>8s}  {'iters':>5s}  {'steps':>11s}  {'frame mIoU':>10s}")
+    for t in log.targets:
+        mine = next((r for r in t.get("rows", []) if r["method"] == t["method"] and r["views"] == t["views"]), {})
+        steps = f"{t['start']}-{t['end']}" if "end" in t else f"{t['start']}-"
+        out.append(f"{t['index']:6d}  {t['name'][:16]:<16s}  {t['n_points']:8,d}  {t.get('iterations', 0):5d}  "
+                   f"{steps:>11s}  {_f(mine.get('frame_miou')):>10s}")
+    return "\n".join(out)
 
 
 def tiled_text(log: Any, meta: dict) -> str:
@@ -423,7 +483,19 @@ def _main(args: argparse.Namespace) -> int:
     if (args.to_rrd or args.view or args.at is not None) and is_tiled_mcap(mcap):
         raise UsageError(f"{mcap}: a tiled run records its final labels and tiles, no iterations; open its "
                          f"run.rrd (diffuser-lab-inspect RUN --view)")
-    if (args.to_rrd or args.view) and is_online_mcap(mcap):
+    single = is_single_frame_mcap(mcap)
+    if (args.to_rrd or args.view) and single:
+        if scores:
+            raise UsageError("--scores: a single-frame run's record has no score layers")
+        out = Path(args.to_rrd) if args.to_rrd else Path(tempfile.mkdtemp(prefix="diffuser-lab-")) / "replay.rrd"
+        log = replay_single_frame(mcap, out)
+        _warn_truncated(log)
+        print(f"wrote {out} ({_size(out)}): {len(log.targets)} target frames, {len(log.z_iterations)} recorded "
+              f"iterations re-logged from {mcap}")
+        if args.view:
+            return subprocess.call(_viewer() + [str(out)])
+        return 0
+    if (args.to_rrd or args.view) and not single and is_online_mcap(mcap):
         raise UsageError(f"{mcap}: an online run's run.mcap keeps the map's labels only on the frames whose Z it "
                          f"kept, so it is not re-logged; open the run's run.rrd (diffuser-lab-inspect RUN --view)")
     if args.to_rrd or args.view:
@@ -442,7 +514,7 @@ def _main(args: argparse.Namespace) -> int:
     if log.info is None and not log.metadata and not log.truncated:
         raise UsageError(f"{mcap}: not a diffuser-lab run.mcap (no run records)")
     _warn_truncated(log)
-    what = "frame" if log.online is not None else "iteration"
+    what = "frame" if log.online is not None else "step" if single else "iteration"
     if args.at is not None:
         if not log.z_iterations:
             raise UsageError(f"{mcap}: no Z state recorded (method without diffusion, or cut before the first)")
@@ -467,6 +539,13 @@ def _main(args: argparse.Namespace) -> int:
             print("config:\n" + log.config_yaml)
         if not args.no_table:
             print(tiles_table_text(meta.get("tiles", [])))
+        return 0
+    if single:
+        print(single_frame_text(log))
+        if args.config:
+            print("config:\n" + log.config_yaml)
+        if not args.no_table:
+            print(single_frame_table_text(log))
         return 0
     if log.online is not None:
         print(online_text(log))

@@ -38,6 +38,7 @@ from diffuser_lab.backends import make_backend, resolve_backend
 from diffuser_lab.backends.base import IterationInputs, JacobiBackend, residual
 from diffuser_lab.backends.normalise import normalise_rows
 from diffuser_lab.backends.sparse import neighbourhood_classes
+from diffuser_lab.backends.stats import StatsRequest, StepTable, Truth, truth_rows
 from diffuser_lab.config import SolverBackend, SparseClasses
 from diffuser_lab.data.scene import IGNORE
 
@@ -48,12 +49,30 @@ Observer = Callable[[int, np.ndarray, dict], None]
 during the call only (the next observed iteration reuses its memory: copy what you keep), and
 stats holds ``residual`` (relative, see :func:`diffuse`). Observers must not change anything.
 An observer with a ``wants(iteration) -> bool`` method is called only where it returns True
-(building Z in the paper's units for an iteration nobody records costs a full copy)."""
+(building Z in the paper's units for an iteration nobody records costs a full copy).
+
+An observer with a ``statistics()`` method that returns a
+:class:`~diffuser_lab.backends.stats.StatsRequest` (None: none) gets every step's statistics,
+computed by the backend in its step (:mod:`diffuser_lab.backends.stats`: labels changed,
+confidence, correct and predicted counts per class against the request's ground truth), through
+``on_statistics(table)``: a :class:`~diffuser_lab.backends.stats.StepTable` of consecutive
+iterations, before the ``observer`` call of the table's last iteration (when it wants it)."""
 
 
 def observes(observer: Optional[Observer], iteration: int) -> bool:
     """Whether ``observer`` is to be called after ``iteration`` (see :data:`Observer`)."""
     return observer is not None and (not hasattr(observer, "wants") or observer.wants(iteration))
+
+
+def statistics_request(observer: Optional[Observer]) -> Optional[StatsRequest]:
+    """The :class:`~diffuser_lab.backends.stats.StatsRequest` of ``observer`` (see :data:`Observer`), or None."""
+    ask = getattr(observer, "statistics", None)
+    return ask() if ask is not None else None
+
+
+STATS_SEGMENT = 256
+"""While statistics are tracked the compiled Jacobi returns to Python at least every this many
+steps (their per-thread rows are kept per step until then: 256 x threads x (3 + 2 C) float64)."""
 
 
 def show(observer: Observer, iteration: int, Z: np.ndarray, residual: float) -> None:
@@ -366,37 +385,61 @@ class System:
             label = f"{label} (jacobi, {' '.join(str(v) for v in steps.details().values())}, {n:,} points)"
             if progress.enabled() and steps.compiling:  # a look at numba's cache only when a line can show it
                 label += progress.COMPILING
-        shown = progress.stage(label, total=max_iter, unit="it") if label is not None else nullcontext(progress.Stage())
-        with shown as bar:
-            # run up to the next iteration an observer wants to see without returning to Python, at most
-            # SEGMENT_ROW_STEPS row updates (and, while a progress line is shown, progress_chunk() steps)
-            # at a time: the steps and their stopping rule do not depend on where the run is split
-            segment = max(1, SEGMENT_ROW_STEPS // max(n, 1))
-            if bar.enabled:
-                segment = min(segment, progress_chunk(max_iter))
-            while it < max_iter:
-                stop = it + 1
-                last = min(max_iter, it + segment)
-                while stop < last and not observes(observer, stop):
-                    stop += 1
-                for change, top in steps.steps(stop - it):
-                    it += 1
-                    r = residual(change, top)
-                    residuals.append(r)
+        request = statistics_request(observer)
+        truth = None
+        if request is not None:  # every step's statistics, computed by the backend in its step
+            truth = self.truth(request)
+            steps.track(truth)
+        try:
+            shown = (progress.stage(label, total=max_iter, unit="it") if label is not None
+                     else nullcontext(progress.Stage()))
+            with shown as bar:
+                # run up to the next iteration an observer wants to see without returning to Python, at most
+                # SEGMENT_ROW_STEPS row updates (and, while a progress line is shown, progress_chunk() steps)
+                # at a time: the steps and their stopping rule do not depend on where the run is split
+                segment = max(1, SEGMENT_ROW_STEPS // max(n, 1))
                 if bar.enabled:
-                    bar.note(f"{'converged, ' if r <= tol else ''}residual {r:.1e}")
-                    bar.set(it)
-                if observes(observer, it):
-                    if seen_buf is None:  # one buffer for all observed iterations: no fresh pages each time
-                        seen_buf = np.zeros((n, self.num_classes), np.float32)
-                    show(observer, it, steps.paper_units(seen_buf), r)
-                if r <= tol:
-                    converged = True
-                    break
+                    segment = min(segment, progress_chunk(max_iter))
+                if request is not None:
+                    segment = min(segment, STATS_SEGMENT)
+                while it < max_iter:
+                    stop = it + 1
+                    last = min(max_iter, it + segment)
+                    while stop < last and not observes(observer, stop):
+                        stop += 1
+                    first = it + 1
+                    for change, top in steps.steps(stop - it):
+                        it += 1
+                        r = residual(change, top)
+                        residuals.append(r)
+                    if request is not None:
+                        observer.on_statistics(StepTable(np.arange(first, it + 1),
+                                                         np.asarray(residuals[first - 1:], np.float64), steps.stats,
+                                                         None if truth is None else truth.total))
+                    if bar.enabled:
+                        bar.note(f"{'converged, ' if r <= tol else ''}residual {r:.1e}")
+                        bar.set(it)
+                    if observes(observer, it):
+                        if seen_buf is None:  # one buffer for all observed iterations: no fresh pages each time
+                            seen_buf = np.zeros((n, self.num_classes), np.float32)
+                        show(observer, it, steps.paper_units(seen_buf), r)
+                    if r <= tol:
+                        converged = True
+                        break
+        finally:
+            if request is not None:
+                steps.untrack()
         Z = steps.paper_units()
         info.update(steps.report())
         return DiffusionResult(Z=Z, iterations=it, converged=converged, residual=residuals[-1] if residuals else 0.0,
                                residuals=residuals, info=info)
+
+    def truth(self, request: StatsRequest) -> Optional[Truth]:
+        """The request's ground truth on the rows (:func:`~diffuser_lab.backends.stats.truth_rows`:
+        through ``to_work`` to the caller's points, through :attr:`order` to the rows), or None."""
+        if request.gt is None:
+            return None
+        return truth_rows(request.gt, request.to_work, self.order, self.n, self.num_classes)
 
     def labels(self, out: np.ndarray) -> int:
         """Eq. 16 in row order into ``out`` (N,) int16 (IGNORE where nothing reached a row);

@@ -434,22 +434,19 @@ class OnlineDiffuser:
                 st.changed += changed
         return done
 
-    def finish(self, max_steps: int, chunk: int = 50) -> dict:
+    def finish(self, max_steps: int, observer=None) -> dict:
         """After the last frame: Jacobi steps until one changes Z by <= ``solver.tol`` of its
         largest entry, at most ``max_steps`` (the online iteration's fixed point, which the frames'
-        few steps only track). Returns {steps, ms, residual, changed} (steps 0 with
-        ``online.solver=gmres``, before any evidence, or when already settled)."""
+        few steps only track): the core's loop (:meth:`~diffuser_lab.method.diffusion.System.run`)
+        with ``observer`` (:data:`~diffuser_lab.method.diffusion.Observer`: iteration = the pass's
+        step, Z in the map's order; statistics when it asks). Returns {steps, ms, residual,
+        changed} (steps 0 with ``online.solver=gmres``, before any evidence, or when already settled)."""
         t0 = time.perf_counter()
         done, r = 0, 0.0
         if self.solver == OnlineSolver.jacobi and len(self.system.active) and not self._settled:
-            while done < max_steps:
-                k = min(chunk, max_steps - done)
-                out = self.system.steps(k)
-                done += len(out)
-                r = float(out[-1, 0] / out[-1, 1]) if out[-1, 1] > 0 else 0.0
-                if len(out) < k:
-                    self._settled = True
-                    break
+            res = self.system.run(max_steps, observer)
+            done, r = res.iterations, res.residual
+            self._settled = res.converged
         changed = self.system.labels(self._labels[: self._n]) if done else 0
         return {"steps": done, "ms": (time.perf_counter() - t0) * 1e3, "residual": r, "changed": int(changed)}
 

@@ -6,7 +6,8 @@ run hands them and never change the result. The folder, by role:
 - :mod:`.hooks`: the run's side, common part (:class:`~.hooks.RecordingHooks`); the hooks of a
   batch run (:mod:`.batch`: cameras, evidence, the recorded iterations, whose labels,
   confidence, changes and mIoU so far are computed once, :mod:`.steps`, and given to both
-  recorders) and of an online run (:mod:`.online`: one record per frame taken);
+  recorders), of an online run (:mod:`.online`: one record per frame taken) and of a
+  single-frame run (:mod:`.single_frame`: each target frame's diffusion, Table II as it grows);
 - :mod:`.recorders`: the writing side (:class:`~.recorders.Recorders`: run.rrd and run.mcap,
   opened, guarded, closed), fed the run's side's messages; :mod:`.rerun_log` and
   :mod:`.mcap_write` write the two files (:mod:`.mcap_encode` the MCAP messages,
@@ -40,6 +41,7 @@ from .batch import BatchHooks
 from .hooks import RecordingHooks
 from .online import OnlineHooks, is_online
 from .recorders import MCAP_NAME, RRD_NAME
+from .single_frame import SingleFrameHooks, is_single_frame
 from .steps import Step, StepTracker
 from .thread import ThreadLane
 from .tiled import record_tiled
@@ -75,6 +77,8 @@ def make_hooks(conf: Any, run_dir: Path | str, overrides: Sequence[str] = (), *,
         lane = proc.ProcessLane(conf, run_dir, **kinds)
     else:
         lane = ThreadLane(conf, run_dir, background=ASYNC, **kinds)
+    if is_single_frame(conf):
+        return SingleFrameHooks(conf, lane)
     return (OnlineHooks if is_online(conf) else BatchHooks)(conf, lane)
 
 

@@ -14,19 +14,13 @@ from typing import Any, Optional
 
 import numpy as np
 
+from diffuser_lab.backends.stats import StatsRequest
+
 from . import features as feature_view
 from .hooks import RecordingHooks, slim_scene
 from .online import OnlineHooks
 from .schedule import recorded
-from .steps import StepTracker, original_to_work, scalar_metrics
-
-MAX_SCALAR_ITERATIONS = 1000
-"""run.rrd's plots get the scalars of every iteration up to this many iterations; a longer run every
-ceil(max_iter / this)-th (and the recorded ones): each costs ~3 ms on the demo's 51k x 20 Z (Z in
-the paper's units, its labels and confusion counts), about twice an iteration's own time."""
-METRICS_BATCH = 64
-"""The run's side sends run.rrd's per-iteration scalars in batches of at most this many iterations
-(and at every recorded iteration, before its Z)."""
+from .steps import StepTracker, metrics_rows, original_to_work
 
 
 class BatchHooks(RecordingHooks):
@@ -44,10 +38,10 @@ class BatchHooks(RecordingHooks):
         self._basis: Optional[np.ndarray] = None
         self._view: Optional[feature_view.FeatureView] = None
         self._projected = 0
-        # run.rrd's scalars at every iteration (cheap; the Z states stay on the schedule): the
-        # labels of the last iteration seen, ground truth and each original point's work row
-        self._dense: Optional[SimpleNamespace] = None
-        self._pending: list[tuple] = []  # their rows not sent yet (sent in batches: a message per iteration cost more)
+        # run.rrd's scalars at every iteration, computed by the diffusion's backend in its steps
+        # (statistics(), on_statistics()): what they are asked against (ground truth, each
+        # original point's work point); the Z states stay on the schedule
+        self._request: Optional[StatsRequest] = None
 
     def on_queries(self, names: Any, embeddings: np.ndarray, basis: Optional[np.ndarray] = None) -> None:
         feature_view.pick_query(names, self.query)  # an unknown record.query: an error now, not after the run
@@ -61,14 +55,12 @@ class BatchHooks(RecordingHooks):
     def on_evidence(self, points: np.ndarray, grid: Optional[Any], evidence: Any, bayesian: np.ndarray) -> None:
         self.lane.send("batch.evidence", points, grid is not None, evidence.seen, bayesian)
         if "rerun" in self.lane.wanted and self._queries is None and self.scene is not None:
-            # (a features run is left out: its class scores cost a decode of F per iteration)
+            # (a features run is left out: its columns are features, not classes)
             gt = self.scene.gt_labels
             to_work = None
             if gt is not None and (grid is not None or len(points) != self.scene.n_points):
                 to_work = original_to_work(points, self.scene.points)
-            self._dense = SimpleNamespace(prev=np.full(len(points), -1, np.int16), prev_it=0, gt=gt, to_work=to_work,
-                                          names=list(self.scene.taxonomy.names),
-                                          stride=max(1, -(-self.max_iter // MAX_SCALAR_ITERATIONS)))
+            self._request = StatsRequest(gt, to_work)
         mass = getattr(evidence, "mass", None)
         if self._queries is not None and mass is not None and mass.shape[1] == self._queries[1].shape[1] \
                 and self.recording():
@@ -87,39 +79,30 @@ class BatchHooks(RecordingHooks):
     def _scheduled(self, iteration: int) -> bool:
         return recorded(iteration, self.interval, self.max_iter)
 
+    def statistics(self) -> Optional[StatsRequest]:
+        """run.rrd's scalars of every iteration, from the backend's statistics (while run.rrd is written)."""
+        if self._online is not None:  # an online run's finishing pass
+            return self._online.statistics()
+        return self._request if self._request is not None and self.lane.live("rerun") else None
+
+    def on_statistics(self, table: Any) -> None:
+        if self._online is not None:
+            self._online.on_statistics(table)
+        elif self.lane.live("rerun"):
+            self.lane.send("batch.metrics", metrics_rows(table))
+
     def wants(self, iteration: int) -> bool:
         # what was asked for and has not failed: the recorders may still be opening where they
         # are written, and what is sent now is written once they are
-        if self._dense is not None and iteration % self._dense.stride == 0 and self.lane.live("rerun"):
-            return True
+        if self._online is not None:
+            return self._online.wants(iteration)
         return self.recording() and self._scheduled(iteration)
 
     def observe(self, iteration: int, Z: np.ndarray, stats: dict) -> None:
-        residual = float(stats.get("residual", float("nan")))
-        scheduled = self._scheduled(iteration)
-        if self._dense is not None and self.lane.live("rerun"):
-            d = self._dense
-            m, d.prev = scalar_metrics(Z, d.prev, d.gt, d.to_work, d.names)
-            nan = float("nan")
-            per = m["changed"] / max(iteration - d.prev_it, 1)  # per iteration since the one seen before
-            d.prev_it = iteration
-            self._pending.append((iteration, residual, per, m["confidence"],
-                                  nan if m["miou"] is None else m["miou"], nan if m["accuracy"] is None else m["accuracy"]))
-            if scheduled or len(self._pending) >= METRICS_BATCH:
-                self._flush_metrics()
-        if self.recording() and scheduled:
-            self.lane.send_z("batch.step", iteration, Z, residual)
-
-    def _flush_metrics(self) -> None:
-        """Send the pending per-iteration scalars as one (k, 6) float64 array (see BatchRecorder.metrics)."""
-        if self._pending:
-            rows, self._pending = np.asarray(self._pending, np.float64), []
-            self.lane.send("batch.metrics", rows)
-
-    def close(self) -> None:
-        if not self._closed:  # a run that died: what it computed is still plotted
-            self._flush_metrics()
-        super().close()
+        if self._online is not None:
+            self._online.observe(iteration, Z, stats)
+        elif self.recording() and self._scheduled(iteration):
+            self.lane.send_z("batch.step", iteration, Z, float(stats.get("residual", float("nan"))))
 
     def on_online_frame(self, frame: Any, update: Any) -> None:
         if self._online is None:  # the run is online after all: its frames are recorded from here
@@ -137,7 +120,6 @@ class BatchHooks(RecordingHooks):
                 and getattr(lifted, "method", None) is not None:
             # the last iteration's features were not observed (early stop, or diffused in blocks)
             self._send_features(d.iterations, lifted.observed(lifted.method))
-        self._flush_metrics()
         self.lane.send("batch.result", slim_result(result))
 
     def files(self) -> dict:
@@ -192,7 +174,7 @@ class BatchRecorder:
     def metrics(self, rows: np.ndarray) -> None:
         """run.rrd's scalars of consecutive iterations, (k, 6) rows of iteration, residual, labels
         changed per iteration since the one before, mean confidence, mIoU, accuracy (NaN: none)
-        (:func:`~.steps.scalar_metrics`, every iteration)."""
+        (:func:`~.steps.metrics_rows` of the backend's statistics, every iteration)."""
         r = self.recs
         self._dense_last = int(rows[-1, 0])
         r.each(lambda: r.rerun.log_metrics_columns(rows), None)

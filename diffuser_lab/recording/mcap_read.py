@@ -14,6 +14,8 @@ from .mcap_encode import (
     TOPIC_ONLINE_FRAME,
     TOPIC_RUN,
     TOPIC_SCENE,
+    TOPIC_TARGET,
+    TOPIC_TARGET_ROWS,
     TOPIC_Z,
     decode_point_cloud,
     decode_z,
@@ -36,6 +38,10 @@ class RunLog:
         scene: {field: array} of the /scene/points cloud (x y z red green blue alpha label), or None.
         frames: protocol=online: per frame taken, dicts with the OnlineFrame fields (None for NaN);
             the Z states (``z``, ``z_iterations``) are then keyed by frame index.
+        targets: protocol=single_frame: per target frame, a dict of its TargetFrame's plain fields
+            (index, name, count, start, window, n_points, width, height, method, views) and, once
+            scored, ``rows`` (Table II so far), ``end`` (the step of its rows), ``iterations``;
+            its Z states are keyed by the run's step (iteration t of a target is step start + t).
         truncated: the file ended before its footer (killed run or cut copy).
         error: what stopped the reading early, or None.
     """
@@ -49,6 +55,7 @@ class RunLog:
     z_dtype: dict = field(default_factory=dict)
     scene: Optional[dict] = None
     frames: list = field(default_factory=list)
+    targets: list = field(default_factory=list)
     truncated: bool = False
     error: Optional[str] = None
     complete: bool = False
@@ -70,6 +77,12 @@ class RunLog:
     def online(self) -> Optional[dict]:
         """The ``diffuser_lab.online`` metadata of an online run (map, n_frames, ...), else None."""
         return self.metadata.get("diffuser_lab.online")
+
+    @property
+    def single_frame(self) -> Optional[dict]:
+        """The ``diffuser_lab.single_frame`` metadata of a single-frame run (window, ...), else None."""
+        m = self.metadata.get("diffuser_lab.single_frame")
+        return json.loads(m["json"]) if m else None
 
     @property
     def run(self) -> dict:
@@ -138,6 +151,15 @@ def online_frame_dict(data: bytes) -> dict:
     return d
 
 
+_TARGET_FIELDS = ("index", "name", "count", "start", "n_points", "width", "height", "method", "views")
+
+
+def target_dict(data: bytes) -> dict:
+    """TargetFrame bytes -> dict of its plain fields and its window (no arrays)."""
+    m = schema.TargetFrame.FromString(data)
+    return {**{f: getattr(m, f) for f in _TARGET_FIELDS}, "window": list(m.window)}
+
+
 def read_run(path: Path | str, *, z: Optional[Iterable[int]] | str = None, scene: bool = False) -> RunLog:
     """Read a run.mcap, also a truncated one (see :func:`iter_run`).
 
@@ -170,6 +192,13 @@ def read_run(path: Path | str, *, z: Optional[Iterable[int]] | str = None, scene
                 out.z[int(msg.iteration)] = decode_z(msg)
         elif topic == TOPIC_RUN:
             out.info = schema.RunInfo.FromString(data)
+        elif topic == TOPIC_TARGET:
+            out.targets.append(target_dict(data))
+        elif topic == TOPIC_TARGET_ROWS:
+            rows = json.loads(data)
+            for t in out.targets:
+                if t["index"] == rows["index"] and t["start"] == rows["start"]:
+                    t.update(rows=rows["rows"], end=rows["step"], iterations=rows["iterations"])
         elif topic == TOPIC_SCENE and scene:
             out.scene = decode_point_cloud(PointCloud.FromString(data))
     done = set(out.z_iterations)
@@ -190,4 +219,4 @@ def work_points(info: Any, scene_points: Optional[Any] = None):
     return np.asarray(scene_points, np.float32)
 
 
-__all__ = ["RunLog", "read_run", "iter_run", "metrics_dict", "online_frame_dict", "work_points"]
+__all__ = ["RunLog", "read_run", "iter_run", "metrics_dict", "online_frame_dict", "target_dict", "work_points"]

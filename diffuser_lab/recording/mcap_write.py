@@ -70,6 +70,9 @@ from .mcap_encode import (
     TOPIC_ONLINE_LABELS,
     TOPIC_RUN,
     TOPIC_SCENE,
+    TOPIC_TARGET,
+    TOPIC_TARGET_IMAGES,
+    TOPIC_TARGET_ROWS,
     TOPIC_TF,
     TOPIC_TILED_LABELS,
     TOPIC_TILED_RECORDS,
@@ -79,6 +82,7 @@ from .mcap_encode import (
     _point_cloud,
     _RawMessage,
     camera_messages,
+    label_png,
     point_cloud_bytes,
     z_state_bytes,
 )
@@ -434,6 +438,48 @@ class McapRecorder:
         dtype = "float32" if exact else self.z_dtype
         mv = z_state_bytes(index, Z, dtype, self._pooled(TOPIC_Z), labels=labels)
         self._write(TOPIC_Z, _RawMessage(mv, functools.partial(self._free[TOPIC_Z].put, mv.obj)), index, t)
+
+    # -- protocol=single_frame -------------------------------------------------------------------
+    def log_single_frame_start(self, meta: dict) -> None:
+        """A single-frame run: its channels and the ``diffuser_lab.single_frame`` metadata (JSON)."""
+        from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+
+        def start():
+            for topic, cls in ((TOPIC_TARGET, schema.TargetFrame), (TOPIC_TARGET_IMAGES, CompressedImage)):
+                self._channels[topic] = self.w.register_channel(topic=topic, message_encoding="protobuf",
+                                                                schema_id=self._schema(cls))
+            self._channels[TOPIC_TARGET_ROWS] = self.w.register_channel(topic=TOPIC_TARGET_ROWS,
+                                                                        message_encoding="json", schema_id=0)
+            self.w.add_metadata("diffuser_lab.single_frame", {"json": json.dumps(meta, default=_json_default)})
+
+        self._submit(start)
+
+    def log_target(self, msg: Any, cameras: Sequence[Any]) -> None:
+        """A target frame (``msg``: diffuser_lab.TargetFrame) at its first step, with the cameras of
+        its window not logged before (``cameras``: objects with index, name, K, T_cw, shape, labels:
+        their foxglove messages, frame ``camera_<index>``)."""
+        t = self._time("iteration", msg.start)
+        for cam in cameras:
+            for topic, m in camera_messages(cam.index, cam.K, cam.T_cw, cam.shape, cam.labels, self._colors,
+                                            self.max_image_side, t):
+                self._write(topic, m, cam.index, t)
+        self._write(TOPIC_TARGET, msg, msg.start, t)
+        self._flush()
+
+    def log_target_rows(self, step: int, rows: dict, images: dict) -> None:
+        """A target frame scored, at ``step`` (after its iterations): ``rows`` (JSON: the Table II rows
+        so far and this frame's figures) on /diffuser_lab/single_frame/rows and each row's (H, W)
+        label image of the frame ``images`` {name: int16} as a label PNG on /single_frame/labels
+        (frame_id = the row's name, ``<method>_<views>``)."""
+        from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+
+        t = self._time("iteration", step)
+        for name, img in images.items():  # before the rows: a reader has them when the rows come
+            m = CompressedImage(frame_id=str(name), format="png", data=label_png(img, self._colors))
+            m.timestamp.FromNanoseconds(t)
+            self._write(TOPIC_TARGET_IMAGES, m, step, t)
+        self._write(TOPIC_TARGET_ROWS, _RawMessage(json.dumps(rows, default=_json_default).encode()), step, t)
+        self._flush()
 
     # -- protocol=tiled ------------------------------------------------------------------------
     def log_tiled(self, points: np.ndarray, labels: np.ndarray, tiles: Sequence[dict], centers: np.ndarray,

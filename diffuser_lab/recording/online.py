@@ -21,19 +21,24 @@ from typing import Any, Optional
 
 import numpy as np
 
+from diffuser_lab.backends.stats import StatsRequest
 from diffuser_lab.config import OnlineMap
 from diffuser_lab.data.scene import IGNORE
+from diffuser_lab.method.diffusion import labels_from_scores
 from diffuser_lab.runs.online import summary as online_summary
 
 from .hooks import RecordingHooks
 from .mcap_encode import FRAME_STEP_NS, strided
-from .schedule import recorded, with_cloud
-from .steps import original_to_work
+from .schedule import is_log_step, recorded, with_cloud
+from .steps import metrics_rows, original_to_work
 
 log = logging.getLogger("diffuser_lab.recording")
 
 TIMELINE = "frame"
-"""run.rrd's timeline of an online run: sequence = the frame's index."""
+"""run.rrd's timeline of an online run: sequence = the frame's index; after the last frame taken
+(index L) the finishing pass (``online.finish``): its step s at L + s."""
+FINISH_TIMELINE = "finish_step"
+"""run.rrd's timeline of an online run's finishing pass alone: sequence = its step."""
 
 
 @dataclass
@@ -197,6 +202,32 @@ class OnlineHooks(RecordingHooks):
     def __init__(self, conf: Any, lane: Any):
         super().__init__(conf, lane)
         self.frames: Optional[OnlineFrames] = None
+        self._update: Any = None  # the last frame's update: the map the finishing pass runs on
+
+    # -- the finishing pass (online.finish), observed as a diffusion: run.rrd's frame timeline
+    # goes on after the last frame, one step a value (OnlineRecorder.finish_*)
+    def statistics(self) -> Optional[StatsRequest]:
+        """Every finishing step's statistics (run.rrd's plots), against the map's ground truth
+        (growing) or the scene's through each point's nearest map point (given), as per frame."""
+        u = self._update
+        if u is None or not self.lane.live("rerun") or (self.frames is not None and self.frames.off):
+            return None
+        if u.gt is not None:  # growing map with ground truth: the map's points'
+            return StatsRequest(np.asarray(u.gt), None)
+        gt = getattr(self.scene, "gt_labels", None)
+        if gt is None or self.conf.online.map == OnlineMap.growing:
+            return StatsRequest(None, None)
+        return StatsRequest(gt, original_to_work(np.asarray(u.points), self.scene.points))
+
+    def on_statistics(self, table: Any) -> None:
+        if self.lane.live("rerun"):
+            self.lane.send("online.finish_metrics", metrics_rows(table))
+
+    def wants(self, iteration: int) -> bool:
+        return self._update is not None and self.lane.live("rerun") and is_log_step(iteration)
+
+    def observe(self, iteration: int, Z: np.ndarray, stats: dict) -> None:
+        self.lane.send("online.finish_labels", int(iteration), labels_from_scores(Z))
 
     def on_scene(self, scene: Any) -> None:
         super().on_scene(scene)
@@ -213,11 +244,16 @@ class OnlineHooks(RecordingHooks):
         rec = self.frames.record(frame, update, want_z=self.lane.live("mcap"))
         if rec is not None:
             self.lane.send("online.frame", rec)
+            self._update = update
 
     def on_result(self, result: Any) -> None:
         if self.lane.dead is None and self.frames is not None:
+            steps = int(((getattr(result, "settings", None) or {}).get("finish") or {}).get("steps") or 0)
+            if steps and self.lane.live("rerun") and not self.frames.off:  # the replay ends on labels.npy's
+                self.lane.send("online.finish_end", steps, np.array(result.labels, np.int16))
             self.frames.finish(result, lambda *fin: self.lane.send("online.final", *fin),
                                lambda summary: self.lane.send("online.result", summary))
+        self._update = None
 
     def files(self) -> dict:
         out = self.lane.files()
@@ -236,6 +272,7 @@ class OnlineRecorder:
     def __init__(self, recs: Any):
         self.recs = recs
         self.mirror: Optional[MapMirror] = None
+        self.last_index = -1  # the last frame taken: the finishing pass's steps follow it on the timeline
 
     def start(self) -> None:
         r = self.recs
@@ -252,8 +289,23 @@ class OnlineRecorder:
         changed = self.mirror.update(rec)
         pts = self.mirror.points
         r.each(lambda: r.rerun.log_online_frame(rec, self.mirror, changed), lambda: r.mcap.log_online_frame(rec, pts))
+        self.last_index = rec.index
         if rec.Z is not None:
             r.recorded.append(rec.index)
+
+    def finish_metrics(self, rows: np.ndarray) -> None:
+        """The finishing pass's scalars, (k, 6) rows as :func:`~.steps.metrics_rows` (step of the pass, ...)."""
+        r = self.recs
+        r.each(lambda: r.rerun.log_online_finish_metrics(self.last_index, rows), None)
+
+    def finish_labels(self, step: int, labels: np.ndarray) -> None:
+        """The map's (n,) labels after step ``step`` of the finishing pass (its 1-2-5 steps)."""
+        r = self.recs
+        r.each(lambda: r.rerun.log_online_labels(self.last_index, step, labels, self.mirror), None)
+
+    def finish_end(self, steps: int, labels: np.ndarray) -> None:
+        """The run's final labels (labels.npy's, map order) at the pass's last step ``steps``."""
+        self.finish_labels(steps, labels)
 
     def final(self, index: int, Z: np.ndarray, labels: np.ndarray, cloud: bool) -> None:
         """The run's end (:meth:`OnlineFrames.final_state`): its Z exactly, at the last frame taken."""

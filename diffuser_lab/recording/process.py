@@ -82,7 +82,7 @@ def _child(conn, conf, run_dir: Path, rerun: bool, mcap: bool, overrides: Sequen
             pass
     side = Recorders(conf, run_dir, rerun=rerun, mcap=mcap, writer_thread=True)
     side.open(overrides)
-    _warm_kernels(conf)
+    _warm_kernels(conf, rerun)
     try:
         while True:
             try:
@@ -111,10 +111,14 @@ def _child(conn, conf, run_dir: Path, rerun: bool, mcap: bool, overrides: Sequen
         conn.close()
 
 
-def _warm_kernels(conf: Any) -> None:
+def _warm_kernels(conf: Any, rerun: bool = False) -> None:
     """Load the recorders' compiled kernels now, while the run loads its scene (~0.3 s from
     numba's cache), rather than at the first recorded iteration, inside the diffusion (without
-    them: a few microseconds of numpy)."""
+    them: a few microseconds of numpy); and matplotlib's canvas, which the legend's picture needs
+    with the evidence, when the run's graph keeps both cores busy (its import: ~0.5 s of CPU)."""
+    if rerun:
+        from matplotlib.backends import backend_agg  # noqa: F401
+        from matplotlib import figure  # noqa: F401
     Z = np.ones((4, 3), np.float32)
     StepTracker(4, ["a", "b", "c"], np.zeros(4, np.int16)).step(1, Z, 0.0)
     for dtype in {conf.record.z_precision.value, "float32"}:

@@ -6,7 +6,8 @@ One :class:`Recorders` lives where the records are written: on the recording thr
 (:class:`~.thread.ThreadLane`) or in the recording process (:mod:`.process`), where it runs
 in-line. The run's side (:class:`~.hooks.RecordingHooks`) reaches it only through messages,
 ``(name, args)`` of plain, picklable values, each one :meth:`Recorders.call`: ``open``,
-``log_scene``, ``batch.<method>``, ``online.<method>``. So neither lane restates a hook, and a
+``log_scene``, ``batch.<method>``, ``online.<method>``, ``single.<method>`` (a single-frame run:
+:class:`~.single_frame.SingleFrameRecorder`). So neither lane restates a hook, and a
 recorder is written once for both.
 
 A recorder that fails (disk full, a bug) is switched off with a warning and the run goes on;
@@ -24,6 +25,7 @@ from .batch import BatchRecorder
 from .mcap_write import McapRecorder
 from .online import OnlineRecorder, is_online
 from .rerun_log import RerunRecorder
+from .single_frame import SingleFrameRecorder, SingleFrameRerun, is_single_frame
 
 log = logging.getLogger("diffuser_lab.recording")
 
@@ -56,6 +58,7 @@ class Recorders:
         self.recorded: list[int] = []
         self.batch = BatchRecorder(self)
         self.online = OnlineRecorder(self)
+        self.single = SingleFrameRecorder(self)
 
     def call(self, name: str, args: tuple) -> None:
         """One message of the run's side: ``name`` a method of this object (``log_scene``) or of
@@ -72,8 +75,11 @@ class Recorders:
 
     def _open_rerun(self) -> None:
         rc = self.conf.record
-        self.rerun = RerunRecorder(self.run_dir / RRD_NAME, max_image_side=rc.max_image_side,
-                                   max_depth_side=int(rc.max_depth_side), live=rc.live, online=is_online(self.conf))
+        kw = dict(max_image_side=rc.max_image_side, max_depth_side=int(rc.max_depth_side), live=rc.live)
+        if is_single_frame(self.conf):
+            self.rerun = SingleFrameRerun(self.run_dir / RRD_NAME, **kw)
+        else:
+            self.rerun = RerunRecorder(self.run_dir / RRD_NAME, online=is_online(self.conf), **kw)
         self._files["rrd"] = RRD_NAME
 
     def _open_mcap(self, overrides: Sequence[str]) -> None:

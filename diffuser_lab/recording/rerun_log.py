@@ -22,8 +22,8 @@ Entity tree (``world`` is z-up, metres; class colours come from the AnnotationCo
                                    .rrd (``diffuser-lab-inspect RUN --to-rrd OUT --scores chair,table``)
     legend                     Image + values (classes, colors), static: the classes present (ground
                                truth, labels), unlabeled, wrong label; the confidence scale
-    metrics/miou|accuracy|confidence       Scalars at every iteration (the run's side computes them:
-                                           :func:`~.steps.scalar_metrics`), the clouds above on the schedule
+    metrics/miou|accuracy|confidence       Scalars at every iteration (the backend's statistics in its step:
+                                           :func:`~.steps.metrics_rows`), the clouds above on the schedule
     metrics/residual_log10                 log10 of the relative residual (none where it is 0)
     metrics/changed_per_iter_log10         log10 of the labels changed per iteration since the previous
                                            one logged, n_changed / (iteration - previous) (none where 0)
@@ -60,6 +60,7 @@ from diffuser_lab.data.scene import IGNORE
 
 from .eyes import eye_kw, follow_eye, overview_eye, scene_up
 from .live import live_target
+from .online import FINISH_TIMELINE
 from .online import TIMELINE as FRAME_TIMELINE
 from .steps import Step
 
@@ -375,6 +376,7 @@ finished without loading a recording"); 64 load."""
 
 
 APP_BATCH, APP_ONLINE, APP_TILED = "diffuser_lab_batch", "diffuser_lab_online", "diffuser_lab_tiled"
+APP_SINGLE_FRAME = "diffuser_lab_single_frame"
 """run.rrd's application id per kind of run (Rerun turns a dot in one into a hash): the viewer keeps
 a layout per application id. What makes a record opened into a running viewer (``rerun run.rrd``
 with one on port 9876) show its own layout is the blueprint sent as the *active* one
@@ -414,7 +416,9 @@ def online_blueprint(has_gt: bool, growing: bool, eye=None, ranges: Optional[dic
     rows = [plot("mIoU so far [%]", ["/metrics/diffuser_miou", "/metrics/bayesian_miou"], ranges,
                  legend=True)] if has_gt else []
     rows += [rrb.Horizontal(plot("latency [ms]", ["/metrics/latency_ms"], ranges),
-                            plot("labels changed", ["/metrics/changed"], ranges)),
+                            plot("labels changed", ["/metrics/changed"], ranges),
+                            plot("finishing pass: relative residual, log10", ["/metrics/finish_residual_log10"],
+                                 ranges)),
              rrb.Horizontal(plot("map points [thousands]", ["/metrics/points_k"], ranges),
                             rrb.Spatial2DView(name="camera: 2D labels", origin="/world/online/camera"))]
     return rrb.Blueprint(
@@ -717,7 +721,9 @@ class RerunRecorder:
                                  ("bayesian_miou", "online Bayesian mIoU so far [%]", (255, 127, 14)),
                                  ("latency_ms", "latency [ms]", (214, 39, 40)),
                                  ("changed", "labels changed", (148, 103, 189)),
-                                 ("points_k", "map points [thousands]", (44, 160, 44))):
+                                 ("points_k", "map points [thousands]", (44, 160, 44)),
+                                 ("finish_residual_log10", "finishing pass: log10 relative residual",
+                                  (140, 86, 75))):
             self.rec.log(f"metrics/{key}", rr.SeriesLines(names=name, colors=color), static=True)
         # a growing map's points are its voxels' centroids: half the voxel touch. (Estimated from
         # the first frame's map, the radius came out 3x that: its points are far sparser than the
@@ -766,6 +772,45 @@ class RerunRecorder:
             if m.get(key) is not None:
                 self._scalar(key, m[key])
 
+    def log_online_labels(self, last_index: int, step: int, labels: np.ndarray, mirror) -> None:
+        """The map's (n,) labels after step ``step`` of the finishing pass (``online.finish``), on
+        the ``frame`` timeline at ``last_index + step`` (``last_index``: the last frame taken) and
+        the ``finish_step`` timeline at ``step``: each block's class ids (its positions stand) and
+        the wrong points."""
+        rr, log = self.rr, self.rec.log
+        self.rec.set_time(FRAME_TIMELINE, sequence=int(last_index) + int(step))
+        self.rec.set_time(FINISH_TIMELINE, sequence=int(step))
+        ids = class_ids(labels)
+        n = len(ids)
+        B = ONLINE_BLOCK_ROWS if mirror.growing else max(n, 1)
+        for b in range(-(-n // B)):
+            log(f"world/online/labels/{b:04d}", rr.Points3D.from_fields(class_ids=ids[b * B:min(n, (b + 1) * B)]))
+        wrong = mirror.wrong(labels)
+        if wrong is not None:
+            log("world/online/wrong", rr.Points3D(wrong, colors=self.wrong_rgb,
+                                                  radii=1.2 * (self._online_radius or 0.01)))
+        self.rec.disable_timeline(FINISH_TIMELINE)
+
+    def log_online_finish_metrics(self, last_index: int, rows: np.ndarray) -> None:
+        """The finishing pass's scalars: (k, 6) rows of step, relative residual, labels changed,
+        mean confidence, mIoU, accuracy (:func:`~.steps.metrics_rows`), on the ``frame`` timeline
+        at ``last_index + step`` and the ``finish_step`` timeline: ``metrics/changed`` and
+        ``metrics/diffuser_miou`` go on after the frames', ``metrics/finish_residual_log10`` is the pass's own."""
+        rr = self.rr
+        rows = np.asarray(rows, np.float64).reshape(-1, 6)
+        step = rows[:, 0].astype(np.int64)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            series = {"changed": rows[:, 2], "diffuser_miou": rows[:, 4], "finish_residual_log10": np.log10(rows[:, 1])}
+        for key, v in series.items():
+            ok = np.isfinite(v)
+            if not ok.any():
+                continue
+            rr.send_columns(f"metrics/{key}", indexes=[rr.TimeColumn(FRAME_TIMELINE, sequence=int(last_index) + step[ok]),
+                                                      rr.TimeColumn(FINISH_TIMELINE, sequence=step[ok])],
+                            columns=rr.Scalars.columns(scalars=v[ok]), recording=self.rec)
+            e = self._extent.setdefault(f"/metrics/{key}", [float(v[ok].min()), float(v[ok].max())])
+            e[0], e[1] = min(e[0], float(v[ok].min())), max(e[1], float(v[ok].max()))
+
     def score_values(self, Z: np.ndarray) -> np.ndarray:
         """(M, C) scores -> (M, k) float32 Z_ic / sum_c Z_ic of the score classes, 0 where the row is 0."""
         tot = Z.sum(1, dtype=np.float32)[:, None]
@@ -809,5 +854,5 @@ class RerunRecorder:
         self.rec.disconnect()
 
 
-__all__ = ["RerunRecorder", "blueprint", "unlabeled_color", "log_legend", "legend_entries", "LEGEND", "APP_BATCH", "APP_ONLINE", "APP_TILED", "online_blueprint", "class_ids", "wrong_color", "score_entity", "UNLABELED_ID", "TIMELINE",
+__all__ = ["RerunRecorder", "blueprint", "unlabeled_color", "log_legend", "legend_entries", "LEGEND", "APP_BATCH", "APP_ONLINE", "APP_TILED", "APP_SINGLE_FRAME", "online_blueprint", "class_ids", "wrong_color", "score_entity", "UNLABELED_ID", "TIMELINE",
            "CONFIDENCE_LUT"]

@@ -76,6 +76,22 @@ The schemas travel inside every run.mcap (a ``FileDescriptorSet`` per schema rec
       double sim_lo = 8;  double sim_hi = 9;   // the cosines mapped to 0 and 254
       uint32 n_fit = 10;             // rows the PCA was fitted on
     }
+    message TargetFrame {            // protocol=single_frame: each target frame, before its diffusion
+      uint32 index = 1;              // the target frame's index in the sequence
+      string name = 2;
+      uint32 count = 3;              // 1-based count of targets
+      uint32 start = 4;              // its first step on the run's step timeline: iteration t is step start + t
+      repeated uint32 window = 5;    // the frames it is labelled from (its views; the target among them)
+      uint32 n_points = 6;           // M: its back-projected depth (voxel centroids with scene.voxel_size)
+      bytes work_points = 7;         // (M, 3) float32, world metres
+      bytes work_gt = 8;             // (M,) int16 the most frequent ground truth of each point's pixels, -1 none
+      uint32 width = 9;  uint32 height = 10;   // the frame's image
+      bytes pixels = 11;             // (height, width) int32 each pixel's work point, -1 none
+      bytes gt_image = 12;           // (height, width) int16 ground truth, -1 unlabeled
+      string method = 13;            // the Table II row whose diffusion is recorded ("diffuser")
+      uint32 views = 14;             // ... and its views
+      repeated Camera cameras = 15;  // the window's cameras, in window order (full-size K)
+    }
     message FeatureColors {          // a features run, every recorded iteration
       uint32 iteration = 1;
       uint32 n_points = 2;           // M
@@ -130,6 +146,12 @@ _MESSAGES = [
                      ("lo", 4, "bytes", False), ("hi", 5, "bytes", False), ("query", 6, "string", False),
                      ("embedding", 7, "bytes", False), ("sim_lo", 8, "double", False), ("sim_hi", 9, "double", False),
                      ("n_fit", 10, "uint32", False)]),
+    ("TargetFrame", [("index", 1, "uint32", False), ("name", 2, "string", False), ("count", 3, "uint32", False),
+                     ("start", 4, "uint32", False), ("window", 5, "uint32", True), ("n_points", 6, "uint32", False),
+                     ("work_points", 7, "bytes", False), ("work_gt", 8, "bytes", False), ("width", 9, "uint32", False),
+                     ("height", 10, "uint32", False), ("pixels", 11, "bytes", False), ("gt_image", 12, "bytes", False),
+                     ("method", 13, "string", False), ("views", 14, "uint32", False),
+                     ("cameras", 15, ".diffuser_lab.Camera", True)]),
     ("FeatureColors", [("iteration", 1, "uint32", False), ("n_points", 2, "uint32", False),
                        ("rgb", 3, "bytes", False), ("similarity", 4, "bytes", False)]),
 ]
@@ -160,6 +182,7 @@ IterationMetrics = GetMessageClass(_POOL.FindMessageTypeByName(f"{PACKAGE}.Itera
 OnlineFrame = GetMessageClass(_POOL.FindMessageTypeByName(f"{PACKAGE}.OnlineFrame"))
 FeatureView = GetMessageClass(_POOL.FindMessageTypeByName(f"{PACKAGE}.FeatureView"))
 FeatureColors = GetMessageClass(_POOL.FindMessageTypeByName(f"{PACKAGE}.FeatureColors"))
+TargetFrame = GetMessageClass(_POOL.FindMessageTypeByName(f"{PACKAGE}.TargetFrame"))
 
 
 def file_descriptor_set(message_class) -> bytes:
@@ -179,4 +202,5 @@ def file_descriptor_set(message_class) -> bytes:
     return fds.SerializeToString()
 
 
-__all__ = ["Camera", "RunInfo", "ZState", "IterationMetrics", "OnlineFrame", "FeatureView", "FeatureColors", "file_descriptor_set", "file_descriptor_proto"]
+__all__ = ["Camera", "RunInfo", "ZState", "IterationMetrics", "OnlineFrame", "FeatureView", "FeatureColors", "TargetFrame",
+           "file_descriptor_set", "file_descriptor_proto"]

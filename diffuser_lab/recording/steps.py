@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional, Sequence
+from typing import Any, Optional, Sequence
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -61,13 +61,16 @@ class StepTracker:
         gt: (N,) int16 ground truth of the original points, or None.
         to_work: (N,) int index of each original point's work point, or None when the work
             cloud is the original cloud.
+        misses: (C,) annotated points of each class on no work point (a single-frame target's
+            pixels without depth): they count as unlabeled, or None.
     """
 
     def __init__(self, n_work: int, class_names: Sequence[str], gt: Optional[np.ndarray] = None,
-                 to_work: Optional[np.ndarray] = None):
+                 to_work: Optional[np.ndarray] = None, misses: Optional[np.ndarray] = None):
         self.names = list(class_names)
         self.gt = None if gt is None else np.asarray(gt)
         self.to_work = to_work
+        self.misses = misses
         self.prev_labels = np.full(n_work, IGNORE, np.int16)
         self.prev_iteration = 0
 
@@ -77,7 +80,11 @@ class StepTracker:
         s = step_stats(Z, self.prev_labels, self.gt, self.to_work, labels)
         miou = acc = None
         if s.counts is not None:
-            sc = scores_from_confusion(s.counts, self.names)
+            counts = s.counts
+            if self.misses is not None:
+                counts = counts.copy()
+                counts[:, -1] += np.asarray(self.misses, np.int64)[:counts.shape[0]]
+            sc = scores_from_confusion(counts, self.names)
             miou, acc = sc["miou"], sc["accuracy"]
         st = Step(iteration=int(iteration), Z=Z, labels=s.labels, confidence=s.confidence, residual=float(residual),
                   n_changed=s.n_changed, previous=self.prev_iteration, miou=miou, accuracy=acc,
@@ -88,18 +95,18 @@ class StepTracker:
         return st
 
 
-def scalar_metrics(Z: np.ndarray, prev: np.ndarray, gt: Optional[np.ndarray], to_work: Optional[np.ndarray],
-                   names: Sequence[str]) -> tuple[dict, np.ndarray]:
-    """run.rrd's scalars of one iteration, on the run's side: Z (M, C) float32, ``prev`` (M,) the
-    labels of the iteration before, ``gt`` (N,) or None, ``to_work`` (N,) or None (as
-    :class:`StepTracker`). Returns ({changed, confidence, miou, accuracy}, the (M,) labels);
-    miou and accuracy percent (None without ground truth), changed: labels changed since ``prev``."""
-    s = step_stats(Z, prev, gt, to_work)
-    miou = acc = None
-    if s.counts is not None:
-        sc = scores_from_confusion(s.counts, list(names))
-        miou, acc = sc["miou"], sc["accuracy"]
-    return {"changed": int(s.n_changed), "confidence": float(s.mean_confidence), "miou": miou, "accuracy": acc}, s.labels
+def metrics_rows(table: Any) -> np.ndarray:
+    """run.rrd's scalars of consecutive iterations from the backend's statistics (a
+    :class:`~diffuser_lab.backends.stats.StepTable`): (k, 6) float64 rows of iteration, relative
+    residual, labels changed since the iteration before, mean confidence over labelled work
+    points, mIoU and accuracy in percent on the original points (NaN without ground truth), what
+    :class:`StepTracker` gives for a recorded iteration."""
+    miou, acc = table.scores()
+    k = len(table)
+    nan = np.full(k, np.nan)
+    return np.stack([np.asarray(table.iterations, np.float64), np.asarray(table.residual, np.float64),
+                     np.asarray(table.changed, np.float64), table.mean_confidence(),
+                     nan if miou is None else miou, nan if acc is None else acc], 1)
 
 
-__all__ = ["Step", "StepTracker", "original_to_work", "scalar_metrics"]
+__all__ = ["Step", "StepTracker", "original_to_work", "metrics_rows"]

@@ -30,7 +30,7 @@ from diffuser_lab.method.diffusion import labels_from_scores
 from diffuser_lab.method.metrics import confusion_matrix, score, scores_from_confusion
 from diffuser_lab.method.online import FrameStats, OnlineDiffuser
 
-from .pipeline import _to_original, _work_cloud, load_scene, run
+from .pipeline import _Observe, _to_original, _work_cloud, load_scene, run
 from .resolve import resolve
 
 
@@ -206,7 +206,7 @@ def online(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHoo
         t["frames"] += loop.read_s
         tq = time.perf_counter()
         if kept and cfg.online.finish:
-            finished = od.finish(cfg.online.finish)
+            finished = od.finish(cfg.online.finish, observer=_Observe(hooks, None))  # hooks see its steps
         t["finish"] = time.perf_counter() - tq
     finally:
         od.close()

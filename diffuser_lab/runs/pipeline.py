@@ -218,6 +218,13 @@ class _Observe:
     def wants(self, it: int) -> bool:
         return self.fn is not None or self.hooks.wants(it)
 
+    def statistics(self):
+        """The hooks' request of every step's statistics (a features run: none, its columns are no classes)."""
+        return None if self.lift is not None else self.hooks.statistics()
+
+    def on_statistics(self, table) -> None:
+        self.hooks.on_statistics(table)
+
     def __call__(self, it: int, Z: np.ndarray, stats: dict) -> None:
         if self.lift is not None:
             F = features_mod.decode(Z)

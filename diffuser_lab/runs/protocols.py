@@ -73,11 +73,13 @@ def _finish_global(result, cfg: Config, run_dir: Path, summary: report.SummaryFi
 
 
 def _run_single_frame(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHooks] = None):
-    return single_frame.single_frame(cfg, scene)
+    return single_frame.single_frame(cfg, scene, hooks=hooks)
 
 
 def _finish_single_frame(result, cfg: Config, run_dir: Path, summary: report.SummaryFile, records: dict) -> dict:
-    return summary.single_frame(result)
+    summary.single_frame(result)
+    summary.update(records=records)
+    return summary.data
 
 
 def _finish_online(result, cfg: Config, run_dir: Path, summary: report.SummaryFile, records: dict) -> dict:
@@ -118,8 +120,7 @@ PROTOCOLS: Registry = Registry("protocol.name", "protocol", [
     Protocol("global_3d", "label the scene's points, score 3D mIoU (paper Table I)", run, _finish_global,
              lambda result, run_dir: report.table(result, run_dir)),
     Protocol("single_frame", "label each frame's back-projected depth, score 2D mIoU (Table II)", _run_single_frame,
-             _finish_single_frame, lambda result, run_dir: single_frame.table(result) + f"\nrun folder: {run_dir}",
-             records=False),
+             _finish_single_frame, lambda result, run_dir: single_frame.table(result) + f"\nrun folder: {run_dir}"),
     Protocol("online", "frames one at a time in sequence order; the map labels itself as they come (online.*)",
              online_mod.online, _finish_online,
              lambda result, run_dir: online_mod.table(result) + f"\nrun folder: {run_dir}"),

@@ -27,6 +27,7 @@ from diffuser_lab.data.geometry import backproject, normals_from_depth, voxel_do
 from diffuser_lab.data.predictions import with_predictions
 from diffuser_lab.data.scene import IGNORE, Frame, Scene
 from diffuser_lab.data.taxonomy import resolve_taxonomy
+from diffuser_lab.hooks import RunHooks
 from diffuser_lab.method import calibration, fusion
 from diffuser_lab.method import evidence as evidence_mod
 from diffuser_lab.method import features as features_mod
@@ -34,7 +35,7 @@ from diffuser_lab.method.diffusion import normalise
 from diffuser_lab.method.graph import graph_stage, make_graph
 from diffuser_lab.method.metrics import confusion_matrix, scores_from_confusion
 
-from .pipeline import FeatureLift, feature_lift, load_scene
+from .pipeline import FeatureLift, _Observe, feature_lift, load_scene
 from .resolve import resolve, with_method
 
 
@@ -58,6 +59,49 @@ class Row:
                 "mean_frame_miou": float(np.nanmean(pf)) if pf.size else None,
                 "per_class_iou": s.get("per_class_iou"),
                 **({"calibration": self.cal.result()} if self.cal is not None else {})}
+
+
+@dataclass
+class Target:
+    """A target frame as hooks see it before its diffusion (``on_target``; arrays read-only, the
+    frames valid during the call only).
+
+    Attributes:
+        index: the target frame's index; count: 1-based count of targets labelled so far.
+        frame: the target frame (predictions and ground truth attached).
+        window: the indices of the frames it is labelled from (its own among them), ``frames`` those frames.
+        work_points: (M, 3) float32 its back-projected depth (voxel centroids with scene.voxel_size), world m.
+        pixels: (H, W) int64 each pixel's work point (-1: no depth; with protocol.fill_missing_depth
+            the nearest pixel's), the 3D labels' way back into the image.
+        work_gt: (M,) int16 the most frequent ground truth of each work point's pixels (-1: none).
+        observed: the Table II row (method, views) whose diffusion the hooks observe (the Diffuser
+            with the window's views).
+    """
+
+    index: int
+    count: int
+    frame: Frame
+    window: list
+    frames: list
+    work_points: np.ndarray
+    pixels: np.ndarray
+    work_gt: np.ndarray
+    observed: tuple
+
+
+def pixel_majority(pixels: np.ndarray, gt: np.ndarray, m: int, num_classes: int) -> np.ndarray:
+    """(m,) int16: per work point the most frequent ground-truth class among the pixels
+    ``pixels`` (H, W) maps to it (the smallest of equally frequent ones; -1 where none is annotated)."""
+    at, g = np.asarray(pixels).ravel(), np.asarray(gt).ravel().astype(np.int64)
+    ok = (at >= 0) & (g >= 0) & (g < num_classes)
+    key, cnt = np.unique(at[ok] * num_classes + g[ok], return_counts=True)
+    row, cls = key // num_classes, key % num_classes
+    out = np.full(m, IGNORE, np.int16)
+    order = np.lexsort((cls, -cnt, row))  # per row: the largest count first, then the smallest class
+    first = np.ones(len(order), bool)
+    first[1:] = row[order][1:] != row[order][:-1]
+    out[row[order][first]] = cls[order][first]
+    return out
 
 
 @dataclass
@@ -86,14 +130,20 @@ def image_normals(f: Frame, pix: np.ndarray, to_work: np.ndarray, m: int, window
     return out.astype(np.float32)
 
 
-def single_frame(cfg: Config, scene: Optional[Scene] = None, on_frame=None) -> SingleFrameResult:
+def single_frame(cfg: Config, scene: Optional[Scene] = None, on_frame=None,
+                 hooks: Optional[RunHooks] = None) -> SingleFrameResult:
     """The single RGB-D frame protocol (paper Table II). ``on_frame(frame, images)``, if given, sees
-    each target frame and its rows' label images ({(method, views): (H, W) int16}) as scored; it
-    does not change the result. ``cfg`` is resolved first (:func:`~diffuser_lab.runs.resolve.resolve`)."""
+    each target frame and its rows' label images ({(method, views): (H, W) int16}) as scored;
+    ``hooks`` (:mod:`diffuser_lab.hooks`) see the scene, each target (``on_target``), the
+    Diffuser's diffusion with the window's views on it (statistics, ``wants`` / ``observe``), its
+    rows (``on_target_done``) and the result. Neither changes the result. ``cfg`` is resolved
+    first (:func:`~diffuser_lab.runs.resolve.resolve`)."""
     cfg = resolve(cfg)
+    hooks = hooks or RunHooks()
     t0 = time.perf_counter()
     if scene is None:
         scene = load_scene(cfg.scene, resolve_taxonomy(cfg), cfg.depth)
+    hooks.on_scene(scene)
     tax, names = scene.taxonomy, scene.taxonomy.names
     frames = with_predictions(scene.frames, cfg.predictions, tax, scene_name=scene.name)
     n = len(frames)
@@ -102,6 +152,9 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None, on_frame=None) -> S
     W = cfg.protocol.window
     targets = list(range(0, n, cfg.protocol.target_step))[: cfg.protocol.max_targets]
     order = [(m.name, v) for m in fusion.METHODS.values() for v in m.single_frame_rows(W)]
+    observed = ("diffuser", max(v for name, v in order if name == "diffuser")) if any(
+        name == "diffuser" for name, _ in order) else None  # the diffusion the hooks see, per target
+    count = 0
     settings = {}  # each method: (entry, the run's config with what it fixes applied, evidence pixel window)
     for m in fusion.METHODS.values():
         mc = with_method(cfg, m.name)
@@ -145,7 +198,20 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None, on_frame=None) -> S
             pred = f.labels if f.labels is not None else np.argmax(f.probs, axis=2)
             pred2d.add(pred, f.gt_labels, names)
         win_frames = loop.window_frames(i)
+        at = np.full(f.shape, -1, np.int64)  # each pixel's work point (-1: no depth, uniform)
+        at[pix[:, 0], pix[:, 1]] = to_work
+        if fill:  # protocol.fill_missing_depth: a pixel without depth reads its nearest pixel with depth
+            near = distance_transform_edt(at < 0, return_distances=False, return_indices=True)
+            at = at[near[0], near[1]]
         t["frames"] += time.perf_counter() - ta
+        count += 1
+        watch = seen = None  # the observed row's observer (the hooks) and its result
+        if lift is None and observed is not None:
+            hooks.on_target(Target(index=i, count=count, frame=f, window=loop.window_of(i), frames=win_frames,
+                                   work_points=work, pixels=at,
+                                   work_gt=pixel_majority(at, f.gt_labels, work.shape[0], tax.num_classes),
+                                   observed=observed))
+            watch = _Observe(hooks, None)
 
         # each method's settings (what it fixes applied to the run's config), its evidence and
         # graph built once per target frame and shared between the rows that use them
@@ -177,7 +243,10 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None, on_frame=None) -> S
                 system = normalise(graphs[gkey], ev.mass, lam)
             td = time.perf_counter()
             if lift is None:
-                work_labels[key], diff = m.label(ev.mass, system=system, solver=solver)
+                work_labels[key], diff = m.label(ev.mass, system=system, solver=solver,
+                                                 observer=watch if key == observed else None)
+                if key == observed:
+                    seen = diff
                 work_scores[key] = diff.Z if diff is not None else ev.mass
             else:  # a features run, as the global protocol's (method/features.py; the rows share ev: a copy)
                 F = (features_mod.diffuse_features(graphs[gkey], ev.mass.copy(), ev.links, lam,
@@ -194,11 +263,6 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None, on_frame=None) -> S
             work_scores[("best_view", W)] = lift.scores(best.features)
             t["evidence"] += time.perf_counter() - te
 
-        at = np.full(f.shape, -1, np.int64)  # each pixel's work point (-1: no depth, uniform)
-        at[pix[:, 0], pix[:, 1]] = to_work
-        if fill:  # protocol.fill_missing_depth: a pixel without depth reads its nearest pixel with depth
-            near = distance_transform_edt(at < 0, return_distances=False, return_indices=True)
-            at = at[near[0], near[1]]
         images = {}
         for key, lab in work_labels.items():  # 3D labels back into the target frame
             img = np.where(at >= 0, lab[np.maximum(at, 0)], IGNORE).astype(np.int16)
@@ -207,6 +271,9 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None, on_frame=None) -> S
             images[key] = img
         if on_frame is not None:
             on_frame(f, images)
+        if watch is not None:  # Table II as it accumulates: every row's pooled figures so far, this frame's
+            hooks.on_target_done(i, images, [{**rows[k].result(names), "frame_miou": rows[k].per_frame_miou[-1]}
+                                             for k in order if k in images], seen)
     t["frames"] += loop.read_s
 
     t["total"] = time.perf_counter() - t0
@@ -214,9 +281,11 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None, on_frame=None) -> S
     for r in results:
         r["calibration"]["temperature"] = float(temperature)
     p2 = pred2d.result(names) if pred2d.conf is not None else None
-    return SingleFrameResult(scene=scene, window=W, targets=targets, rows=results, predictions_2d=p2,
-                             mean_points=float(np.mean(n_points)) if n_points else 0.0, timings_s=t,
-                             filled=bool(fill))
+    res = SingleFrameResult(scene=scene, window=W, targets=targets, rows=results, predictions_2d=p2,
+                            mean_points=float(np.mean(n_points)) if n_points else 0.0, timings_s=t,
+                            filled=bool(fill))
+    hooks.on_result(res)
+    return res
 
 
 def table(res: SingleFrameResult) -> str:

@@ -48,6 +48,19 @@ class Capture(RunHooks):
     def on_result(self, result):
         self.inner.on_result(result)
 
+    # the finishing pass (online.finish), a diffusion the hooks observe
+    def statistics(self):
+        return self.inner.statistics()
+
+    def on_statistics(self, table):
+        self.inner.on_statistics(table)
+
+    def wants(self, it):
+        return self.inner.wants(it)
+
+    def observe(self, it, Z, stats):
+        self.inner.observe(it, Z, stats)
+
     def on_online_frame(self, frame, update):
         self.labels[update.index] = np.array(update.labels)
         self.index.append(update.index)
@@ -372,6 +385,21 @@ def test_the_finishing_pass_is_recorded_as_the_runs_end(tmp_path):
     assert last == cap.index[-1] and log.z_dtype[last] == "float32"
     assert not np.array_equal(log.z[last], cap.Z)  # not the last frame's state: the finished one
     np.testing.assert_array_equal(labels_from_scores(log.z[last]), res.labels)
+    # run.rrd (issue 50 item 4): the pass's steps on the frame timeline after the last frame, its
+    # scalars at every step, the map's labels on its 1-2-5 steps and, at its last step, labels.npy's
+    rrd, steps = tmp_path / "run.rrd", fin["steps"]
+    after = [last + s for s in range(1, steps + 1)]
+    res_log = rrd_rows(rrd, "/metrics/finish_residual_log10", "Scalars:scalars")
+    assert sorted(res_log) == after
+    assert res_log[after[-1]][0] == pytest.approx(np.log10(fin["residual"]), rel=1e-6)
+    miou = rrd_rows(rrd, "/metrics/diffuser_miou", "Scalars:scalars")
+    assert sorted(miou)[-steps:] == after and miou[after[-1]][0] == pytest.approx(res.metrics["miou"], abs=1e-9)
+    changed = rrd_rows(rrd, "/metrics/changed", "Scalars:scalars")
+    assert sum(changed[t][0] for t in after) >= fin["changed"]  # per step; some may change back
+    ids = rrd_rows(rrd, "/world/online/labels/0000", "Points3D:class_ids")
+    assert [t for t in sorted(ids) if t > last] == [last + s for s in (1, 2, 5, 10, 20, 50, 100, 200, 500, 1000,
+                                                                     2000) if s < steps] + [after[-1]]
+    np.testing.assert_array_equal(ids[after[-1]], class_ids(res.labels))
 
 
 @pytest.mark.slow

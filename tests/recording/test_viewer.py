@@ -413,7 +413,7 @@ def test_viewer_screenshots_kinds_compose_and_a_bad_kind_is_one_line(capsys):
     shots = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(shots)
     assert {k: str(compose(*v).protocol.name) for k, v in shots.KINDS.items()} == {
-        "batch": "global_3d", "online": "online", "tiled": "tiled", "tiled-city": "tiled"}
+        "batch": "global_3d", "online": "online", "tiled": "tiled", "tiled-city": "tiled", "single-frame": "single_frame"}
     with pytest.raises(SystemExit) as e:
         shots.main(["/tmp/unused", "--kinds", "batch,nope"])
     assert e.value.code == 2 and "unknown nope" in capsys.readouterr().err

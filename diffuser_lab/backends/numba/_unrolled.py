@@ -99,9 +99,86 @@ def rows_8(nbr, wts, Zf, Znf, Bf, floor, lo, hi):
 
 
 @njit(cache=True, boundscheck=False, nogil=True)
-def steps_8(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, ctrl, res):
+def stats_8(Zs, ids, labels, tptr, tcls, tcnt, lo, hi, out):
+    nb = Zs.shape[0]
+    pred = np.uint64(3 + (out.shape[0] - 3) // 2)
+    changed = 0
+    nlab = 0
+    csum = 0.0
+    for i in range(lo, hi):
+        best = np.float32(0.0)
+        tot = np.float32(0.0)
+        arg = -1
+        ib = np.uint64(i) * np.uint64(8)
+        for blk in range(nb):
+            Zf = Zs[blk]
+            v0 = Zf[ib + np.uint64(0)]
+            v1 = Zf[ib + np.uint64(1)]
+            v2 = Zf[ib + np.uint64(2)]
+            v3 = Zf[ib + np.uint64(3)]
+            v4 = Zf[ib + np.uint64(4)]
+            v5 = Zf[ib + np.uint64(5)]
+            v6 = Zf[ib + np.uint64(6)]
+            v7 = Zf[ib + np.uint64(7)]
+            m0_0 = max(v0, v4)
+            m0_1 = max(v1, v5)
+            m0_2 = max(v2, v6)
+            m0_3 = max(v3, v7)
+            m1_0 = max(m0_0, m0_2)
+            m1_1 = max(m0_1, m0_3)
+            m2_0 = max(m1_0, m1_1)
+            s0_0 = v0 + v4
+            s0_1 = v1 + v5
+            s0_2 = v2 + v6
+            s0_3 = v3 + v7
+            s1_0 = s0_0 + s0_2
+            s1_1 = s0_1 + s0_3
+            s2_0 = s1_0 + s1_1
+            j0 = np.int32(0) if v0 == m2_0 else np.int32(8)
+            j1 = np.int32(1) if v1 == m2_0 else np.int32(8)
+            j2 = np.int32(2) if v2 == m2_0 else np.int32(8)
+            j3 = np.int32(3) if v3 == m2_0 else np.int32(8)
+            j4 = np.int32(4) if v4 == m2_0 else np.int32(8)
+            j5 = np.int32(5) if v5 == m2_0 else np.int32(8)
+            j6 = np.int32(6) if v6 == m2_0 else np.int32(8)
+            j7 = np.int32(7) if v7 == m2_0 else np.int32(8)
+            q0_0 = min(j0, j4)
+            q0_1 = min(j1, j5)
+            q0_2 = min(j2, j6)
+            q0_3 = min(j3, j7)
+            q1_0 = min(q0_0, q0_2)
+            q1_1 = min(q0_1, q0_3)
+            q2_0 = min(q1_0, q1_1)
+            tot += s2_0
+            if m2_0 > best:
+                best = m2_0
+                arg = ids[np.uint64(blk * 8) + np.uint64(q2_0)]
+        lab = np.int16(arg)
+        iu = np.uint64(i)
+        if labels[iu] != lab:
+            labels[iu] = lab
+            changed += 1
+        if arg >= 0:
+            nlab += 1
+            csum += np.float64(best / tot)
+            au = np.uint64(arg)
+            for e in range(tptr[iu], tptr[iu + np.uint64(1)]):
+                eu = np.uint64(e)
+                w = tcnt[eu]
+                out[pred + au] += w
+                if tcls[eu] == arg:
+                    out[np.uint64(3) + au] += w
+    out[0] += changed
+    out[1] += nlab
+    out[2] += csum
+
+
+@njit(cache=True, boundscheck=False, nogil=True)
+def steps_8(nbr, wts, Za, Zb, Bf, floor, tol, ids, labels, tptr, tcls, tcnt, st, n_steps, chunk, tid, nthreads,
+             ctrl, res):
     n = nbr.shape[0]
     nchunks = (n + chunk - 1) // chunk
+    track = st.shape[2] > 0
     for s in range(n_steps):
         src = Za if s % 2 == 0 else Zb
         dst = Zb if s % 2 == 0 else Za
@@ -117,6 +194,8 @@ def steps_8(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, ctr
                 a, b = rows_8(nbr, wts, src[blk], dst[blk], Bf[blk], floor, lo, hi)
                 ch = max(ch, a)
                 tp = max(tp, b)
+            if track:  # the statistics of the rows just written, while they are in cache
+                stats_8(dst, ids, labels, tptr, tcls, tcnt, lo, hi, st[s, tid])
         res[s, tid, 0] = ch
         res[s, tid, 1] = tp
         atomic_add(ctrl, 0, 1)
@@ -301,9 +380,126 @@ def rows_16(nbr, wts, Zf, Znf, Bf, floor, lo, hi):
 
 
 @njit(cache=True, boundscheck=False, nogil=True)
-def steps_16(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, ctrl, res):
+def stats_16(Zs, ids, labels, tptr, tcls, tcnt, lo, hi, out):
+    nb = Zs.shape[0]
+    pred = np.uint64(3 + (out.shape[0] - 3) // 2)
+    changed = 0
+    nlab = 0
+    csum = 0.0
+    for i in range(lo, hi):
+        best = np.float32(0.0)
+        tot = np.float32(0.0)
+        arg = -1
+        ib = np.uint64(i) * np.uint64(16)
+        for blk in range(nb):
+            Zf = Zs[blk]
+            v0 = Zf[ib + np.uint64(0)]
+            v1 = Zf[ib + np.uint64(1)]
+            v2 = Zf[ib + np.uint64(2)]
+            v3 = Zf[ib + np.uint64(3)]
+            v4 = Zf[ib + np.uint64(4)]
+            v5 = Zf[ib + np.uint64(5)]
+            v6 = Zf[ib + np.uint64(6)]
+            v7 = Zf[ib + np.uint64(7)]
+            v8 = Zf[ib + np.uint64(8)]
+            v9 = Zf[ib + np.uint64(9)]
+            v10 = Zf[ib + np.uint64(10)]
+            v11 = Zf[ib + np.uint64(11)]
+            v12 = Zf[ib + np.uint64(12)]
+            v13 = Zf[ib + np.uint64(13)]
+            v14 = Zf[ib + np.uint64(14)]
+            v15 = Zf[ib + np.uint64(15)]
+            m0_0 = max(v0, v8)
+            m0_1 = max(v1, v9)
+            m0_2 = max(v2, v10)
+            m0_3 = max(v3, v11)
+            m0_4 = max(v4, v12)
+            m0_5 = max(v5, v13)
+            m0_6 = max(v6, v14)
+            m0_7 = max(v7, v15)
+            m1_0 = max(m0_0, m0_4)
+            m1_1 = max(m0_1, m0_5)
+            m1_2 = max(m0_2, m0_6)
+            m1_3 = max(m0_3, m0_7)
+            m2_0 = max(m1_0, m1_2)
+            m2_1 = max(m1_1, m1_3)
+            m3_0 = max(m2_0, m2_1)
+            s0_0 = v0 + v8
+            s0_1 = v1 + v9
+            s0_2 = v2 + v10
+            s0_3 = v3 + v11
+            s0_4 = v4 + v12
+            s0_5 = v5 + v13
+            s0_6 = v6 + v14
+            s0_7 = v7 + v15
+            s1_0 = s0_0 + s0_4
+            s1_1 = s0_1 + s0_5
+            s1_2 = s0_2 + s0_6
+            s1_3 = s0_3 + s0_7
+            s2_0 = s1_0 + s1_2
+            s2_1 = s1_1 + s1_3
+            s3_0 = s2_0 + s2_1
+            j0 = np.int32(0) if v0 == m3_0 else np.int32(16)
+            j1 = np.int32(1) if v1 == m3_0 else np.int32(16)
+            j2 = np.int32(2) if v2 == m3_0 else np.int32(16)
+            j3 = np.int32(3) if v3 == m3_0 else np.int32(16)
+            j4 = np.int32(4) if v4 == m3_0 else np.int32(16)
+            j5 = np.int32(5) if v5 == m3_0 else np.int32(16)
+            j6 = np.int32(6) if v6 == m3_0 else np.int32(16)
+            j7 = np.int32(7) if v7 == m3_0 else np.int32(16)
+            j8 = np.int32(8) if v8 == m3_0 else np.int32(16)
+            j9 = np.int32(9) if v9 == m3_0 else np.int32(16)
+            j10 = np.int32(10) if v10 == m3_0 else np.int32(16)
+            j11 = np.int32(11) if v11 == m3_0 else np.int32(16)
+            j12 = np.int32(12) if v12 == m3_0 else np.int32(16)
+            j13 = np.int32(13) if v13 == m3_0 else np.int32(16)
+            j14 = np.int32(14) if v14 == m3_0 else np.int32(16)
+            j15 = np.int32(15) if v15 == m3_0 else np.int32(16)
+            q0_0 = min(j0, j8)
+            q0_1 = min(j1, j9)
+            q0_2 = min(j2, j10)
+            q0_3 = min(j3, j11)
+            q0_4 = min(j4, j12)
+            q0_5 = min(j5, j13)
+            q0_6 = min(j6, j14)
+            q0_7 = min(j7, j15)
+            q1_0 = min(q0_0, q0_4)
+            q1_1 = min(q0_1, q0_5)
+            q1_2 = min(q0_2, q0_6)
+            q1_3 = min(q0_3, q0_7)
+            q2_0 = min(q1_0, q1_2)
+            q2_1 = min(q1_1, q1_3)
+            q3_0 = min(q2_0, q2_1)
+            tot += s3_0
+            if m3_0 > best:
+                best = m3_0
+                arg = ids[np.uint64(blk * 16) + np.uint64(q3_0)]
+        lab = np.int16(arg)
+        iu = np.uint64(i)
+        if labels[iu] != lab:
+            labels[iu] = lab
+            changed += 1
+        if arg >= 0:
+            nlab += 1
+            csum += np.float64(best / tot)
+            au = np.uint64(arg)
+            for e in range(tptr[iu], tptr[iu + np.uint64(1)]):
+                eu = np.uint64(e)
+                w = tcnt[eu]
+                out[pred + au] += w
+                if tcls[eu] == arg:
+                    out[np.uint64(3) + au] += w
+    out[0] += changed
+    out[1] += nlab
+    out[2] += csum
+
+
+@njit(cache=True, boundscheck=False, nogil=True)
+def steps_16(nbr, wts, Za, Zb, Bf, floor, tol, ids, labels, tptr, tcls, tcnt, st, n_steps, chunk, tid, nthreads,
+             ctrl, res):
     n = nbr.shape[0]
     nchunks = (n + chunk - 1) // chunk
+    track = st.shape[2] > 0
     for s in range(n_steps):
         src = Za if s % 2 == 0 else Zb
         dst = Zb if s % 2 == 0 else Za
@@ -319,6 +515,8 @@ def steps_16(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, ct
                 a, b = rows_16(nbr, wts, src[blk], dst[blk], Bf[blk], floor, lo, hi)
                 ch = max(ch, a)
                 tp = max(tp, b)
+            if track:  # the statistics of the rows just written, while they are in cache
+                stats_16(dst, ids, labels, tptr, tcls, tcnt, lo, hi, st[s, tid])
         res[s, tid, 0] = ch
         res[s, tid, 1] = tp
         atomic_add(ctrl, 0, 1)
@@ -583,9 +781,166 @@ def rows_24(nbr, wts, Zf, Znf, Bf, floor, lo, hi):
 
 
 @njit(cache=True, boundscheck=False, nogil=True)
-def steps_24(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, ctrl, res):
+def stats_24(Zs, ids, labels, tptr, tcls, tcnt, lo, hi, out):
+    nb = Zs.shape[0]
+    pred = np.uint64(3 + (out.shape[0] - 3) // 2)
+    changed = 0
+    nlab = 0
+    csum = 0.0
+    for i in range(lo, hi):
+        best = np.float32(0.0)
+        tot = np.float32(0.0)
+        arg = -1
+        ib = np.uint64(i) * np.uint64(24)
+        for blk in range(nb):
+            Zf = Zs[blk]
+            v0 = Zf[ib + np.uint64(0)]
+            v1 = Zf[ib + np.uint64(1)]
+            v2 = Zf[ib + np.uint64(2)]
+            v3 = Zf[ib + np.uint64(3)]
+            v4 = Zf[ib + np.uint64(4)]
+            v5 = Zf[ib + np.uint64(5)]
+            v6 = Zf[ib + np.uint64(6)]
+            v7 = Zf[ib + np.uint64(7)]
+            v8 = Zf[ib + np.uint64(8)]
+            v9 = Zf[ib + np.uint64(9)]
+            v10 = Zf[ib + np.uint64(10)]
+            v11 = Zf[ib + np.uint64(11)]
+            v12 = Zf[ib + np.uint64(12)]
+            v13 = Zf[ib + np.uint64(13)]
+            v14 = Zf[ib + np.uint64(14)]
+            v15 = Zf[ib + np.uint64(15)]
+            v16 = Zf[ib + np.uint64(16)]
+            v17 = Zf[ib + np.uint64(17)]
+            v18 = Zf[ib + np.uint64(18)]
+            v19 = Zf[ib + np.uint64(19)]
+            v20 = Zf[ib + np.uint64(20)]
+            v21 = Zf[ib + np.uint64(21)]
+            v22 = Zf[ib + np.uint64(22)]
+            v23 = Zf[ib + np.uint64(23)]
+            m0_0 = max(v0, v16)
+            m0_1 = max(v1, v17)
+            m0_2 = max(v2, v18)
+            m0_3 = max(v3, v19)
+            m0_4 = max(v4, v20)
+            m0_5 = max(v5, v21)
+            m0_6 = max(v6, v22)
+            m0_7 = max(v7, v23)
+            m1_0 = max(m0_0, v8)
+            m1_1 = max(m0_1, v9)
+            m1_2 = max(m0_2, v10)
+            m1_3 = max(m0_3, v11)
+            m1_4 = max(m0_4, v12)
+            m1_5 = max(m0_5, v13)
+            m1_6 = max(m0_6, v14)
+            m1_7 = max(m0_7, v15)
+            m2_0 = max(m1_0, m1_4)
+            m2_1 = max(m1_1, m1_5)
+            m2_2 = max(m1_2, m1_6)
+            m2_3 = max(m1_3, m1_7)
+            m3_0 = max(m2_0, m2_2)
+            m3_1 = max(m2_1, m2_3)
+            m4_0 = max(m3_0, m3_1)
+            s0_0 = v0 + v16
+            s0_1 = v1 + v17
+            s0_2 = v2 + v18
+            s0_3 = v3 + v19
+            s0_4 = v4 + v20
+            s0_5 = v5 + v21
+            s0_6 = v6 + v22
+            s0_7 = v7 + v23
+            s1_0 = s0_0 + v8
+            s1_1 = s0_1 + v9
+            s1_2 = s0_2 + v10
+            s1_3 = s0_3 + v11
+            s1_4 = s0_4 + v12
+            s1_5 = s0_5 + v13
+            s1_6 = s0_6 + v14
+            s1_7 = s0_7 + v15
+            s2_0 = s1_0 + s1_4
+            s2_1 = s1_1 + s1_5
+            s2_2 = s1_2 + s1_6
+            s2_3 = s1_3 + s1_7
+            s3_0 = s2_0 + s2_2
+            s3_1 = s2_1 + s2_3
+            s4_0 = s3_0 + s3_1
+            j0 = np.int32(0) if v0 == m4_0 else np.int32(24)
+            j1 = np.int32(1) if v1 == m4_0 else np.int32(24)
+            j2 = np.int32(2) if v2 == m4_0 else np.int32(24)
+            j3 = np.int32(3) if v3 == m4_0 else np.int32(24)
+            j4 = np.int32(4) if v4 == m4_0 else np.int32(24)
+            j5 = np.int32(5) if v5 == m4_0 else np.int32(24)
+            j6 = np.int32(6) if v6 == m4_0 else np.int32(24)
+            j7 = np.int32(7) if v7 == m4_0 else np.int32(24)
+            j8 = np.int32(8) if v8 == m4_0 else np.int32(24)
+            j9 = np.int32(9) if v9 == m4_0 else np.int32(24)
+            j10 = np.int32(10) if v10 == m4_0 else np.int32(24)
+            j11 = np.int32(11) if v11 == m4_0 else np.int32(24)
+            j12 = np.int32(12) if v12 == m4_0 else np.int32(24)
+            j13 = np.int32(13) if v13 == m4_0 else np.int32(24)
+            j14 = np.int32(14) if v14 == m4_0 else np.int32(24)
+            j15 = np.int32(15) if v15 == m4_0 else np.int32(24)
+            j16 = np.int32(16) if v16 == m4_0 else np.int32(24)
+            j17 = np.int32(17) if v17 == m4_0 else np.int32(24)
+            j18 = np.int32(18) if v18 == m4_0 else np.int32(24)
+            j19 = np.int32(19) if v19 == m4_0 else np.int32(24)
+            j20 = np.int32(20) if v20 == m4_0 else np.int32(24)
+            j21 = np.int32(21) if v21 == m4_0 else np.int32(24)
+            j22 = np.int32(22) if v22 == m4_0 else np.int32(24)
+            j23 = np.int32(23) if v23 == m4_0 else np.int32(24)
+            q0_0 = min(j0, j16)
+            q0_1 = min(j1, j17)
+            q0_2 = min(j2, j18)
+            q0_3 = min(j3, j19)
+            q0_4 = min(j4, j20)
+            q0_5 = min(j5, j21)
+            q0_6 = min(j6, j22)
+            q0_7 = min(j7, j23)
+            q1_0 = min(q0_0, j8)
+            q1_1 = min(q0_1, j9)
+            q1_2 = min(q0_2, j10)
+            q1_3 = min(q0_3, j11)
+            q1_4 = min(q0_4, j12)
+            q1_5 = min(q0_5, j13)
+            q1_6 = min(q0_6, j14)
+            q1_7 = min(q0_7, j15)
+            q2_0 = min(q1_0, q1_4)
+            q2_1 = min(q1_1, q1_5)
+            q2_2 = min(q1_2, q1_6)
+            q2_3 = min(q1_3, q1_7)
+            q3_0 = min(q2_0, q2_2)
+            q3_1 = min(q2_1, q2_3)
+            q4_0 = min(q3_0, q3_1)
+            tot += s4_0
+            if m4_0 > best:
+                best = m4_0
+                arg = ids[np.uint64(blk * 24) + np.uint64(q4_0)]
+        lab = np.int16(arg)
+        iu = np.uint64(i)
+        if labels[iu] != lab:
+            labels[iu] = lab
+            changed += 1
+        if arg >= 0:
+            nlab += 1
+            csum += np.float64(best / tot)
+            au = np.uint64(arg)
+            for e in range(tptr[iu], tptr[iu + np.uint64(1)]):
+                eu = np.uint64(e)
+                w = tcnt[eu]
+                out[pred + au] += w
+                if tcls[eu] == arg:
+                    out[np.uint64(3) + au] += w
+    out[0] += changed
+    out[1] += nlab
+    out[2] += csum
+
+
+@njit(cache=True, boundscheck=False, nogil=True)
+def steps_24(nbr, wts, Za, Zb, Bf, floor, tol, ids, labels, tptr, tcls, tcnt, st, n_steps, chunk, tid, nthreads,
+             ctrl, res):
     n = nbr.shape[0]
     nchunks = (n + chunk - 1) // chunk
+    track = st.shape[2] > 0
     for s in range(n_steps):
         src = Za if s % 2 == 0 else Zb
         dst = Zb if s % 2 == 0 else Za
@@ -601,6 +956,8 @@ def steps_24(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, ct
                 a, b = rows_24(nbr, wts, src[blk], dst[blk], Bf[blk], floor, lo, hi)
                 ch = max(ch, a)
                 tp = max(tp, b)
+            if track:  # the statistics of the rows just written, while they are in cache
+                stats_24(dst, ids, labels, tptr, tcls, tcnt, lo, hi, st[s, tid])
         res[s, tid, 0] = ch
         res[s, tid, 1] = tp
         atomic_add(ctrl, 0, 1)
@@ -945,9 +1302,206 @@ def rows_32(nbr, wts, Zf, Znf, Bf, floor, lo, hi):
 
 
 @njit(cache=True, boundscheck=False, nogil=True)
-def steps_32(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, ctrl, res):
+def stats_32(Zs, ids, labels, tptr, tcls, tcnt, lo, hi, out):
+    nb = Zs.shape[0]
+    pred = np.uint64(3 + (out.shape[0] - 3) // 2)
+    changed = 0
+    nlab = 0
+    csum = 0.0
+    for i in range(lo, hi):
+        best = np.float32(0.0)
+        tot = np.float32(0.0)
+        arg = -1
+        ib = np.uint64(i) * np.uint64(32)
+        for blk in range(nb):
+            Zf = Zs[blk]
+            v0 = Zf[ib + np.uint64(0)]
+            v1 = Zf[ib + np.uint64(1)]
+            v2 = Zf[ib + np.uint64(2)]
+            v3 = Zf[ib + np.uint64(3)]
+            v4 = Zf[ib + np.uint64(4)]
+            v5 = Zf[ib + np.uint64(5)]
+            v6 = Zf[ib + np.uint64(6)]
+            v7 = Zf[ib + np.uint64(7)]
+            v8 = Zf[ib + np.uint64(8)]
+            v9 = Zf[ib + np.uint64(9)]
+            v10 = Zf[ib + np.uint64(10)]
+            v11 = Zf[ib + np.uint64(11)]
+            v12 = Zf[ib + np.uint64(12)]
+            v13 = Zf[ib + np.uint64(13)]
+            v14 = Zf[ib + np.uint64(14)]
+            v15 = Zf[ib + np.uint64(15)]
+            v16 = Zf[ib + np.uint64(16)]
+            v17 = Zf[ib + np.uint64(17)]
+            v18 = Zf[ib + np.uint64(18)]
+            v19 = Zf[ib + np.uint64(19)]
+            v20 = Zf[ib + np.uint64(20)]
+            v21 = Zf[ib + np.uint64(21)]
+            v22 = Zf[ib + np.uint64(22)]
+            v23 = Zf[ib + np.uint64(23)]
+            v24 = Zf[ib + np.uint64(24)]
+            v25 = Zf[ib + np.uint64(25)]
+            v26 = Zf[ib + np.uint64(26)]
+            v27 = Zf[ib + np.uint64(27)]
+            v28 = Zf[ib + np.uint64(28)]
+            v29 = Zf[ib + np.uint64(29)]
+            v30 = Zf[ib + np.uint64(30)]
+            v31 = Zf[ib + np.uint64(31)]
+            m0_0 = max(v0, v16)
+            m0_1 = max(v1, v17)
+            m0_2 = max(v2, v18)
+            m0_3 = max(v3, v19)
+            m0_4 = max(v4, v20)
+            m0_5 = max(v5, v21)
+            m0_6 = max(v6, v22)
+            m0_7 = max(v7, v23)
+            m0_8 = max(v8, v24)
+            m0_9 = max(v9, v25)
+            m0_10 = max(v10, v26)
+            m0_11 = max(v11, v27)
+            m0_12 = max(v12, v28)
+            m0_13 = max(v13, v29)
+            m0_14 = max(v14, v30)
+            m0_15 = max(v15, v31)
+            m1_0 = max(m0_0, m0_8)
+            m1_1 = max(m0_1, m0_9)
+            m1_2 = max(m0_2, m0_10)
+            m1_3 = max(m0_3, m0_11)
+            m1_4 = max(m0_4, m0_12)
+            m1_5 = max(m0_5, m0_13)
+            m1_6 = max(m0_6, m0_14)
+            m1_7 = max(m0_7, m0_15)
+            m2_0 = max(m1_0, m1_4)
+            m2_1 = max(m1_1, m1_5)
+            m2_2 = max(m1_2, m1_6)
+            m2_3 = max(m1_3, m1_7)
+            m3_0 = max(m2_0, m2_2)
+            m3_1 = max(m2_1, m2_3)
+            m4_0 = max(m3_0, m3_1)
+            s0_0 = v0 + v16
+            s0_1 = v1 + v17
+            s0_2 = v2 + v18
+            s0_3 = v3 + v19
+            s0_4 = v4 + v20
+            s0_5 = v5 + v21
+            s0_6 = v6 + v22
+            s0_7 = v7 + v23
+            s0_8 = v8 + v24
+            s0_9 = v9 + v25
+            s0_10 = v10 + v26
+            s0_11 = v11 + v27
+            s0_12 = v12 + v28
+            s0_13 = v13 + v29
+            s0_14 = v14 + v30
+            s0_15 = v15 + v31
+            s1_0 = s0_0 + s0_8
+            s1_1 = s0_1 + s0_9
+            s1_2 = s0_2 + s0_10
+            s1_3 = s0_3 + s0_11
+            s1_4 = s0_4 + s0_12
+            s1_5 = s0_5 + s0_13
+            s1_6 = s0_6 + s0_14
+            s1_7 = s0_7 + s0_15
+            s2_0 = s1_0 + s1_4
+            s2_1 = s1_1 + s1_5
+            s2_2 = s1_2 + s1_6
+            s2_3 = s1_3 + s1_7
+            s3_0 = s2_0 + s2_2
+            s3_1 = s2_1 + s2_3
+            s4_0 = s3_0 + s3_1
+            j0 = np.int32(0) if v0 == m4_0 else np.int32(32)
+            j1 = np.int32(1) if v1 == m4_0 else np.int32(32)
+            j2 = np.int32(2) if v2 == m4_0 else np.int32(32)
+            j3 = np.int32(3) if v3 == m4_0 else np.int32(32)
+            j4 = np.int32(4) if v4 == m4_0 else np.int32(32)
+            j5 = np.int32(5) if v5 == m4_0 else np.int32(32)
+            j6 = np.int32(6) if v6 == m4_0 else np.int32(32)
+            j7 = np.int32(7) if v7 == m4_0 else np.int32(32)
+            j8 = np.int32(8) if v8 == m4_0 else np.int32(32)
+            j9 = np.int32(9) if v9 == m4_0 else np.int32(32)
+            j10 = np.int32(10) if v10 == m4_0 else np.int32(32)
+            j11 = np.int32(11) if v11 == m4_0 else np.int32(32)
+            j12 = np.int32(12) if v12 == m4_0 else np.int32(32)
+            j13 = np.int32(13) if v13 == m4_0 else np.int32(32)
+            j14 = np.int32(14) if v14 == m4_0 else np.int32(32)
+            j15 = np.int32(15) if v15 == m4_0 else np.int32(32)
+            j16 = np.int32(16) if v16 == m4_0 else np.int32(32)
+            j17 = np.int32(17) if v17 == m4_0 else np.int32(32)
+            j18 = np.int32(18) if v18 == m4_0 else np.int32(32)
+            j19 = np.int32(19) if v19 == m4_0 else np.int32(32)
+            j20 = np.int32(20) if v20 == m4_0 else np.int32(32)
+            j21 = np.int32(21) if v21 == m4_0 else np.int32(32)
+            j22 = np.int32(22) if v22 == m4_0 else np.int32(32)
+            j23 = np.int32(23) if v23 == m4_0 else np.int32(32)
+            j24 = np.int32(24) if v24 == m4_0 else np.int32(32)
+            j25 = np.int32(25) if v25 == m4_0 else np.int32(32)
+            j26 = np.int32(26) if v26 == m4_0 else np.int32(32)
+            j27 = np.int32(27) if v27 == m4_0 else np.int32(32)
+            j28 = np.int32(28) if v28 == m4_0 else np.int32(32)
+            j29 = np.int32(29) if v29 == m4_0 else np.int32(32)
+            j30 = np.int32(30) if v30 == m4_0 else np.int32(32)
+            j31 = np.int32(31) if v31 == m4_0 else np.int32(32)
+            q0_0 = min(j0, j16)
+            q0_1 = min(j1, j17)
+            q0_2 = min(j2, j18)
+            q0_3 = min(j3, j19)
+            q0_4 = min(j4, j20)
+            q0_5 = min(j5, j21)
+            q0_6 = min(j6, j22)
+            q0_7 = min(j7, j23)
+            q0_8 = min(j8, j24)
+            q0_9 = min(j9, j25)
+            q0_10 = min(j10, j26)
+            q0_11 = min(j11, j27)
+            q0_12 = min(j12, j28)
+            q0_13 = min(j13, j29)
+            q0_14 = min(j14, j30)
+            q0_15 = min(j15, j31)
+            q1_0 = min(q0_0, q0_8)
+            q1_1 = min(q0_1, q0_9)
+            q1_2 = min(q0_2, q0_10)
+            q1_3 = min(q0_3, q0_11)
+            q1_4 = min(q0_4, q0_12)
+            q1_5 = min(q0_5, q0_13)
+            q1_6 = min(q0_6, q0_14)
+            q1_7 = min(q0_7, q0_15)
+            q2_0 = min(q1_0, q1_4)
+            q2_1 = min(q1_1, q1_5)
+            q2_2 = min(q1_2, q1_6)
+            q2_3 = min(q1_3, q1_7)
+            q3_0 = min(q2_0, q2_2)
+            q3_1 = min(q2_1, q2_3)
+            q4_0 = min(q3_0, q3_1)
+            tot += s4_0
+            if m4_0 > best:
+                best = m4_0
+                arg = ids[np.uint64(blk * 32) + np.uint64(q4_0)]
+        lab = np.int16(arg)
+        iu = np.uint64(i)
+        if labels[iu] != lab:
+            labels[iu] = lab
+            changed += 1
+        if arg >= 0:
+            nlab += 1
+            csum += np.float64(best / tot)
+            au = np.uint64(arg)
+            for e in range(tptr[iu], tptr[iu + np.uint64(1)]):
+                eu = np.uint64(e)
+                w = tcnt[eu]
+                out[pred + au] += w
+                if tcls[eu] == arg:
+                    out[np.uint64(3) + au] += w
+    out[0] += changed
+    out[1] += nlab
+    out[2] += csum
+
+
+@njit(cache=True, boundscheck=False, nogil=True)
+def steps_32(nbr, wts, Za, Zb, Bf, floor, tol, ids, labels, tptr, tcls, tcnt, st, n_steps, chunk, tid, nthreads,
+             ctrl, res):
     n = nbr.shape[0]
     nchunks = (n + chunk - 1) // chunk
+    track = st.shape[2] > 0
     for s in range(n_steps):
         src = Za if s % 2 == 0 else Zb
         dst = Zb if s % 2 == 0 else Za
@@ -963,6 +1517,8 @@ def steps_32(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, ct
                 a, b = rows_32(nbr, wts, src[blk], dst[blk], Bf[blk], floor, lo, hi)
                 ch = max(ch, a)
                 tp = max(tp, b)
+            if track:  # the statistics of the rows just written, while they are in cache
+                stats_32(dst, ids, labels, tptr, tcls, tcnt, lo, hi, st[s, tid])
         res[s, tid, 0] = ch
         res[s, tid, 1] = tp
         atomic_add(ctrl, 0, 1)

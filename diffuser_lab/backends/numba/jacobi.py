@@ -81,15 +81,101 @@ def generate_source() -> str:
               "    top = max(" + ", ".join(f"tp{c}" for c in range(W)) + ")",
               "    return change, top", "", ""]
         out += L
+        out += stats_source(W)
         out += [line.format(W=W) for line in _STEPS_TEMPLATE]
     return "\n".join(out).rstrip() + "\n"
 
 
+def _tree(op: str, names: list[str], tag: str) -> tuple[list[str], str]:
+    """Lines reducing ``names`` (W values, padded with nothing to a power of two) pairwise by halves
+    with ``op`` (``max``, ``min`` or ``+``): element c with element c + h for h = P/2, P/4, ... 1 (a
+    missing partner leaves the value as it is): :func:`diffuser_lab.backends.stats.row_sums`'
+    order, and reductions that LLVM's SLP vectoriser turns into a few vector instructions."""
+    p = 1
+    while p < len(names):
+        p *= 2
+    cur = list(names) + [None] * (p - len(names))
+    lines, level = [], 0
+    while len(cur) > 1:
+        h = len(cur) // 2
+        nxt = []
+        for c in range(h):
+            a, b = cur[c], cur[c + h]
+            if b is None:
+                nxt.append(a)
+                continue
+            name = f"{tag}{level}_{c}"
+            lines.append(f"            {name} = {a + ' + ' + b if op == '+' else op + '(' + a + ', ' + b + ')'}")
+            nxt.append(name)
+        cur, level = nxt, level + 1
+    return lines, cur[0]
+
+
+def stats_source(W: int) -> list[str]:
+    """Source lines of ``stats_W(Zs, ids, labels, tptr, tcls, tcnt, lo, hi, out)``: the per-step
+    statistics (:mod:`diffuser_lab.backends.stats`) of rows lo..hi-1 of the class blocks ``Zs``
+    (blocks, N*W) float32 just written: per row the first largest score over the blocks (classes
+    ``ids`` (A,) in block order), its label (-1 unless > 0) into ``labels`` (N,) int16 (counting
+    changes), max / sum (sums by halves within a block, :func:`_tree`, then over the blocks) and,
+    for the row's ground-truth entries ``tptr``/``tcls``/``tcnt`` (CSR), the correct and predicted
+    counts per class; all added into ``out`` (3 + 2 C,) float64. The W scores of a row are scalars
+    (as in ``rows_W``): the reductions vectorise."""
+    v = [f"v{c}" for c in range(W)]
+    max_lines, top = _tree("max", v, "m")
+    sum_lines, tot = _tree("+", v, "s")
+    # the first column holding the maximum: the least index among those equal to it (compares
+    # and a min tree, vectorised; a chain of selects cost 2x the rest of the statistics)
+    first_lines, k = _tree("min", [f"j{c}" for c in range(W)], "q")
+    L = ["@njit(cache=True, boundscheck=False, nogil=True)",
+         f"def stats_{W}(Zs, ids, labels, tptr, tcls, tcnt, lo, hi, out):",
+         "    nb = Zs.shape[0]",
+         "    pred = np.uint64(3 + (out.shape[0] - 3) // 2)",
+         "    changed = 0",
+         "    nlab = 0",
+         "    csum = 0.0",
+         "    for i in range(lo, hi):",
+         "        best = np.float32(0.0)",
+         "        tot = np.float32(0.0)",
+         "        arg = -1",
+         f"        ib = np.uint64(i) * np.uint64({W})",
+         "        for blk in range(nb):",
+         "            Zf = Zs[blk]"]
+    L += [f"            v{c} = Zf[ib + np.uint64({c})]" for c in range(W)]
+    L += max_lines + sum_lines
+    L += [f"            j{c} = np.int32({c}) if v{c} == {top} else np.int32({W})" for c in range(W)]
+    L += first_lines
+    L += [f"            tot += {tot}",
+          f"            if {top} > best:",
+          f"                best = {top}",
+          f"                arg = ids[np.uint64(blk * {W}) + np.uint64({k})]",
+          "        lab = np.int16(arg)",
+          "        iu = np.uint64(i)",  # unsigned indices: no negative-index wraparound code
+          "        if labels[iu] != lab:",
+          "            labels[iu] = lab",
+          "            changed += 1",
+          "        if arg >= 0:",
+          "            nlab += 1",
+          "            csum += np.float64(best / tot)",
+          "            au = np.uint64(arg)",
+          "            for e in range(tptr[iu], tptr[iu + np.uint64(1)]):",
+          "                eu = np.uint64(e)",
+          "                w = tcnt[eu]",
+          "                out[pred + au] += w",
+          "                if tcls[eu] == arg:",
+          "                    out[np.uint64(3) + au] += w",
+          "    out[0] += changed",
+          "    out[1] += nlab",
+          "    out[2] += csum", "", ""]
+    return L
+
+
 _STEPS_TEMPLATE = """\
 @njit(cache=True, boundscheck=False, nogil=True)
-def steps_{W}(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, ctrl, res):
+def steps_{W}(nbr, wts, Za, Zb, Bf, floor, tol, ids, labels, tptr, tcls, tcnt, st, n_steps, chunk, tid, nthreads,
+             ctrl, res):
     n = nbr.shape[0]
     nchunks = (n + chunk - 1) // chunk
+    track = st.shape[2] > 0
     for s in range(n_steps):
         src = Za if s % 2 == 0 else Zb
         dst = Zb if s % 2 == 0 else Za
@@ -105,6 +191,8 @@ def steps_{W}(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, c
                 a, b = rows_{W}(nbr, wts, src[blk], dst[blk], Bf[blk], floor, lo, hi)
                 ch = max(ch, a)
                 tp = max(tp, b)
+            if track:  # the statistics of the rows just written, while they are in cache
+                stats_{W}(dst, ids, labels, tptr, tcls, tcnt, lo, hi, st[s, tid])
         res[s, tid, 0] = ch
         res[s, tid, 1] = tp
         atomic_add(ctrl, 0, 1)
@@ -115,15 +203,19 @@ def steps_{W}(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, c
 
 
 """.splitlines()
-"""``steps_W(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, ctrl, res)``: thread
-``tid`` of ``nthreads`` runs up to ``n_steps`` Jacobi steps on class blocks Za, Zb, Bf (blocks, N*W)
-(one block: (1, N*W)), Za -> Zb -> Za ... Every step's rows are taken ``chunk`` at a time from the
-ticket counter ``ctrl[1 + s]`` (so a thread that the OS parks is made up for by the others) and
-done for every block before the next claim (the run's neighbours and weights stay in cache across
-the blocks); each thread writes its (max |Zn - Z|, max Zn) over all blocks to ``res[s, tid]`` and
-all meet at the barrier ``ctrl[0]`` (arrivals, never reset); after it every thread sees the same
-residual and stops after the first step whose relative change is <= ``tol``. Returns the number
-of steps done."""
+"""``steps_W(nbr, wts, Za, Zb, Bf, floor, tol, ids, labels, tptr, tcls, tcnt, st, n_steps, chunk, tid,
+nthreads, ctrl, res)``: thread ``tid`` of ``nthreads`` runs up to ``n_steps`` Jacobi steps on class
+blocks Za, Zb, Bf (blocks, N*W) (one block: (1, N*W)), Za -> Zb -> Za ... Every step's rows are
+taken ``chunk`` at a time from the ticket counter ``ctrl[1 + s]`` (so a thread that the OS parks is
+made up for by the others) and done for every block before the next claim (the run's neighbours
+and weights stay in cache across the blocks); each thread writes its (max |Zn - Z|, max Zn) over
+all blocks to ``res[s, tid]`` and all meet at the barrier ``ctrl[0]`` (arrivals, never reset);
+after it every thread sees the same residual and stops after the first step whose relative change
+is <= ``tol``. Returns the number of steps done. With ``st`` (n_steps, nthreads, 3 + 2 C) float64
+(tracking: its last axis not empty) each run of rows also gets its statistics right after it is
+written (``stats_W``: labels of the active classes ``ids`` into ``labels``, the ground truth's CSR
+``tptr``/``tcls``/``tcnt``), added into ``st[s, tid]``; :data:`UNTRACKED` fills those arguments
+otherwise."""
 
 
 _GEN = Path(__file__).with_name("_unrolled.py")
@@ -178,12 +270,14 @@ class StepRunner:
             except BaseException as exc:  # noqa: BLE001 - re-raised by run() in the caller
                 self._done.put(exc)
 
-    def run(self, W: int, nbr, wts, Za, Zb, B, floor, tol: float, n_steps: int) -> np.ndarray:
+    def run(self, W: int, nbr, wts, Za, Zb, B, floor, tol: float, n_steps: int, tracked=None) -> np.ndarray:
         """Up to ``n_steps`` Eq. 10 steps on an (N, W) block, ``Za`` -> ``Zb`` -> ``Za`` ...
         (entries below ``floor`` flushed to 0), stopping after the first step whose relative
         change max|Zn - Z| / max Zn is <= ``tol``. Returns (steps done, 2) float32: per step
-        (max |Zn - Z|, max Zn); the last state is in ``Zb`` after an odd number, else ``Za``."""
-        args = (nbr, wts, Za.reshape(1, -1), Zb.reshape(1, -1), B.reshape(1, -1), np.float32(floor), float(tol))
+        (max |Zn - Z|, max Zn); the last state is in ``Zb`` after an odd number, else ``Za``.
+        ``tracked``: the statistics' arguments of ``steps_W`` (:meth:`NumbaJacobi._tracked`), else none."""
+        args = (nbr, wts, Za.reshape(1, -1), Zb.reshape(1, -1), B.reshape(1, -1), np.float32(floor), float(tol),
+                *(tracked or untracked(n_steps, self.threads)))
         return self.launch(_step_kernels()[W], args, n_steps, 2).max(axis=1)
 
     def launch(self, f, args: tuple, n_steps: int, width: int, tickets: int = 1) -> np.ndarray:
@@ -225,6 +319,15 @@ class StepRunner:
 
     def __exit__(self, *exc):
         self.close()
+
+
+_NO_ROWS = (np.zeros(0, np.int64), np.zeros(0, np.int16), np.zeros(1, np.int64), np.zeros(0, np.int64),
+            np.zeros(0, np.float64))
+
+
+def untracked(n_steps: int, threads: int) -> tuple:
+    """The statistics' arguments of ``steps_W`` when none are tracked (an empty last axis of ``st``)."""
+    return (*_NO_ROWS, np.zeros((int(n_steps), threads, 0), np.float64))
 
 
 def fixed_rows(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -388,26 +491,47 @@ class NumbaJacobi(JacobiBackend):
             return first_compile(_multi_kernel())
         return bool(self.blocks) and first_compile(*{_step_kernels()[b.width] for b in self.blocks})
 
+    def _tracked(self, count: int) -> Optional[tuple]:
+        """The statistics' arguments of ``steps_W`` for ``count`` steps (None: not tracking): the
+        active classes, the labels, the ground truth's CSR and a fresh (count, threads, width) array."""
+        t = self.tracking
+        if t is None:
+            return None
+        n = self.inputs.shape[0]
+        return (self.inputs.active.astype(np.int64), t.labels[:n], t.truth.ptr, t.truth.cls, t.truth.cnt,
+                np.zeros((int(count), self.runner.threads, t.width), np.float64))
+
+    def _keep_stats(self, tracked: Optional[tuple], done: int) -> None:
+        """The steps' statistics rows (summed over the threads) into :attr:`stats`."""
+        self.stats = None if tracked is None else tracked[-1][:done].sum(axis=1)
+
     def steps(self, count: int) -> np.ndarray:
         floor, tol, n = self.inputs.floor, self.tol, self.inputs.shape[0]
+        tracked = self._tracked(count)
         if len(self.blocks) == 1:  # all steps in compiled code, no GIL needed between them
             b = self.blocks[0]
-            out = self.runner.run(b.width, self.nbr, self.wts, b.Z[:n], b.Zn[:n], b.B[:n], floor, tol, count)
+            out = self.runner.run(b.width, self.nbr, self.wts, b.Z[:n], b.Zn[:n], b.B[:n], floor, tol, count,
+                                  tracked)
             if len(out) % 2:
                 b.Z, b.Zn = b.Zn, b.Z
+            self._keep_stats(tracked, len(out))
             return out
         if not self.blocks:  # no class has evidence: Z stays 0, one step that changes nothing
-            return np.zeros((1, 2), np.float32)
+            return super().steps(1)
         B3, Z3, Zn3 = self._stack  # several blocks, one residual: all in one compiled call per thread
         nb = len(self.blocks)
         args = (self.nbr, self.wts, Z3.reshape(nb, -1), Zn3.reshape(nb, -1), B3.reshape(nb, -1),
-                np.float32(floor), float(tol))
+                np.float32(floor), float(tol), *(tracked or untracked(count, self.runner.threads)))
         out = self.runner.launch(_multi_kernel(), args, count, 2).max(axis=1)
         if len(out) % 2:
             self._stack = [B3, Zn3, Z3]
             for b in self.blocks:
                 b.Z, b.Zn = b.Zn, b.Z
+        self._keep_stats(tracked, len(out))
         return out
+
+    def step(self) -> tuple[float, float]:  # no class has evidence (base.steps): Z stays 0
+        return 0.0, 0.0
 
     def state(self) -> np.ndarray:
         n = self.inputs.shape[0]

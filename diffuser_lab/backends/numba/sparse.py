@@ -303,6 +303,15 @@ class NumbaSparseJacobi(SparseClassesBase):
         return first_compile(sparse_steps)
 
     def steps(self, count: int) -> np.ndarray:
+        if self.tracking is not None:  # statistics beside each step, on the row-order state (base class)
+            return super().steps(count)
+        return self._compiled_steps(count)
+
+    def step(self) -> tuple[float, float]:
+        change, top = self._compiled_steps(1)[0]
+        return float(change), float(top)
+
+    def _compiled_steps(self, count: int) -> np.ndarray:
         a, b = self.state_, self.other
         args = (self.nbr, self.wts, a.cls, a.val, a.cnt, a.err, a.rs, b.cls, b.val, b.cnt, b.err, b.rs, self.bptr,
                 self.bcls, self.bval, self.idx, self.bsel, self.bout, int(self.inputs.shape[1]),
