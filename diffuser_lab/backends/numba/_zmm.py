@@ -5,8 +5,10 @@ LLVM's SLP vectoriser puts the generated 16-wide row kernel (``_unrolled.rows_16
 ``numba.extending.intrinsic``s), a neighbour of a block is one 16-lane load and one fused
 multiply-add (one zmm instruction each with AVX-512; two ymm ones without it: the same code, as
 fast as before). Rows are summed in neighbour order with fused multiply-adds, as ``rows_16``: the
-same Z bit for bit. Measured (``scripts/kernel_levers.py``, 30k points x 200 classes, one core,
-2026-12-07): 1.3x the SLP kernel with rows claimed 2,048 at a time (see docs/results/performance.md).
+same Z bit for bit. Each row prefetches the lines of row i + :data:`AHEAD`'s neighbours (issue 38's
+lever). Measured (``scripts/kernel_levers.py``, 30k points x 200 classes, one core, 2026-12-07):
+16 wide 1.3-1.6x, 32 wide 2.0-2.2x the SLP kernel with rows claimed 2,048 at a time, the prefetch
+another 1.2x (see docs/results/performance.md).
 
 ``msteps_16z`` / ``msteps_32z(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, ctrl, res)``:
 the contract of ``_unrolled.steps_16`` / ``steps_32`` (jacobi's ``_STEPS_TEMPLATE``) on (blocks, N * W)
@@ -128,19 +130,44 @@ def vhmax(typingctx, v):
     return types.float32(v), codegen
 
 
+@intrinsic
+def prefetch(typingctx, arr, idx):
+    """Prefetch the cache line of arr[idx] (read, keep in all levels)."""
+    def codegen(context, builder, sig, args):
+        i = context.cast(builder, args[1], sig.args[1], types.intp)
+        data = cgutils.create_struct_proxy(sig.args[0])(context, builder, value=args[0]).data
+        p = builder.bitcast(builder.gep(data, [i]), ir.IntType(8).as_pointer())
+        i32 = ir.IntType(32)
+        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.VoidType(), [ir.IntType(8).as_pointer(), i32, i32, i32]),
+                                            "llvm.prefetch.p0")
+        builder.call(fn, [p, ir.Constant(i32, 0), ir.Constant(i32, 3), ir.Constant(i32, 1)])
+        return context.get_dummy_value()
+    return types.none(arr, idx), codegen
+
+
+AHEAD = 4
+"""Rows ahead whose neighbours' lines the kernels prefetch (30k x 224, one thread, best of 9 under load:
+3 / 4 / 6 rows ahead 1.05x / 1.22x / 1.15x the kernel without; medians 1.19x at 4)."""
+
+
 @njit(cache=True, boundscheck=False, nogil=True)
 def rows_32z(nbr, wts, Zf, Znf, Bf, floor, lo, hi):
     """rows_32 with two 16-lane accumulators: rows lo..hi-1 of Zn = P Z + B (below ``floor``: 0);
     returns (max |Zn - Z|, max Zn) over them."""
     K = nbr.shape[1]
+    n = nbr.shape[0]
     ch = vzero()
     tp = vzero()
     for i in range(lo, hi):
         a0 = vzero()
         a1 = vzero()
+        ip = i + AHEAD if i + AHEAD < n else i
         for kk in range(K):
             b = np.int64(nbr[i, kk]) * 32
             w = wts[i, kk]
+            bp = np.int64(nbr[ip, kk]) * 32
+            prefetch(Zf, bp)
+            prefetch(Zf, bp + 16)
             a0 = vfma(vload(Zf, b), w, a0)
             a1 = vfma(vload(Zf, b + 16), w, a1)
         ib = np.int64(i) * 32
@@ -188,11 +215,14 @@ def rows_16z(nbr, wts, Zf, Znf, Bf, floor, lo, hi):
     """rows_16 with one 16-lane accumulator: rows lo..hi-1 of Zn = P Z + B (below ``floor``: 0);
     returns (max |Zn - Z|, max Zn) over them."""
     K = nbr.shape[1]
+    n = nbr.shape[0]
     ch = vzero()
     tp = vzero()
     for i in range(lo, hi):
         a = vzero()
+        ip = i + AHEAD if i + AHEAD < n else i
         for kk in range(K):
+            prefetch(Zf, np.int64(nbr[ip, kk]) * 16)
             a = vfma(vload(Zf, np.int64(nbr[i, kk]) * 16), wts[i, kk], a)
         ib = np.int64(i) * 16
         v = vflush(vadd(a, vload(Bf, ib)), floor)
