@@ -1,24 +1,34 @@
-"""Issue 38's kernel levers, measured side by side on one core (the Jacobi step of Eq. 10 on many columns).
+"""Issues 38 and 53's kernel levers, measured side by side on one core (the Jacobi step of Eq. 10 on many columns).
 
-    python scripts/kernel_levers.py BENCH.npz [--columns 64 200 512] [--steps 3]
+    python scripts/kernel_levers.py BENCH.npz [--columns 64 200 512 1024] [--tiles 8 16 32 64]
+        [--rows 2048 1000000000] [--row-major vec64 ...] [--steps 3] [--rounds 5] [--labels 100]
 
 BENCH.npz: an input of ``diffuser-lab-bench`` (``../shared/bench/make_bench_input.py 30000 b.npz 200``);
 its graph (K = 24, Morton order) is built with the package and every variant steps the same rows
-single-threaded on random Z of the given width. Variants (all float32 accumulation, rows summed in
-neighbour order, so the float32 ones give the package kernel's result bit for bit):
+single-threaded on random Z of the given width (padded to the variant's width). The variants run
+interleaved, ``--rounds`` times each, and the best round is reported (the machine is shared: ratios
+of one run, not absolute times, are what to read). Variants (float32 accumulation, rows summed in
+neighbour order with fused multiply-adds, so the float32 ones give the package kernel's Z bit for bit):
 
-- ``package``: today's kernel (``backends/numba/_unrolled.steps_16``: 16-wide class blocks, LLVM's SLP);
-- ``vec64``: explicit 8-lane vectors from numba (a ``f32x8`` type and ``numba.extending.intrinsic``s
-  emitting LLVM vector loads and ``llvm.fma.v8f32``), Z row-major, per row column groups of 64:
-  8 independent accumulators;
-- ``vec16x4`` / ``vec32x2``: the same with 4 / 2 Morton-adjacent rows at a time (register blocking);
-- ``vec64+prefetch``: the lines of row i+3's neighbours prefetched;
-- ``vec64-B+nt``: no B read and non-temporal stores (the bound of a sparse B and streaming stores);
-- ``vec64 f16``: Z stored as float16 (F16C conversion on load, accumulation in float32);
-- ``vec64 self``: every neighbour is the row itself: no gather leaves L1 (the kernel's ceiling).
+- ``package``: the generated kernel (``backends/numba/_unrolled.steps_16``: 16-wide class blocks, LLVM's
+  SLP), rows claimed 512 at a time and done for every block (as before issue 53), or all rows a block;
+- issue 38's, Z row-major (N, W): ``vec64``: explicit 8-lane vectors from numba (a ``f32x8`` type and
+  ``numba.extending.intrinsic``s emitting LLVM vector loads and ``llvm.fma.v8f32``), per row column
+  groups of 64: 8 independent accumulators; ``vec32x2`` / ``vec16x4``: 2 / 4 rows at a time;
+  ``vec64+prefetch``: the lines of row i+3's neighbours prefetched; ``vec64-B+nt``: no B read and
+  non-temporal stores; ``vec64 f16``: Z stored as float16; ``vec64 self``: every neighbour is the row
+  itself (no gather leaves L1: the kernel's ceiling);
+- issue 53's column tiles: Z, Zn and B tile-major (W / T tiles of (N, T)), ``tileT R=r``: rows r at a
+  time done for every tile (``all``: a tile's whole column block before the next), 16-lane (zmm)
+  vectors for T >= 16 (``ymm``: 8 lanes); ``small-idx``: the index stream as row-relative int16 offsets
+  (rows where one does not fit: int32 neighbours) and float16 weights, 4 instead of 8 bytes a
+  neighbour; ``f16Z``: Z stored as float16, scaled by 2^14 (B and the floor with it);
+  ``tileT self``: the ceiling.
 
-Prints a Markdown table: ms per step and GFLOP/s (a multiply-add = 2 flops), and the fraction of
-one core's compute floor (this process's BLAS matmul rate over its threads).
+Prints a Markdown table: ms per step, the ratio to the package kernel, the fraction of one core's
+compute floor (this process's BLAS matmul rate over its threads: unreliable on a loaded machine) and
+of the fastest ``self`` variant of the same run; then with ``--labels`` the labels after that many
+steps of the input's own B, with each numerics of the 16-wide tile kernels, against scipy's.
 """
 from __future__ import annotations
 
@@ -196,6 +206,198 @@ def vstore_h(typingctx, arr, idx, v):
     return types.none(arr, idx, v), codegen
 
 
+# ---- issue 53: 16-lane (zmm) vectors and the small index stream ---------------------------------
+_V16 = ir.VectorType(_F, 16)
+_H16 = ir.VectorType(ir.HalfType(), 16)
+
+
+class F32x16(types.Type):
+    def __init__(self):
+        super().__init__(name="f32x16")
+
+
+f32x16 = F32x16()
+
+
+@register_model(F32x16)
+class _Model16(models.PrimitiveModel):
+    def __init__(self, dmm, fe_type):
+        super().__init__(dmm, fe_type, _V16)
+
+
+def _p16(context, builder, arrty, arr, idx, vt):
+    data = cgutils.create_struct_proxy(arrty)(context, builder, value=arr).data
+    return builder.bitcast(builder.gep(data, [idx]), vt.as_pointer())
+
+
+def _splat16(builder, s):
+    v = builder.insert_element(ir.Constant(_V16, ir.Undefined), s, ir.Constant(ir.IntType(32), 0))
+    return builder.shuffle_vector(v, ir.Constant(_V16, ir.Undefined), ir.Constant(ir.VectorType(ir.IntType(32), 16), [0] * 16))
+
+
+@intrinsic
+def wzero(typingctx):
+    def codegen(context, builder, sig, args):
+        return ir.Constant(_V16, [0.0] * 16)
+    return f32x16(), codegen
+
+
+@intrinsic
+def wload(typingctx, arr, idx):
+    def codegen(context, builder, sig, args):
+        i = context.cast(builder, args[1], sig.args[1], types.intp)
+        return builder.load(_p16(context, builder, sig.args[0], args[0], i, _V16), align=4)
+    return f32x16(arr, idx), codegen
+
+
+@intrinsic
+def wload_h(typingctx, arr, idx):
+    """16 float16 (stored as uint16) -> f32x16."""
+    def codegen(context, builder, sig, args):
+        i = context.cast(builder, args[1], sig.args[1], types.intp)
+        return builder.fpext(builder.load(_p16(context, builder, sig.args[0], args[0], i, _H16), align=2), _V16)
+    return f32x16(arr, idx), codegen
+
+
+@intrinsic
+def wstore(typingctx, arr, idx, v):
+    def codegen(context, builder, sig, args):
+        i = context.cast(builder, args[1], sig.args[1], types.intp)
+        builder.store(args[2], _p16(context, builder, sig.args[0], args[0], i, _V16), align=4)
+        return context.get_dummy_value()
+    return types.none(arr, idx, v), codegen
+
+
+@intrinsic
+def wstore_h(typingctx, arr, idx, v):
+    def codegen(context, builder, sig, args):
+        i = context.cast(builder, args[1], sig.args[1], types.intp)
+        builder.store(builder.fptrunc(args[2], _H16), _p16(context, builder, sig.args[0], args[0], i, _H16), align=2)
+        return context.get_dummy_value()
+    return types.none(arr, idx, v), codegen
+
+
+@intrinsic
+def wfma(typingctx, x, s, acc):
+    def codegen(context, builder, sig, args):
+        fma = cgutils.get_or_insert_function(builder.module, ir.FunctionType(_V16, [_V16, _V16, _V16]), "llvm.fma.v16f32")
+        return builder.call(fma, [args[0], _splat16(builder, args[1]), args[2]])
+    return f32x16(x, s, acc), codegen
+
+
+@intrinsic
+def wadd(typingctx, a, b):
+    def codegen(context, builder, sig, args):
+        return builder.fadd(args[0], args[1])
+    return f32x16(a, b), codegen
+
+
+@intrinsic
+def wflush(typingctx, v, floor):
+    def codegen(context, builder, sig, args):
+        ge = builder.fcmp_ordered(">=", args[0], _splat16(builder, args[1]))
+        return builder.select(ge, args[0], ir.Constant(_V16, [0.0] * 16))
+    return f32x16(v, floor), codegen
+
+
+@intrinsic
+def wmax(typingctx, a, b):
+    def codegen(context, builder, sig, args):
+        return builder.select(builder.fcmp_ordered(">", args[0], args[1]), args[0], args[1])
+    return f32x16(a, b), codegen
+
+
+@intrinsic
+def wabsdiff(typingctx, a, b):
+    def codegen(context, builder, sig, args):
+        fabs = cgutils.get_or_insert_function(builder.module, ir.FunctionType(_V16, [_V16]), "llvm.fabs.v16f32")
+        return builder.call(fabs, [builder.fsub(args[0], args[1])])
+    return f32x16(a, b), codegen
+
+
+@intrinsic
+def whmax(typingctx, v):
+    def codegen(context, builder, sig, args):
+        out = builder.extract_element(args[0], ir.Constant(ir.IntType(32), 0))
+        for k in range(1, 16):
+            e = builder.extract_element(args[0], ir.Constant(ir.IntType(32), k))
+            out = builder.select(builder.fcmp_ordered(">", e, out), e, out)
+        return out
+    return types.float32(v), codegen
+
+
+@intrinsic
+def h2f(typingctx, arr, idx):
+    """arr[idx] (a float16 stored as uint16) as float32."""
+    def codegen(context, builder, sig, args):
+        i = context.cast(builder, args[1], sig.args[1], types.intp)
+        data = cgutils.create_struct_proxy(sig.args[0])(context, builder, value=args[0]).data
+        p = builder.bitcast(builder.gep(data, [i]), ir.HalfType().as_pointer())
+        return builder.fpext(builder.load(p, align=2), _F)
+    return types.float32(arr, idx), codegen
+
+
+def _tiled(T: int, L: int, small: bool, half: bool) -> str:
+    """Column tiles: Z, Zn and B stored tile-major ((W / T) tiles of (N, T), flat); a step takes
+    rows ``R`` at a time (R = N: a tile's whole column block before the next tile) and does them for
+    every tile before the next R rows, so the index stream of R rows is read once from memory and
+    again from cache for every further tile, and a tile's gathers stay within the window of
+    neighbour rows x T columns. ``L``: lanes per vector (8: ymm, 16: zmm); ``small``: the index
+    stream as row-relative int16 offsets (rows where one does not fit: ``far[i]``, int32
+    neighbours) and float16 weights; ``half``: Z stored as float16 (accumulation in float32)."""
+    M = T // L
+    p = "w" if L == 16 else "v"
+    zero, fma, add, flush, vmx, absd, hmx = (p + x for x in ("zero", "fma", "add", "flush", "max", "absdiff", "hmax"))
+    ld = f"{p}load_h" if half else f"{p}load"
+    st = f"{p}store_h" if half else f"{p}store"
+    bl = f"{p}load"
+    L_ = ["@njit(boundscheck=False, nogil=True)",
+          "def row(nbr, wts, offs, far, wh, wb, Zf, Znf, Bf, floor, i, base, ch, tp):",
+          "    K = nbr.shape[1]"]
+    L_ += [f"    a{m} = {zero}()" for m in range(M)]
+    body = [f"            a{m} = {fma}({ld}(Zf, b + {L * m}), w, a{m})" for m in range(M)]
+    if small:  # the row's float16 weights to float32 8 at a time (K % 8 == 0; a scalar conversion is a libcall)
+        L_ += ["    for q in range(0, K, 8):",
+               "        vstore(wb, q, vload_h(wh, i * K + q))",
+               "    if far[i]:",
+               "        for kk in range(K):",
+               f"            b = base + np.int64(nbr[i, kk]) * {T}",
+               "            w = wb[kk]"] + body
+        L_ += ["    else:",
+               "        for kk in range(K):",
+               f"            b = base + (i + np.int64(offs[i, kk])) * {T}",
+               "            w = wb[kk]"] + body
+    else:
+        L_ += ["    if True:",
+               "        for kk in range(K):",
+               f"            b = base + np.int64(nbr[i, kk]) * {T}",
+               "            w = wts[i, kk]"] + body
+    L_ += [f"    ib = base + i * {T}"]
+    for m in range(M):
+        L_ += [f"    v = {flush}({add}(a{m}, {bl}(Bf, ib + {L * m})), floor)",
+               f"    ch = {vmx}({absd}(v, {ld}(Zf, ib + {L * m})), ch)", f"    tp = {vmx}(v, tp)",
+               f"    {st}(Znf, ib + {L * m}, v)"]
+    L_ += ["    return ch, tp", "", "",
+           "@njit(boundscheck=False, nogil=True)",
+           "def steps(nbr, wts, offs, far, wh, Za, Zb, Bf, floor, n_steps, R):",
+           "    n = nbr.shape[0]",
+           f"    nt = Za.shape[0] // (n * {T})",
+           "    wb = np.zeros(((nbr.shape[1] + 7) // 8) * 8, np.float32)",
+           "    for s in range(n_steps):",
+           "        src = Za if s % 2 == 0 else Zb",
+           "        dst = Zb if s % 2 == 0 else Za",
+           f"        ch = {zero}()",
+           f"        tp = {zero}()",
+           "        for lo in range(0, n, R):",
+           "            hi = min(lo + R, n)",
+           "            for t in range(nt):",
+           f"                base = t * n * {T}",
+           "                for i in range(lo, hi):",
+           "                    ch, tp = row(nbr, wts, offs, far, wh, wb, src, dst, Bf, floor, i, base, ch, tp)",
+           f"    return {hmx}(ch), {hmx}(tp)", ""]
+    return "\n".join(L_)
+
+
 def _group(G: int, R: int, half: bool, nt: bool, no_b: bool, pf: bool) -> str:
     M, ld, st = G // 8, "vload_h" if half else "vload", "vstore_h" if half else ("vstore_nt" if nt else "vstore")
     L = ["@njit(boundscheck=False, nogil=True)",
@@ -231,11 +433,14 @@ def _group(G: int, R: int, half: bool, nt: bool, no_b: bool, pf: bool) -> str:
     return "\n".join(L)
 
 
-def _kernel(tmp: Path, name: str, **kw):
+_IMPORTS = ("vzero, vload, vstore, vstore_nt, vstore_h, vload_h, vfma, vadd, vflush, vmax, vabsdiff, vhmax, prefetch,"
+            " wzero, wload, wload_h, wstore, wstore_h, wfma, wadd, wflush, wmax, wabsdiff, whmax, h2f")
+
+
+def _kernel(tmp: Path, name: str, source: str):
     """Compile one variant: its source in a module of its own that imports this script's intrinsics."""
     src = ["import numpy as np", "from numba import njit",
-           f"from {__name__ if __name__ != '__main__' else '_levers'} import (vzero, vload, vstore, vstore_nt, vstore_h,"
-           " vload_h, vfma, vadd, vflush, vmax, vabsdiff, vhmax, prefetch)", "", _group(**kw)]
+           f"from {__name__ if __name__ != '__main__' else '_levers'} import ({_IMPORTS})", "", source]
     path = tmp / f"lever_{name}.py"
     path.write_text("\n".join(src))
     spec = importlib.util.spec_from_file_location(path.stem, path)
@@ -244,14 +449,15 @@ def _kernel(tmp: Path, name: str, **kw):
     return mod.steps
 
 
-def _aligned(n: int) -> np.ndarray:
-    """(n,) float32 zeros starting on a 64-byte boundary."""
-    buf = np.zeros(n + 16, np.float32)
-    off = (-buf.ctypes.data % 64) // 4
+def _aligned(n: int, dtype=np.float32) -> np.ndarray:
+    """(n,) zeros starting on a 64-byte boundary."""
+    it = np.dtype(dtype).itemsize
+    buf = np.zeros(n + 64 // it, dtype)
+    off = (-buf.ctypes.data % 64) // it
     return buf[off:off + n]
 
 
-VARIANTS = {  # name: (G, R, half, nt, no_b, pf, self_neighbours)
+ROW_MAJOR = {  # issue 38's variants, Z row-major (N, W): name: (G, R, half, nt, no_b, pf, self_neighbours)
     "vec64": (64, 1, False, False, False, False, False),
     "vec32x2": (32, 2, False, False, False, False, False),
     "vec16x4": (16, 4, False, False, False, False, False),
@@ -260,16 +466,67 @@ VARIANTS = {  # name: (G, R, half, nt, no_b, pf, self_neighbours)
     "vec64 f16": (64, 1, True, False, False, False, False),
     "vec64 self": (64, 1, False, False, False, False, True),
 }
+ROW_MAJOR_DEFAULT = ("vec64", "vec64+prefetch", "vec64 f16", "vec64 self")
+
+
+def tile_variants(tiles, rows_list, n):
+    """Column-tile variants: name: (T, L, small, half, R, self_neighbours)."""
+    out = {}
+    for T in tiles:
+        L = 8 if T < 16 else 16
+        for R in rows_list:
+            r = "all" if R >= n else str(R)
+            out[f"tile{T} R={r}"] = (T, L, False, False, min(R, n), False)
+            out[f"tile{T} R={r} small-idx"] = (T, L, True, False, min(R, n), False)
+            out[f"tile{T} R={r} small-idx f16Z"] = (T, L, True, True, min(R, n), False)
+        if T == 16:  # ymm instead of zmm
+            out[f"tile16 ymm R={'all' if rows_list[0] >= n else rows_list[0]}"] = (16, 8, False, False, min(rows_list[0], n), False)
+    T = max(tiles)
+    out[f"tile{T} self"] = (T, 16 if T >= 16 else 8, False, False, n, True)  # every gather in L1
+    out[f"tile{min(tiles)} self"] = (min(tiles), 16 if min(tiles) >= 16 else 8, False, False, n, True)
+    return out
+
+
+def tile_major(X: np.ndarray, T: int) -> np.ndarray:
+    """(N, W) -> flat (W / T tiles of (N, T))."""
+    n, w = X.shape
+    return np.ascontiguousarray(X.reshape(n, w // T, T).transpose(1, 0, 2)).ravel()
+
+
+def from_tiles(f: np.ndarray, n: int, T: int) -> np.ndarray:
+    return f.reshape(-1, n, T).transpose(1, 0, 2).reshape(n, -1)
+
+
+def small_index(nbr: np.ndarray, wts: np.ndarray):
+    """Row-relative int16 offsets (0 on rows where one does not fit: ``far``), float16 weights (flat uint16)."""
+    n = nbr.shape[0]
+    rel = nbr.astype(np.int64) - np.arange(n)[:, None]
+    far = (np.abs(rel) > 32767).any(1)
+    offs = np.where(far[:, None], 0, rel).astype(np.int16)
+    return offs, far.astype(np.uint8), wts.astype(np.float16).view(np.uint16).ravel()
+
+
+F16_SCALE = np.float32(2.0 ** 14)
+"""The scaled float16 Z: the iteration on Z / scale * 2^14 (B and the floor scaled with it; the step is
+linear): Z / scale <= ~1 lands below float16's 65,504 and its smallest entries above the subnormals."""
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("input")
-    ap.add_argument("--columns", type=int, nargs="+", default=[64, 192, 512])
+    ap.add_argument("--columns", type=int, nargs="+", default=[64, 200, 512, 1024])
+    ap.add_argument("--tiles", type=int, nargs="+", default=[8, 16, 32, 64])
+    ap.add_argument("--rows", type=int, nargs="+", default=[2048, 10**9],
+                    help="rows per pass over the tiles (>= N: each tile's whole column block in turn)")
+    ap.add_argument("--row-major", nargs="*", default=list(ROW_MAJOR_DEFAULT), help="issue 38's variants to run too")
     ap.add_argument("--steps", type=int, default=3)
+    ap.add_argument("--rounds", type=int, default=5, help="interleaved rounds; the best of them is reported")
+    ap.add_argument("--labels", type=int, default=100, help="steps of the label check on the input's classes (0: none)")
     a = ap.parse_args(argv)
     sys.modules.setdefault("_levers", sys.modules[__name__])
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    import os
+
     from diffuser_lab.backends import roof
     from diffuser_lab.backends.numba import _unrolled, slp
     from diffuser_lab.method.diffusion import normalise
@@ -281,53 +538,148 @@ def main(argv=None) -> int:
         system = normalise(g, f["evidence"].astype(np.float32), 1e-4)
     be = system.start(backend="numba", tol=0.0, sparse_classes="off")
     nbr, wts = be.nbr, be.wts
-    system.close()
+    inp = be.inputs
     N, K = nbr.shape
     self_nbr = np.repeat(np.arange(N, dtype=np.int32)[:, None], K, 1)
+    offs, far, wh = small_index(nbr, wts)
+    self_offs, self_far, _ = small_index(self_nbr, wts)
     rng = np.random.default_rng(0)
     core_gf = roof.measure_roof(copy_mb=64).fma_gflops / max(1, __import__("numba").get_num_threads())
     floor = np.float32(1e-6)
+    load0 = os.getloadavg()[0]
+    print(f"{N:,} rows, K = {K}; rows with an offset beyond int16: {int(far.sum())} ({far.mean():.2%}); "
+          f"index stream {nbr.nbytes + wts.nbytes} -> {offs.nbytes + wh.nbytes + far.nbytes} bytes; load {load0:.1f}")
 
-    def timed(fn) -> float:
-        fn()
-        ts = []
-        for _ in range(3):
-            t0 = time.perf_counter()
-            fn()
-            ts.append((time.perf_counter() - t0) / a.steps)
-        return min(ts)
-
-    rows = []
+    tv = tile_variants(a.tiles, sorted(a.rows), N)
+    rows, labels_rows = [], []
     with tempfile.TemporaryDirectory() as tmp:
-        kernels = {name: _kernel(Path(tmp), name.replace(" ", "_").replace("+", "p").replace("-", "m"),
-                                 G=v[0], R=v[1], half=v[2], nt=v[3], no_b=v[4], pf=v[5])
-                   for name, v in VARIANTS.items()}
+        kern = {name: _kernel(Path(tmp), f"rm{j}", _group(G=v[0], R=v[1], half=v[2], nt=v[3], no_b=v[4], pf=v[5]))
+                for j, (name, v) in enumerate(ROW_MAJOR.items()) if name in a.row_major}
+        tk = {}
+        for name, (T, L, small, half, R, _) in tv.items():
+            key = (T, L, small, half)
+            if key not in tk:
+                tk[key] = _kernel(Path(tmp), f"t{T}_{L}_{int(small)}{int(half)}", _tiled(T, L, small, half))
+
+        def run_tile(name, Zs, Zns, Bs, flo, n_steps):
+            T, L, small, half, R, selfn = tv[name]
+            nb_ = self_nbr if selfn else nbr
+            of, fa = (self_offs, self_far) if selfn else (offs, far)
+            return tk[(T, L, small, half)](nb_, wts, of, fa, wh, Zs, Zns, Bs, flo, n_steps, R)
+
         for C in a.columns:
-            W = -(-C // 64) * 64  # every variant's groups divide it
-            flops = 2 * N * K * W
-            res = {}
-            nb = W // 16  # the package's layout: (blocks, N * 16)
-            Zb = rng.random((nb, N * 16)).astype(np.float32)
-            Bb = (rng.random((nb, N * 16)) * 0.01).astype(np.float32)
+            calls = {}
+            pad = lambda m: -(-C // m) * m  # noqa: E731
+            Z0 = rng.random((N, pad(64))).astype(np.float32)
+            B0 = (rng.random((N, pad(64))) * 0.01).astype(np.float32)
+            W16 = pad(16)
+            Zb, Bb = tile_major(Z0[:, :W16], 16).reshape(-1, N * 16), tile_major(B0[:, :W16], 16).reshape(-1, N * 16)
             Znb = np.zeros_like(Zb)
-            with slp():
-                res["package"] = timed(lambda: _unrolled.steps_16(
-                    nbr, wts, Zb, Znb, Bb, floor, -1.0, a.steps, 512, 0, 1,
-                    np.zeros(1 + a.steps, np.int64), np.zeros((a.steps, 1, 2), np.float32)))  # fresh tickets a call
-            Z, B, Zn = _aligned(N * W), _aligned(N * W), _aligned(N * W)  # non-temporal stores need 32-byte rows
-            Z[:] = rng.random(N * W)
-            B[:] = rng.random(N * W) * 0.01
-            for name, v in VARIANTS.items():
-                z, zn = (Z.astype(np.float16).view(np.uint16), np.zeros(N * W, np.uint16)) if v[2] else (Z, Zn)
+            widths = {"package (16-wide blocks, SLP), 512 rows": W16, "package, all rows a block": W16}
+            for R_, nm in ((512, "package (16-wide blocks, SLP), 512 rows"), (N, "package, all rows a block")):
+                calls[nm] = (lambda R_=R_: _unrolled.steps_16(
+                    nbr, wts, Zb, Znb, Bb, floor, -1.0, a.steps, R_, 0, 1,
+                    np.zeros(1 + a.steps, np.int64), np.zeros((a.steps, 1, 2), np.float32)))
+            W64 = pad(64)
+            Zr, Br, Znr = _aligned(N * W64), _aligned(N * W64), _aligned(N * W64)
+            Zr[:] = Z0[:, :W64].ravel()
+            Br[:] = B0[:, :W64].ravel()
+            Zrh, Znrh = Zr.astype(np.float16).view(np.uint16), np.zeros(N * W64, np.uint16)
+            for name in kern:
+                v = ROW_MAJOR[name]
+                z, zn = (Zrh, Znrh) if v[2] else (Zr, Znr)
                 nb_ = self_nbr if v[6] else nbr
-                res[name] = timed(lambda: kernels[name](nb_, wts, z, zn, B, floor, a.steps, W))
-            for name, t in res.items():
-                rows.append(f"| {N:,} x {W} | {name} | {t * 1e3:.2f} | {flops / t / 1e9:.1f} | {flops / t / 1e9 / core_gf:.2f} |")
-    print(f"one core's compute roof: {core_gf:.1f} GFLOP/s (BLAS matmul over its threads)")
-    print("| rows x columns | variant | ms / step | GFLOP/s | of the core's roof |")
-    print("| --- | --- | --- | --- | --- |")
-    print("\n".join(rows))
+                calls[name] = (lambda name=name, z=z, zn=zn, nb_=nb_: kern[name](nb_, wts, z, zn, Br, floor, a.steps, W64))
+                widths[name] = W64
+            bufs = {}
+            for name, (T, L, small, half, R, selfn) in tv.items():
+                W = pad(T)
+                if (T, half) not in bufs:
+                    zt, bt = tile_major(Z0[:, :W], T), tile_major(B0[:, :W], T)
+                    if half:
+                        zt = (zt * F16_SCALE).astype(np.float16).view(np.uint16)
+                        bt = bt * F16_SCALE
+                    bufs[(T, half)] = (zt, np.zeros_like(zt), bt)
+                zt, znt, bt = bufs[(T, half)]
+                flo = floor * F16_SCALE if half else floor
+                calls[name] = (lambda name=name, zt=zt, znt=znt, bt=bt, flo=flo: run_tile(name, zt, znt, bt, flo, a.steps))
+                widths[name] = W
+            best = {name: float("inf") for name in calls}
+            with slp():
+                for fn in calls.values():
+                    fn()
+                loads = []
+                for _ in range(a.rounds):  # interleaved: every variant once a round
+                    loads.append(os.getloadavg()[0])
+                    for name, fn in calls.items():
+                        t0 = time.perf_counter()
+                        fn()
+                        best[name] = min(best[name], (time.perf_counter() - t0) / a.steps)
+            ceiling = min(t for name, t in best.items() if "self" in name)
+            base = best["package (16-wide blocks, SLP), 512 rows"]
+            flops = 2 * N * K * C
+            for name, t in best.items():
+                rows.append(f"| {C} | {name} | {widths[name]} | {t * 1e3:.2f} | {base / t:.2f} | "
+                            f"{flops / t / 1e9 / core_gf:.2f} | {ceiling / t:.2f} |")
+            print(f"columns {C}: load during the rounds {min(loads):.1f}-{max(loads):.1f}", flush=True)
+
+        print_table(core_gf, rows)
+        if a.labels:
+            labels_rows = label_check(system, be, nbr, wts, offs, far, wh, tk, a.labels, inp)
+    system.close()
+    if labels_rows:
+        print()
+        print("| labels after the steps (the input's classes) | = scipy |")
+        print("| --- | --- |")
+        print("\n".join(labels_rows))
     return 0
+
+
+def print_table(core_gf, rows):
+    print(f"one core's compute roof: {core_gf:.1f} GFLOP/s (BLAS matmul over its threads); "
+          f"ceiling = the fastest 'self' variant (every gather in L1) of the same width")
+    print("| columns | variant | padded width | ms / step (best of rounds) | x today's kernel | of the core's roof | of the L1 ceiling |")
+    print("| --- | --- | --- | --- | --- | --- | --- |")
+    print("\n".join(rows), flush=True)
+
+
+def label_check(system, be, nbr, wts, offs, far, wh, tk, n_steps, inp):
+    """The real iteration (the input's B, Z = 0, ``n_steps`` steps) with each numerics of the tile
+    kernels (float32; small index stream; scaled float16 Z; both) against scipy's labels."""
+    N = nbr.shape[0]
+    A = len(inp.active)
+    def lab(Z):
+        out = Z.argmax(1)
+        return np.where(Z.max(1) > 0, out, -1)
+
+    be.steps(n_steps)
+    pkg = lab(np.asarray(be.state()))
+    sc = system.start(backend="scipy", tol=0.0, sparse_classes="off")  # closes the numba backend
+    sc.steps(n_steps)
+    ref = lab(np.asarray(sc.state(), np.float32))
+    out = [f"| package kernel (numba, {n_steps} steps) | {(pkg == ref).mean():.4%} |"]
+    Bd = np.asarray(inp.B, np.float32)[:, inp.active] / inp.scale
+    T = 16
+    W = -(-A // T) * T
+    B0 = np.zeros((N, W), np.float32)
+    B0[:, :A] = Bd
+    for (TT, L, small, half), fn in tk.items():
+        if TT != T:
+            continue
+        S = F16_SCALE if half else np.float32(1.0)
+        bt = tile_major(B0 * S, T)
+        if half:
+            za, zb = np.zeros(N * W, np.uint16), np.zeros(N * W, np.uint16)
+        else:
+            za, zb = np.zeros(N * W, np.float32), np.zeros(N * W, np.float32)
+        fn(nbr, wts, offs, far, wh, za, zb, bt, np.float32(inp.floor) * S, n_steps, N)
+        z = za if n_steps % 2 == 0 else zb
+        if half:
+            z = z.view(np.float16).astype(np.float32)
+        Z = from_tiles(z, N, T)[:, :A] / S
+        name = f"tile{T} {'zmm' if L == 16 else 'ymm'}" + (" small-idx" if small else "") + (" f16Z (scaled 2^14)" if half else "")
+        out.append(f"| {name} | {(lab(Z) == ref).mean():.4%} |")
+    return out
 
 
 if __name__ == "__main__":

@@ -9,14 +9,21 @@ limits, measured in the same run, does: ``floor_s / measured_s`` (the ``efficien
 - float32 multiply-add rate: a BLAS matmul (2048 x 2048 float32; one multiply-add = 2 flops), best
   of several; the step's multiply-adds over it give the compute floor.
 
-The step model (dense Z, float32, the compiled Jacobi kernel's layout): each step reads the K
-neighbour indices (int32) and weights (float32) of every row and reads and writes Z (N x C):
-``N K (4 + 4) + 2 N C 4`` bytes, and does ``N K C`` multiply-adds (neighbour gathers of Z are
-counted once: a row's neighbours lie close in the Morton order, so they come from cache). When
-what a step reads (one state of Z, N C 4 bytes, and the indices and weights) fits in the
-last-level cache (its size read from Linux's sysfs), Z's reads come from cache and only its
-writes are counted. With sparse classes (M
-per point) C is M. The floor is the larger of the two; the bound is the limit that sets it.
+The step model (dense Z, float32, the compiled Jacobi kernel's layout; corrected 2026-12-07, issue
+53): what one step moves between the core and the last-level cache or memory,
+
+- P: the K neighbour indices (int32) and weights (float32) of every row, ``N K (4 + 4)``;
+- B: read once, ``N C 4``;
+- Z written: ``N C 4`` stored, and as many read first (write-allocate: a store to a line not in
+  cache loads it, the kernel's stores are not streaming), ``2 N C 4``;
+- Z read: ``N C 4`` (a neighbour's row gathered once: a row's neighbours lie close in the Morton
+  order, so the other gathers come from cache), not counted when the step's working set (P, B and
+  both states of Z) fits in the last-level cache (its size read from Linux's sysfs).
+
+and ``N K C`` multiply-adds. With sparse classes (M per point) C is M. The floor is the larger of
+the two; the bound is the limit that sets it. Before 2026-12-07 B's reads and the write-allocate
+reads were not counted (``N K 8 + 2 N C 4``, Z's reads dropped when Z and P fitted the cache): 300k
+x 21 was 108 MB a step (82.8 MB with a large cache), now 158.4 MB (133.2 MB).
 """
 from __future__ import annotations
 
@@ -79,10 +86,11 @@ def last_level_cache_mb() -> float:
 def step_cost(n: int, k: int, classes: int, llc_mb: float = 0.0) -> dict:
     """One dense Jacobi step on ``n`` rows, ``k`` neighbours, ``classes`` columns of float32 Z:
     ``bytes`` moved to and from memory and ``multiply_adds`` (the module's model; ``llc_mb``: the
-    last-level cache: Z's reads not counted when Z, the indices and the weights fit in it)."""
+    last-level cache: Z's reads not counted when P, B and both states of Z fit in it)."""
     z = n * classes * 4
-    in_cache = 0 < z + n * k * 8 <= llc_mb * 2**20
-    return {"bytes": int(n * k * 8 + (1 if in_cache else 2) * z), "multiply_adds": int(n * k * classes),
+    p = n * k * 8
+    in_cache = 0 < p + 3 * z <= llc_mb * 2**20
+    return {"bytes": int(p + z + 2 * z + (0 if in_cache else z)), "multiply_adds": int(n * k * classes),
             "z_in_cache": bool(in_cache)}
 
 

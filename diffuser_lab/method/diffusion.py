@@ -104,7 +104,7 @@ class DiffusionResult:
 
 SPARSE_ABOVE = 32
 """``sparse_classes=auto`` considers the sparse class set above this many active classes (the
-dense numba kernels step 16-wide class blocks beyond it, all in one compiled call)."""
+dense numba kernels step 32-wide class blocks beyond it, all in one compiled call)."""
 SPARSE_DENSE_BYTES = 2 * 1024**3
 """... and only where the dense iteration state (B, Z, Z_new: 3 x N x C float32) exceeds this:
 measured on 30k-300k points the sparse set is not faster than the dense kernels (docs/many-classes.md),

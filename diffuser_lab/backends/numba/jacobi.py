@@ -29,10 +29,12 @@ from .krylov import NumbaKrylovOps
 
 WIDTHS = (8, 16, 24, 32)
 """Class-block widths of the generated Jacobi kernels; wider problems are split into blocks."""
-MULTI_WIDTH = 16
-"""Block width when the active classes need several blocks (more than 32): per class a step, 16
-is the cheapest width (30k points, one core: 8 / 16 / 24 / 32 wide 0.071 / 0.043 / 0.050 / 0.094 ms;
-32 runs out of registers)."""
+MULTI_WIDTH = 32
+"""Block width when the active classes need several blocks (more than 32): 32, stepped by
+:mod:`._zmm`'s explicit 16-lane kernel (issue 53, 30k x 200 classes, 100 steps on two threads,
+interleaved best of 5 under load: 16-wide SLP blocks 7.97 s, 16-wide zmm 5.69 s, 32-wide zmm 3.93 s;
+with the kernels' prefetch in another run 4.42 / 2.95 / 2.20 s; the same Z bit for bit). With the generated (SLP) kernels 16 was the cheapest (30k points, one core:
+8 / 16 / 24 / 32 wide 0.071 / 0.043 / 0.050 / 0.094 ms per class and step; 32 ran out of registers)."""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -226,8 +228,19 @@ def _step_kernels():
     return {W: getattr(_unrolled, f"steps_{W}") for W in WIDTHS}
 
 
+MULTI_KERNEL = "zmm"
+"""The kernel of several blocks: ``zmm`` (:mod:`._zmm`: explicit 16-lane vectors, issue 53) or ``slp``
+(``_unrolled.steps_W``, the generated kernel: the same Z bit for bit)."""
+MULTI_CHUNK = 2048
+"""Rows a thread claims at a time when several blocks are stepped (each claim's rows done for every
+block): 2,048 rows of indices and weights (384 KB) stay in L2 across the blocks."""
+
+
 def _multi_kernel():
-    """``steps_W`` for W = :data:`MULTI_WIDTH`, the width of several blocks (see :data:`_STEPS_TEMPLATE`)."""
+    """The compiled run of steps on several :data:`MULTI_WIDTH`-wide blocks (see :data:`_STEPS_TEMPLATE`)."""
+    if MULTI_KERNEL == "zmm":
+        from . import _zmm
+        return {16: _zmm.msteps_16z, 32: _zmm.msteps_32z}[MULTI_WIDTH]
     return _step_kernels()[MULTI_WIDTH]
 
 
@@ -280,16 +293,16 @@ class StepRunner:
                 *(tracked or untracked(n_steps, self.threads)))
         return self.launch(_step_kernels()[W], args, n_steps, 2).max(axis=1)
 
-    def launch(self, f, args: tuple, n_steps: int, width: int, tickets: int = 1) -> np.ndarray:
+    def launch(self, f, args: tuple, n_steps: int, width: int, tickets: int = 1, chunk: int = 0) -> np.ndarray:
         """Every thread calls ``f(*args, n_steps, chunk, tid, nthreads, ctrl, res)`` (a compiled run
         of steps meeting at the barrier ``ctrl[0]``, as ``steps_W``; ``tickets`` row counters per
         step follow it); returns res[:steps done]: (done, threads, width) float32, what each thread
-        wrote per step."""
+        wrote per step; ``chunk``: rows a claim, 0 = the runner's)."""
         n_steps = int(n_steps)
         nt = self.threads
         ctrl = np.zeros(1 + tickets * n_steps, np.int64)
         res = np.zeros((n_steps, nt, width), np.float32)
-        args = (*args, n_steps, self.chunk)
+        args = (*args, n_steps, self.chunk if chunk <= 0 else int(chunk))
         with slp():
             for tid in range(1, nt):
                 self._jobs.put(functools.partial(f, *args, tid, nt, ctrl, res))
@@ -488,7 +501,7 @@ class NumbaJacobi(JacobiBackend):
     @property
     def compiling(self) -> bool:
         if self._stack is not None:
-            return first_compile(_multi_kernel())
+            return first_compile(_multi_kernel() if self.tracking is None else _step_kernels()[MULTI_WIDTH])
         return bool(self.blocks) and first_compile(*{_step_kernels()[b.width] for b in self.blocks})
 
     def _tracked(self, count: int) -> Optional[tuple]:
@@ -521,8 +534,12 @@ class NumbaJacobi(JacobiBackend):
         B3, Z3, Zn3 = self._stack  # several blocks, one residual: all in one compiled call per thread
         nb = len(self.blocks)
         args = (self.nbr, self.wts, Z3.reshape(nb, -1), Zn3.reshape(nb, -1), B3.reshape(nb, -1),
-                np.float32(floor), float(tol), *(tracked or untracked(count, self.runner.threads)))
-        out = self.runner.launch(_multi_kernel(), args, count, 2).max(axis=1)
+                np.float32(floor), float(tol))
+        if tracked is None and MULTI_KERNEL == "zmm":
+            out = self.runner.launch(_multi_kernel(), args, count, 2, chunk=MULTI_CHUNK).max(axis=1)
+        else:  # statistics in the step: the generated kernel (the same Z bit for bit) tracks them
+            out = self.runner.launch(_step_kernels()[MULTI_WIDTH], (*args, *(tracked or untracked(
+                count, self.runner.threads))), count, 2).max(axis=1)
         if len(out) % 2:
             self._stack = [B3, Zn3, Z3]
             for b in self.blocks:
