@@ -15,7 +15,7 @@ import numpy as np
 
 from diffuser_lab import progress
 from diffuser_lab.backends import resolve_backend
-from diffuser_lab.config import Config, DepthNoiseConfig, SceneConfig, SolverName, SparseClasses
+from diffuser_lab.config import Config, DepthNoiseConfig, GraphAffinity, SceneConfig, SolverName, SparseClasses
 from diffuser_lab.data import sources, validate
 from diffuser_lab.data.frames import FrameLoop
 from diffuser_lab.data.geometry import VoxelGrid, nearest_transfer, voxel_downsample, voxel_edge
@@ -26,11 +26,12 @@ from diffuser_lab.data.scene import IGNORE, SCANNET20, Frame, Scene, Taxonomy
 from diffuser_lab.data.sensor import noisy_frames, sensor_model
 from diffuser_lab.data.taxonomy import resolve_taxonomy
 from diffuser_lab.hooks import RunHooks
-from diffuser_lab.method import calibration, fusion
+from diffuser_lab.method import affinity, calibration, fusion, lifters
 from diffuser_lab.method import evidence as evidence_mod
 from diffuser_lab.method import features as features_mod
 from diffuser_lab.method.diffusion import DiffusionResult, Observer, labels_from_scores, normalise, sparse_by_size
-from diffuser_lab.method.evidence import RunEvidence
+from diffuser_lab.method.evidence import Evidence, RunEvidence
+from diffuser_lab.method.exact import tikhonov_scale
 from diffuser_lab.method.queries import Queries, query_classes, query_labels, similarity
 from diffuser_lab.method.graph import KnnGraph, graph_stage, make_graph
 from diffuser_lab.method.metrics import confusion_matrix, score, scores_from_confusion
@@ -270,6 +271,42 @@ def feature_lift(cfg: Config, taxonomy: Taxonomy, dim: int) -> FeatureLift:
     return FeatureLift(q, to_class, taxonomy.num_classes, pc.threshold, background)
 
 
+def lifting_rule(method: fusion.FusionMethod, cfg: Config, n: int, dim: int, num_classes: int,
+                 lift: Optional[FeatureLift] = None) -> lifters.Rule:
+    """The streaming rule of a ``evidence=RULE`` method (:mod:`diffuser_lab.method.lifters`) for ``n``
+    points of ``dim`` columns (C; D in a features run, whose ``lift`` gives topk its confidence and
+    vote its per-view labels)."""
+    return lifters.make(method.rule, n, dim, features=lift is not None, num_classes=num_classes,
+                        depth_tol=cfg.evidence.depth_tol, top_k=cfg.method.top_k,
+                        confidence=lift.confidence if lift is not None else None,
+                        classify=lift.labels if lift is not None else None)
+
+
+def graph_variant(graph: KnnGraph, ev: Evidence, cfg: Config, *, colors: Optional[np.ndarray] = None,
+                  average: Optional[np.ndarray] = None) -> Evidence:
+    """What ``graph.affinity`` and ``solver.tikhonov`` change of a graph method's inputs: the graph's
+    weights (in place: LUDVIG's Eq. 4 x the points' similarity, :mod:`~diffuser_lab.method.affinity`;
+    ``colors`` / ``average``: the work points' colours, a features run's averaged features) and the
+    evidence the system reads (Splat Feature Solver's Tikhonov term, :func:`~diffuser_lab.method.exact.tikhonov_scale`:
+    a new Evidence; ``ev`` is not changed). Both off (the defaults): ``ev`` and the graph as they are."""
+    attrs, known = affinity.attributes(cfg.graph.affinity, colors=colors, mass=ev.mass, links=ev.links, average=average)
+    if attrs is not None:
+        affinity.apply_affinity(graph, attrs, known, cfg.graph.sigma_c)
+    if cfg.solver.tikhonov > 0:
+        alpha = tikhonov_scale(graph, ev.links, cfg.evidence.pixel_weight, cfg.solver.tikhonov)
+        ev = Evidence(mass=ev.mass * alpha[:, None], links=ev.links * alpha)
+    return ev
+
+
+def _work_colors(scene: Scene, grid: Optional[VoxelGrid]) -> Optional[np.ndarray]:
+    """(M, 3) the work points' colours (a voxel's mean; [0, 1] float or the scene's uint8), None without."""
+    if scene.colors is None:
+        return None
+    if grid is None:
+        return scene.colors
+    return grid.mean(np.asarray(scene.colors, np.float32) / (255.0 if scene.colors.dtype == np.uint8 else 1.0))
+
+
 def _sparse_classes(solver, n_work: int, num_classes: int) -> int:
     """The per-point class count the diffusion will use (0 = dense), for the memory check:
     ``solver.sparse_classes`` on / off, or auto's size rule (diffusion.sparse_by_size)."""
@@ -310,7 +347,7 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
     centres, inverted = [], []
     ev_kw = dict(depth_tol=cfg.evidence.depth_tol, pixel_radius=cfg.evidence.pixel_radius)
     evidence: Optional[RunEvidence] = None  # made at the first frame: D columns for feature maps
-    feats, lift = False, None
+    feats, lift, rule = False, None, None
     conf2d = None
     t["predictions"] = t["evidence"] = 0.0
     loop = FrameLoop(frames, f"frames: {describe_predictions(cfg.predictions)} + evidence")
@@ -330,6 +367,9 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
                 lift = feature_lift(cfg, tax, f.features.shape[2])
                 hooks.on_queries(lift.queries.names, lift.queries.embeddings)
                 evidence.best = evidence_mod.BestView(pts.shape[0], f.features.shape[2], lift.confidence)
+            if method.evidence == fusion.RULE:  # a lifting rule keeps its state from the same links
+                rule = evidence.hook = lifting_rule(method, cfg, pts.shape[0], evidence.num_classes, tax.num_classes,
+                                                    lift)
         elif (f.features is not None) != feats:
             raise ValueError(f"frame {f.name}: {'no ' if feats else ''}feature map, unlike the first frame")
         if f.gt_labels is not None and not feats:
@@ -356,6 +396,8 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
     graph = diff = system = None
     if method.evidence == fusion.BASELINE:
         chosen = ev_base
+    elif method.evidence == fusion.RULE:
+        chosen = Evidence(mass=rule.values() if rule is not None else np.zeros_like(ev.mass), links=ev.links)
     elif method.evidence == fusion.ONE_VIEW:
         n_frames = len(frames)
         if not -n_frames <= cfg.method.view < n_frames:
@@ -373,6 +415,8 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
         tg = time.perf_counter()
         with graph_stage(pts.shape[0], cfg.graph, cfg.graph.use_normals and nrm is None):
             nrm, graph = make_graph(pts, nrm, cfg.graph)
+            colors = _work_colors(scene, grid) if cfg.graph.affinity == GraphAffinity.colour else None
+            chosen = graph_variant(graph, chosen, cfg, colors=colors, average=lift.average if lift is not None else None)
             if lift is None:
                 system = normalise(graph, chosen.mass, cfg.evidence.pixel_weight)
         t["graph"] = time.perf_counter() - tg
@@ -384,6 +428,9 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
                                                           solver, observer=_Observe(hooks, observer, lift))
         work_labels = lift.labels(lift.method)
         diff = dataclasses.replace(diff, Z=lift.scores(lift.method))  # the class scores its observers saw
+    elif rule is not None and rule.classes:  # class votes of the views' query labels (method/lifters.py)
+        lift.method = None
+        work_labels, diff = labels_from_scores(chosen.mass), None
     else:
         lift.method = chosen.mass
         work_labels, diff = lift.labels(chosen.mass), None
@@ -412,7 +459,8 @@ def run(cfg: Config, *, scene: Optional[Scene] = None, observer: Optional[Observ
             if method.name != "bayesian":
                 post["bayesian"] = ev_base.mass
         else:
-            post = {method.name: diff.Z if diff is not None else lift.scores(lift.method)}
+            post = {method.name: diff.Z if diff is not None else
+                    chosen.mass if lift.method is None else lift.scores(lift.method)}
             if method.name != "bayesian":
                 post["bayesian"] = lift.scores(lift.average)
             post["best_view"] = lift.scores(lift.best_view)

@@ -122,6 +122,8 @@ def write_features(run_dir: Path, result) -> dict:
     lf, rows = result.lifted, result.rows
     out = {}
     for name, work in (("features", lf.method), ("features_average", lf.average), ("features_best_view", lf.best_view)):
+        if work is None:  # a rule without features of its own (vote: class votes)
+            continue
         unit = work if work.dtype == np.float16 else unit_float16(work)  # the baselines' are unit float16 already
         np.save(run_dir / f"{name}.npy", unit if rows is None or np.array_equal(rows, np.arange(rows.size))
                 else unit[rows])
