@@ -18,7 +18,7 @@ from analysis.runs import SEED_KEYS, Run, experiment_name, find_runs, scene_name
 
 CALIBRATION_COLUMNS = ("ece", "bayesian_ece", "nll", "bayesian_nll", "brier", "bayesian_brier")
 COLUMNS = {  # an experiment's own results table (default: collect's)
-    "lifters": ("miou", "accuracy", "coverage", "ece", "total_s", "peak_rss_gb"),
+    "lifters": ("miou", "accuracy", "coverage", "ece", "total_s", "load_s", "peak_rss_gb"),
 }
 """The results-table columns of experiments whose question needs others than the sweep table's."""
 CAPTIONS = {
@@ -113,8 +113,9 @@ def report(paths: list[str], out: str | Path, title: str | None = None) -> Path:
     lines += ["", "## Results (mean ± std over seeds)", "",
               "mIoU, accuracy and coverage in percent over the scene's points; `bayesian_miou` is Bayesian "
               "fusion of the same evidence in the same run; `miou_2d` scores the 2D inputs; times in seconds"
-              + ("; `ece` the top-label calibration error in percent; `peak_rss_gb` the job's peak resident memory "
-                 "(GB)" if columns else "") + ".", "",
+              + ("; `ece` the top-label calibration error in percent; `load_s` the part of `total_s` that loaded "
+                 "the scene (a sweep's later jobs reuse it); `peak_rss_gb` the job's peak resident memory (GB, in "
+                 "the sweep's process: scenes kept for later jobs included)" if columns else "") + ".", "",
               md, ""]
     if any(r.metric("metrics.calibration") for r in ok):
         from diffuser_lab.runs.results import aggregate, markdown

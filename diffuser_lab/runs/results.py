@@ -204,6 +204,7 @@ METRICS = {
     "bayesian_brier": "metrics.calibration.{bayesian}.brier",
     "iterations": "diffusion.iterations",
     "total_s": "timings_s.total",
+    "load_s": "timings_s.load",  # in total_s; 0 for a sweep job that reused the scene loaded last
     "peak_rss_gb": "memory.peak_rss_gb",  # this job's peak resident memory (diffuser_lab/runs/memory.py)
     "diffusion_s": "timings_s.diffusion",
     "graph_s": "timings_s.graph",

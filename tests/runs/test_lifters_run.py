@@ -122,6 +122,7 @@ def test_memory_snapshot_sees_this_jobs_peak():
     assert s["peak_rss_gb"] > 0
 
 
+@pytest.mark.slow  # the report draws its plots (matplotlib): seconds
 def test_the_lifters_report_has_one_row_per_rule_with_its_columns(tmp_path):
     from analysis.report import report
 
@@ -135,11 +136,11 @@ def test_the_lifters_report_has_one_row_per_rule_with_its_columns(tmp_path):
             "overrides": [f"+lifter={lifter}", f"predictions={pred}", f"seed={seed}", "+experiment=lifters"],
             "metrics": {"miou": m, "accuracy": 70.0, "coverage": 80.0,
                         "calibration": {"bayesian" if lifter == "average" else lifter: {"ece": 5.0}}},
-            "timings_s": {"total": 2.0}, "memory": {"peak_rss_gb": 0.5}, "diffusion": {"iterations": 0}}))
+            "timings_s": {"total": 2.0, "load": 0.1}, "memory": {"peak_rss_gb": 0.5}, "diffusion": {"iterations": 0}}))
     md = report([str(tmp_path / "lifters")], tmp_path / "out").read_text()
     head = next(line for line in md.splitlines() if line.startswith("| lifter |"))
-    assert head == ("| lifter | predictions | miou | accuracy | coverage | ece | total_s | peak_rss_gb | runs | "
+    assert head == ("| lifter | predictions | miou | accuracy | coverage | ece | total_s | load_s | peak_rss_gb | runs | "
                     "failed |")
-    assert "| median | realistic | 41.5 ± 0.5 | 70.0 ± 0.0 | 80.0 ± 0.0 | 5.0 ± 0.0 | 2.00 ± 0.00 | 0.50 ± 0.00 | 2 | 0 |" \
-        in md
+    assert ("| median | realistic | 41.5 ± 0.5 | 70.0 ± 0.0 | 80.0 ± 0.0 | 5.0 ± 0.0 | 2.00 ± 0.00 | 0.10 ± 0.00 | "
+            "0.50 ± 0.00 | 2 | 0 |") in md
     assert md.startswith("# Experiment lifters")
