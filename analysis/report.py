@@ -17,6 +17,10 @@ from analysis.plots import make_plots, sort_key, swept
 from analysis.runs import SEED_KEYS, Run, experiment_name, find_runs, scene_name, scenes
 
 CALIBRATION_COLUMNS = ("ece", "bayesian_ece", "nll", "bayesian_nll", "brier", "bayesian_brier")
+COLUMNS = {  # an experiment's own results table (default: collect's)
+    "lifters": ("miou", "accuracy", "coverage", "ece", "total_s", "load_s", "peak_rss_gb"),
+}
+"""The results-table columns of experiments whose question needs others than the sweep table's."""
 CAPTIONS = {
     "reliability": "Reliability diagrams: accuracy per confidence bin (seeds pooled) against the diagonal, the "
                    "gap to the bin's mean confidence hatched, the share of points per bin in grey; ECE in the titles.",
@@ -87,6 +91,12 @@ def report(paths: list[str], out: str | Path, title: str | None = None) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     runs = find_runs(paths)
     rrows, arows, md = collect(paths, out / "table")
+    columns = COLUMNS.get(experiment_name(runs, paths))
+    if columns:  # the experiment's own columns (the CSVs hold every metric)
+        from diffuser_lab.runs.results import aggregate, markdown, provenance_line
+
+        mixed = provenance_line(runs, "runs")
+        md = markdown(*aggregate(runs), metrics=columns) + (f"\n\n{mixed}" if mixed else "")
     plots = make_plots(paths, out)
     ok = [r for r in runs if r.status == "ok"]
     s0 = ok[0].summary if ok else {}
@@ -102,7 +112,10 @@ def report(paths: list[str], out: str | Path, title: str | None = None) -> Path:
         lines.append(f"2D input mIoU {min(m2):.1f}-{max(m2):.1f} across runs." if m2 else "")
     lines += ["", "## Results (mean ± std over seeds)", "",
               "mIoU, accuracy and coverage in percent over the scene's points; `bayesian_miou` is Bayesian "
-              "fusion of the same evidence in the same run; `miou_2d` scores the 2D inputs; times in seconds.", "",
+              "fusion of the same evidence in the same run; `miou_2d` scores the 2D inputs; times in seconds"
+              + ("; `ece` the top-label calibration error in percent; `load_s` the part of `total_s` that loaded "
+                 "the scene (a sweep's later jobs reuse it); `peak_rss_gb` the job's peak resident memory (GB, in "
+                 "the sweep's process: scenes kept for later jobs included)" if columns else "") + ".", "",
               md, ""]
     if any(r.metric("metrics.calibration") for r in ok):
         from diffuser_lab.runs.results import aggregate, markdown

@@ -169,6 +169,15 @@ class NormalSign(Enum):
     invariant = "invariant"  # min(|n_i - n_j|^2, |n_i + n_j|^2): normals of arbitrary sign
 
 
+class GraphAffinity(Enum):
+    """graph.affinity: a third factor of Eq. 4's edge weights, the similarity of the points' own
+    attributes (LUDVIG, ICCV 2025: graph diffusion whose weights carry the features' similarity)."""
+
+    none = "none"  # Eq. 4 as the paper writes it
+    colour = "colour"  # x exp(-|c_i - c_j|^2 / (2 sigma_c^2)), c the points' RGB in [0, 1] (the cloud's colours)
+    features = "features"  # ... c the points' averaged evidence (unit features; labels: class distributions)
+
+
 class SolverName(Enum):
     jacobi = "jacobi"  # the paper's iteration Z <- P Z + Z_IX (Eq. 10)
     exact = "exact"  # the fixed point (I - P) Z = B solved directly (Krylov / factorisation)
@@ -436,6 +445,8 @@ class GraphConfig(Section):
     sigma_d_factor: float = key(2.0, above(0, note="(paper: 2)"))
     normal_sign: NormalSign = NormalSign.auto
     normal_knn: int = key(16, at_least(3))  # neighbours for normal estimation when the input has none
+    affinity: GraphAffinity = GraphAffinity.none  # none = Eq. 4; colour / features: x the attributes' similarity (method/affinity.py)
+    sigma_c: float = key(0.2, above(0))  # affinity's bandwidth, in the attributes' units (RGB in [0, 1]; unit features)
 
 
 @dataclass
@@ -449,6 +460,7 @@ class SolverConfig(Section):
     backend: SolverBackend = SolverBackend.auto
     sparse_classes: SparseClasses = SparseClasses.auto  # jacobi: a sparse per-point class set (docs/many-classes.md)
     classes_per_point: int = key(16, within(1, 1024, steps=True))  # sparse_classes: the classes each point keeps (the M largest scores)
+    tikhonov: float = key(0.0, at_least(0, note="(0 = off)"))  # t: + t d_i |z_i - mean_i|^2 for points with evidence (method/exact.py; Splat Feature Solver)
 
 
 @dataclass
@@ -459,6 +471,7 @@ class MethodConfig(Section):
     name: str = named("diffuser", "fusion methods")  # the fusion method's name (registry: diffuser_lab/method/fusion.py)
     view: int = 0  # frame index used by `direct` (negative counts from the end)
     bayesian_mode: BayesianMode = BayesianMode.likelihood
+    top_k: int = key(3, within(1, 1000, steps=True))  # topk: the views each point keeps (method/lifters.py)
 
 
 @dataclass

@@ -17,7 +17,7 @@ from diffuser_lab.backends import numba as nb
 from diffuser_lab.config import ConfigError, RecordMode, SolverBackend, check_moved, moved_key, register, to_object
 from diffuser_lab.recording import make_hooks, record_result
 from diffuser_lab.recording.heap import retain_freed_memory
-from diffuser_lab.runs import launchers, report
+from diffuser_lab.runs import launchers, memory, report
 from diffuser_lab.runs.pipeline import reuse_scenes
 from diffuser_lab.data.frames import read_ahead
 from diffuser_lab.runs.protocols import PROTOCOLS
@@ -132,6 +132,7 @@ def _task(cfg: Any) -> Optional[float]:
 
     warnings.showwarning = keep
     deferred = False
+    memory.reset_peak()  # summary.json's memory: this job's peak, also in a sweep's shared process
     reuse_scenes(multirun)  # a sweep's jobs in this process load each scene once
     try:
         summary = report.SummaryFile(run_dir, hc.overrides.task)
@@ -156,6 +157,7 @@ def _task(cfg: Any) -> Optional[float]:
         else:
             records = {}
         done = protocol.finish(result, conf, run_dir, summary, records)
+        summary.update(memory=memory.snapshot())
         if multirun:  # one line per job; the sweep's table comes at the end (sweep.print_table)
             say(job_line(hc.job.num, run_dir, done, time.perf_counter() - t_start))
         elif not conf.output.quiet:

@@ -23,11 +23,17 @@ numpy path (``DIFFUSER_LAB_NUMBA=0``), uses the vectorised code below.
 :class:`RunEvidence` is what a run accumulates frame by frame: the method's evidence and the
 Bayesian baseline's (one pixel; likelihoods or votes), shared when they are the same; the batch
 pipeline and the online mode add a frame to it through :meth:`RunEvidence.add`.
+
+A link hook (``hook=``, :data:`LinkHook`) sees every link set as it is added: the frame, the points,
+the linked points' indices, their pixels and each link's vector (the pixel's class distribution, a
+one-hot label, or a unit feature), so a lifting rule of :mod:`diffuser_lab.method.lifters` keeps its
+own per-point running state, and weighs links by the frame's depth at evidence time, from the one
+frame loop (with a hook, hard labels take the vectorised path below, not the fused pass).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Iterable
+from typing import Callable, Iterable, Optional
 
 import numpy as np
 
@@ -83,6 +89,12 @@ def _class_vectors(frame: Frame, num_classes: int, hard: bool) -> tuple[np.ndarr
         raise ValueError(f"frame {frame.name}: label ids in [{lo}, {hi}], expected {IGNORE} (no label) "
                          f"or 0..{num_classes - 1}")
     return frame.labels, None
+
+
+LinkHook = Callable[[Frame, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray], None]
+"""``hook(frame, points, idx, rows, cols, vectors)``: points ``idx`` (M,) (each once) of the (N, 3)
+``points`` linked to pixels ``rows``, ``cols`` (M,) of ``frame`` with the (M, C) float32 class
+vectors (rows summing to 1) or (M, D) unit features that entered the evidence."""
 
 
 FEATURE_CHUNK = 16384
@@ -237,7 +249,8 @@ class BestView:
 
 
 def _add_features(ev: Evidence, points: np.ndarray, frame: Frame, depth_tol: float, pixel_radius: int,
-                  best: BestView | None = None, basis=None, energy: np.ndarray | None = None) -> np.ndarray:
+                  best: BestView | None = None, basis=None, energy: np.ndarray | None = None,
+                  hook: Optional[LinkHook] = None) -> np.ndarray:
     fmap = frame.features
     D = ev.mass.shape[1] if basis is None else basis.dim
     if fmap.ndim != 3 or fmap.shape[2] != D:
@@ -266,14 +279,17 @@ def _add_features(ev: Evidence, points: np.ndarray, frame: Frame, depth_tol: flo
                 ev.links[i[sl][good]] += 1
                 if best is not None and dr == 0 and dc == 0:
                     best.offer(i[sl][good], f[good] if basis is None else f[good, : basis.k])
+                if hook is not None:  # (a lifting rule's run diffuses no basis: unit features in R^D)
+                    hook(frame, points, i[sl][good], rr[sl][good], cc[sl][good], f[good])
     return idx
 
 
 def add_frame(ev: Evidence, points: np.ndarray, frame: Frame, *, depth_tol: float = 0.05,
               pixel_radius: int = 0, hard: bool = False, best: BestView | None = None, basis=None,
-              energy: np.ndarray | None = None) -> np.ndarray:
+              energy: np.ndarray | None = None, hook: Optional[LinkHook] = None) -> np.ndarray:
     """Add one frame's pixel-to-point links to ``ev`` in place (Eq. 12, one term of Eq. 11):
-    class masses, or unit features when the frame has a feature map (module docstring).
+    class masses, or unit features when the frame has a feature map (module docstring); ``hook``
+    (:data:`LinkHook`) sees each link set with its vectors.
 
     ``basis`` (a :class:`~diffuser_lab.method.basis.FeatureBasis`, feature maps only): ``ev.mass``
     has its k + s columns and each unit feature is added as its coordinates (:func:`sample_basis`:
@@ -284,12 +300,12 @@ def add_frame(ev: Evidence, points: np.ndarray, frame: Frame, *, depth_tol: floa
     rows of ``ev`` may have changed; the others did not)."""
     if getattr(frame, "features", None) is not None:
         if basis is None:
-            return _add_features(ev, points, frame, depth_tol, pixel_radius, best)
+            return _add_features(ev, points, frame, depth_tol, pixel_radius, best, hook=hook)
         with blas_one_thread():  # a basis' products are small: OpenBLAS's spinning workers cost more
-            return _add_features(ev, points, frame, depth_tol, pixel_radius, best, basis, energy)
+            return _add_features(ev, points, frame, depth_tol, pixel_radius, best, basis, energy, hook)
     n, num_classes = ev.mass.shape
     labels, probs = _class_vectors(frame, num_classes, hard)
-    if probs is None and pixel_radius == 0:
+    if probs is None and pixel_radius == 0 and hook is None:
         seen = hard_votes(points, frame.T_cw, frame.K, frame.depth, labels, depth_tol, ev.mass, ev.links)
         if seen is not None:
             ev.points_per_frame.append(int(seen.size))
@@ -307,28 +323,37 @@ def add_frame(ev: Evidence, points: np.ndarray, frame: Frame, *, depth_tol: floa
                 vec = probs[rr, cc].astype(np.float32)
                 s = vec.sum(1)
                 good = s > 0  # a pixel without probability mass is no evidence
-                ev.mass[i[good]] += vec[good] / s[good, None]  # rows sum to 1 (Eq. 13)
+                vec = vec[good] / s[good, None]  # rows sum to 1 (Eq. 13)
+                ev.mass[i[good]] += vec
                 ev.links[i[good]] += 1
             else:
                 lab = labels[rr, cc].astype(np.int64)
                 good = lab != IGNORE
                 ev.mass[i[good], lab[good]] += 1.0
                 ev.links[i[good]] += 1
+                if hook is not None:
+                    vec = np.zeros((int(good.sum()), num_classes), np.float32)
+                    vec[np.arange(vec.shape[0]), lab[good]] = 1.0
+            if hook is not None:
+                hook(frame, points, i[good], rr[good], cc[good], vec)
     return idx
 
 
 def accumulate(points: np.ndarray, frames: Iterable[Frame], num_classes: int, *, depth_tol: float = 0.05,
-               pixel_radius: int = 0, hard: bool = False, best: BestView | None = None) -> Evidence:
+               pixel_radius: int = 0, hard: bool = False, best: BestView | None = None,
+               hook: Optional[LinkHook] = None) -> Evidence:
     """Evidence of all ``frames`` for (N, 3) world ``points``.
 
     Args:
         hard: use each pixel's argmax label even when probabilities are given
             (Bayesian fusion by votes).
         best: feature maps: also track each point's most confident view (:class:`BestView`).
+        hook: sees every link set (:data:`LinkHook`; a lifting rule's streaming update).
     """
     ev = Evidence.empty(points.shape[0], num_classes)
     for frame in frames:
-        add_frame(ev, points, frame, depth_tol=depth_tol, pixel_radius=pixel_radius, hard=hard, best=best)
+        add_frame(ev, points, frame, depth_tol=depth_tol, pixel_radius=pixel_radius, hard=hard, best=best,
+                  hook=hook)
     return ev
 
 
@@ -358,6 +383,7 @@ class RunEvidence:
         self.best: BestView | None = None  # set by a features run: the most confident view's feature
         self.basis = None  # a features run's FeatureBasis (predictions.basis=auto): mass has its k + s columns
         self.energy = np.zeros(2)  # with a basis: the linked pixels' kept energy and their number
+        self.hook: Optional[LinkHook] = None  # set by a lifting rule's run: sees the method's links (rows 0..N-1)
         self.grow(n, max(n, capacity))
 
     @classmethod
@@ -406,8 +432,10 @@ class RunEvidence:
         hi = lo + points.shape[0]
         ev = Evidence(mass=self._mass[lo:hi], links=self._links[lo:hi], points_per_frame=self._ppf)
         best = self.best if lo == 0 and self.best is not None and hi <= self.best.score.size else None
+        hook = self.hook if lo == 0 else None
         seen = lo + add_frame(ev, points, frame, depth_tol=self.depth_tol, pixel_radius=self.pixel_radius,
-                              best=None if self.separate else best, basis=self.basis, energy=self.energy)
+                              best=None if self.separate else best, basis=self.basis, energy=self.energy,
+                              hook=hook)
         if not self.separate:
             return seen, seen
         base = Evidence(mass=self._base_mass[lo:hi], links=self._base_links[lo:hi], points_per_frame=self._base_ppf)

@@ -1,6 +1,10 @@
 """The exact fixed point of Eq. 10, (I - P) Z = B (``solver=exact``): what the diffusion would
 reach with no early stop. It scores far below the paper's early-stopped iteration (on scene0470
-79 against 94 mIoU): the early stop is part of the method; this is the yardstick."""
+79 against 94 mIoU): the early stop is part of the method; this is the yardstick.
+
+With ``solver.tikhonov`` (:func:`tikhonov_scale`) the system carries Splat Feature Solver's
+Tikhonov term toward each point's own average: lifting as a sparse linear inverse problem solved
+in closed form."""
 from __future__ import annotations
 
 from typing import Optional
@@ -14,6 +18,39 @@ from diffuser_lab import progress
 from diffuser_lab.backends import resolve_backend
 
 from .diffusion import DiffusionResult, Observer, System, observes, show
+
+def tikhonov_scale(graph, links: np.ndarray, pixel_weight: float, t: float) -> np.ndarray:
+    """(N,) float32 row factors that put a Tikhonov term toward each point's per-point average into
+    Eqs. 14-15: Splat Feature Solver (Xiong et al., ICLR 2026, arXiv 2508.12216), Sec. 3, the lifting
+    as a sparse linear inverse problem with its Tikhonov guidance, (A^T A + mu I) x = A^T b + mu x_0
+    ("soft diagonal dominance"), here with A^T A the graph's Laplacian plus the pixel term and x_0 the
+    per-point average of the pixel vectors.
+
+    The fixed point of Eq. 10 minimises (for a symmetric G)
+        1/2 Sum_ij G_ij |z_i - z_j|^2 + lambda Sum_i Sum_(p -> i) |z_i - y_p|^2 ;
+    the term t d_i |z_i - mean_i|^2 with d_i = Sum_j G_ij + lambda n_i (row i's diagonal; n_i its pixel
+    links, mean_i = E_i / n_i) adds t d_i to the diagonal and t d_i mean_i to the right-hand side:
+    row i becomes (1 + t) d_i z_i - Sum_j G_ij z_j = lambda E_i + t d_i E_i / n_i. That is Eqs. 14-15
+    with the pixel mass E_i and count n_i both multiplied by
+
+        alpha_i = 1 + t d_i / (lambda n_i)     (1 where n_i = 0: no average to pull toward),
+
+    so the core solves it unchanged (features: :func:`~diffuser_lab.method.features.encode` of alpha F
+    and alpha n is alpha times the encoded row). t = 0: Eq. 10's fixed point; t -> inf: each point's
+    average (the Bayesian evidence, where a point has evidence)."""
+    links = np.asarray(links, np.float64)
+    if hasattr(graph, "sorted_row_sums"):
+        wsum = np.empty(graph.n, np.float64)
+        wsum[graph.order] = graph.sorted_row_sums
+    else:
+        wsum = graph.weights.sum(1, dtype=np.float64)
+    lam = float(pixel_weight)
+    d = wsum + lam * links
+    alpha = np.ones(links.shape[0], np.float64)
+    seen = links > 0
+    alpha[seen] = 1.0 + float(t) * d[seen] / (lam * links[seen])
+    return alpha.astype(np.float32)
+
 
 EXACT_DIRECT_MAX = 1_000_000
 """solver=exact factorises I - P (SuperLU) up to this many reachable points, else GMRES + ILU."""

@@ -4,8 +4,10 @@ A method turns the frames' pixel evidence into point labels. Each entry says in 
 
 - whether it diffuses over the kNN graph (Eqs. 3-4, 10-16) or labels from the evidence alone,
 - which part of the graph and evidence it fixes (LDLS: no normal term, K = 10, a 5x5 pixel window),
-- which evidence it reads (the frames' evidence as configured, the Bayesian baseline's, one view's),
-- the rows it has in the single-frame protocol (1 view, W views; paper Table II),
+- which evidence it reads (the frames' evidence as configured, the Bayesian baseline's, one view's,
+  or a streaming lifting rule's per-point result: :mod:`diffuser_lab.method.lifters`),
+- the rows it has in the single-frame protocol (1 view, W views; paper Table II; the lifting rules
+  of 2024-2026 add theirs when they are the run's method),
 
 and :meth:`FusionMethod.label` does the labelling. ``runs/pipeline.py`` and
 ``runs/single_frame.py`` both ask :data:`METHODS`; the resolve step (:mod:`diffuser_lab.runs.resolve`)
@@ -27,6 +29,7 @@ from .solvers import solve
 EVIDENCE = "evidence"  # the frames' evidence with the method's pixel window (Eqs. 11-13)
 BASELINE = "baseline"  # the Bayesian baseline's: single pixel, likelihoods or votes (method.bayesian_mode)
 ONE_VIEW = "one_view"  # the evidence of one frame (method.view)
+RULE = "rule"  # a lifting rule's per-point values, kept as the frames stream in (method/lifters.py)
 
 
 @dataclass(frozen=True)
@@ -42,6 +45,8 @@ class FusionMethod:
     k: Optional[int] = None  # neighbours of the kNN graph (Eq. 3)
     pixel_radius: Optional[int] = None
     multi_view_row: bool = True  # a W-view row in the single-frame protocol besides the 1-view one
+    rule: Optional[str] = None  # evidence=RULE: the rule's name in lifters.RULES
+    table_ii: bool = True  # a row of every single-frame run (else only when it is the run's method.name)
 
     def apply(self, cfg) -> None:
         """Set what the method fixes in ``cfg`` (a :class:`~diffuser_lab.config.Config`), so the
@@ -81,6 +86,15 @@ METHODS: Registry = Registry("method.name", "fusion method", [  # the order of t
     FusionMethod("bayesian", "per-point sum of pixel likelihoods (or votes), argmax", graph=False,
                  evidence=BASELINE),
     FusionMethod("diffuser", "the paper's method: the evidence diffused over the kNN graph", graph=True),
+    # the training-free lifting rules of 2024-2026 on the same evidence (method/lifters.py, docs/lifters.md)
+    FusionMethod("weighted", "Occam's LGS / Dr. Splat: the average weighted by each view's share of the point "
+                 "(incidence, distance, depth margin)", graph=False, evidence=RULE, rule="weighted", table_ii=False),
+    FusionMethod("median", "VALA: streaming weighted geometric median (Weiszfeld steps; features in cosine space)",
+                 graph=False, evidence=RULE, rule="median", table_ii=False),
+    FusionMethod("topk", "The Bare Necessities: the average of each point's method.top_k most confident views",
+                 graph=False, evidence=RULE, rule="topk", table_ii=False),
+    FusionMethod("vote", "LabelMaker: hard votes of the depth-checked views (features: of their query labels)",
+                 graph=False, evidence=RULE, rule="vote", table_ii=False),
 ], sort_names=True)
 """The fusion methods by name (``method.name``)."""
 

@@ -15,7 +15,7 @@ import numpy as np
 
 from diffuser_lab import progress
 from diffuser_lab.backends import resolve_backend
-from diffuser_lab.config import Config, DepthNoiseConfig, SceneConfig, SolverName, SparseClasses
+from diffuser_lab.config import Config, DepthNoiseConfig, GraphAffinity, SceneConfig, SolverName, SparseClasses
 from diffuser_lab.data import sources, validate
 from diffuser_lab.data.frames import FrameLoop, LazyFrames, keyframes, read_ahead, without
 from diffuser_lab.data.geometry import VoxelGrid, nearest_transfer, voxel_downsample, voxel_edge
@@ -26,12 +26,13 @@ from diffuser_lab.data.scene import IGNORE, SCANNET20, Frame, Scene, Taxonomy
 from diffuser_lab.data.sensor import noisy_frames, sensor_model
 from diffuser_lab.data.taxonomy import resolve_taxonomy
 from diffuser_lab.hooks import RunHooks
-from diffuser_lab.method import calibration, fusion
+from diffuser_lab.method import affinity, calibration, fusion, lifters
 from diffuser_lab.method import evidence as evidence_mod
 from diffuser_lab.method import features as features_mod
 from diffuser_lab.method.diffusion import DiffusionResult, Observer, labels_from_scores, normalise, sparse_by_size
-from diffuser_lab.method.evidence import RunEvidence
+from diffuser_lab.method.evidence import Evidence, RunEvidence
 from diffuser_lab.method.basis import BasisFeatures, FeatureBasis, fit_basis, query_span
+from diffuser_lab.method.exact import tikhonov_scale
 from diffuser_lab.method.queries import Queries, labels_of_cosines, query_classes, query_labels, similarity
 from diffuser_lab.method.graph import KnnGraph, graph_stage, make_graph
 from diffuser_lab.method.metrics import confusion_matrix, score, scores_from_confusion
@@ -385,12 +386,14 @@ def feature_basis(cfg: Config, queries: Queries, maps: Sequence[np.ndarray]) -> 
         return fit_basis(sample, queries.embeddings, pc.basis_dim, pc.basis_probes, cfg.seed)
 
 
-def _feature_evidence(cfg: Config, lift: FeatureLift, n: int, maps: Sequence[np.ndarray], hooks: RunHooks) -> RunEvidence:
-    """A features run's evidence for ``n`` points: in the basis fitted on ``maps`` (``predictions.basis=auto``,
-    :func:`feature_basis`) or in all D columns; with the most confident view tracked, and the hooks
-    told the queries (in the basis' coordinates when there is one)."""
+def _feature_evidence(cfg: Config, lift: FeatureLift, n: int, maps: Sequence[np.ndarray], hooks: RunHooks,
+                      auto: bool) -> RunEvidence:
+    """A features run's evidence for ``n`` points: in the basis fitted on ``maps`` (``auto``:
+    ``predictions.basis=auto`` and a method that diffuses, :func:`feature_basis`) or in all D columns;
+    with the most confident view tracked, and the hooks told the queries (in the basis' coordinates
+    when there is one)."""
     D = lift.queries.dim
-    basis = feature_basis(cfg, lift.queries, maps) if cfg.predictions.basis == "auto" else None
+    basis = feature_basis(cfg, lift.queries, maps) if auto else None
     if basis is not None:
         lift.basis, lift.basis_info = basis, basis.record()
     evidence = RunEvidence.of(cfg, n, basis.width if basis else D)
@@ -419,6 +422,40 @@ def basis_kept(lift: FeatureLift, energy: np.ndarray) -> dict:
             out["norm_error"] = {"median": round(float(np.median(err)), 6),
                                  "p95": round(float(np.percentile(err, 95)), 6)} if share.size else None
     return out
+def lifting_rule(method: fusion.FusionMethod, cfg: Config, n: int, dim: int, num_classes: int,
+                 lift: Optional[FeatureLift] = None) -> lifters.Rule:
+    """The streaming rule of a ``evidence=RULE`` method (:mod:`diffuser_lab.method.lifters`) for ``n``
+    points of ``dim`` columns (C; D in a features run, whose ``lift`` gives topk its confidence and
+    vote its per-view labels)."""
+    return lifters.make(method.rule, n, dim, features=lift is not None, num_classes=num_classes,
+                        depth_tol=cfg.evidence.depth_tol, top_k=cfg.method.top_k,
+                        confidence=lift.confidence if lift is not None else None,
+                        classify=lift.labels if lift is not None else None)
+
+
+def graph_variant(graph: KnnGraph, ev: Evidence, cfg: Config, *, colors: Optional[np.ndarray] = None,
+                  average: Optional[np.ndarray] = None) -> Evidence:
+    """What ``graph.affinity`` and ``solver.tikhonov`` change of a graph method's inputs: the graph's
+    weights (in place: LUDVIG's Eq. 4 x the points' similarity, :mod:`~diffuser_lab.method.affinity`;
+    ``colors`` / ``average``: the work points' colours, a features run's averaged features) and the
+    evidence the system reads (Splat Feature Solver's Tikhonov term, :func:`~diffuser_lab.method.exact.tikhonov_scale`:
+    a new Evidence; ``ev`` is not changed). Both off (the defaults): ``ev`` and the graph as they are."""
+    attrs, known = affinity.attributes(cfg.graph.affinity, colors=colors, mass=ev.mass, links=ev.links, average=average)
+    if attrs is not None:
+        affinity.apply_affinity(graph, attrs, known, cfg.graph.sigma_c)
+    if cfg.solver.tikhonov > 0:
+        alpha = tikhonov_scale(graph, ev.links, cfg.evidence.pixel_weight, cfg.solver.tikhonov)
+        ev = Evidence(mass=ev.mass * alpha[:, None], links=ev.links * alpha)
+    return ev
+
+
+def _work_colors(scene: Scene, grid: Optional[VoxelGrid]) -> Optional[np.ndarray]:
+    """(M, 3) the work points' colours (a voxel's mean; [0, 1] float or the scene's uint8), None without."""
+    if scene.colors is None:
+        return None
+    if grid is None:
+        return scene.colors
+    return grid.mean(np.asarray(scene.colors, np.float32) / (255.0 if scene.colors.dtype == np.uint8 else 1.0))
 
 
 def _sparse_classes(solver, n_work: int, num_classes: int) -> int:
@@ -469,13 +506,15 @@ def _run(cfg: Config, scene: Optional[Scene], observer: Optional[Observer], hook
     centres, inverted = [], []
     ev_kw = dict(depth_tol=cfg.evidence.depth_tol, pixel_radius=cfg.evidence.pixel_radius)
     evidence: Optional[RunEvidence] = None  # made at the first frame: D columns for feature maps
-    feats, lift = False, None
+    feats, lift, rule = False, None, None
     conf2d = None
     t["predictions"] = t["evidence"] = 0.0
     # a features run with predictions.basis=auto reads the frames its basis is fitted on first (evenly
     # spaced) and holds them until it is: their evidence and hooks come after, then the other frames'
+    # (a lifting rule sees each link's unit feature in R^D: its run diffuses no basis)
+    basis_auto = cfg.predictions.basis == "auto" and method.evidence != fusion.RULE
     sample = basis_frames(len(frames), cfg.predictions.basis_frames) \
-        if cfg.predictions.source == "features" and cfg.predictions.basis == "auto" and len(frames) else []
+        if cfg.predictions.source == "features" and basis_auto and len(frames) else []
     first = set(sample)
     pending: Optional[list] = []
     loop = FrameLoop(frames, f"frames: {describe_predictions(cfg.predictions)} + evidence",
@@ -495,6 +534,9 @@ def _run(cfg: Config, scene: Optional[Scene], observer: Optional[Observer], hook
                 lift = feature_lift(cfg, tax, f.features.shape[2])
             else:
                 evidence = RunEvidence.of(cfg, pts.shape[0], tax.num_classes)
+                if method.evidence == fusion.RULE:  # a lifting rule keeps its state from the same links
+                    rule = evidence.hook = lifting_rule(method, cfg, pts.shape[0], evidence.num_classes,
+                                                        tax.num_classes)
         elif (f.features is not None) != feats:
             raise ValueError(f"frame {f.name}: {'no ' if feats else ''}feature map, unlike the first frame")
         if f.gt_labels is not None and not feats:
@@ -508,7 +550,11 @@ def _run(cfg: Config, scene: Optional[Scene], observer: Optional[Observer], hook
                 t["predictions"] += time.perf_counter() - tp
                 continue
             tb = time.perf_counter()
-            evidence = _feature_evidence(cfg, lift, pts.shape[0], [g.features for _, g in pending], hooks)
+            evidence = _feature_evidence(cfg, lift, pts.shape[0], [g.features for _, g in pending], hooks,
+                                         basis_auto)
+            if method.evidence == fusion.RULE:  # a lifting rule keeps its state from the same links
+                rule = evidence.hook = lifting_rule(method, cfg, pts.shape[0], evidence.num_classes,
+                                                    tax.num_classes, lift)
             t["basis"] = time.perf_counter() - tb
             tp += t["basis"]
             batch, pending = pending, None
@@ -535,6 +581,8 @@ def _run(cfg: Config, scene: Optional[Scene], observer: Optional[Observer], hook
     graph = diff = system = None
     if method.evidence == fusion.BASELINE:
         chosen = ev_base
+    elif method.evidence == fusion.RULE:
+        chosen = Evidence(mass=rule.values() if rule is not None else np.zeros_like(ev.mass), links=ev.links)
     elif method.evidence == fusion.ONE_VIEW:
         n_frames = len(frames)
         if not -n_frames <= cfg.method.view < n_frames:
@@ -558,6 +606,8 @@ def _run(cfg: Config, scene: Optional[Scene], observer: Optional[Observer], hook
         tg = time.perf_counter()
         with graph_stage(pts.shape[0], cfg.graph, cfg.graph.use_normals and nrm is None):
             nrm, graph = make_graph(pts, nrm, cfg.graph)
+            colors = _work_colors(scene, grid) if cfg.graph.affinity == GraphAffinity.colour else None
+            chosen = graph_variant(graph, chosen, cfg, colors=colors, average=lift.average if lift is not None else None)
             if lift is None:
                 system = normalise(graph, chosen.mass, cfg.evidence.pixel_weight)
         t["graph"] = time.perf_counter() - tg
@@ -570,6 +620,9 @@ def _run(cfg: Config, scene: Optional[Scene], observer: Optional[Observer], hook
         lift.method = F if lift.basis is None else lift.basis.split(F)
         work_labels = lift.labels(lift.method)
         diff = dataclasses.replace(diff, Z=lift.scores(lift.method))  # the class scores its observers saw
+    elif rule is not None and rule.classes:  # class votes of the views' query labels (method/lifters.py)
+        lift.method = None
+        work_labels, diff = labels_from_scores(chosen.mass), None
     else:
         lift.method = chosen.mass if lift.basis is None else lift.basis.split(chosen.mass)
         work_labels, diff = lift.labels(lift.method), None
@@ -600,7 +653,8 @@ def _run(cfg: Config, scene: Optional[Scene], observer: Optional[Observer], hook
             if method.name != "bayesian":
                 post["bayesian"] = ev_base.mass
         else:
-            post = {method.name: diff.Z if diff is not None else lift.scores(lift.method)}
+            post = {method.name: diff.Z if diff is not None else
+                    chosen.mass if lift.method is None else lift.scores(lift.method)}
             if method.name != "bayesian":
                 post["bayesian"] = lift.scores(lift.average)
             post["best_view"] = lift.scores(lift.best_view)

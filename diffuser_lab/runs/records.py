@@ -151,6 +151,8 @@ def _write_features(run_dir: Path, result, lf, rows) -> dict:
         np.savez(run_dir / BASIS_FILE, **parts)
         out["features_basis"] = BASIS_FILE
     for name, work in files:
+        if work is None:  # a rule without features of its own (vote: class votes)
+            continue
         n = len(work) if rows is None else len(rows)
         # a chunk of rows at a time (a basis' rows reconstructed in R^D: FeatureLift.unit_rows), appended
         # to the file: no (N, D) array, no memory map's page faults

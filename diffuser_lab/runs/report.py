@@ -140,16 +140,19 @@ def table(res: RunResult, run_dir: Path | None = None) -> str:
 
 
 def single_frame_summary(sf) -> dict:
-    """summary.json content of a single-frame protocol run; ``metrics`` is the Diffuser
-    W-view row, ``baseline.bayesian`` the Bayesian W-view row, ``rows`` all of Table II;
-    ``metrics.calibration`` has every row's calibration (:func:`calibration_key`)."""
+    """summary.json content of a single-frame protocol run; ``metrics`` is the run's method's widest
+    row (Diffuser's W-view row by default), ``baseline.bayesian`` the Bayesian W-view row, ``rows``
+    all of Table II (and the method's rows); ``metrics.calibration`` has every row's calibration
+    (:func:`calibration_key`)."""
     rows = sf.rows
     pick = {(r["method"], r["views"]): r for r in rows}
-    main = pick.get(("diffuser", sf.window))
+    method = getattr(sf, "method", "diffuser")
+    main = max((r for r in rows if r["method"] == method), key=lambda r: r["views"], default=None) \
+        or pick.get(("diffuser", sf.window))
     bayes = pick.get(("bayesian", sf.window))
     return {
         "protocol": "single_frame",
-        "method": "diffuser",
+        "method": main["method"],
         "scene": sf.scene.name,
         "n_points": sf.mean_points,
         "n_frames": len(sf.scene.frames),

@@ -60,7 +60,29 @@ def resolve(cfg: Config, protocols: Optional[Mapping[str, Any]] = None) -> Confi
         section, attr = key.split(".")
         check_name(key, getattr(getattr(cfg, section), attr), valid)
     cfg = with_options(cfg)
+    _check_protocol_keys(cfg)
     return with_method(cfg, cfg.method.name)
+
+
+LIFTING_PROTOCOLS = ("global_3d", "single_frame")
+"""The protocols that run the lifting rules (method/lifters.py), ``graph.affinity`` and ``solver.tikhonov``."""
+
+
+def _check_protocol_keys(cfg: Config) -> None:
+    """The lifting rules, ``graph.affinity`` and ``solver.tikhonov`` run in the global and the
+    single-frame protocol; elsewhere one line says so (rather than a run that ignores them)."""
+    if cfg.protocol.name in LIFTING_PROTOCOLS:
+        return
+    what = []
+    if fusion.get(cfg.method.name).evidence == fusion.RULE:
+        what.append(f"method.name={cfg.method.name}")
+    if cfg.graph.affinity != config.GraphAffinity.none:
+        what.append(f"graph.affinity={cfg.graph.affinity.value}")
+    if cfg.solver.tikhonov > 0:
+        what.append(f"solver.tikhonov={cfg.solver.tikhonov:g}")
+    if what:
+        raise config.ConfigError(f"{', '.join(what)}: runs in protocol={' or '.join(LIFTING_PROTOCOLS)}, "
+                                 f"not protocol={cfg.protocol.name}")
 
 
 def with_options(cfg: Config) -> Config:

@@ -204,6 +204,8 @@ METRICS = {
     "bayesian_brier": "metrics.calibration.{bayesian}.brier",
     "iterations": "diffusion.iterations",
     "total_s": "timings_s.total",
+    "load_s": "timings_s.load",  # in total_s; 0 for a sweep job that reused the scene loaded last
+    "peak_rss_gb": "memory.peak_rss_gb",  # this job's peak resident memory (diffuser_lab/runs/memory.py)
     "diffusion_s": "timings_s.diffusion",
     "graph_s": "timings_s.graph",
 }
@@ -303,7 +305,7 @@ def markdown(cols: list[str], rows: list[dict], metrics=("miou", "bayesian_miou"
         cells = [_fmt(r[k]) for k in keys]
         for m in metrics:
             mean, std = r.get(m), r.get(m + "_std")
-            digits = 2 if m.endswith("_s") else 3 if m.endswith(("nll", "brier")) else 1
+            digits = 2 if m.endswith(("_s", "_gb")) else 3 if m.endswith(("nll", "brier")) else 1
             cells.append("-" if is_nan(mean) else (f"{mean:.{digits}f} ± {std:.{digits}f}" if r["runs"] - r["failed"] > 1
                                                     else f"{mean:.{digits}f}"))
         cells += [str(r["runs"]), str(r["failed"])]

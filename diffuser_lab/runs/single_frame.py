@@ -9,7 +9,10 @@ depth or without a label count as misses of their true class.
 Rows (paper Table II): each fusion method of :data:`~diffuser_lab.method.fusion.METHODS` with
 1 view and, where it fuses several, W views: direct projection (1), LDLS (1), Bayesian fusion
 (1, W), Diffuser (1, W); Bayesian with 1 view is the direct row up to voxel merging. The
-Bayesian rows read the baseline's evidence (single pixel), as in global runs.
+Bayesian rows read the baseline's evidence (single pixel), as in global runs. A method outside
+Table II (the lifting rules of :mod:`diffuser_lab.method.lifters`) adds its rows when it is the run's
+``method.name``; ``graph.affinity`` and ``solver.tikhonov`` change the graph methods' rows as in
+global runs (:func:`~diffuser_lab.runs.pipeline.graph_variant`).
 """
 from __future__ import annotations
 
@@ -21,7 +24,7 @@ from typing import Optional
 import numpy as np
 from scipy.ndimage import distance_transform_edt
 
-from diffuser_lab.config import Config, FrameNormals, SparseClasses
+from diffuser_lab.config import Config, FrameNormals, GraphAffinity, SparseClasses
 from diffuser_lab.data.frames import FrameLoop
 from diffuser_lab.data.geometry import backproject, normals_from_depth, voxel_downsample, voxel_edge
 from diffuser_lab.data.predictions import with_predictions
@@ -31,11 +34,11 @@ from diffuser_lab.hooks import RunHooks
 from diffuser_lab.method import calibration, fusion
 from diffuser_lab.method import evidence as evidence_mod
 from diffuser_lab.method import features as features_mod
-from diffuser_lab.method.diffusion import normalise
-from diffuser_lab.method.graph import graph_stage, make_graph
+from diffuser_lab.method.diffusion import labels_from_scores, normalise
+from diffuser_lab.method.graph import SortedKnnGraph, graph_stage, make_graph
 from diffuser_lab.method.metrics import confusion_matrix, scores_from_confusion
 
-from .pipeline import FeatureLift, _Observe, feature_lift, load_scene
+from .pipeline import FeatureLift, _Observe, feature_lift, graph_variant, lifting_rule, load_scene
 from .resolve import resolve, with_method
 
 
@@ -114,6 +117,7 @@ class SingleFrameResult:
     mean_points: float
     timings_s: dict
     filled: bool = False  # protocol.fill_missing_depth was on (not the paper's protocol)
+    method: str = "diffuser"  # the run's method.name: summary.json's metrics are its widest row
 
 
 def image_normals(f: Frame, pix: np.ndarray, to_work: np.ndarray, m: int, window: int) -> np.ndarray:
@@ -151,7 +155,8 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None, on_frame=None,
         raise ValueError(f"scene {scene.name}: no frames for the single-frame protocol")
     W = cfg.protocol.window
     targets = list(range(0, n, cfg.protocol.target_step))[: cfg.protocol.max_targets]
-    order = [(m.name, v) for m in fusion.METHODS.values() for v in m.single_frame_rows(W)]
+    order = [(m.name, v) for m in fusion.METHODS.values() if m.table_ii or m.name == cfg.method.name
+             for v in m.single_frame_rows(W)]
     observed = ("diffuser", max(v for name, v in order if name == "diffuser")) if any(
         name == "diffuser" for name, _ in order) else None  # the diffusion the hooks see, per target
     count = 0
@@ -239,8 +244,33 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None, on_frame=None,
                         graphs[gkey] = make_graph(work, nrm, mc.graph)[1]
                     t["graph"] += time.perf_counter() - tg
             ev, key = evidence[ekey], (name, views)
+            if m.evidence == fusion.RULE:  # a lifting rule: its own pass over the same links
+                te = time.perf_counter()
+                dim = tax.num_classes if lift is None else lift.queries.dim
+                rule = lifting_rule(m, mc, work.shape[0], dim, tax.num_classes, lift)
+                evidence_mod.accumulate(work, win_frames if views > 1 else [f], dim, pixel_radius=radius, hook=rule,
+                                        **ev_kw)
+                values = rule.values()
+                t["evidence"] += time.perf_counter() - te
+                if lift is None or rule.classes:
+                    work_labels[key], work_scores[key] = labels_from_scores(values), values
+                else:
+                    work_labels[key], work_scores[key] = lift.labels(values), lift.scores(values)
+                continue
+            graph = graphs.get(gkey) if m.graph else None
+            if m.graph and (cfg.graph.affinity != GraphAffinity.none or cfg.solver.tikhonov > 0):
+                vkey = ("variant", gkey, ekey)  # the graph and evidence of this evidence's variant
+                if vkey not in graphs:
+                    tg = time.perf_counter()
+                    g = graph if cfg.graph.affinity == GraphAffinity.none else copy_graph(graph)
+                    colors = (frame_colors(f, pix, to_work, work.shape[0])
+                              if cfg.graph.affinity == GraphAffinity.colour else None)
+                    average = features_mod.normalised(ev.mass)[0] if lift is not None else None
+                    graphs[vkey] = g, graph_variant(g, ev, mc, colors=colors, average=average)
+                    t["graph"] += time.perf_counter() - tg
+                graph, ev = graphs[vkey]
             if lift is None and m.graph:
-                system = normalise(graphs[gkey], ev.mass, lam)
+                system = normalise(graph, ev.mass, lam)
             td = time.perf_counter()
             if lift is None:
                 work_labels[key], diff = m.label(ev.mass, system=system, solver=solver,
@@ -249,8 +279,8 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None, on_frame=None,
                     seen = diff
                 work_scores[key] = diff.Z if diff is not None else ev.mass
             else:  # a features run, as the global protocol's (method/features.py; the rows share ev: a copy)
-                F = (features_mod.diffuse_features(graphs[gkey], ev.mass.copy(), ev.links, lam,
-                                                   solver)[0] if m.graph else ev.mass)
+                F = (features_mod.diffuse_features(graph, ev.mass.copy(), ev.links, lam, solver)[0] if m.graph
+                     else ev.mass)
                 work_labels[key], work_scores[key] = lift.labels(F), lift.scores(F)
             if m.graph:
                 t["diffusion"] += time.perf_counter() - td
@@ -283,9 +313,31 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None, on_frame=None,
     p2 = pred2d.result(names) if pred2d.conf is not None else None
     res = SingleFrameResult(scene=scene, window=W, targets=targets, rows=results, predictions_2d=p2,
                             mean_points=float(np.mean(n_points)) if n_points else 0.0, timings_s=t,
-                            filled=bool(fill))
+                            filled=bool(fill), method=cfg.method.name)
     hooks.on_result(res)
     return res
+
+
+def copy_graph(g: SortedKnnGraph) -> SortedKnnGraph:
+    """The graph with its own edge weights (``graph.affinity`` changes them per evidence)."""
+    return SortedKnnGraph(g.order, g.sorted_neighbors, g.sorted_weights.copy(), g.sorted_row_sums.copy(), g.rho,
+                          g.sigma_d)
+
+
+def frame_colors(f: Frame, pix: np.ndarray, to_work: np.ndarray, m: int) -> Optional[np.ndarray]:
+    """(m, 3) float32 [0, 1] the work points' colours from the target frame's image (a work point:
+    the mean of its pixels'); None when the frame has no colour image (``graph.affinity=colour``
+    then says so)."""
+    rgb = getattr(f, "rgb", None)
+    if rgb is None:
+        return None
+    rgb = np.asarray(rgb)
+    if rgb.shape[:2] != f.shape:
+        raise ValueError(f"frame {f.name}: colour image {rgb.shape[:2]} != depth {f.shape}")
+    c = rgb[pix[:, 0], pix[:, 1], :3].astype(np.float64) / (255.0 if rgb.dtype == np.uint8 else 1.0)
+    counts = np.bincount(to_work, minlength=m).astype(np.float64)
+    cols = [np.bincount(to_work, weights=c[:, j], minlength=m) for j in range(3)]
+    return (np.stack(cols, 1) / np.maximum(counts, 1)[:, None]).astype(np.float32)
 
 
 def table(res: SingleFrameResult) -> str:
