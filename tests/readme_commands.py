@@ -110,7 +110,10 @@ def classify(c: Command) -> Command:
         c.key, c.append = "pip", ["--dry-run"]  # resolves the extras together without changing the venv
     elif " -m +experiment=" in t:
         c.key = "sweep"
-        c.append = SCANNET_SMALL if "scene=scannet0470" in t else DEMO_SMALL
+        # one seed of the three, as on the real scene; the k sweeps keep theirs (the seeds' mean +- std
+        # table, and the launchers compared with the basic one on the same jobs)
+        c.append = SCANNET_SMALL if "scene=scannet0470" in t else \
+            DEMO_SMALL + ([] if re.search(r"\+experiment=k\b", t) else ["seed=0"])
     elif " -m " in t and "diffuser-lab " in t:
         c.key = "multirun"
     elif "diffuser-lab --cfg" in t:
