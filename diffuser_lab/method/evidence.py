@@ -37,6 +37,7 @@ from typing import Callable, Iterable, Optional
 
 import numpy as np
 
+from diffuser_lab.backends import features as compiled_features
 from diffuser_lab.backends.evidence import hard_votes
 from diffuser_lab.backends.threads import blas_one_thread
 from diffuser_lab.config import BayesianMode
@@ -248,6 +249,22 @@ class BestView:
         self.features[idx[better]] = f[better]
 
 
+def _add_basis_samples(ev: Evidence, prep: ProjectedMap, fshape: tuple[int, int], rows: np.ndarray,
+                       cols: np.ndarray, shape: tuple[int, int], idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`sample_basis` of the pixels and the usable ones added to ``ev``'s rows ``idx`` (each
+    once): one compiled pass with numba (:func:`diffuser_lab.backends.features.sample_add`, bit
+    for bit the same), else numpy. Returns the (M, k + s) samples and (M,) usable."""
+    mass, links = ev.mass, ev.links
+    done = compiled_features.sample_add(prep.coords, prep.gram, prep.valid, fshape, shape, rows, cols, idx, mass,
+                                        links)
+    if done is not None:
+        return done
+    f, good, _ = sample_basis(prep, fshape, rows, cols, shape)
+    mass[idx[good]] += f[good]
+    links[idx[good]] += 1
+    return f, good
+
+
 def _add_features(ev: Evidence, points: np.ndarray, frame: Frame, depth_tol: float, pixel_radius: int,
                   best: BestView | None = None, basis=None, energy: np.ndarray | None = None,
                   hook: Optional[LinkHook] = None) -> np.ndarray:
@@ -269,14 +286,14 @@ def _add_features(ev: Evidence, points: np.ndarray, frame: Frame, depth_tol: flo
                 sl = slice(lo, lo + FEATURE_CHUNK)
                 if basis is None:
                     f, good = sample_features(fmap, rr[sl], cc[sl], (h, w), prepared)
+                    ev.mass[i[sl][good]] += f[good]
+                    ev.links[i[sl][good]] += 1
                 else:
-                    f, good, _ = sample_basis(prepared, fmap.shape[:2], rr[sl], cc[sl], (h, w))
+                    f, good = _add_basis_samples(ev, prepared, fmap.shape[:2], rr[sl], cc[sl], (h, w), i[sl])
                     if energy is not None:  # the share of the pixels' energy the basis keeps
                         kept = f[good, : basis.k]
                         energy[0] += float(np.einsum("ij,ij->", kept, kept, dtype=np.float64))
                         energy[1] += int(good.sum())
-                ev.mass[i[sl][good]] += f[good]
-                ev.links[i[sl][good]] += 1
                 if best is not None and dr == 0 and dc == 0:
                     best.offer(i[sl][good], f[good] if basis is None else f[good, : basis.k])
                 if hook is not None:  # (a lifting rule's run diffuses no basis: unit features in R^D)

@@ -30,12 +30,14 @@ import dataclasses
 
 import numpy as np
 
+from diffuser_lab.backends import features as compiled_features
 from diffuser_lab.backends.records import to_float16
 
 from .diffusion import normalise
 from .solvers import solve
 
-__all__ = ["encode", "decode", "normalised", "unit_float16", "diffuse_features", "class_scores", "CLIP_TEMPERATURE"]
+__all__ = ["encode", "decode", "normalised", "unit_float16", "diffuse_features", "class_scores", "top_probability",
+           "CLIP_TEMPERATURE"]
 
 
 def normalised(f: np.ndarray, axis: int = -1) -> tuple[np.ndarray, np.ndarray]:
@@ -144,3 +146,68 @@ def class_scores(cos: np.ndarray, to_class: np.ndarray, num_classes: int,
         if 0 <= c < num_classes:
             np.maximum(out[:, c], s[:, q], out=out[:, c])
     return out
+
+
+def top_probability(cos: np.ndarray, to_class: np.ndarray, num_classes: int,
+                    temperature: float = CLIP_TEMPERATURE) -> np.ndarray:
+    """(N, Q) cosines -> (N,) float32 the top class's probability: max over classes of
+    :func:`class_scores` over their sum (0 where the sum is 0), bit for bit.
+
+    What picks a point's most confident view, once per linked pixel: the scores are made class-major
+    ((C, N): whole rows per class and query, no strided columns) and the row sum adds the classes in
+    the order NumPy's reduction over a row of C <= 128 numbers uses (eight accumulators, then the
+    rest), so the result equals ``s.max(1) / s.sum(1)`` of :func:`class_scores`' ``s`` exactly (the
+    test compares them). With numba the rows are one compiled pass after the exponentials
+    (:func:`diffuser_lab.backends.features.top_probability_rows`, the same operations in the same order). Other
+    inputs (not float32, C > 128) take the plain path."""
+    cos = np.asarray(cos)
+    to_class = np.asarray(to_class)
+    if cos.dtype != np.float32 or cos.ndim != 2 or not 0 < num_classes <= 128:
+        return _top_of_scores(class_scores(cos, to_class, num_classes, temperature))
+    n = cos.shape[0]
+    if compiled_features.available() and n:
+        e = np.subtract(cos, np.float32(1), order="C")  # class_scores' exp values (NaN kept: the kernel's 0)
+        e /= np.float32(temperature)
+        np.exp(e, out=e)
+        out = compiled_features.top_probability_rows(e, to_class, num_classes)
+        if out is not None:
+            return out
+    t = np.array(cos.T, order="C")  # (Q, N) a copy (never a view: worked in place)
+    np.nan_to_num(t, copy=False, nan=-np.inf)
+    t -= 1
+    t /= np.float32(temperature)
+    np.exp(t, out=t)
+    s = np.zeros((num_classes, n), np.float32)
+    for q, c in enumerate(to_class):
+        if 0 <= c < num_classes:
+            np.maximum(s[c], t[q], out=s[c])
+    total = _row_sum_order(s)
+    return np.divide(s.max(0) if n else np.zeros(0, np.float32), total, out=np.zeros_like(total),
+                     where=total > 0)
+
+
+def _row_sum_order(s: np.ndarray) -> np.ndarray:
+    """(C, N) -> (N,) the sums over C in the order of NumPy's pairwise sum of a contiguous row of
+    C <= 128 (its ``pairwise_sum``: C < 8 in turn; else eight running sums of every eighth number,
+    combined ((0+1)+(2+3))+((4+5)+(6+7)), then the remainder in turn)."""
+    c = s.shape[0]
+    if c < 8:
+        total = s[0].copy()
+        for j in range(1, c):
+            total += s[j]
+        return total
+    r = s[:8].copy()
+    i = 8
+    while i < c - c % 8:
+        r += s[i:i + 8]
+        i += 8
+    total = (r[0] + r[1]) + (r[2] + r[3])
+    total += (r[4] + r[5]) + (r[6] + r[7])
+    for j in range(i, c):
+        total += s[j]
+    return total
+
+
+def _top_of_scores(s: np.ndarray) -> np.ndarray:
+    total = s.sum(1)
+    return np.divide(s.max(1), total, out=np.zeros_like(total), where=total > 0)

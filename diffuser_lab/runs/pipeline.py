@@ -298,11 +298,11 @@ class FeatureLift:
         if self.basis is None:
             return self.confidence(features)
         cos = np.asarray(features, np.float32) @ np.ascontiguousarray(self.basis.queries.T)  # |f| = 1 exactly
-        return _top_probability(features_mod.class_scores(cos, self.to_class, self.num_classes))
+        return features_mod.top_probability(cos, self.to_class, self.num_classes)
 
     def confidence(self, features) -> np.ndarray:
         """Features -> (M,) float32 the top class's probability (as :meth:`unit_confidence`)."""
-        return _top_probability(self.scores(features))
+        return features_mod.top_probability(self.cosines(features), self.to_class, self.num_classes)
 
     def labels(self, features) -> np.ndarray:
         """Features -> (M,) int16 class ids (IGNORE where nothing reached a point)."""
@@ -333,11 +333,6 @@ class FeatureLift:
             return unit
         out[...] = unit
         return out
-
-
-def _top_probability(s: np.ndarray) -> np.ndarray:
-    total = s.sum(1)
-    return np.divide(s.max(1), total, out=np.zeros_like(total), where=total > 0)
 
 
 def feature_lift(cfg: Config, taxonomy: Taxonomy, dim: int) -> FeatureLift:

@@ -116,3 +116,33 @@ def test_features_in_blocks_diffuse_as_all_columns_at_once():
     scale = np.abs(exact).max()
     assert np.abs(parts - exact).max() <= 1e-4 * scale  # float32: rounding of the encodings differs
     assert abs(r1.iterations - r2.iterations) <= 0.1 * r1.iterations  # the first block's stop is the whole one's, near enough
+
+
+@pytest.mark.parametrize("compiled", [False, True], ids=["numpy", "numba"])
+def test_top_probability_is_class_scores_share_bit_for_bit(compiled, monkeypatch):
+    """The best view's confidence (top_probability: class-major numpy, or the numba rows) equals
+    class_scores' max over sum, bit for bit: NaN rows, infinities, classes no query names, C < 8,
+    C a multiple of 8 and not, Q = 1."""
+    from diffuser_lab.backends import numba as nb
+    from diffuser_lab.method.features import class_scores, top_probability
+
+    if compiled and not nb.available():
+        pytest.skip("numba not importable or DIFFUSER_LAB_NUMBA=0")
+    if not compiled:
+        monkeypatch.setattr(nb, "available", lambda: False)
+    rng = np.random.default_rng(7)
+    for C in (1, 3, 7, 8, 9, 16, 20, 21, 40, 128):
+        for Q in (1, 5, 20, 33):
+            to_class = rng.integers(-1, C, Q)
+            cos = (rng.random((3000, Q)) * 2 - 1).astype(np.float32)
+            cos[::97] = np.nan
+            cos[4, 0], cos[5, -1] = -np.inf, np.inf
+            before = cos.copy()
+            with np.errstate(all="ignore"):
+                s = class_scores(cos, to_class, C)
+                total = s.sum(1)
+                want = np.divide(s.max(1), total, out=np.zeros_like(total), where=total > 0)
+                got = top_probability(cos, to_class, C)
+            assert np.array_equal(cos, before, equal_nan=True)  # the input untouched
+            assert got.dtype == np.float32 and np.array_equal(got.view(np.int32), want.view(np.int32)), (C, Q)
+    assert top_probability(np.zeros((0, 3), np.float32), np.arange(3), 4).shape == (0,)
