@@ -120,8 +120,8 @@ def pytest_terminal_summary(terminalreporter):
             terminalreporter.write_line(f"{d:6.1f} s  {nodeid}")
     if _unit_seconds:
         total = sum(_unit_seconds.values())
-        terminalreporter.write_sep("-", f"the 20 longest work units of {total:.0f} s on all workers")
-        for unit, d in sorted(_unit_seconds.items(), key=lambda kv: -kv[1])[:20]:
+        terminalreporter.write_sep("-", f"the 40 longest work units of {total:.0f} s on all workers")
+        for unit, d in sorted(_unit_seconds.items(), key=lambda kv: -kv[1])[:40]:
             terminalreporter.write_line(f"{d:6.1f} s  {unit}")
 
 

@@ -85,7 +85,8 @@ def test_diffusion_split_for_progress_stops_at_the_same_iteration(small_demo_sce
     calls = []
     if backend == "numba":
         real = kernels.StepRunner.run
-        monkeypatch.setattr(kernels.StepRunner, "run", lambda self, *a: calls.append(a[-1]) or real(self, *a))
+        monkeypatch.setattr(kernels.StepRunner, "run",  # a[8]: n_steps (then the statistics' arguments)
+                            lambda self, *a: calls.append(a[8]) or real(self, *a))
     a = diffuse(system, max_iter=80, tol=tol, backend=backend)
     n_plain = len(calls)
     monkeypatch.setenv(progress.ENV, "1")

@@ -21,6 +21,7 @@ from pathlib import Path
 import pytest
 from readme_commands import (
     EXPERIMENTS,
+    SCANNET_EXPERIMENTS,
     HAVE_SHARED,
     README,
     ROOT,
@@ -129,7 +130,9 @@ def check_run(c: Command, p, work):
             assert "no ground truth: no mIoU; diffuser labelled" in p.stdout, p.stdout[-2000:]
         elif "features" in s:  # a features run: its baselines, the files diffuser-lab-query reads
             assert "average (baseline)" in p.stdout and "best view (baseline)" in p.stdout, p.stdout[-2000:]
-            assert {"features", "features_average", "queries", "gt_labels"} <= set(s["files"]), s["files"]
+            # the baselines' features: (N, D) files, or with the reduced basis (predictions.basis=auto) in it
+            assert {"features", "queries", "gt_labels"} <= set(s["files"]), s["files"]
+            assert "features_average" in s["files"] or "features_basis" in s["files"], s["files"]
         else:
             assert "bayesian (baseline)" in p.stdout, p.stdout[-2000:]
     if "LAB_FOLDER" in c.text:
@@ -141,7 +144,7 @@ def check_run(c: Command, p, work):
     # across the forced instruction sets (numba/OpenBLAS/numpy at host, avx2 and generic x86-64;
     # tests/test_isa.py) and under an emulated AVX2 CPU (qemu: the ray caster's kernels) is 0.0
     for marker, cond in (("It prints", c.text.startswith("bash scripts/dev.sh demo")),
-                         ("The global protocol prints", c.text == ".venv/bin/diffuser-lab scene=scannet0470"),
+                         ("The global protocol (", c.text == ".venv/bin/diffuser-lab scene=scannet0470"),
                          ("The first prints", c.text == ".venv/bin/diffuser-lab scene=scannet0470 protocol=online")):
         if cond:
             want, got = _rows(_printed_block_after(c.line, marker)), _rows(p.stdout.splitlines())
@@ -314,6 +317,7 @@ def test_readme_lists_every_experiment():
     """The README names every experiment; docs/sweeps.md has each one's row with its job count."""
     table = set(re.findall(r"^\| `(\w+)` \|.*\| \d+ \|$", (ROOT / "docs" / "sweeps.md").read_text(), re.M))
     assert table == set(EXPERIMENTS), (table, EXPERIMENTS)
+    assert SCANNET_EXPERIMENTS <= set(EXPERIMENTS), SCANNET_EXPERIMENTS - set(EXPERIMENTS)
     text = README.read_text()
     a = text.index("The ablations ship as named experiments")
     named = set(re.findall(r"`(\w+)`", text[a:text.index("```", a)]))

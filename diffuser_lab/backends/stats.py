@@ -122,9 +122,10 @@ def no_truth(n_rows: int, num_classes: int) -> Truth:
 
 def block_width(n_active: int) -> int:
     """Columns per class block of the row-sum order: the compiled kernels' blocks (one block up
-    to 32 active classes, blocks of 16 beyond) padded to a power of two (8, 16 or 32)."""
+    to 32 active classes, blocks of 32 beyond: ``numba.jacobi.MULTI_WIDTH``) padded to a power of
+    two (8, 16 or 32)."""
     if n_active > 32:
-        return 16
+        return 32
     return 8 if n_active <= 8 else 16 if n_active <= 16 else 32
 
 

@@ -115,7 +115,10 @@ def test_every_scene_source_has_one_shape():
     from diffuser_lab.data.sources import SOURCES
     from diffuser_lab.runs.resolve import default_config
 
-    assert {f.name for f in dataclasses.fields(SceneConfig)} == {"source", "name", "voxel_size", "options"}
+    # besides its options, what every source's frames share: keyframes and the read-ahead (issue 52)
+    assert {f.name for f in dataclasses.fields(SceneConfig)} == {"source", "name", "voxel_size", "options",
+                                                                 "keyframe_translation", "keyframe_rotation_deg",
+                                                                 "read_ahead"}
     for entry in SOURCES.values():
         assert entry.options is not None and issubclass(entry.options, Section), entry.name
         assert entry.options.KEY == "scene.options" and entry.options.__module__ == entry.load.__module__

@@ -346,11 +346,11 @@ def test_explicit_vector_blocks_equal_the_generated_kernel_bit_for_bit(W):
     B = np.zeros((3, len(pts), W), np.float32)
     B[..., :W - 3] = rng.random((3, len(pts), W - 3), dtype=np.float32) * (rng.random((3, len(pts), 1)) < 0.1)
     out = []
-    for f in (getattr(_unrolled, f"steps_{W}"), getattr(_zmm, f"msteps_{W}z")):
+    for f, stats in ((getattr(_unrolled, f"steps_{W}"), kernels.untracked(25, 2)), (getattr(_zmm, f"msteps_{W}z"), ())):
         Z, Zn = np.zeros_like(B), np.zeros_like(B)
         with kernels.StepRunner(len(pts), threads=2, min_rows_per_thread=1, chunk=97) as runner:
             args = (s.sorted_neighbors, s.sorted_P, Z.reshape(3, -1), Zn.reshape(3, -1), B.reshape(3, -1),
-                    np.float32(1e-18), -1.0)
+                    np.float32(1e-18), -1.0, *stats)  # the generated kernel's statistics: none tracked
             res = runner.launch(f, args, 25, 2)
         out.append((Zn.copy(), res.max(axis=1)))
     np.testing.assert_array_equal(out[0][0], out[1][0])

@@ -25,8 +25,17 @@ def chunks(path: Path, blueprint: bool = False):
     from rerun.chunk import RrdReader
 
     r = RrdReader(path)
-    store = r.blueprints()[0] if blueprint else None
-    return list(r.stream(store=store)) if store is not None else list(r.stream())
+    if not blueprint:
+        return list(r.stream())
+    # each send_blueprint is a store of its own, listed in no particular order: the viewer shows the
+    # last sent (make_active), the one logged last
+    stores = [list(r.stream(store=s)) for s in r.blueprints()]
+    def logged(chs) -> int:  # the store's last log_time (ns)
+        times = [c.to_record_batch().column("log_time").cast("int64").to_numpy(zero_copy_only=False)
+                 for c in chs if "log_time" in c.to_record_batch().schema.names]
+        return max((int(t.max()) for t in times if t.size), default=0)
+
+    return max(stores, key=logged) if stores else []
 
 
 def columns(path: Path) -> dict:
