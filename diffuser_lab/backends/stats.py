@@ -120,12 +120,17 @@ def no_truth(n_rows: int, num_classes: int) -> Truth:
                  np.zeros(int(num_classes), np.float64))
 
 
+MULTI_WIDTH = 32
+"""Class-block width of the compiled Jacobi kernels when the active classes need several blocks
+(more than 32): the row sums' order depends on it (``numba.jacobi`` takes it from here)."""
+
+
 def block_width(n_active: int) -> int:
     """Columns per class block of the row-sum order: the compiled kernels' blocks (one block up
-    to 32 active classes, blocks of 32 beyond: ``numba.jacobi.MULTI_WIDTH``) padded to a power of
-    two (8, 16 or 32)."""
+    to 32 active classes, blocks of :data:`MULTI_WIDTH` beyond) padded to a power of two (8, 16
+    or 32)."""
     if n_active > 32:
-        return 32
+        return MULTI_WIDTH
     return 8 if n_active <= 8 else 16 if n_active <= 16 else 32
 
 

@@ -24,17 +24,17 @@ import numpy as np
 
 from ..base import IterationInputs, JacobiBackend, union_rows
 from ..krylov import gmres
+# MULTI_WIDTH: the block width when the active classes need several blocks (more than 32), one value
+# for these kernels and the statistics' row sums: 32, stepped by ._zmm's explicit 16-lane kernel (issue
+# 53, 30k x 200 classes, 100 steps on two threads, best of 5 under load: 16-wide SLP blocks 7.97 s,
+# 16-wide zmm 5.69 s, 32-wide zmm 3.93 s; the same Z bit for bit). With the generated (SLP) kernels 16
+# was the cheapest (32 ran out of registers).
+from ..stats import MULTI_WIDTH
 from . import NB, _unrolled, first_compile, n_threads, slp
 from .krylov import NumbaKrylovOps
 
 WIDTHS = (8, 16, 24, 32)
 """Class-block widths of the generated Jacobi kernels; wider problems are split into blocks."""
-MULTI_WIDTH = 32
-"""Block width when the active classes need several blocks (more than 32): 32, stepped by
-:mod:`._zmm`'s explicit 16-lane kernel (issue 53, 30k x 200 classes, 100 steps on two threads,
-interleaved best of 5 under load: 16-wide SLP blocks 7.97 s, 16-wide zmm 5.69 s, 32-wide zmm 3.93 s;
-with the kernels' prefetch in another run 4.42 / 2.95 / 2.20 s; the same Z bit for bit). With the generated (SLP) kernels 16 was the cheapest (30k points, one core:
-8 / 16 / 24 / 32 wide 0.071 / 0.043 / 0.050 / 0.094 ms per class and step; 32 ran out of registers)."""
 
 
 # ---------------------------------------------------------------------------------------------
