@@ -417,6 +417,8 @@ def basis_kept(lift: FeatureLift, energy: np.ndarray) -> dict:
             out["norm_error"] = {"median": round(float(np.median(err)), 6),
                                  "p95": round(float(np.percentile(err, 95)), 6)} if share.size else None
     return out
+
+
 def lifting_rule(method: fusion.FusionMethod, cfg: Config, n: int, dim: int, num_classes: int,
                  lift: Optional[FeatureLift] = None) -> lifters.Rule:
     """The streaming rule of a ``evidence=RULE`` method (:mod:`diffuser_lab.method.lifters`) for ``n``
@@ -529,9 +531,6 @@ def _run(cfg: Config, scene: Optional[Scene], observer: Optional[Observer], hook
                 lift = feature_lift(cfg, tax, f.features.shape[2])
             else:
                 evidence = RunEvidence.of(cfg, pts.shape[0], tax.num_classes)
-                if method.evidence == fusion.RULE:  # a lifting rule keeps its state from the same links
-                    rule = evidence.hook = lifting_rule(method, cfg, pts.shape[0], evidence.num_classes,
-                                                        tax.num_classes)
         elif (f.features is not None) != feats:
             raise ValueError(f"frame {f.name}: {'no ' if feats else ''}feature map, unlike the first frame")
         if f.gt_labels is not None and not feats:
@@ -547,12 +546,12 @@ def _run(cfg: Config, scene: Optional[Scene], observer: Optional[Observer], hook
             tb = time.perf_counter()
             evidence = _feature_evidence(cfg, lift, pts.shape[0], [g.features for _, g in pending], hooks,
                                          basis_auto)
-            if method.evidence == fusion.RULE:  # a lifting rule keeps its state from the same links
-                rule = evidence.hook = lifting_rule(method, cfg, pts.shape[0], evidence.num_classes,
-                                                    tax.num_classes, lift)
             t["basis"] = time.perf_counter() - tb
             tp += t["basis"]
             batch, pending = pending, None
+        if rule is None and method.evidence == fusion.RULE:  # a lifting rule keeps its state from the same links
+            rule = evidence.hook = lifting_rule(method, cfg, pts.shape[0], evidence.num_classes, tax.num_classes,
+                                                lift)
         for j, g in batch:
             hooks.on_frame(j, g)
             te = time.perf_counter()
