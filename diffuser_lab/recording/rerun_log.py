@@ -365,14 +365,34 @@ def blueprint(score_layers: Sequence[tuple[str, str]] = (), eye=None, feature_ta
     )
 
 
-ONLINE_BLOCK_ROWS = 16384
-"""A growing map in run.rrd is logged in blocks of this many map rows (map order only appends):
-a frame that adds points re-logs the positions of the blocks it filled, not the whole map's
-(on scene0470, 40 frames, 59k points: 65 MB as one entity)."""
+ONLINE_BLOCK_ROWS = 4096
+"""A growing map in run.rrd is logged in blocks of map rows (map order only appends): a frame that
+adds points re-logs the positions of the block(s) it filled, not the whole map's (on scene0470,
+40 frames, 59k points: 65 MB as one entity). The first :data:`ONLINE_BLOCKS_PER_SIZE` blocks
+have this many rows, the next as many twice that, and so on (:func:`online_blocks`). Each layer
+(labels, Bayesian, ground truth) re-logs its growing block, so the bytes per map point grow with
+the block: on the demo's growing map (64k points, 30 frames) both records together hold 364
+bytes per map point with blocks of 16,384 rows, 304 with 8,192, 266 with 4,096 (issue 50's
+budget: 300); the larger blocks of a large map keep the blocks few."""
+ONLINE_BLOCKS_PER_SIZE = 16
 ONLINE_MAX_BLOCKS = 64
-"""Blocks whose labels the errors tab draws grey (its overrides name each block; 64 x 16384 rows:
-1M map points). The Rerun 0.41 viewer refuses a blueprint with 128 such overrides ("Data source
-finished without loading a recording"); 64 load."""
+"""Blocks whose labels the errors tab draws grey (its overrides name each block; 64 blocks:
+983,040 map rows; the blocks after those keep the sixty-fourth's size). The Rerun 0.41 viewer
+refuses a blueprint with 128 such overrides ("Data source finished without loading a
+recording"); 64 load. (A default colour of the view does not do it: the class ids' colours
+win over a view's default, seen in the viewer, 2026-12-07.)"""
+
+
+def online_blocks(n: int) -> list[tuple[int, int]]:
+    """The (lo, hi) map rows of each run.rrd block of a growing map of ``n`` rows (see
+    :data:`ONLINE_BLOCK_ROWS`); the same for every n (blocks only fill and get added)."""
+    out, lo, b = [], 0, 0
+    while lo < n:
+        size = ONLINE_BLOCK_ROWS << (min(b, ONLINE_MAX_BLOCKS - 1) // ONLINE_BLOCKS_PER_SIZE)
+        out.append((lo, min(n, lo + size)))
+        lo += size
+        b += 1
+    return out
 
 
 APP_BATCH, APP_ONLINE, APP_TILED = "diffuser_lab_batch", "diffuser_lab_online", "diffuser_lab_tiled"
@@ -743,9 +763,7 @@ class RerunRecorder:
         if changed and self._online_radius is None and n:
             self._online_radius = point_radius(pts)
         r = self._online_radius or 0.01
-        B = ONLINE_BLOCK_ROWS if mirror.growing else max(n, 1)
-        for b in range(-(-n // B)):
-            lo, hi = b * B, min(n, (b + 1) * B)
+        for b, (lo, hi) in enumerate(online_blocks(n) if mirror.growing else [(0, n)] if n else []):
             path = f"{b:04d}"
             if self._block_rows.get(b) != hi:  # new rows in this block: its positions again
                 self._block_rows[b] = hi
@@ -782,9 +800,8 @@ class RerunRecorder:
         self.rec.set_time(FINISH_TIMELINE, sequence=int(step))
         ids = class_ids(labels)
         n = len(ids)
-        B = ONLINE_BLOCK_ROWS if mirror.growing else max(n, 1)
-        for b in range(-(-n // B)):
-            log(f"world/online/labels/{b:04d}", rr.Points3D.from_fields(class_ids=ids[b * B:min(n, (b + 1) * B)]))
+        for b, (lo, hi) in enumerate(online_blocks(n) if mirror.growing else [(0, n)] if n else []):
+            log(f"world/online/labels/{b:04d}", rr.Points3D.from_fields(class_ids=ids[lo:hi]))
         wrong = mirror.wrong(labels)
         if wrong is not None:
             log("world/online/wrong", rr.Points3D(wrong, colors=self.wrong_rgb,

@@ -510,3 +510,21 @@ def test_online_layout_has_its_app_id_a_legend_and_its_plots(cli_runs):
         "mIoU so far [%]": ["/metrics/diffuser_miou", "/metrics/bayesian_miou"],
         "map points [thousands]": ["/metrics/points_k"], "latency [ms]": ["/metrics/latency_ms"]})
     assert v["tabs"][0] == "online: labels"
+
+
+def test_online_blocks_only_fill_and_get_added():
+    """run.rrd's blocks of a growing map (issue 50: small blocks first, so a frame re-logs few
+    positions; doubling sizes, so 64 blocks, the errors tab's overrides, hold ~1M rows): contiguous,
+    and those of a smaller map are the larger map's, the last one cut."""
+    from diffuser_lab.recording.rerun_log import (ONLINE_BLOCK_ROWS, ONLINE_BLOCKS_PER_SIZE, ONLINE_MAX_BLOCKS,
+                                                  online_blocks)
+
+    assert online_blocks(0) == []
+    big = online_blocks(3_000_000)
+    assert big[0] == (0, ONLINE_BLOCK_ROWS) and all(a[1] == b[0] for a, b in zip(big, big[1:]))
+    sizes = [hi - lo for lo, hi in big[:-1]]
+    assert sizes[ONLINE_BLOCKS_PER_SIZE] == 2 * sizes[ONLINE_BLOCKS_PER_SIZE - 1]
+    assert big[ONLINE_MAX_BLOCKS - 1][1] == 983_040 and sizes[ONLINE_MAX_BLOCKS] == sizes[ONLINE_MAX_BLOCKS - 1]
+    for n in (1, 4095, 4096, 4097, 70_000, 983_041):
+        small = online_blocks(n)
+        assert small[:-1] == big[:len(small) - 1] and small[-1][0] == big[len(small) - 1][0] and small[-1][1] == n
