@@ -126,12 +126,80 @@ def pytest_terminal_summary(terminalreporter):
 
 
 def run_cli(*args: str, cwd: Path | None = None, env: dict | None = None) -> subprocess.CompletedProcess:
-    """Run `diffuser-lab ARGS` as a user would (python -m diffuser_lab)."""
+    """Run `diffuser-lab ARGS` as a user would (python -m diffuser_lab): in a process forked from
+    this worker's :mod:`cli_server` (the package imported once), or in a fresh interpreter where
+    the environment differs from the server's (``env``; a variable read at import time) or the
+    server is busy or gone. ``DIFFUSER_LAB_TEST_FRESH=1``: always a fresh interpreter."""
     e = dict(os.environ)
     e.pop("HYDRA_FULL_ERROR", None)
     e.update(env or {})
-    return subprocess.run([sys.executable, "-m", "diffuser_lab", *args], cwd=cwd or ROOT, env=e,
-                          capture_output=True, text=True, timeout=600)
+    cmd = [sys.executable, "-m", "diffuser_lab", *args]
+    server = _cli_server()  # its environment is compared with the command's (env included) below
+    if server is not None and server.lock.acquire(blocking=False):
+        try:
+            p = server.run(cmd, list(args), Path(cwd or ROOT), e)
+        finally:
+            server.lock.release()
+        if p is not None:
+            return p
+    return subprocess.run(cmd, cwd=cwd or ROOT, env=e, capture_output=True, text=True, timeout=600)
+
+
+_ENV_IGNORED = ("PYTEST_CURRENT_TEST", "HYDRA_FULL_ERROR")
+
+
+class _CliServer:
+    """The client of one :mod:`cli_server` process (per xdist worker, started at first use)."""
+
+    def __init__(self):
+        import tempfile
+        import threading
+
+        self.lock = threading.Lock()
+        self.env = {k: v for k, v in os.environ.items() if k not in _ENV_IGNORED}
+        self.dir = Path(tempfile.mkdtemp(prefix="diffuser-lab-cli-"))
+        self.proc = subprocess.Popen([sys.executable, str(ROOT / "tests" / "cli_server.py")], cwd=ROOT,
+                                     env={**os.environ, "PYTHONPATH": str(ROOT / "tests")},
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1)
+        import atexit
+        import shutil
+
+        atexit.register(shutil.rmtree, self.dir, True)  # the server ends with this process (its stdin closes)
+
+    def run(self, cmd: list[str], args: list[str], cwd: Path, env: dict) -> subprocess.CompletedProcess | None:
+        """The command's result, or None where this server cannot run it (the caller starts a fresh
+        interpreter): an environment other than the server's, or a server that died."""
+        if {k: v for k, v in env.items() if k not in _ENV_IGNORED} != self.env or self.proc.poll() is not None:
+            return None
+        out, err = self.dir / "out", self.dir / "err"
+        try:
+            self.proc.stdin.write(json.dumps({"args": args, "cwd": str(cwd), "env": env, "out": str(out),
+                                              "err": str(err)}) + "\n")
+            self.proc.stdin.flush()
+            pid = json.loads(self.proc.stdout.readline())["pid"]
+        except (OSError, ValueError, KeyError):
+            return None
+        import selectors
+
+        sel = selectors.DefaultSelector()
+        sel.register(self.proc.stdout, selectors.EVENT_READ)
+        if not sel.select(timeout=600):  # as subprocess.run's timeout
+            os.kill(pid, 9)
+            self.proc.stdout.readline()
+            raise subprocess.TimeoutExpired(cmd, 600)
+        status = json.loads(self.proc.stdout.readline())["status"]
+        return subprocess.CompletedProcess(cmd, status, out.read_text(errors="replace"), err.read_text(errors="replace"))
+
+
+_server: list = []
+
+
+def _cli_server() -> _CliServer | None:
+    if os.environ.get("DIFFUSER_LAB_TEST_FRESH") == "1" or not hasattr(os, "fork"):
+        return None
+    if not _server:
+        _server.append(_CliServer())
+    return _server[0]
 
 
 @pytest.fixture(scope="session")

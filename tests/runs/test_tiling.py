@@ -288,8 +288,8 @@ def test_a_ray_worker_killed_mid_tile_is_retried_and_the_labels_equal(tmp_path):
     pytest.importorskip("ray")
     psutil = pytest.importorskip("psutil")
     args = [sys.executable, "-m", "diffuser_lab", "scene.options.n_views=10", "scene.options.point_spacing=0.08",
-            "solver.max_iter=2000", "solver.tol=0", "protocol=tiled", "tiling.size=1.5", "record=off",
-            "output.labels_ply=false"]  # 2000 steps: a tile lasts long enough to be caught running
+            "solver.max_iter=500", "solver.tol=0", "protocol=tiled", "tiling.size=1.5", "record=off",
+            "output.labels_ply=false"]  # 500 steps, no early stop: a tile lasts ~0.2 s, long enough to be caught running
     # its own local Ray (RAY_ADDRESS of another test's cluster would send the tasks there)
     env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR" and not k.startswith("RAY_")}
     proc = subprocess.Popen([*args, "tiling.workers=1", f"hydra.run.dir={tmp_path / 'ray'}"], cwd=ROOT, env=env,
