@@ -145,7 +145,16 @@ def run_cli(*args: str, cwd: Path | None = None, env: dict | None = None) -> sub
     return subprocess.run(cmd, cwd=cwd or ROOT, env=e, capture_output=True, text=True, timeout=600)
 
 
-_ENV_IGNORED = ("PYTEST_CURRENT_TEST", "HYDRA_FULL_ERROR")
+IMPORT_ENV = ("NUMBA_", "NPY_", "OPENBLAS_", "GOTO", "MKL_", "OMP_", "KMP_", "VECLIB_", "PYTHON", "LD_", "MALLOC_",
+              "GLIBC_", "DIFFUSER_LAB_")
+"""Environment variables read when the interpreter starts or the package is imported (numba's
+config, numpy's dispatch, BLAS, ...) or by this package at any time: a command whose values of
+these differ from the server's runs in a fresh interpreter. The others are set in the forked child
+before the command runs, as a fresh interpreter would have them."""
+
+
+def _import_env(env: dict) -> dict:
+    return {k: v for k, v in env.items() if k.startswith(IMPORT_ENV)}
 
 
 class _CliServer:
@@ -156,7 +165,7 @@ class _CliServer:
         import threading
 
         self.lock = threading.Lock()
-        self.env = {k: v for k, v in os.environ.items() if k not in _ENV_IGNORED}
+        self.env = _import_env(os.environ)
         self.dir = Path(tempfile.mkdtemp(prefix="diffuser-lab-cli-"))
         self.proc = subprocess.Popen([sys.executable, str(ROOT / "tests" / "cli_server.py")], cwd=ROOT,
                                      env={**os.environ, "PYTHONPATH": str(ROOT / "tests")},
@@ -168,8 +177,9 @@ class _CliServer:
 
     def run(self, cmd: list[str], args: list[str], cwd: Path, env: dict) -> subprocess.CompletedProcess | None:
         """The command's result, or None where this server cannot run it (the caller starts a fresh
-        interpreter): an environment other than the server's, or a server that died."""
-        if {k: v for k, v in env.items() if k not in _ENV_IGNORED} != self.env or self.proc.poll() is not None:
+        interpreter): other values of the variables of :data:`IMPORT_ENV` than the server's, or a
+        server that died."""
+        if _import_env(env) != self.env or self.proc.poll() is not None:
             return None
         out, err = self.dir / "out", self.dir / "err"
         try:

@@ -40,5 +40,7 @@ def test_a_forked_command_is_the_fresh_interpreters(tmp_path):
     assert f.returncode == g.returncode == 2 and f.stderr == g.stderr and len(f.stderr.strip().splitlines()) == 1
     # another environment: not the server's to run (run_cli starts a fresh interpreter)
     assert server.run([sys.executable, "-m", "diffuser_lab"], bad, ROOT, {**e, "NUMBA_OPT": "0"}) is None
+    # a variable read at run time only (the command line sets RUST_LOG itself): the server runs it
+    assert server.run([sys.executable, "-m", "diffuser_lab"], bad, ROOT, {**e, "RUST_LOG": "warn"}) is not None
     p = run_cli(*bad, env={"NUMBA_OPT": "0"})
     assert p.returncode == 2 and p.stderr == g.stderr

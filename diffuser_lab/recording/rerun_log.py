@@ -114,6 +114,15 @@ LIVE_PORT = 9876
 """record.live=spawn: the port of the spawned viewer (Rerun's default)."""
 LIVE_FLUSH_S = 60.0
 """record.live: how long closing waits for the viewer to take what is still queued."""
+FILE_FLUSH_STALL_S = 10.0
+"""Closing run.rrd waits for Rerun's file writer as long as the file grows, and gives up (an error
+of the record, not of the run) after this many seconds in which it did not: on a full disk the
+writer's thread can end without answering the flush, which then waited for ever (seen under
+RLIMIT_FSIZE in one run of three, Rerun 0.41; the other two raised "File-writer thread shut down
+prematurely")."""
+_ABANDONED: list = []
+"""Recording streams whose file writer stopped, kept to the process's end: dropping one makes Rerun
+disconnect it, which waits on the same dead writer (seen: the recording process hung there)."""
 
 
 def _lab(rgb: np.ndarray) -> np.ndarray:
@@ -861,7 +870,7 @@ class RerunRecorder:
             if bp is not None:
                 self.rec.send_blueprint(bp, make_active=True, make_default=True)
         if self.live is None:
-            self.rec.flush()
+            self._flush_file()
         else:
             try:
                 self.rec.flush(timeout_sec=LIVE_FLUSH_S)
@@ -869,6 +878,21 @@ class RerunRecorder:
                 log.warning("record.live: the viewer at %s did not get all of the run (%s); %s is complete",
                             self.live, exc, self.path.name)
         self.rec.disconnect()
+
+    def _flush_file(self) -> None:
+        """Flush to run.rrd, :data:`FILE_FLUSH_STALL_S` at a time while the file grows (see there)."""
+        size = self.path.stat().st_size if self.path.is_file() else -1
+        while True:
+            try:
+                self.rec.flush(timeout_sec=FILE_FLUSH_STALL_S)
+                return
+            except RuntimeError as exc:
+                now = self.path.stat().st_size if self.path.is_file() else -1
+                if "timed out" not in str(exc) or now <= size:
+                    _ABANDONED.append(self.rec)
+                    raise RuntimeError(f"Rerun's file writer stopped ({exc}; the file has "
+                                       f"{max(now, 0):,} bytes)") from exc
+                size = now
 
 
 __all__ = ["RerunRecorder", "blueprint", "unlabeled_color", "log_legend", "legend_entries", "LEGEND", "APP_BATCH", "APP_ONLINE", "APP_TILED", "APP_SINGLE_FRAME", "online_blueprint", "class_ids", "wrong_color", "score_entity", "UNLABELED_ID", "TIMELINE",

@@ -130,3 +130,29 @@ def test_a_tiled_driver_killed_mid_run_resumes_to_equal_labels(tmp_path):
     status = {t["id"]: t["status"] for t in json.loads((tmp_path / "resumed" / "summary.json").read_text())["tiling"]["tiles"]}
     assert all(status[n[:-4]] == "resumed" for n in done) and "done" in status.values()
     assert all((killed / "tiles" / n).stat().st_mtime_ns == m for n, m in done.items())
+
+
+def test_a_file_writer_that_stops_answering_ends_the_flush_with_an_error(tmp_path, monkeypatch):
+    """Rerun's flush on a dead file writer can wait for ever (a full disk, 1 run in 3): closing run.rrd
+    flushes FILE_FLUSH_STALL_S at a time while the file grows, then gives up with an error, and keeps
+    the stream (dropping it would disconnect it, which waits on the same writer)."""
+    from diffuser_lab.recording import rerun_log
+
+    class Stream:
+        calls = 0
+
+        def flush(self, timeout_sec):
+            self.calls += 1
+            if self.calls <= 2:  # the file grows during the first two waits, then stops
+                with open(path, "ab") as f:
+                    f.write(b"x" * 10)
+            raise RuntimeError("Flush timed out - not all log messages were sent")
+
+    path = tmp_path / "run.rrd"
+    path.write_bytes(b"")
+    rec = object.__new__(rerun_log.RerunRecorder)
+    rec.path, rec.rec = path, Stream()
+    monkeypatch.setattr(rerun_log, "_ABANDONED", [])
+    with pytest.raises(RuntimeError, match="file writer stopped .*20 bytes"):
+        rec._flush_file()
+    assert rec.rec.calls == 3 and rerun_log._ABANDONED == [rec.rec]
