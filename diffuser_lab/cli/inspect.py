@@ -50,11 +50,10 @@ from diffuser_lab.recording.mcap_encode import (
     TOPIC_Z,
     camera_index,
     decode_label_png,
-    decode_point_cloud,
     decode_z,
     z_precision_text,
 )
-from diffuser_lab.recording.mcap_read import RunLog, iter_run, metrics_dict, read_run, work_points
+from diffuser_lab.recording.mcap_read import RunLog, iter_run, metrics_dict, read_run, relog_scene, work_points
 from diffuser_lab.recording.mcap_write import FOXGLOVE_LAYOUT, online_foxglove_layout
 from diffuser_lab.recording.rerun_log import RerunRecorder
 from diffuser_lab.recording.schedule import describe
@@ -345,7 +344,6 @@ def mcap_to_rrd(mcap_path: Path | str, rrd_path: Path | str, *, max_image_side: 
     anything is written). Returns the :class:`~diffuser_lab.recording.mcap_read.RunLog` (truncation)."""
     from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
     from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
-    from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 
     layers = score_classes(mcap_path, scores) if scores else []
     log = RunLog(path=Path(mcap_path))
@@ -359,20 +357,7 @@ def mcap_to_rrd(mcap_path: Path | str, rrd_path: Path | str, *, max_image_side: 
     try:
         for topic, data in iter_run(mcap_path, log):
             if topic == TOPIC_SCENE:
-                import json
-
-                run = log.run
-                cloud = decode_point_cloud(PointCloud.FromString(data))
-                points = np.stack([cloud["x"], cloud["y"], cloud["z"]], 1)
-                has_gt = json.loads(run.get("has_gt", "true"))
-                has_col = json.loads(run.get("has_colors", "true"))
-                gt = cloud["label"].astype(np.int16) if has_gt and "label" in cloud else None
-                cols = np.stack([cloud["red"], cloud["green"], cloud["blue"]], 1) if has_col else None
-                names = json.loads(run.get("class_names", "[]"))
-                colors = np.asarray(json.loads(run.get("class_colors", "[]")), np.uint8).reshape(-1, 3)
-                rec.log_taxonomy(names, colors)
-                rec.rec.send_recording_name(f"{run.get('scene', '?')} (re-logged from {Path(mcap_path).name})")
-                rec.log_scene(points, cols, gt)
+                points, _, colors, gt = relog_scene(rec, data, log.run, mcap_path)
             elif topic == TOPIC_RUN:
                 info = schema.RunInfo.FromString(data)
                 log.info = info

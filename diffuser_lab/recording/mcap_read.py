@@ -160,6 +160,28 @@ def target_dict(data: bytes) -> dict:
     return {**{f: getattr(m, f) for f in _TARGET_FIELDS}, "window": list(m.window)}
 
 
+def relog_scene(rec: Any, data: bytes, run: dict, mcap_path: Path | str) -> tuple[Any, list, Any, Any]:
+    """A run.mcap's scene message (``TOPIC_SCENE``: the original points) logged again to ``rec``
+    (a Rerun recorder of ``diffuser-lab-inspect --to-rrd``: its taxonomy, the recording's name, the
+    cloud with colours and ground truth where the run had them; ``run``: the run's metadata).
+    Returns (points (N, 3) float32 world m, class names, class colours (C, 3) uint8, ground truth
+    (N,) int16 or None)."""
+    import numpy as np
+    from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+
+    cloud = decode_point_cloud(PointCloud.FromString(data))
+    points = np.stack([cloud["x"], cloud["y"], cloud["z"]], 1)
+    names = json.loads(run.get("class_names", "[]"))
+    colors = np.asarray(json.loads(run.get("class_colors", "[]")), np.uint8).reshape(-1, 3)
+    gt = cloud["label"].astype(np.int16) if json.loads(run.get("has_gt", "true")) and "label" in cloud else None
+    rgb = (np.stack([cloud["red"], cloud["green"], cloud["blue"]], 1)
+           if json.loads(run.get("has_colors", "true")) else None)
+    rec.log_taxonomy(names, colors)
+    rec.rec.send_recording_name(f"{run.get('scene', '?')} (re-logged from {Path(mcap_path).name})")
+    rec.log_scene(points, rgb, gt)
+    return points, names, colors, gt
+
+
 def read_run(path: Path | str, *, z: Optional[Iterable[int]] | str = None, scene: bool = False) -> RunLog:
     """Read a run.mcap, also a truncated one (see :func:`iter_run`).
 

@@ -347,11 +347,10 @@ def replay(mcap_path: Any, rrd_path: Any, max_image_side: int = 320) -> Any:
     from pathlib import Path
 
     from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
-    from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 
     from .mcap_encode import (TOPIC_CAMERA_LABELS, TOPIC_METRICS, TOPIC_SCENE, TOPIC_TARGET, TOPIC_TARGET_IMAGES,
-                              TOPIC_TARGET_ROWS, TOPIC_Z, camera_index, decode_label_png, decode_point_cloud, decode_z)
-    from .mcap_read import RunLog, iter_run, metrics_dict, target_dict
+                              TOPIC_TARGET_ROWS, TOPIC_Z, camera_index, decode_label_png, decode_z)
+    from .mcap_read import RunLog, iter_run, metrics_dict, relog_scene, target_dict
 
     log = RunLog(path=Path(mcap_path))
     rec = SingleFrameRerun(Path(rrd_path), max_image_side=max_image_side)
@@ -364,17 +363,7 @@ def replay(mcap_path: Any, rrd_path: Any, max_image_side: int = 320) -> Any:
     try:
         for topic, data in iter_run(mcap_path, log):
             if topic == TOPIC_SCENE:
-                run = log.run
-                cloud = decode_point_cloud(PointCloud.FromString(data))
-                points = np.stack([cloud["x"], cloud["y"], cloud["z"]], 1)
-                names = json.loads(run.get("class_names", "[]"))
-                colors = np.asarray(json.loads(run.get("class_colors", "[]")), np.uint8).reshape(-1, 3)
-                has_col = json.loads(run.get("has_colors", "true"))
-                gt = cloud["label"].astype(np.int16) if json.loads(run.get("has_gt", "true")) else None
-                rec.log_taxonomy(names, colors)
-                rec.rec.send_recording_name(f"{run.get('scene', '?')} (re-logged from {Path(mcap_path).name})")
-                rec.log_scene(points, np.stack([cloud["red"], cloud["green"], cloud["blue"]], 1) if has_col else None,
-                              gt)
+                points, names, colors, gt = relog_scene(rec, data, log.run, mcap_path)
             elif topic == TOPIC_CAMERA_LABELS:
                 img = CompressedImage.FromString(data)
                 labels[camera_index(img.frame_id)] = decode_label_png(img.data, colors)
