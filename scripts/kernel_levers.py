@@ -529,6 +529,7 @@ def main(argv=None) -> int:
 
     from diffuser_lab.backends import roof
     from diffuser_lab.backends.numba import _unrolled, slp
+    from diffuser_lab.backends.numba import jacobi as kernels
     from diffuser_lab.method.diffusion import normalise
     from diffuser_lab.method.graph import build_graph
 
@@ -578,7 +579,7 @@ def main(argv=None) -> int:
             widths = {"package (16-wide blocks, SLP), 512 rows": W16, "package, all rows a block": W16}
             for R_, nm in ((512, "package (16-wide blocks, SLP), 512 rows"), (N, "package, all rows a block")):
                 calls[nm] = (lambda R_=R_: _unrolled.steps_16(
-                    nbr, wts, Zb, Znb, Bb, floor, -1.0, a.steps, R_, 0, 1,
+                    nbr, wts, Zb, Znb, Bb, floor, -1.0, kernels.EVERY_ROW, *kernels.untracked(a.steps, 1), a.steps, R_, 0, 1,
                     np.zeros(1 + a.steps, np.int64), np.zeros((a.steps, 1, 2), np.float32)))
             W64 = pad(64)
             Zr, Br, Znr = _aligned(N * W64), _aligned(N * W64), _aligned(N * W64)

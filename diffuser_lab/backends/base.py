@@ -54,6 +54,21 @@ def union_rows(a: np.ndarray, b: np.ndarray, n: int) -> np.ndarray:
     return np.flatnonzero(mask)
 
 
+def row_runs(rows: np.ndarray, chunk: int) -> np.ndarray:
+    """Sorted rows (R,) int64 -> (runs, 2) int64 ``[lo, hi)`` ranges of consecutive rows covering
+    exactly them, in order, every range cut into pieces of at most ``chunk`` rows."""
+    if rows.size == 0:
+        return np.zeros((0, 2), np.int64)
+    rows = np.asarray(rows, np.int64)
+    brk = np.flatnonzero(np.diff(rows) > 1) + 1
+    starts = rows[np.r_[0, brk]]
+    ends = rows[np.r_[brk - 1, rows.size - 1]] + 1
+    pieces = (ends - starts + chunk - 1) // chunk
+    which = np.repeat(np.arange(starts.size), pieces)
+    lo = starts[which] + chunk * (np.arange(which.size) - np.repeat(np.cumsum(pieces) - pieces, pieces))
+    return np.stack([lo, np.minimum(lo + chunk, ends[which])], 1)
+
+
 def residual(change: float, top: float) -> float:
     """The relative change of a step, max|Z_t - Z_{t-1}| / max|Z_t| (0 for an all-zero Z)."""
     return float(change) / float(top) if top > 0 else 0.0
@@ -154,16 +169,37 @@ class JacobiBackend:
         """What the run's ``info`` adds after the last step (e.g. an approximation's figures)."""
         return {}
 
+    regions = False
+    """Whether :meth:`steps` can step a region (some rows) alone; a backend without it steps every row."""
+
     def step(self) -> tuple[float, float]:  # pragma: no cover - interface
         raise NotImplementedError
 
-    def steps(self, count: int) -> np.ndarray:
+    def region(self, rows: np.ndarray):  # pragma: no cover - interface of a backend with regions
+        """What :meth:`step_region` steps for the sorted rows (R,) int64 (made once per :meth:`steps` call)."""
+        raise NotImplementedError
+
+    def step_region(self, region) -> tuple[float, float]:  # pragma: no cover - interface
+        """One step of the region's rows alone; (max change, max Z) over them."""
+        raise NotImplementedError
+
+    def steps(self, count: int, rows: Optional[np.ndarray] = None) -> np.ndarray:
+        """Up to ``count`` steps (class doc); ``rows`` (R,) int64 sorted: a region's steps, where
+        the backend has them (:attr:`regions`): those rows alone are stepped (the others read,
+        never written) and the early stop looks at them alone; no statistics are tracked then."""
         out = []
         t = self.tracking
+        if rows is not None and self.regions:
+            if t is not None:
+                raise ValueError("a region's steps track no statistics")
+            region = self.region(rows)
+            step = lambda: self.step_region(region)  # noqa: E731
+        else:
+            step = self.step
         rows = np.zeros((count, t.width), np.float64) if t is not None else None
         n = self.inputs.shape[0]
         for s in range(count):
-            change, top = self.step()
+            change, top = step()
             out.append((change, top))
             if t is not None:  # beside the step, on the state in row order
                 step_statistics(self.state(), self.inputs.active, t.labels[:n], t.truth, rows[s])

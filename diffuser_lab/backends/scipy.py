@@ -41,6 +41,22 @@ class ScipyJacobi(JacobiBackend):
         self.Z = Z_new
         return change, top
 
+    regions = True
+
+    def region(self, rows: np.ndarray):
+        P = self.P[rows]
+        return rows, P, self.B[rows]
+
+    def step_region(self, region) -> tuple[float, float]:
+        rows, P, B = region
+        Z_new = P @ self.Z
+        Z_new += B
+        np.multiply(Z_new, Z_new >= self.inputs.floor, out=Z_new)
+        top = float(Z_new.max()) if Z_new.size else 0.0
+        change = float(np.abs(Z_new - self.Z[rows]).max()) if Z_new.size else 0.0
+        self.Z[rows] = Z_new
+        return change, top
+
     def state(self) -> np.ndarray:
         return self.Z
 

@@ -363,10 +363,13 @@ class System:
             raise RuntimeError("System: no iteration running (call start() first)")
         return self._backend
 
-    def steps(self, count: int) -> np.ndarray:
+    def steps(self, count: int, rows: Optional[np.ndarray] = None) -> np.ndarray:
         """Up to ``count`` steps from the current Z, stopping after the first step whose relative
-        change is <= the backend's tol; (done, 2) float32 (max change, max Z) per step."""
-        return self.backend.steps(count)
+        change is <= the backend's tol; (done, 2) float32 (max change, max Z) per step. ``rows``
+        (R,) int64 sorted: a region's steps (those rows alone, on a backend that has them:
+        :attr:`~diffuser_lab.backends.base.JacobiBackend.regions`; the others step every row)."""
+        b = self.backend
+        return b.steps(count) if rows is None or not b.regions else b.steps(count, rows)
 
     def run(self, max_iter: int, observer: Optional[Observer] = None, label: Optional[str] = None) -> DiffusionResult:
         """Up to ``max_iter`` steps from the current Z with observers (:data:`Observer`) and the

@@ -346,7 +346,8 @@ def test_explicit_vector_blocks_equal_the_generated_kernel_bit_for_bit(W):
     B = np.zeros((3, len(pts), W), np.float32)
     B[..., :W - 3] = rng.random((3, len(pts), W - 3), dtype=np.float32) * (rng.random((3, len(pts), 1)) < 0.1)
     out = []
-    for f, stats in ((getattr(_unrolled, f"steps_{W}"), kernels.untracked(25, 2)), (getattr(_zmm, f"msteps_{W}z"), ())):
+    for f, stats in ((getattr(_unrolled, f"steps_{W}"), (kernels.EVERY_ROW, *kernels.untracked(25, 2))),
+                     (getattr(_zmm, f"msteps_{W}z"), ())):
         Z, Zn = np.zeros_like(B), np.zeros_like(B)
         with kernels.StepRunner(len(pts), threads=2, min_rows_per_thread=1, chunk=97) as runner:
             args = (s.sorted_neighbors, s.sorted_P, Z.reshape(3, -1), Zn.reshape(3, -1), B.reshape(3, -1),

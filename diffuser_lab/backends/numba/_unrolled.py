@@ -174,10 +174,11 @@ def stats_8(Zs, ids, labels, tptr, tcls, tcnt, lo, hi, out):
 
 
 @njit(cache=True, boundscheck=False, nogil=True)
-def steps_8(nbr, wts, Za, Zb, Bf, floor, tol, ids, labels, tptr, tcls, tcnt, st, n_steps, chunk, tid, nthreads,
-             ctrl, res):
+def steps_8(nbr, wts, Za, Zb, Bf, floor, tol, runs, ids, labels, tptr, tcls, tcnt, st, n_steps, chunk, tid,
+             nthreads, ctrl, res):
     n = nbr.shape[0]
-    nchunks = (n + chunk - 1) // chunk
+    every = runs.shape[0] == 0
+    nchunks = (n + chunk - 1) // chunk if every else runs.shape[0]
     track = st.shape[2] > 0
     for s in range(n_steps):
         src = Za if s % 2 == 0 else Zb
@@ -188,8 +189,12 @@ def steps_8(nbr, wts, Za, Zb, Bf, floor, tol, ids, labels, tptr, tcls, tcnt, st,
             c = atomic_add(ctrl, 1 + s, 1)
             if c >= nchunks:
                 break
-            lo = c * chunk
-            hi = min(lo + chunk, n)
+            if every:
+                lo = c * chunk
+                hi = min(lo + chunk, n)
+            else:
+                lo = runs[c, 0]
+                hi = runs[c, 1]
             for blk in range(Za.shape[0]):
                 a, b = rows_8(nbr, wts, src[blk], dst[blk], Bf[blk], floor, lo, hi)
                 ch = max(ch, a)
@@ -495,10 +500,11 @@ def stats_16(Zs, ids, labels, tptr, tcls, tcnt, lo, hi, out):
 
 
 @njit(cache=True, boundscheck=False, nogil=True)
-def steps_16(nbr, wts, Za, Zb, Bf, floor, tol, ids, labels, tptr, tcls, tcnt, st, n_steps, chunk, tid, nthreads,
-             ctrl, res):
+def steps_16(nbr, wts, Za, Zb, Bf, floor, tol, runs, ids, labels, tptr, tcls, tcnt, st, n_steps, chunk, tid,
+             nthreads, ctrl, res):
     n = nbr.shape[0]
-    nchunks = (n + chunk - 1) // chunk
+    every = runs.shape[0] == 0
+    nchunks = (n + chunk - 1) // chunk if every else runs.shape[0]
     track = st.shape[2] > 0
     for s in range(n_steps):
         src = Za if s % 2 == 0 else Zb
@@ -509,8 +515,12 @@ def steps_16(nbr, wts, Za, Zb, Bf, floor, tol, ids, labels, tptr, tcls, tcnt, st
             c = atomic_add(ctrl, 1 + s, 1)
             if c >= nchunks:
                 break
-            lo = c * chunk
-            hi = min(lo + chunk, n)
+            if every:
+                lo = c * chunk
+                hi = min(lo + chunk, n)
+            else:
+                lo = runs[c, 0]
+                hi = runs[c, 1]
             for blk in range(Za.shape[0]):
                 a, b = rows_16(nbr, wts, src[blk], dst[blk], Bf[blk], floor, lo, hi)
                 ch = max(ch, a)
@@ -936,10 +946,11 @@ def stats_24(Zs, ids, labels, tptr, tcls, tcnt, lo, hi, out):
 
 
 @njit(cache=True, boundscheck=False, nogil=True)
-def steps_24(nbr, wts, Za, Zb, Bf, floor, tol, ids, labels, tptr, tcls, tcnt, st, n_steps, chunk, tid, nthreads,
-             ctrl, res):
+def steps_24(nbr, wts, Za, Zb, Bf, floor, tol, runs, ids, labels, tptr, tcls, tcnt, st, n_steps, chunk, tid,
+             nthreads, ctrl, res):
     n = nbr.shape[0]
-    nchunks = (n + chunk - 1) // chunk
+    every = runs.shape[0] == 0
+    nchunks = (n + chunk - 1) // chunk if every else runs.shape[0]
     track = st.shape[2] > 0
     for s in range(n_steps):
         src = Za if s % 2 == 0 else Zb
@@ -950,8 +961,12 @@ def steps_24(nbr, wts, Za, Zb, Bf, floor, tol, ids, labels, tptr, tcls, tcnt, st
             c = atomic_add(ctrl, 1 + s, 1)
             if c >= nchunks:
                 break
-            lo = c * chunk
-            hi = min(lo + chunk, n)
+            if every:
+                lo = c * chunk
+                hi = min(lo + chunk, n)
+            else:
+                lo = runs[c, 0]
+                hi = runs[c, 1]
             for blk in range(Za.shape[0]):
                 a, b = rows_24(nbr, wts, src[blk], dst[blk], Bf[blk], floor, lo, hi)
                 ch = max(ch, a)
@@ -1497,10 +1512,11 @@ def stats_32(Zs, ids, labels, tptr, tcls, tcnt, lo, hi, out):
 
 
 @njit(cache=True, boundscheck=False, nogil=True)
-def steps_32(nbr, wts, Za, Zb, Bf, floor, tol, ids, labels, tptr, tcls, tcnt, st, n_steps, chunk, tid, nthreads,
-             ctrl, res):
+def steps_32(nbr, wts, Za, Zb, Bf, floor, tol, runs, ids, labels, tptr, tcls, tcnt, st, n_steps, chunk, tid,
+             nthreads, ctrl, res):
     n = nbr.shape[0]
-    nchunks = (n + chunk - 1) // chunk
+    every = runs.shape[0] == 0
+    nchunks = (n + chunk - 1) // chunk if every else runs.shape[0]
     track = st.shape[2] > 0
     for s in range(n_steps):
         src = Za if s % 2 == 0 else Zb
@@ -1511,8 +1527,12 @@ def steps_32(nbr, wts, Za, Zb, Bf, floor, tol, ids, labels, tptr, tcls, tcnt, st
             c = atomic_add(ctrl, 1 + s, 1)
             if c >= nchunks:
                 break
-            lo = c * chunk
-            hi = min(lo + chunk, n)
+            if every:
+                lo = c * chunk
+                hi = min(lo + chunk, n)
+            else:
+                lo = runs[c, 0]
+                hi = runs[c, 1]
             for blk in range(Za.shape[0]):
                 a, b = rows_32(nbr, wts, src[blk], dst[blk], Bf[blk], floor, lo, hi)
                 ch = max(ch, a)

@@ -22,7 +22,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..base import IterationInputs, JacobiBackend, union_rows
+from ..base import IterationInputs, JacobiBackend, row_runs, union_rows
 from ..krylov import gmres
 # MULTI_WIDTH: the block width when the active classes need several blocks (more than 32), one value
 # for these kernels and the statistics' row sums: 32, stepped by ._zmm's explicit 16-lane kernel (issue
@@ -173,10 +173,11 @@ def stats_source(W: int) -> list[str]:
 
 _STEPS_TEMPLATE = """\
 @njit(cache=True, boundscheck=False, nogil=True)
-def steps_{W}(nbr, wts, Za, Zb, Bf, floor, tol, ids, labels, tptr, tcls, tcnt, st, n_steps, chunk, tid, nthreads,
-             ctrl, res):
+def steps_{W}(nbr, wts, Za, Zb, Bf, floor, tol, runs, ids, labels, tptr, tcls, tcnt, st, n_steps, chunk, tid,
+             nthreads, ctrl, res):
     n = nbr.shape[0]
-    nchunks = (n + chunk - 1) // chunk
+    every = runs.shape[0] == 0
+    nchunks = (n + chunk - 1) // chunk if every else runs.shape[0]
     track = st.shape[2] > 0
     for s in range(n_steps):
         src = Za if s % 2 == 0 else Zb
@@ -187,8 +188,12 @@ def steps_{W}(nbr, wts, Za, Zb, Bf, floor, tol, ids, labels, tptr, tcls, tcnt, s
             c = atomic_add(ctrl, 1 + s, 1)
             if c >= nchunks:
                 break
-            lo = c * chunk
-            hi = min(lo + chunk, n)
+            if every:
+                lo = c * chunk
+                hi = min(lo + chunk, n)
+            else:
+                lo = runs[c, 0]
+                hi = runs[c, 1]
             for blk in range(Za.shape[0]):
                 a, b = rows_{W}(nbr, wts, src[blk], dst[blk], Bf[blk], floor, lo, hi)
                 ch = max(ch, a)
@@ -205,11 +210,13 @@ def steps_{W}(nbr, wts, Za, Zb, Bf, floor, tol, ids, labels, tptr, tcls, tcnt, s
 
 
 """.splitlines()
-"""``steps_W(nbr, wts, Za, Zb, Bf, floor, tol, ids, labels, tptr, tcls, tcnt, st, n_steps, chunk, tid,
+"""``steps_W(nbr, wts, Za, Zb, Bf, floor, tol, runs, ids, labels, tptr, tcls, tcnt, st, n_steps, chunk, tid,
 nthreads, ctrl, res)``: thread ``tid`` of ``nthreads`` runs up to ``n_steps`` Jacobi steps on class
 blocks Za, Zb, Bf (blocks, N*W) (one block: (1, N*W)), Za -> Zb -> Za ... Every step's rows are
 taken ``chunk`` at a time from the ticket counter ``ctrl[1 + s]`` (so a thread that the OS parks is
-made up for by the others) and done for every block before the next claim (the run's neighbours
+made up for by the others), or, where ``runs`` (R, 2) int64 is not empty, one run of rows
+``runs[r, 0]..runs[r, 1] - 1`` at a time: only those rows are stepped (a region's steps; the
+other rows are read, never written, so both buffers must hold them) and done for every block before the next claim (the run's neighbours
 and weights stay in cache across the blocks); each thread writes its (max |Zn - Z|, max Zn) over
 all blocks to ``res[s, tid]`` and all meet at the barrier ``ctrl[0]`` (arrivals, never reset);
 after it every thread sees the same residual and stops after the first step whose relative change
@@ -283,14 +290,16 @@ class StepRunner:
             except BaseException as exc:  # noqa: BLE001 - re-raised by run() in the caller
                 self._done.put(exc)
 
-    def run(self, W: int, nbr, wts, Za, Zb, B, floor, tol: float, n_steps: int, tracked=None) -> np.ndarray:
+    def run(self, W: int, nbr, wts, Za, Zb, B, floor, tol: float, n_steps: int, tracked=None,
+            runs: Optional[np.ndarray] = None) -> np.ndarray:
         """Up to ``n_steps`` Eq. 10 steps on an (N, W) block, ``Za`` -> ``Zb`` -> ``Za`` ...
         (entries below ``floor`` flushed to 0), stopping after the first step whose relative
         change max|Zn - Z| / max Zn is <= ``tol``. Returns (steps done, 2) float32: per step
         (max |Zn - Z|, max Zn); the last state is in ``Zb`` after an odd number, else ``Za``.
-        ``tracked``: the statistics' arguments of ``steps_W`` (:meth:`NumbaJacobi._tracked`), else none."""
+        ``tracked``: the statistics' arguments of ``steps_W`` (:meth:`NumbaJacobi._tracked`), else none;
+        ``runs``: (R, 2) the row ranges stepped (a region, ``steps_W``), None: every row."""
         args = (nbr, wts, Za.reshape(1, -1), Zb.reshape(1, -1), B.reshape(1, -1), np.float32(floor), float(tol),
-                *(tracked or untracked(n_steps, self.threads)))
+                EVERY_ROW if runs is None else runs, *(tracked or untracked(n_steps, self.threads)))
         return self.launch(_step_kernels()[W], args, n_steps, 2).max(axis=1)
 
     def launch(self, f, args: tuple, n_steps: int, width: int, tickets: int = 1, chunk: int = 0) -> np.ndarray:
@@ -336,6 +345,10 @@ class StepRunner:
 
 _NO_ROWS = (np.zeros(0, np.int64), np.zeros(0, np.int16), np.zeros(1, np.int64), np.zeros(0, np.int64),
             np.zeros(0, np.float64))
+
+
+EVERY_ROW = np.zeros((0, 2), np.int64)
+"""``steps_W``'s ``runs`` when every row is stepped."""
 
 
 def untracked(n_steps: int, threads: int) -> tuple:
@@ -386,6 +399,12 @@ if NB is not None:
                 if v > best[i]:
                     best[i] = v
                     arg[i] = ids[a]
+
+    @njit(cache=True, boundscheck=False)
+    def copy_runs(src, dst, runs):
+        """dst[lo:hi] = src[lo:hi] for each row range (lo, hi) of ``runs`` (R, 2)."""
+        for r in range(runs.shape[0]):
+            dst[runs[r, 0]:runs[r, 1]] = src[runs[r, 0]:runs[r, 1]]
 
     @njit(cache=True, boundscheck=False)
     def _set_labels(arg, labels):
@@ -469,6 +488,7 @@ class NumbaJacobi(JacobiBackend):
             self._stack = [np.zeros((len(spec), cap, MULTI_WIDTH), np.float32) for _ in range(3)]
         self.blocks = [Block(first, cnt, width, cap, None if self._stack is None else tuple(a[i] for a in self._stack))
                        for i, (first, cnt, width) in enumerate(spec)]
+        self._synced = False  # Z and Zn hold the same rows (what a region's steps need)
         self._take(inputs, None)
 
     def _capacity(self) -> int:
@@ -518,15 +538,18 @@ class NumbaJacobi(JacobiBackend):
         """The steps' statistics rows (summed over the threads) into :attr:`stats`."""
         self.stats = None if tracked is None else tracked[-1][:done].sum(axis=1)
 
-    def steps(self, count: int) -> np.ndarray:
+    def steps(self, count: int, rows: Optional[np.ndarray] = None) -> np.ndarray:
+        if rows is not None:
+            if self.tracking is not None:
+                raise ValueError("a region's steps track no statistics")
+            return self.steps_region(count, self.region(rows))
         floor, tol, n = self.inputs.floor, self.tol, self.inputs.shape[0]
         tracked = self._tracked(count)
         if len(self.blocks) == 1:  # all steps in compiled code, no GIL needed between them
             b = self.blocks[0]
             out = self.runner.run(b.width, self.nbr, self.wts, b.Z[:n], b.Zn[:n], b.B[:n], floor, tol, count,
                                   tracked)
-            if len(out) % 2:
-                b.Z, b.Zn = b.Zn, b.Z
+            self._swap(len(out))
             self._keep_stats(tracked, len(out))
             return out
         if not self.blocks:  # no class has evidence: Z stays 0, one step that changes nothing
@@ -538,13 +561,52 @@ class NumbaJacobi(JacobiBackend):
         if tracked is None and MULTI_KERNEL == "zmm":
             out = self.runner.launch(_multi_kernel(), args, count, 2, chunk=MULTI_CHUNK).max(axis=1)
         else:  # statistics in the step: the generated kernel (the same Z bit for bit) tracks them
-            out = self.runner.launch(_step_kernels()[MULTI_WIDTH], (*args, *(tracked or untracked(
+            out = self.runner.launch(_step_kernels()[MULTI_WIDTH], (*args, EVERY_ROW, *(tracked or untracked(
                 count, self.runner.threads))), count, 2).max(axis=1)
-        if len(out) % 2:
-            self._stack = [B3, Zn3, Z3]
+        self._swap(len(out))
+        self._keep_stats(tracked, len(out))
+        return out
+
+    def _swap(self, done: int) -> None:
+        """After ``done`` steps Za -> Zb -> ...: the state is Zn after an odd number (the buffers swap names)."""
+        if done % 2:
+            if self._stack is not None:
+                B3, Z3, Zn3 = self._stack
+                self._stack = [B3, Zn3, Z3]
             for b in self.blocks:
                 b.Z, b.Zn = b.Zn, b.Z
-        self._keep_stats(tracked, len(out))
+        self._synced = False
+
+    regions = True
+
+    def region(self, rows: np.ndarray) -> np.ndarray:
+        return row_runs(rows, self.runner.chunk if self.runner.threads > 1 else max(int(rows.size), 1))
+
+    def steps_region(self, count: int, runs: np.ndarray) -> np.ndarray:
+        """Up to ``count`` steps of the rows ``runs`` (R, 2) covers (``steps_W`` with runs), both
+        buffers made equal outside them first (a region's step reads them from either) and on
+        them after."""
+        floor, tol, n = self.inputs.floor, self.tol, self.inputs.shape[0]
+        if not self.blocks:
+            return super().steps(1)
+        if not self._synced:
+            for b in self.blocks:
+                b.Zn[:n] = b.Z[:n]
+        nb = len(self.blocks)
+        if nb == 1:
+            b = self.blocks[0]
+            Za, Zb, Bf = b.Z[:n].reshape(1, -1), b.Zn[:n].reshape(1, -1), b.B[:n].reshape(1, -1)
+        else:
+            B3, Z3, Zn3 = self._stack
+            Za, Zb, Bf = Z3.reshape(nb, -1), Zn3.reshape(nb, -1), B3.reshape(nb, -1)
+        W = self.blocks[0].width
+        args = (self.nbr, self.wts, Za, Zb, Bf, np.float32(floor), float(tol), runs,
+                *untracked(count, self.runner.threads))
+        out = self.runner.launch(_step_kernels()[W], args, count, 2).max(axis=1)
+        self._swap(len(out))
+        for b in self.blocks:
+            copy_runs(b.Z, b.Zn, runs)
+        self._synced = True
         return out
 
     def step(self) -> tuple[float, float]:  # no class has evidence (base.steps): Z stays 0
@@ -562,6 +624,7 @@ class NumbaJacobi(JacobiBackend):
         for b in self.blocks:
             b.Z[:n, :b.cnt] = Z[:, b.first:b.first + b.cnt]
             b.Z[:n, b.cnt:] = 0.0
+        self._synced = False
 
     def labels(self, out: np.ndarray) -> int:
         n, active = self.inputs.shape[0], self.inputs.active
