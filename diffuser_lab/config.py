@@ -522,6 +522,13 @@ class OnlineSolver(Enum):
     gmres = "gmres"  # GMRES(online.steps) warm-started, per class column: closer per product, ~3x the time per step
 
 
+class FinalPass(Enum):
+    """protocol=online: the pass after the last frame (``online.finish``)."""
+
+    batch = "batch"  # the batch method on the map built online: horizon steps of the paper's iteration from Z = 0
+    settle = "settle"  # the discounted iteration warm-started until a step changes Z by <= solver.tol
+
+
 @dataclass
 class OnlineConfig(Section):
     """protocol=online (diffuser_lab/method/online.py, docs/online.md): per frame the evidence it
@@ -536,17 +543,27 @@ class OnlineConfig(Section):
     # gamma^t, half of the weight on t < horizon / 2 as the batch's T = horizon steps from Z = 0
     # do, so the result stays where the early-stopped batch is as frames accumulate
     horizon: Optional[int] = key(None, at_least(1, null=True))
+    # region: a frame's steps take the rows it changed (evidence, edges, new points) and those within
+    # `frontier` hops of them (null: as many hops as the frame's steps reach); false = every row. Every
+    # `sweep`-th frame adds one step on every row (its change bounds the error the regions leave)
+    region: bool = True
+    frontier: Optional[int] = key(None, within(0, 1000, steps=True, null=True, note="(null = online.steps)"))
+    sweep: int = key(8, within(1, 100_000, steps=True))
     discount: Optional[float] = key(None, within(0, 1, open_lo=True, null=True, note="(= 2^(-2/horizon))"))  # gamma itself; null = from horizon; 1 = the undiscounted iteration
     voxel_size: float = key(0.03, above(0, "metres"))  # growing: map voxel edge, metres (online mappers use 2-10 cm; the paper 2 cm)
     depth_stride: int = key(2, at_least(1))  # growing: every n-th depth pixel in both directions is back-projected
     max_depth: Optional[float] = key(None, above(0, "metres", null=True))  # growing: metres; depth beyond it adds no points (it still gives evidence)
-    revisit: int = key(5, within(0, 1000, steps=True, note="(0 = none)"))  # growing: a new point also gets the evidence of this many frames before the one that added it
+    # growing: a new point also gets the evidence of the frames before the one that added it (as the batch
+    # run on the final cloud does): null = every earlier frame kept (within revisit_mb), n = the n last
+    revisit: Optional[int] = key(None, within(0, 100_000, steps=True, null=True, note="(0 = none)"))
+    revisit_mb: float = key(2048.0, above(0, "MB"))  # growing: the earlier frames kept for that (depth and 2D predictions) take at most this; the oldest go first (counted in summary.json)
     bad_frames: BadFrame = BadFrame.skip
     compare_batch: bool = True  # after the last frame, run the batch Diffuser on the same frames (and final cloud)
     # the sensor's frame rate: what a frame's update leaves of its 1 / rate seconds goes to extra steps
     # (idle time; reported apart from the latency); 0 = none: each frame's `steps` only (reproducible)
     rate: float = key(30.0, at_least(0, "Hz", note="(0 = no idle steps)"))
-    finish: int = key(5000, within(0, 1_000_000, steps=True, note="(0 = none)"))  # after the last frame: up to this many steps until one changes Z by <= solver.tol
+    final: FinalPass = FinalPass.batch  # after the last frame: batch = the early-stopped batch iteration on the final map (the frames' labels track a discounted fixed point near it); settle = that fixed point
+    finish: int = key(5000, within(0, 1_000_000, steps=True, note="(0 = none)"))  # the pass after the last frame (online.final): 0 = none; settle: up to this many steps until one changes Z by <= solver.tol
 
 
 @dataclass

@@ -53,6 +53,7 @@ class IncrementalKnnGraph:
         self.invariant_normals = bool(invariant_normals)
         self.rho_tol = float(rho_tol)
         self.n = 0
+        self.refreshed: np.ndarray | None = None  # the last add refreshed every weight: the rows its points changed
         self._use_n: bool | None = None  # fixed by the first add
         self._cap = 0
         self._P = np.empty((0, 3), np.float32)
@@ -139,7 +140,7 @@ class IncrementalKnnGraph:
         Returns:
             (r,) int64 sorted indices of every row whose neighbours or weights changed: the new
             rows, the old rows a new point entered, or every row when the weights were refreshed
-            because rho moved by more than rho_tol.
+            because rho moved by more than rho_tol (then :attr:`refreshed` holds the former, else None).
         """
         points = np.ascontiguousarray(points, np.float32)
         if points.ndim != 2 or points.shape[1] != 3:
@@ -151,6 +152,7 @@ class IncrementalKnnGraph:
             raise ValueError("normals must be given with every add or with none")
         if normals is not None and np.shape(normals) != (m, 3):
             raise ValueError(f"normals must be (m, 3) like the points, got {np.shape(normals)}")
+        self.refreshed = None
         if m == 0:
             return np.empty(0, np.int64)
         n_old, n = self.n, self.n + m
@@ -178,6 +180,7 @@ class IncrementalKnnGraph:
             rho = self.rho
             if self._rcnt and (self._rho_w is None or abs(rho - self._rho_w) > self.rho_tol * self._rho_w):
                 self.refresh_weights()
+                self.refreshed = changed  # the rows the points changed (every weight moved a little)
                 return np.arange(n, dtype=np.int64)
             if self._rho_w is None:  # no distinct neighbour yet: no bandwidth
                 self._w[changed] = 0

@@ -4,8 +4,9 @@ Per frame (:meth:`OnlineDiffuser.add_frame`):
 
 1. growing map only: the frame's depth is back-projected (every ``online.depth_stride``-th pixel)
    and merged on a world-anchored voxel grid (:class:`~diffuser_lab.data.voxel_map.VoxelMap`);
-   the new points get normals from the depth image, the evidence of the ``online.revisit``
-   frames before (those that see them within the depth check), and the kNN graph (Eqs. 3-4) is
+   the new points get normals from the depth image, the evidence of the earlier frames
+   (:class:`FrameStore`, ``online.revisit``: those that see them within the depth check, as the
+   batch run on the final cloud links them), and the kNN graph (Eqs. 3-4) is
    extended for them and for the old rows they enter
    (:class:`~diffuser_lab.method.growing.IncrementalKnnGraph`), never rebuilt;
 2. the frame's pixel-to-point evidence is added (Eqs. 1-2, 11-13) for the points it sees
@@ -33,29 +34,31 @@ of the points; docs/online.md).
 
 The map's order: for a given cloud the graph's Morton order (the map's points are the work cloud
 re-ordered; :attr:`OnlineDiffuser.map_index` maps the work cloud's rows to them), for a growing
-map the order its points were added in (points and evidence are kept in it). A growing map's
-system rows are re-sorted along the Morton curve as the map grows (memory locality:
-:meth:`OnlineDiffuser._resort`, :meth:`~diffuser_lab.method.diffusion.System.move`); everything
+map the order its points were added in, which is also the system's row order: each frame's new
+points are one block of rows in the Morton order of their voxels (memory locality kept by blocks;
+the map is never re-sorted: a full re-sort cost a spike of O(N K) per growth step). Everything
 public is in the map's order. The iteration runs on Z / lambda.
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
 
-from diffuser_lab.backends.base import union_rows
-from diffuser_lab.backends.morton import spatial_order
-from diffuser_lab.config import OnlineMap, OnlineSolver, SolverBackend
-from diffuser_lab.data.geometry import backproject, normals_from_depth
+from diffuser_lab.backends.base import residual, union_rows
+from diffuser_lab.backends.region import reach
+from diffuser_lab.config import FinalPass, OnlineMap, OnlineSolver, SolverBackend
+from diffuser_lab.data.geometry import backproject, normals_from_depth, view_box
 from diffuser_lab.data.scene import IGNORE, Frame, Taxonomy
 from diffuser_lab.data.voxel_map import VoxelMap
 from diffuser_lab.method.diffusion import System, labels_from_scores
 from diffuser_lab.method.evidence import RunEvidence
 from diffuser_lab.method.graph import make_graph
 from diffuser_lab.method.growing import IncrementalKnnGraph
+from diffuser_lab.method.solvers import solve
 
 STEPS_GIVEN = 10
 """Default steps per frame on a given map (``online.steps=null``)."""
@@ -63,15 +66,77 @@ STEPS_GROWING = 16
 """... on a growing map: its new points start from Z = 0, not from a warm state."""
 
 
-RESORT_GROWTH = 1.25
-"""Growing map: storage is re-sorted along the Morton curve when the map has grown by this factor
-since the last time (and has at least :data:`RESORT_MIN` points)."""
-RESORT_MIN = 4096
 RHO_TOL = 0.05
 """Growing map: every weight is recomputed (sigma_d = sigma_d_factor * rho) when the map's mean
 spacing rho has moved this much (relative) since the last time; new rows use the current sigma_d."""
 ROWS_HINT = 1 << 20
 """The online system's backend is sized (threads) as for this many rows: a map may start small."""
+
+
+class FrameStore:
+    """Growing map: the frames taken so far, kept for the points added after them (a point is
+    added by the first frame whose depth lands in its voxel, but earlier frames may see it within
+    ``evidence.depth_tol``; the batch run on the final cloud links them all).
+
+    Each frame is kept as what its evidence reads (K, T_cw, depth, the 2D labels / probabilities /
+    features; not the colour) with the world box of its view between its nearest and farthest
+    valid depth widened by the depth check's tolerance (:func:`~diffuser_lab.data.geometry.view_box`):
+    a point outside it cannot pass the frame's depth check, so :meth:`seeing` skips such frames
+    without changing any evidence.
+
+    Args:
+        limit: frames kept at most (None: all); max_bytes: their arrays' bytes at most; the
+            oldest frames go first. depth_tol: metres (``evidence.depth_tol``).
+    Attributes:
+        dropped: frames let go for ``limit`` or ``max_bytes`` (their evidence is lost for points
+            added later). bytes: the kept frames' arrays.
+    """
+
+    def __init__(self, limit: Optional[int], max_bytes: float, depth_tol: float):
+        self.limit = None if limit is None else int(limit)
+        self.max_bytes = float(max_bytes)
+        self.depth_tol = float(depth_tol)
+        self.frames: list[Frame] = []
+        self._boxes = np.zeros((0, 2, 3))
+        self._sizes: list[int] = []
+        self.bytes = 0
+        self.dropped = 0
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def add(self, frame: Frame) -> None:
+        """Keep ``frame`` (its arrays are referenced, not copied), letting the oldest go past the limits."""
+        if self.limit == 0:
+            self.dropped += 1
+            return
+        kept = Frame(name=frame.name, K=frame.K, T_cw=frame.T_cw, depth=frame.depth, labels=frame.labels,
+                     probs=frame.probs, features=frame.features)
+        valid = frame.depth[frame.depth > 0]
+        if valid.size == 0:
+            return
+        z_lo = max(float(valid.min()) - self.depth_tol, 0.0)
+        box = view_box(frame.K, frame.T_cw, frame.shape, z_lo, float(valid.max()) + self.depth_tol)
+        size = sum(a.nbytes for a in (kept.depth, kept.labels, kept.probs, kept.features) if a is not None)
+        self.frames.append(kept)
+        self._sizes.append(size)
+        self._boxes = np.concatenate([self._boxes, box[None]])
+        self.bytes += size
+        while self.frames and ((self.limit is not None and len(self.frames) > self.limit)
+                               or self.bytes > self.max_bytes):
+            self.frames.pop(0)
+            self.bytes -= self._sizes.pop(0)
+            self._boxes = self._boxes[1:]
+            self.dropped += 1
+
+    def seeing(self, points: np.ndarray) -> list[Frame]:
+        """The kept frames, oldest first, whose view box meets the box of ``points`` (m, 3) world metres."""
+        if not self.frames or points.shape[0] == 0:
+            return []
+        lo, hi = points.min(0), points.max(0)
+        b = self._boxes
+        meet = np.all((b[:, 0] <= hi) & (b[:, 1] >= lo), axis=1)
+        return [self.frames[i] for i in np.flatnonzero(meet)]
 
 
 def discount(horizon: int) -> float:
@@ -87,8 +152,9 @@ class FrameStats:
     index: int
     name: str
     latency_ms: float = 0.0  # the whole update: map, graph, evidence, steps, labels
-    map_ms: float = 0.0  # growing: back-projection, voxel merge, normals, graph extension
-    evidence_ms: float = 0.0  # evidence and renormalised rows
+    map_ms: float = 0.0  # growing: back-projection, voxel merge, normals
+    graph_ms: float = 0.0  # growing: the kNN graph extended (Eqs. 3-4), the system's rows appended
+    evidence_ms: float = 0.0  # evidence (the new points' from earlier frames too) and renormalised rows
     steps_ms: float = 0.0  # the Jacobi steps and the labels
     points: int = 0  # points in the map after the frame
     new_points: int = 0
@@ -97,6 +163,9 @@ class FrameStats:
     steps: int = 0  # Jacobi steps run
     residual: float = 0.0  # the last step's max |Z_t - Z_{t-1}| / max Z_t
     changed: int = 0  # points whose label changed
+    region_rows: int = 0  # rows the frame's steps took (online.region)
+    sweep_residual: Optional[float] = None  # a step on every row (the sweep, idle steps): its relative change
+    error_bound: Optional[float] = None  # then: max |Z - Z*| / max Z <= this, Z* the system's discounted fixed point
     skipped: Optional[str] = None  # why the frame was skipped (a bad frame), else None
     idle_steps: int = 0  # extra steps in the time the sensor left before the next frame (not in latency_ms)
     idle_ms: float = 0.0
@@ -128,19 +197,21 @@ class OnlineDiffuser:
         self.gamma = float(oc.discount) if oc.discount is not None else discount(self.horizon)
         self.steps = int(oc.steps) if oc.steps is not None else (STEPS_GROWING if self.growing else STEPS_GIVEN)
         self.tol = float(cfg.solver.tol)
+        self.final = FinalPass(oc.final)
+        self.region = bool(oc.region) and OnlineSolver(oc.solver) == OnlineSolver.jacobi
+        self.frontier = self.steps if oc.frontier is None else int(oc.frontier)
+        self.sweep = int(oc.sweep)
         self.lam = float(cfg.evidence.pixel_weight)
         self.solver = OnlineSolver(oc.solver)
         self.frames_seen = 0
         self.history: list[FrameStats] = []
-        self.revisit = int(oc.revisit)
-        self._sorted_at = 0
-        self._recent: list[Frame] = []  # growing: the last `revisit` frames (new points get their evidence)
+        # growing: the earlier frames (new points get their evidence)
+        self.store = FrameStore(oc.revisit, oc.revisit_mb * 2**20, cfg.evidence.depth_tol)
         # per point, in the map's order: points, evidence, Bayesian labels (arrays with room to grow);
         # per row of the system: the Diffuser's labels; growing: each map point's row of the system
         self._n = 0
         self._cap = 0
         self._labels = np.zeros(0, np.int16)
-        self._pos = np.zeros(0, np.int64)
         self._final: Optional[np.ndarray] = None  # Z after close()
         self._settled = False  # a step has changed Z by <= solver.tol since the last frame's evidence
         self.ev = RunEvidence.of(cfg, 0, self.C)  # the method's and the Bayesian baseline's evidence
@@ -154,10 +225,9 @@ class OnlineDiffuser:
                                              invariant_normals=False, rho_tol=RHO_TOL)
             self.map_index = None
             self.rho = self.sigma_d = 0.0
-            # the system's rows: the map's points re-sorted along the Morton curve as the map grows
+            # the system's rows: the map's points, in the order they were added
             self.system = System(np.zeros((0, k), np.int32), np.zeros((0, k), np.float32), np.zeros(0),
-                                 self.ev.mass_store,
-                                 self.lam, order=np.zeros(0, np.int64), gamma=self.gamma, normalised=False)
+                                 self.ev.mass_store, self.lam, gamma=self.gamma, normalised=False)
         else:
             if points is None:
                 raise ValueError("online.map=given needs the scene's points")
@@ -167,6 +237,7 @@ class OnlineDiffuser:
                           sparse_classes=cfg.solver.sparse_classes, classes_per_point=cfg.solver.classes_per_point,
                           rows_hint=ROWS_HINT)
         self.backend_name = self.system.backend.name
+        self.region = self.region and self.system.backend.regions  # a backend without regions steps every row
 
     # -- state -----------------------------------------------------------------------------------
     def _alloc(self, need: int) -> None:
@@ -186,7 +257,6 @@ class OnlineDiffuser:
         self.ev.grow(self._n, cap)
         grow("_bayes", (cap,), np.int16, IGNORE)
         grow("_labels", (cap,), np.int16, IGNORE)
-        grow("_pos", (cap,), np.int64)
         if hasattr(self, "system"):
             self.system.mass = self.ev.mass_store
         self._cap = cap
@@ -229,8 +299,6 @@ class OnlineDiffuser:
     @property
     def labels(self) -> np.ndarray:
         """(n,) int16 current labels (IGNORE = nothing reached the point), map order, read-only."""
-        if self.growing:
-            return _ro(self._labels[self._pos[: self._n]])
         return _ro(self._labels[: self._n])
 
     @property
@@ -272,33 +340,35 @@ class OnlineDiffuser:
         :class:`FrameStats`."""
         st = FrameStats(index=self.frames_seen if index is None else int(index), name=str(frame.name))
         t0 = time.perf_counter()
-        changed_rows = np.zeros(0, np.int64)
+        edges = moved = np.zeros(0, np.int64)  # system rows: whose edges changed; what the points changed
+        n0 = self._n
         if self.growing:
-            changed_rows = self._grow(frame, st)
-        t1 = time.perf_counter()
+            new_pts, new_nrm = self._map(frame, st)
+            t1 = time.perf_counter()
+            edges, moved = self._extend(new_pts, new_nrm, st)
+            t2 = time.perf_counter()
+            self._revisit(n0, self._n - n0)
+            self.store.add(frame)
+        else:
+            t1 = t2 = t0
         n = self._n
-        seen = np.zeros(0, np.int64)
-        if n:
-            seen = self._add_evidence(frame, 0, n)
+        seen = self._add_evidence(frame, 0, n) if n else np.zeros(0, np.int64)
         st.seen = int(seen.size)
-        rows = self._pos[seen] if self.growing else seen  # the system's rows
-        if changed_rows.size:
-            rows = union_rows(rows, changed_rows, self._n)
-        elif self.growing:
-            rows = np.sort(rows)
+        if self.growing:
+            rows, moved = union_rows(seen, edges, n), union_rows(seen, moved, n)
+        else:
+            rows = moved = seen
         if rows.size:
             self.system.renormalise(rows)
-        t2 = time.perf_counter()
+        t3 = time.perf_counter()
         if rows.size:  # a frame that adds nothing (no evidence, no point) changes nothing
             self._settled = False
-            st.steps, st.residual, st.changed = self._diffuse()
-        t3 = time.perf_counter()
-        if self.growing and n >= RESORT_GROWTH * max(self._sorted_at, RESORT_MIN):
-            self._resort()  # counted in this frame's latency
-            t3 = time.perf_counter()
+            self._diffuse(st, self._region(moved))
+        t4 = time.perf_counter()
         st.points = n
-        st.map_ms, st.evidence_ms, st.steps_ms = (t1 - t0) * 1e3, (t2 - t1) * 1e3, (t3 - t2) * 1e3
-        st.latency_ms = (t3 - t0) * 1e3
+        st.map_ms, st.graph_ms = (t1 - t0) * 1e3, (t2 - t1) * 1e3
+        st.evidence_ms, st.steps_ms = (t3 - t2) * 1e3, (t4 - t3) * 1e3
+        st.latency_ms = (t4 - t0) * 1e3
         self.frames_seen += 1
         self.history.append(st)
         return self.labels
@@ -320,9 +390,9 @@ class OnlineDiffuser:
             self._bayes[seen_base] = labels_from_scores(self.ev.baseline.mass[seen_base])
         return seen
 
-    def _grow(self, frame: Frame, st: FrameStats) -> np.ndarray:
-        """Back-project and merge the frame's depth; extend the graph. Returns the system rows
-        whose edges changed (new rows included), sorted."""
+    def _map(self, frame: Frame, st: FrameStats) -> tuple[np.ndarray, Optional[np.ndarray]]:
+        """Back-project the frame's depth and merge it on the voxel map. Returns the new map points
+        (m, 3) float32 world metres (Morton order of their voxels) and their (m, 3) unit normals or None."""
         oc = self.cfg.online
         depth = frame.depth
         if oc.max_depth is not None:
@@ -342,70 +412,79 @@ class OnlineDiffuser:
             nrm[~nrm.any(1)] = (0.0, 0.0, 1.0)  # no depth around the pixel: a normal of no direction
             nrm = nrm.astype(np.float32)
         new_pts, new_nrm = self.voxels.insert(pts, nrm)
+        st.new_points = new_pts.shape[0]
+        return new_pts, new_nrm
+
+    def _extend(self, new_pts: np.ndarray, new_nrm: Optional[np.ndarray], st: FrameStats
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """Append the new points to the map, the graph and the system. Returns the system rows whose
+        edges changed (sorted, new rows included) and, of those, the ones the new points changed
+        (they differ when the weights were all refreshed: rho moved)."""
         m = new_pts.shape[0]
-        st.new_points = m
         if m == 0:
-            return np.zeros(0, np.int64)
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
         n0 = self._n
         self._alloc(n0 + m)
         self.ev.grow(n0 + m)
-        new = np.arange(n0, n0 + m)
-        self._pts[n0 : n0 + m] = new_pts  # new map rows n0.. go to system rows n0.. (the end)
-        self._pos[n0 : n0 + m] = new
+        self._pts[n0 : n0 + m] = new_pts  # new map rows n0.. are system rows n0.. (the end): a block in Morton order
         self._n = n0 + m
         sysm = self.system
         sysm.resize(n0 + m)
-        sysm.set_order(new, new)
-        changed = np.asarray(self.graph.add(new_pts, new_nrm), np.int64)
-        g, pos = self.graph, self._pos
-        srows = pos[changed]  # the changed rows in the system
-        sysm.sorted_neighbors[srows] = pos[g.neighbors[changed]]
-        sysm.edge_weights[srows] = g.weights[changed]
-        sysm.edge_sums[srows] = g.row_sums[changed]
+        g = self.graph
+        changed = np.asarray(g.add(new_pts, new_nrm), np.int64)  # sorted
+        sysm.sorted_neighbors[changed] = g.neighbors[changed]
+        sysm.edge_weights[changed] = g.weights[changed]
+        sysm.edge_sums[changed] = g.row_sums[changed]
         self.rho, self.sigma_d = g.rho, g.sigma_d
         st.graph_rows = int(changed.size)
-        self._revisit(n0, m)
-        self._recent.append(frame)
-        if len(self._recent) > self.revisit:
-            self._recent.pop(0)
-        return np.sort(srows)
-
-    def _resort(self) -> None:
-        """Growing map: re-order the system's rows along the Morton curve of the points (rows appended
-        frame by frame lose memory locality; measured: 16 Jacobi steps on 81k points 29.7 -> 16.4 ms).
-        The map's own order (and everything public) stays as it is."""
-        n = self._n
-        moved = spatial_order(self._pts[:n][self.system.order])  # new system row s = old row moved[s]
-        self.system.move(moved)
-        self._labels[:n] = self._labels[:n][moved]
-        inv = np.empty(n, np.int64)
-        inv[moved] = np.arange(n)
-        self._pos[:n] = inv[self._pos[:n]]
-        self._sorted_at = n
+        return changed, (changed if g.refreshed is None else np.asarray(g.refreshed, np.int64))
 
     def _revisit(self, n0: int, m: int) -> None:
-        """Give the new points n0..n0+m-1 the evidence of the ``online.revisit`` frames before this one
-        (those that see them pass the same depth check): a point is added by the first frame whose
-        depth lands in its voxel, but earlier frames may see it within ``evidence.depth_tol``."""
-        for f in self._recent:
+        """Give the new points n0..n0+m-1 the evidence of the kept frames before this one (:class:`FrameStore`;
+        those that see them pass the same depth check), oldest first, as the batch adds them."""
+        for f in self.store.seeing(self._pts[n0 : n0 + m]):
             self._add_evidence(f, n0, n0 + m)
 
-    def _diffuse(self) -> tuple[int, float, int]:
-        """The frame's steps (``online.solver``) and labels. Returns (steps done, relative residual
-        after them, labels changed)."""
+    def _region(self, rows: np.ndarray) -> Optional[np.ndarray]:
+        """The system rows a frame's steps take (``online.region``, ``online.frontier``): ``rows``
+        (the rows the frame changed) and every row within ``frontier`` hops of them along the
+        rows' neighbours (:func:`~diffuser_lab.backends.region.reach`); None: every row. With
+        frontier = the frame's steps, its steps equal steps on every row wherever the rest of the
+        map has settled (a change moves one hop a step)."""
+        if not self.region:
+            return None
+        return reach(self.system.sorted_neighbors, rows, self.frontier)
+
+    def _diffuse(self, st: FrameStats, region: Optional[np.ndarray] = None) -> None:
+        """The frame's steps (``online.solver``; ``region``: those rows alone, :meth:`_region`; every
+        ``online.sweep``-th frame one more step on every row: :meth:`_bound`) and labels, into ``st``."""
         if len(self.system.active) == 0:  # no evidence anywhere yet: Z stays 0
-            return 0, 0.0, 0
+            return
         n = self._n
         if self.solver == OnlineSolver.gmres:
-            done, r = self.steps, self.system.krylov(self.steps)
+            st.steps, st.residual = self.steps, self.system.krylov(self.steps)
         else:
             # online.solver=jacobi: up to `steps` warm-started steps of Z <- gamma P Z + B (the paper's
             # iteration, discounted), stopping once a step changes Z by <= solver.tol of its largest entry
-            out = self.system.steps(self.steps)
-            done = len(out)
-            self._settled = done < self.steps
-            r = float(out[-1, 0] / out[-1, 1]) if out[-1, 1] > 0 else 0.0
-        return done, r, self.system.labels(self._labels[:n])
+            out = self.system.steps(self.steps, region)
+            st.steps = len(out)
+            st.region_rows = n if region is None else int(region.size)
+            self._settled = st.steps < self.steps and region is None
+            st.residual = residual(*out[-1])
+            if region is None:
+                self._bound(st, st.residual)
+            elif self.frames_seen % self.sweep == 0:
+                self._bound(st, residual(*self.system.steps(1)[-1]))
+                st.steps += 1
+        st.changed = self.system.labels(self._labels[:n])
+
+    def _bound(self, st: FrameStats, r: float) -> None:
+        """A step on every row changed Z by ``r`` of its largest entry: the discounted iteration is a
+        contraction by gamma in the max norm, so Z is within gamma r / (1 - gamma) (relative to max Z)
+        of the fixed point its system has now, wherever the frames' regions left it (``st``'s
+        ``sweep_residual`` and ``error_bound``)."""
+        st.sweep_residual = float(r)
+        st.error_bound = float(self.gamma * r / (1.0 - self.gamma)) if self.gamma < 1 else float("inf")
 
     def idle(self, budget_s: float, chunk: int = 4) -> int:
         """Extra Jacobi steps in the time the sensor leaves before its next frame: ``chunk`` steps
@@ -416,11 +495,12 @@ class OnlineDiffuser:
         t0 = time.perf_counter()
         if budget_s <= 0 or self.solver != OnlineSolver.jacobi or self._settled or len(self.system.active) == 0:
             return 0
-        done, pace = 0, 0.0
+        done, pace, last = 0, 0.0, None
         while time.perf_counter() - t0 + pace <= budget_s:
             ts = time.perf_counter()
             out = self.system.steps(chunk)
             done += len(out)
+            last = out[-1]
             pace = time.perf_counter() - ts
             if len(out) < chunk:  # a step changed Z by <= solver.tol
                 self._settled = True
@@ -432,27 +512,64 @@ class OnlineDiffuser:
                 st.idle_steps += done
                 st.idle_ms += (time.perf_counter() - t0) * 1e3
                 st.changed += changed
+                self._bound(st, residual(*last))
         return done
 
     def finish(self, max_steps: int, observer=None) -> dict:
-        """After the last frame: Jacobi steps until one changes Z by <= ``solver.tol`` of its
-        largest entry, at most ``max_steps`` (the online iteration's fixed point, which the frames'
-        few steps only track): the core's loop (:meth:`~diffuser_lab.method.diffusion.System.run`)
-        with ``observer`` (:data:`~diffuser_lab.method.diffusion.Observer`: iteration = the pass's
-        step, Z in the map's order; statistics when it asks). Returns {steps, ms, residual,
-        changed} (steps 0 with ``online.solver=gmres``, before any evidence, or when already settled)."""
+        """After the last frame (``online.final``), with ``observer``
+        (:data:`~diffuser_lab.method.diffusion.Observer`: iteration = the pass's step, Z in the
+        map's order; statistics when it asks):
+
+        - ``batch``: the batch method on the map built online: the paper's iteration (gamma = 1)
+          from Z = 0, ``horizon`` steps with the solver's early stop (the solver registry's, as a
+          batch run: :func:`~diffuser_lab.method.solvers.solve`), a growing map's weights first
+          refreshed with its final rho. The discounted iteration the frames track has a fixed
+          point near, not at, the early-stopped result (docs/online.md); this pass ends there.
+        - ``settle``: Jacobi steps of the discounted iteration until one changes Z by <=
+          ``solver.tol`` of its largest entry, at most ``max_steps``.
+
+        Returns {steps, ms, residual, changed} (steps 0 with ``online.solver=gmres``, before any
+        evidence, when ``max_steps`` is 0, or (settle) when already settled)."""
         t0 = time.perf_counter()
-        done, r = 0, 0.0
-        if self.solver == OnlineSolver.jacobi and len(self.system.active) and not self._settled:
+        done, r, changed = 0, 0.0, 0
+        jacobi = self.solver == OnlineSolver.jacobi and len(self.system.active) and max_steps > 0
+        if jacobi and self.final == FinalPass.batch:
+            res = self._batch_pass(observer)
+            done, r = res.iterations, res.residual
+            self._settled = True
+            self._final = res.Z
+            n = self._n
+            order = self.system.order
+            new = labels_from_scores(res.Z if order is None else res.Z[order])
+            changed = int(np.count_nonzero(new != self._labels[:n]))
+            self._labels[:n] = new
+        elif jacobi and not self._settled:
             res = self.system.run(max_steps, observer)
             done, r = res.iterations, res.residual
             self._settled = res.converged
-        changed = self.system.labels(self._labels[: self._n]) if done else 0
-        return {"steps": done, "ms": (time.perf_counter() - t0) * 1e3, "residual": r, "changed": int(changed)}
+            changed = self.system.labels(self._labels[: self._n])
+        return {"steps": done, "ms": (time.perf_counter() - t0) * 1e3, "residual": r, "changed": int(changed),
+                "final": self.final.value}
+
+    def _batch_pass(self, observer):
+        """``online.final=batch``: the batch iteration on the final map (see :meth:`finish`); the
+        system is the paper's afterwards (gamma = 1: no frame can follow)."""
+        sysm = self.system
+        if self.growing:
+            g, n = self.graph, self._n
+            g.refresh_weights()  # sigma_d = 2 rho of the final map, as build_graph on the final cloud
+            sysm.edge_weights[:n] = g.weights
+            sysm.edge_sums[:n] = g.row_sums
+            self.rho, self.sigma_d = g.rho, g.sigma_d
+        sysm.close()
+        sysm.gamma = 1.0
+        sysm.renormalise()
+        scfg = dataclasses.replace(self.cfg.solver, backend=self.backend_name, max_iter=self.horizon)
+        return solve(sysm, scfg, observer)
 
     def close(self) -> None:
         """Release the working memory and threads (the state stays readable)."""
-        if self._final is None:
+        if self._final is None and self.system._backend is not None:
             self._final = self.system.scores()
         self.system.close()
 

@@ -201,7 +201,8 @@ def online(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHoo
             if slot:  # what the frame left of the sensor's frame time: extra steps (the next frame sees them)
                 ti = time.perf_counter()
                 od.idle(slot - (ti - tf))
-                rec.update(idle_steps=st.idle_steps, idle_ms=st.idle_ms, changed=st.changed)
+                rec.update(idle_steps=st.idle_steps, idle_ms=st.idle_ms, changed=st.changed,
+                           sweep_residual=st.sweep_residual, error_bound=st.error_bound)
                 t["idle"] += time.perf_counter() - ti
         t["frames"] += loop.read_s
         tq = time.perf_counter()
@@ -315,7 +316,8 @@ def table(res: OnlineResult) -> str:
     part = lambda k: float(np.median([f[k] for f in ok])) if ok else 0.0  # noqa: E731
     st = res.settings
     lines.append(f"per frame [ms]  median {_f(L.get('median'))}  p95 {_f(L.get('p95'))}  max {_f(L.get('max'))}  "
-                 f"(map {part('map_ms'):.1f}, evidence {part('evidence_ms'):.1f}, steps {part('steps_ms'):.1f}; "
+                 f"(map {part('map_ms'):.1f}, graph {part('graph_ms'):.1f}, evidence {part('evidence_ms'):.1f}, "
+                 f"steps {part('steps_ms'):.1f}; "
                  f"<= {st['steps']} steps, gamma {st['gamma']:.4f})")
     fin = st.get("finish") or {}
     if st.get("rate_hz") or fin:

@@ -10,37 +10,51 @@ from . import NB
 if NB is not None:
     from numba import njit, prange
 
+    @njit(cache=True, boundscheck=False, inline="always")
+    def _vote(i, pts, R, t, K, depth, labels, tol, mass, links, seen):
+        h, w = depth.shape
+        x, y, z = np.float64(pts[i, 0]), np.float64(pts[i, 1]), np.float64(pts[i, 2])
+        xc = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]
+        yc = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]
+        zc = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
+        seen[i] = False
+        if not zc > 1e-6:
+            return
+        u = K[0, 0] * (xc / zc) + K[0, 1] * (yc / zc) + K[0, 2]
+        v = K[1, 1] * (yc / zc) + K[1, 2]
+        col = np.rint(u)
+        row = np.rint(v)
+        if not (col >= 0 and col < w and row >= 0 and row < h):
+            return
+        r, c = int(row), int(col)
+        d = depth[r, c]
+        if not (d > 0 and abs(zc - d) <= tol):
+            return
+        seen[i] = True
+        lab = labels[r, c]
+        if lab >= 0:
+            mass[i, lab] += 1.0
+            links[i] += 1
+
     @njit(cache=True, parallel=True, boundscheck=False)
     def _evidence_hard(pts, R, t, K, depth, labels, tol, mass, links, seen):
-        n = pts.shape[0]
-        h, w = depth.shape
-        for i in prange(n):
-            x, y, z = np.float64(pts[i, 0]), np.float64(pts[i, 1]), np.float64(pts[i, 2])
-            xc = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]
-            yc = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]
-            zc = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
-            seen[i] = False
-            if not zc > 1e-6:
-                continue
-            u = K[0, 0] * (xc / zc) + K[0, 1] * (yc / zc) + K[0, 2]
-            v = K[1, 1] * (yc / zc) + K[1, 2]
-            col = np.rint(u)
-            row = np.rint(v)
-            if not (col >= 0 and col < w and row >= 0 and row < h):
-                continue
-            r, c = int(row), int(col)
-            d = depth[r, c]
-            if not (d > 0 and abs(zc - d) <= tol):
-                continue
-            seen[i] = True
-            lab = labels[r, c]
-            if lab >= 0:
-                mass[i, lab] += 1.0
-                links[i] += 1
+        for i in prange(pts.shape[0]):
+            _vote(i, pts, R, t, K, depth, labels, tol, mass, links, seen)
+
+    @njit(cache=True, boundscheck=False)
+    def _evidence_hard_serial(pts, R, t, K, depth, labels, tol, mass, links, seen):
+        for i in range(pts.shape[0]):
+            _vote(i, pts, R, t, K, depth, labels, tol, mass, links, seen)
+
+
+PARALLEL_ABOVE = 16384
+"""Points above which one frame's evidence runs on numba's threads (a parallel launch costs ~50 us:
+measured, more than a growing map's few thousand new points take on one thread)."""
 
 
 def evidence_hard(points, frame_R, frame_t, K, depth, labels, depth_tol, mass, links):
     """Project, depth-check and add one frame's hard labels in one pass; returns (N,) bool seen."""
     seen = np.empty(len(points), np.bool_)
-    _evidence_hard(points, frame_R, frame_t, K, depth, labels, float(depth_tol), mass, links, seen)
+    kernel = _evidence_hard if len(points) > PARALLEL_ABOVE else _evidence_hard_serial
+    kernel(points, frame_R, frame_t, K, depth, labels, float(depth_tol), mass, links, seen)
     return seen
