@@ -28,7 +28,9 @@ calls :func:`capture_scene`, which makes
 - **ground truth on the points**: the cloud's own labels, else (``options.gt_from_frames``) carried
   from the frames' label images by :func:`carry_frame_labels` (the rule is stated there).
 
-Frames are read lazily, as every source's are.
+Frames are read lazily, as every source's are. A format that can be followed while a recorder writes it
+(``scene.options.follow``: the posed RGB-D folder, ROS 2 bags in MCAP) declares :class:`FollowOptions`
+and makes its scene with :func:`followed_scene` (docs/online.md, "Following a live recorder").
 """
 from __future__ import annotations
 
@@ -42,7 +44,7 @@ import numpy as np
 from diffuser_lab import progress
 from diffuser_lab.config import Section, at_least, key, above
 from diffuser_lab.data.clouds import read_cloud
-from diffuser_lab.data.frames import FrameLoop, LazyFrames, without
+from diffuser_lab.data.frames import Follow, FrameLoop, LazyFrames, without
 from diffuser_lab.data.geometry import backproject, scaled_intrinsics, visible_projection, voxel_downsample
 from diffuser_lab.data.mapping import ClassMapping, load_mapping, native_mapping
 from diffuser_lab.data.images import image_size, resize_bilinear, resize_nearest
@@ -50,7 +52,8 @@ from diffuser_lab.data.scene import IGNORE, Frame, Scene, Taxonomy
 from diffuser_lab.data.visibility import CloudDepth, MeshDepth
 
 __all__ = ["Visibility", "CaptureOptions", "CapturedFrame", "capture_scene", "carry_frame_labels",
-           "taxonomy_mapping", "to_taxonomy", "fuse_depth", "check_stated_size"]
+           "taxonomy_mapping", "to_taxonomy", "fuse_depth", "check_stated_size", "FollowPolicy", "FollowOptions",
+           "followed_scene", "followed_capture"]
 
 
 class Visibility(Enum):
@@ -82,6 +85,31 @@ class CaptureOptions(Section):
     splat_max_px: int = key(8, at_least(0))  # visibility=cloud: largest splat radius, pixels
     gt_from_frames: bool = True  # no labels in the cloud: carry the frames' label images to the points (carry_frame_labels)
     depth_tol: float = key(0.05, above(0, "metres"))  # gt_from_frames: the depth check of a pixel that sees a point
+
+
+class FollowPolicy(Enum):
+    """How a followed capture's frames are taken when they come faster than the map takes them
+    (:meth:`diffuser_lab.data.frames.Follow.schedule`)."""
+
+    all = "all"  # every frame, in order (the run falls behind a faster recorder): the closed capture's run
+    newest = "newest"  # when frames wait: the newest first, then the waiting keyframes (scene.keyframe_*); the others skipped
+
+
+@dataclass
+class FollowOptions(Section):
+    """The keys of a format that can be followed as a recorder writes it (``scene.options.follow*``;
+    protocol=online only; docs/online.md, "Following a live recorder")."""
+
+    KEY = "scene.options"
+    follow: bool = False  # read the capture while a recorder writes it: each frame once complete (protocol=online only)
+    follow_timeout: float = key(10.0, above(0, "seconds"))  # follow: the run ends when no new frame came for this long (or the capture is closed)
+    follow_policy: FollowPolicy = FollowPolicy.newest  # follow: frames that come faster than the map takes them: all | newest (with keyframes)
+
+    def follower(self, poll: Callable[[], bool], what: str) -> Follow:
+        """The :class:`~diffuser_lab.data.frames.Follow` these keys ask for (with the format's
+        ``frame_step`` and ``max_frames``) over the source's ``poll``."""
+        return Follow(poll, what, timeout=self.follow_timeout, policy=self.follow_policy.value,
+                      step=getattr(self, "frame_step", 1), limit=getattr(self, "max_frames", None))
 
 
 @dataclass
@@ -301,6 +329,36 @@ def _renderer(options: CaptureOptions, points: np.ndarray, has_depth: bool, root
         return f"depth rendered from the mesh {Path(options.mesh).name}", r
     r = CloudDepth(points, splat=options.splat, max_radius_px=options.splat_max_px)
     return f"depth rendered from the cloud (splat {options.splat:g} x spacing, median {r.median_spacing * 100:.1f} cm)", r
+
+
+def followed_scene(name: str, frames: LazyFrames, cloud: Optional[str], mapping: Optional[ClassMapping],
+                   taxonomy: Taxonomy) -> Scene:
+    """The scene of a capture followed as it is written: ``frames`` (a :class:`LazyFrames` made with
+    ``follow=``) and the points of the ``cloud`` file (PLY / LAS / LAZ: an online run's given map; its
+    ``label`` is ground truth, through ``mapping``), else none (a growing map builds its own from the
+    frames; no cloud is fused from frames that have not been written yet)."""
+    if cloud is None:
+        return Scene(name=name, points=np.zeros((0, 3), np.float32), taxonomy=taxonomy, frames=frames)
+    with progress.stage(f"reading point cloud {Path(cloud).name}"):
+        pc = read_cloud(cloud)
+    gt = to_taxonomy(np.asarray(pc["labels"]), mapping, taxonomy, f"{cloud} labels") if "labels" in pc else None
+    return Scene(name=name, points=np.ascontiguousarray(pc["points"], np.float32), taxonomy=taxonomy, frames=frames,
+                 normals=pc.get("normals"), colors=pc.get("colors"), gt_labels=gt)
+
+
+def followed_capture(name: str, follow: Follow, options: CaptureOptions, taxonomy: Taxonomy,
+                     info: Optional[dict] = None) -> Scene:
+    """A capture format's scene followed as it is written: ``follow``'s items are :class:`CapturedFrame`
+    (added by the format's poll), read as :func:`capture_scene` reads them; the cloud as
+    :func:`followed_scene` says. ``info`` (kept by reference: the poll may add to it) gets ``follow``."""
+    mapping = taxonomy_mapping(options.mapping, taxonomy)
+    if mapping is not None:
+        taxonomy = mapping.target
+    info = info if info is not None else {}
+    info["follow"] = follow.info
+    frames = LazyFrames(0, lambda i, skip: _build_frame(follow.items[i], mapping, taxonomy, None, skip, info),
+                        info=info, parts=("rgb",), follow=follow)
+    return followed_scene(name, frames, options.cloud, mapping, taxonomy)
 
 
 def capture_scene(name: str, frames: Sequence[CapturedFrame], options: CaptureOptions, taxonomy: Taxonomy, *,

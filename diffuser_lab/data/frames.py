@@ -39,9 +39,17 @@ its predictions or records read it.
 **Poses up front.** A source that knows its poses before reading its images gives them
 (``poses=``, world-to-camera); they follow the frames through :meth:`~LazyFrames.mapped`,
 :meth:`~LazyFrames.subset` and slices, so :func:`keyframes` picks frames without decoding any.
+
+**A capture followed as it is written** (``scene.options.follow``, docs/online.md): the source hands a
+:class:`Follow` (``follow=``) whose ``poll`` adds each frame once its files (or messages) are complete;
+the sequence's length is the frames complete so far, and grows (through :meth:`~LazyFrames.mapped` and
+:meth:`~LazyFrames.without`; a subset or a slice is fixed). :class:`FrameLoop` over such a sequence waits
+for its frames and picks them by the follow policy (:meth:`Follow.schedule`) until the capture is closed
+or no frame came for ``follow_timeout`` seconds; after that the sequence is a fixed one.
 """
 from __future__ import annotations
 
+import collections
 import contextlib
 import dataclasses
 import os
@@ -57,8 +65,8 @@ from diffuser_lab import progress
 
 from .scene import Frame
 
-__all__ = ["LazyFrames", "FrameLoop", "first_line", "index_of", "poses_of", "without", "keyframes", "read_ahead",
-           "cores", "OPTIONAL_PARTS"]
+__all__ = ["LazyFrames", "FrameLoop", "Follow", "KeyframeRule", "first_line", "index_of", "poses_of", "follow_of",
+           "without", "keyframes", "read_ahead", "cores", "OPTIONAL_PARTS", "FOLLOW_POLICIES"]
 
 OPTIONAL_PARTS = ("rgb",)
 """The frame parts a loop may do without (:meth:`LazyFrames.without`)."""
@@ -107,6 +115,8 @@ class LazyFrames(Sequence[Frame]):
         poses: the frames' (4, 4) world-to-camera poses when known without reading them (kept as
             ``poses``; :func:`keyframes`), else None.
         parts: the optional parts (:data:`OPTIONAL_PARTS`) ``load`` can leave out.
+        follow: a capture followed as it is written (:class:`Follow`): the sequence is its frames complete
+            so far (``n`` and ``poses`` are not used: its ``names`` and ``poses`` are), kept as ``follow``.
 
     Item i may be read from several threads at once (:class:`FrameLoop`'s read-ahead): ``load``
     must be safe to call so (it reads files; state it keeps goes behind a lock).
@@ -114,25 +124,32 @@ class LazyFrames(Sequence[Frame]):
 
     def __init__(self, n: int | Sequence[str], load: Callable[..., Frame], *, info: Optional[dict] = None,
                  stats: Optional[dict] = None, poses: Optional[Sequence[np.ndarray]] = None,
-                 parts: Iterable[str] = ()):
+                 parts: Iterable[str] = (), follow: Optional["Follow"] = None):
         if isinstance(n, int):
             self.names: Optional[list[str]] = None
-            self._n = n
+            self._size = n
         else:
             self.names = list(n)
-            self._n = len(self.names)
+            self._size = len(self.names)
         self._load = load
+        self.follow = follow
         self.info = info if info is not None else {}
         self.stats = stats if stats is not None else {}
         self.fn: Optional[Callable[[int, Frame], Frame]] = None  # mapped(): the per-frame function
         # the frames' indices in the sequence they were cut from (subset()); None = their positions
         self.source_index: Optional[list[int]] = None
         self.poses: Optional[list[np.ndarray]] = None if poses is None else list(poses)
-        if self.poses is not None and len(self.poses) != self._n:
+        if follow is not None:  # the frames complete so far: the follow's own lists, grown as it polls
+            self.names, self.poses = follow.names, follow.poses
+        elif self.poses is not None and len(self.poses) != self._n:
             raise ValueError(f"{len(self.poses)} poses for {self._n} frames")
         self._parts = frozenset(parts)  # what load can leave out
         self._skip: frozenset = frozenset()  # what this sequence's frames leave out (without())
         self._derive: Optional[Callable[[frozenset], "LazyFrames"]] = None  # without() of a derived sequence
+
+    @property
+    def _n(self) -> int:
+        return len(self.follow.names) if self.follow is not None else self._size
 
     @classmethod
     def mapped(cls, frames: Sequence[Frame], fn: Callable[[int, Frame], Frame], *, stats: Optional[dict] = None,
@@ -146,7 +163,7 @@ class LazyFrames(Sequence[Frame]):
             fn = _serialised(fn)
         ids = index_of(frames)
         out = cls(len(frames), (lambda i: fn(i, frames[i])) if ids is None else (lambda i: fn(ids[i], frames[i])),
-                  info=info, stats=stats, poses=poses_of(frames))
+                  info=info, stats=stats, poses=poses_of(frames), follow=follow_of(frames))
         out.fn, out.source_index = fn, ids
         out._derive = lambda skip: cls.mapped(without(frames, *skip), fn, stats=out.stats, info=out.info)
         return out
@@ -176,7 +193,7 @@ class LazyFrames(Sequence[Frame]):
         if self._derive is not None:
             return self._derive(skip)
         out = LazyFrames(self.names if self.names is not None else self._n, self._load, info=self.info,
-                         stats=self.stats, poses=self.poses, parts=self._parts)
+                         stats=self.stats, poses=self.poses, parts=self._parts, follow=self.follow)
         out.fn, out.source_index, out._skip = self.fn, self.source_index, skip
         return out
 
@@ -222,6 +239,11 @@ def poses_of(frames: Sequence[Frame]) -> Optional[list[np.ndarray]]:
     return None
 
 
+def follow_of(frames: Sequence[Frame]) -> Optional["Follow"]:
+    """The :class:`Follow` of a sequence that grows as a recorder writes its capture, else None."""
+    return getattr(frames, "follow", None)
+
+
 def without(frames: Sequence[Frame], *parts: str) -> Sequence[Frame]:
     """``frames`` without ``parts`` (:meth:`LazyFrames.without`); a list is returned as it is (its
     frames are in memory already)."""
@@ -257,20 +279,172 @@ def keyframes(frames: Sequence[Frame], translation: Optional[float], rotation_de
     poses = poses_of(frames)
     if poses is None:
         poses = [f.T_cw for _, f in FrameLoop(frames, "keyframes: reading the poses")]
-    T = np.asarray(poses, np.float64).reshape(n, 4, 4)
-    R, t = T[:, :3, :3], T[:, :3, 3]
-    centres = -np.einsum("nji,nj->ni", R, t)  # camera centres: -R^T t
-    cos_min = np.cos(np.deg2rad(rotation_deg)) if rotation_deg is not None else None
-    kept, last = [0], 0
-    for i in range(1, n):  # loop over frames: one comparison with the last kept each
-        moved = translation is not None and np.linalg.norm(centres[i] - centres[last]) >= translation - 1e-9
-        if not moved and cos_min is not None:  # the angle of R_i R_last^T: trace = 1 + 2 cos(angle)
-            c = (np.einsum("ij,ij->", R[i], R[last]) - 1.0) / 2.0
-            moved = c <= cos_min + 1e-9
+    rule = KeyframeRule(translation, rotation_deg)
+    return [i for i, T in enumerate(np.asarray(poses, np.float64).reshape(n, 4, 4)) if rule.add(T)]  # loop over frames
+
+
+class KeyframeRule:
+    """The keyframe rule (:func:`keyframes`) one frame at a time, so a capture followed as it is written
+    marks its keyframes as they come: :meth:`add` says whether a frame is one. A threshold that is None
+    is not used; both None: the rule is off (:attr:`on`) and every frame is one. A pose that is not
+    finite is none (and does not move the reference)."""
+
+    def __init__(self, translation: Optional[float], rotation_deg: Optional[float]):
+        self.translation, self.rotation_deg = translation, rotation_deg
+        self._cos_min = np.cos(np.deg2rad(rotation_deg)) if rotation_deg is not None else None
+        self._last: Optional[tuple[np.ndarray, np.ndarray]] = None  # the last keyframe's R and camera centre
+
+    @property
+    def on(self) -> bool:
+        return self.translation is not None or self.rotation_deg is not None
+
+    def add(self, T_cw: np.ndarray) -> bool:
+        """The next frame's (4, 4) world-to-camera pose -> whether it is a keyframe: the first one, then
+        one whose camera moved ``translation`` metres or turned ``rotation_deg`` degrees since the last."""
+        T = np.asarray(T_cw, np.float64)
+        if not np.isfinite(T).all():
+            return False
+        R, t = T[:3, :3], T[:3, 3]
+        centre = -np.einsum("ji,j->i", R, t)  # the camera centre: -R^T t
+        moved = self._last is None or not self.on
+        if not moved:
+            R0, c0 = self._last
+            moved = self.translation is not None and np.linalg.norm(centre - c0) >= self.translation - 1e-9
+            if not moved and self._cos_min is not None:  # the angle of R R0^T: trace = 1 + 2 cos(angle)
+                moved = (np.einsum("ij,ij->", R, R0) - 1.0) / 2.0 <= self._cos_min + 1e-9
         if moved:
-            kept.append(i)
-            last = i
-    return kept
+            self._last = (R, centre)
+        return moved
+
+
+FOLLOW_POLICIES = ("all", "newest")
+"""How a followed capture's frames are taken when they come faster than the map takes them
+(``scene.options.follow_policy``; :meth:`Follow.schedule`)."""
+
+
+class Follow:
+    """A capture followed as a recorder writes it (``scene.options.follow``): its frames complete so far,
+    grown by the source's ``poll``; a :class:`LazyFrames` made with ``follow=`` is these frames.
+
+    Args:
+        poll: ``() -> bool``, the source's: calls :meth:`add` for each frame that became complete (in
+            sequence order, each once) and says whether the capture is closed (nothing more will come).
+        what: the capture (error lines).
+        timeout: seconds without a new complete frame (from the first :meth:`wait` on) after which the
+            capture counts as finished.
+        policy: one of :data:`FOLLOW_POLICIES` (:meth:`schedule`).
+        step, limit: every ``step``-th complete frame is kept, at most ``limit`` (None: no limit); the
+            capture is finished at the limit (``frame_step``, ``max_frames``).
+
+    Attributes:
+        poll: the source's ``poll``.
+        names, poses, items: per frame kept, its name, (4, 4) world-to-camera pose (NaN where the source
+            could not read it: no keyframe) and what the source reads it from.
+        rule: the run's :class:`KeyframeRule` (the scene's keyframe keys; None: no keyframes).
+        ended: None while followed, then why it ended: ``closed``, ``idle`` or ``max_frames``.
+        waiting: what the source still waits for before its first frame (said when none came).
+        info: summary.json's ``follow``: the policy and timeout, frames found complete and kept, frames
+            used, skipped as ``behind`` or ``bad``, keyframes taken from a backlog, why it ended, seconds waited.
+    """
+
+    POLL_S = 0.01  # between two polls while waiting for a frame
+
+    def __init__(self, poll: Callable[[], bool], what: str, *, timeout: float, policy: str = "newest", step: int = 1,
+                 limit: Optional[int] = None):
+        if policy not in FOLLOW_POLICIES:
+            raise ValueError(f"follow policy {policy!r}: expected one of {', '.join(FOLLOW_POLICIES)}")
+        self.poll, self.what, self.timeout, self.policy = poll, what, float(timeout), policy
+        self.step, self.limit = max(1, int(step)), limit
+        self.names: list[str] = []
+        self.poses: list[np.ndarray] = []
+        self.items: list = []
+        self.rule: Optional[KeyframeRule] = None
+        self.ended: Optional[str] = None
+        self.waiting = ""
+        self._keyframe: list[bool] = []
+        self._last_new: Optional[float] = None  # when the last new frame was found (the first wait starts the clock)
+        self.info = {"policy": policy, "timeout_s": self.timeout, "frames_found": 0, "frames": 0, "used": 0,
+                     "skipped_behind": 0, "skipped_bad": 0, "keyframes_from_backlog": 0, "ended": None,
+                     "wait_s": 0.0}
+
+    def add(self, name: str, T_cw: np.ndarray, item) -> bool:
+        """A frame became complete: kept (True) unless ``step`` or ``limit`` leave it out."""
+        found = self.info["frames_found"]
+        self.info["frames_found"] = found + 1
+        self._last_new = time.monotonic()
+        if found % self.step or (self.limit is not None and len(self.names) >= self.limit):
+            return False
+        self.names.append(str(name))
+        self.poses.append(np.asarray(T_cw, np.float64))
+        self.items.append(item)
+        self.info["frames"] = len(self.names)
+        return True
+
+    def count(self, what: str) -> None:
+        """One more frame ``used`` or ``skipped_bad`` (the frame loop's)."""
+        self.info[what] += 1
+
+    def is_keyframe(self, j: int) -> bool:
+        """Whether frame ``j`` is a keyframe of :attr:`rule` (none without a rule, or with the rule off)."""
+        if self.rule is None or not self.rule.on:
+            return False
+        while len(self._keyframe) <= j:  # loop over the frames not yet ruled on (one each)
+            self._keyframe.append(self.rule.add(self.poses[len(self._keyframe)]))
+        return self._keyframe[j]
+
+    def wait(self, n: int) -> int:
+        """Poll until more than ``n`` frames are complete or the capture ended (closed, idle for
+        ``timeout`` seconds, at ``limit``); the number complete. One ValueError when it ended with none."""
+        t0 = time.monotonic()
+        if self._last_new is None:
+            self._last_new = t0
+        while self.ended is None and len(self.names) <= n:  # loop over polls
+            closed = self.poll()
+            if len(self.names) > n:
+                break
+            if self.limit is not None and len(self.names) >= self.limit:
+                self._end("max_frames")
+            elif closed:
+                self._end("closed")
+            elif time.monotonic() - self._last_new >= self.timeout:
+                self._end("idle")
+            else:
+                time.sleep(self.POLL_S)
+        self.info["wait_s"] = round(self.info["wait_s"] + time.monotonic() - t0, 3)
+        return len(self.names)
+
+    def _end(self, why: str) -> None:
+        self.ended = self.info["ended"] = why
+        if not self.names:
+            raise ValueError(f"{self.what}: " + ("closed without a complete frame" if why == "closed" else
+                             f"no complete frame within scene.options.follow_timeout={self.timeout:g} s") +
+                             (f" (waiting for {self.waiting})" if self.waiting else ""))
+
+    def schedule(self, behind: Callable[[int], None]) -> Iterator[int]:
+        """The frame indices to take, each as it becomes complete (waiting while none is): policy ``all``
+        every frame in order; ``newest``: when more than one frame waits, the newest first, then the waiting
+        keyframes (:meth:`is_keyframe`, oldest first); the other waiting frames are skipped (``behind(j)``)."""
+        i, kept = 0, collections.deque()
+        while True:  # loop over the frames taken
+            if kept:
+                yield kept.popleft()
+                continue
+            n = self.wait(i)
+            if n <= i:
+                return
+            if self.policy == "newest" and n - i > 1:
+                for j in range(i, n - 1):  # loop over the backlog: keyframes kept, the rest skipped
+                    if self.is_keyframe(j):
+                        kept.append(j)
+                        self.info["keyframes_from_backlog"] += 1
+                    else:
+                        self.info["skipped_behind"] += 1
+                        behind(j)
+                yield n - 1
+                i = n
+            else:
+                yield i
+                i += 1
 
 
 def first_line(exc: BaseException) -> str:
@@ -293,6 +467,10 @@ class FrameLoop:
         read_ahead: frames read ahead of the one in use (None: the run's, :func:`read_ahead`;
             0: each frame read when it is needed, in this thread). A list of frames is never read ahead.
 
+    A capture still followed (:class:`Follow`: ``frames.follow``, not ended; every frame, window 1) is
+    iterated as its frames become complete, in the order :meth:`Follow.schedule` takes them, each read when
+    it is taken; a frame the policy skips is handed to ``on_skip(index, "behind")`` without a warning.
+
     Attributes:
         read_s: seconds this thread spent loading (or waiting for) and checking target frames
             (their predictions included): with read-ahead, only what the other threads did not hide.
@@ -304,6 +482,7 @@ class FrameLoop:
                  warn_prefix: str = "", on_skip: Optional[Callable[[int, str], None]] = None,
                  read_ahead: Optional[int] = None):
         self.frames, self.label = frames, label
+        self._every = targets is None
         self.targets = list(range(len(frames))) if targets is None else list(targets)
         self.window = max(1, int(window))
         self.check, self.skip_bad, self.warn_prefix, self.on_skip = check, skip_bad, warn_prefix, on_skip
@@ -372,16 +551,23 @@ class FrameLoop:
         """The frames of :meth:`window_of` (read once, kept while the window holds them)."""
         return [self._frame(j) for j in self.window_of(i)]
 
+    def _behind(self, j: int) -> None:
+        if self.on_skip is not None:
+            self.on_skip(j, "behind")
+        self.bar.update()
+
     def __iter__(self) -> Iterator[tuple[int, Frame]]:
         unit = "frame"
+        follow = follow_of(self.frames)
+        live = follow if follow is not None and follow.ended is None and self._every and self.window == 1 else None
         threads = min(self.read_ahead, cores())
-        if self.read_ahead > 0 and threads > 0 and len(self.targets) > 1:
+        if live is None and self.read_ahead > 0 and threads > 0 and len(self.targets) > 1:
             self._pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="frames")
             self._schedule = self._reads()
         try:
-            with progress.stage(self.label, total=len(self.targets), unit=unit) as bar:
+            with progress.stage(self.label, total=None if live else len(self.targets), unit=unit) as bar:
                 self.bar = bar
-                for i in self.targets:
+                for i in (live.schedule(self._behind) if live else self.targets):
                     t0 = time.perf_counter()
                     self._keep = set(self.window_of(i)) if self.window > 1 else {i}
                     for j in [j for j in self._cache if j not in self._keep]:  # only the current window in memory
@@ -397,11 +583,15 @@ class FrameLoop:
                         msg = first_line(exc)
                         warnings.warn(f"{self.warn_prefix}frame {i} skipped: {msg}", stacklevel=2)
                         self._cache.pop(i, None)
+                        if live:
+                            live.count("skipped_bad")
                         if self.on_skip is not None:
                             self.on_skip(i, msg)
                         bar.update()
                         continue
                     self.read_s += time.perf_counter() - t0
+                    if live:
+                        live.count("used")
                     yield i, f
                     bar.update()
         finally:

@@ -27,7 +27,7 @@ from typing import Union
 import numpy as np
 
 __all__ = ["read_depth_png", "read_rgb", "read_label_png", "label_ids_in", "read_array", "open_image", "image_size",
-           "max_pixels", "resize_nearest", "resize_bilinear"]
+           "image_complete", "max_pixels", "resize_nearest", "resize_bilinear"]
 
 Source = Union[str, Path, bytes]
 """An image file's path, or an image's bytes (a ROS CompressedImage's)."""
@@ -219,6 +219,35 @@ def _opened(source: Source, what: str, name: str | None):
         im.close()
         raise
     return im, where
+
+
+_PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"  # the empty IEND chunk, with its CRC: a PNG's last 12 bytes
+_JPEG_END = b"\xff\xd9"  # EOI
+
+
+def image_complete(path: str | Path) -> bool:
+    """Whether an image file that a recorder may still be writing is whole: a PNG up to its IEND chunk,
+    a JPEG up to its end marker (trailing zero bytes allowed), another format once it opens and decodes
+    (:func:`open_image`). False for a missing file. Reads the file's last bytes (other formats: all)."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(8)
+            fh.seek(0, 2)
+            size = fh.tell()
+            fh.seek(max(0, size - 64))
+            tail = fh.read()
+    except OSError:
+        return False
+    if head == _PNG_MAGIC:
+        return tail.endswith(_PNG_END)
+    if head[:2] == b"\xff\xd8":
+        return tail.rstrip(b"\x00").endswith(_JPEG_END)
+    try:
+        with open_image(path, "image"):
+            return True
+    except (ValueError, OSError):
+        return False
 
 
 def read_depth_png(path: str | Path, depth_scale: float, bit_shift: int = 0,

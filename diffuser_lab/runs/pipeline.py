@@ -17,7 +17,7 @@ from diffuser_lab import progress
 from diffuser_lab.backends import resolve_backend
 from diffuser_lab.config import Config, DepthNoiseConfig, GraphAffinity, SceneConfig, SolverName, SparseClasses
 from diffuser_lab.data import sources, validate
-from diffuser_lab.data.frames import FrameLoop, LazyFrames, keyframes, read_ahead, without
+from diffuser_lab.data.frames import FrameLoop, KeyframeRule, LazyFrames, follow_of, keyframes, read_ahead, without
 from diffuser_lab.data.geometry import VoxelGrid, nearest_transfer, voxel_downsample, voxel_edge
 from diffuser_lab.data.embeddings import prototypes
 from diffuser_lab.data.predictions import describe as describe_predictions
@@ -124,9 +124,16 @@ def keyframes_of(frames: Sequence[Frame], cfg: SceneConfig) -> Sequence[Frame]:
     """The frames ``scene.keyframe_translation`` / ``scene.keyframe_rotation_deg`` keep
     (:func:`~diffuser_lab.data.frames.keyframes`: a frame whose camera moved or turned that much since
     the last kept one), as a subset that keeps each frame's index (its simulated predictions, its seeds);
-    ``info["keyframes"]`` says what was kept (summary.json's ``keyframes``). Both null: ``frames``."""
+    ``info["keyframes"]`` says what was kept (summary.json's ``keyframes``). Both null: ``frames``.
+    A capture followed as it is written keeps its frames: the rule marks the keyframes that its
+    ``newest`` policy takes from a backlog (:meth:`~diffuser_lab.data.frames.Follow.schedule`)."""
     t, r = cfg.keyframe_translation, cfg.keyframe_rotation_deg
     if t is None and r is None:
+        return frames
+    follow = follow_of(frames)
+    if follow is not None:
+        follow.rule = KeyframeRule(t, r)
+        follow.info["keyframes"] = {"translation_m": t, "rotation_deg": r}
         return frames
     keep = keyframes(frames, t, r)
     names = getattr(frames, "names", None) or ([f.name for f in frames] if isinstance(frames, list) else None)

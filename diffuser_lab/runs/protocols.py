@@ -96,6 +96,9 @@ def _finish_online(result, cfg: Config, run_dir: Path, summary: report.SummaryFi
     kept = report.keyframes_kept(result.scene)
     if kept:
         summary.data["keyframes"] = kept
+    follow = report.followed(result.scene)
+    if follow:
+        summary.data["follow"] = follow
     summary.update(records=records, files=files, status="ok")
     return summary.data
 
@@ -123,7 +126,8 @@ PROTOCOLS: Registry = Registry("protocol.name", "protocol", [
              _finish_single_frame, lambda result, run_dir: single_frame.table(result) + f"\nrun folder: {run_dir}"),
     Protocol("online", "frames one at a time in sequence order; the map labels itself as they come (online.*)",
              online_mod.online, _finish_online,
-             lambda result, run_dir: online_mod.table(result) + f"\nrun folder: {run_dir}"),
+             lambda result, run_dir: "\n".join(x for x in (online_mod.table(result), report.follow_line(result.scene),
+                                                          f"run folder: {run_dir}") if x)),
     Protocol("tiled", "global_3d per x-y tile of tiling.size (+ tiling.halo) on the frames that see it; tiles in "
              "this process or on Ray (tiling.*)", tiled.tiled, _finish_tiled, tiled.table, records=False,
              run_dir=True, result_records=True),

@@ -70,6 +70,22 @@ def keyframes_kept(scene) -> Optional[dict]:
     return (getattr(scene.frames, "info", None) or {}).get("keyframes")
 
 
+def followed(scene) -> Optional[dict]:
+    """How a capture followed as it was written went (summary.json's ``follow``:
+    :attr:`diffuser_lab.data.frames.Follow.info`), None when it was not followed."""
+    return (getattr(scene.frames, "info", None) or {}).get("follow")
+
+
+def follow_line(scene) -> str:
+    """The table's line of a followed capture ("" when it was not followed)."""
+    f = followed(scene)
+    if not f:
+        return ""
+    return (f"followed as written ({f['policy']}): {f['frames']} frames, {f['used']} used, {f['skipped_behind']} "
+            f"skipped behind (newer taken; {f['keyframes_from_backlog']} keyframes kept), {f['skipped_bad']} bad; "
+            f"ended: {f['ended']}, {f['wait_s']:.1f} s waiting")
+
+
 def _capture(scene) -> dict:
     info = getattr(scene.frames, "info", None) or {}
     return {k: info[k] for k in CAPTURE_KEYS if k in info}

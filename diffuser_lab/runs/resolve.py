@@ -61,6 +61,7 @@ def resolve(cfg: Config, protocols: Optional[Mapping[str, Any]] = None) -> Confi
         check_name(key, getattr(getattr(cfg, section), attr), valid)
     cfg = with_options(cfg)
     _check_protocol_keys(cfg)
+    _check_follow(cfg)
     return with_method(cfg, cfg.method.name)
 
 
@@ -83,6 +84,21 @@ def _check_protocol_keys(cfg: Config) -> None:
     if what:
         raise config.ConfigError(f"{', '.join(what)}: runs in protocol={' or '.join(LIFTING_PROTOCOLS)}, "
                                  f"not protocol={cfg.protocol.name}")
+
+
+def _check_follow(cfg: Config) -> None:
+    """``scene.options.follow=true`` (a capture followed as a recorder writes it) runs in the online
+    protocol, on a growing map or the given map of ``scene.options.cloud`` (no cloud can be fused from
+    frames not written yet); elsewhere one line says so."""
+    o = cfg.scene.options
+    if not getattr(o, "follow", False):
+        return
+    if cfg.protocol.name != "online":
+        raise config.ConfigError(f"scene.options.follow=true: a capture is followed in protocol=online, not "
+                                 f"protocol={cfg.protocol.name}")
+    if cfg.online.map == config.OnlineMap.given and not getattr(o, "cloud", None):
+        raise config.ConfigError("scene.options.follow=true with online.map=given: expected scene.options.cloud (the "
+                                 "map to label: PLY / LAS / LAZ); online.map=growing builds the map from the frames")
 
 
 def with_options(cfg: Config) -> Config:

@@ -192,3 +192,62 @@ def test_a_scannet_export_read_ahead_is_the_run_of_one_thread_and_keyframes_thin
     assert info["kept_frames"][0] == "0" and info["translation_m"] == 0.3 and info["rotation_deg"] == 40
     # each kept frame keeps its own predictions: the same evidence as the run over those frames alone
     assert kf.predictions_stats["label_files"] == info["kept"]
+
+
+# ------------------------------------------------------------------ a capture followed as it is written
+
+
+def _followed(bursts: list, policy: str, translation=None, timeout: float = 5.0):
+    """A :class:`Follow` whose k-th poll makes the frames of ``bursts[k]`` complete (closed after the last
+    burst); frame j's camera stands at x = ``xs[j]`` (metres) so a keyframe rule can mark it."""
+    from diffuser_lab.data.frames import Follow, KeyframeRule
+
+    xs = [0.0, 0.1, 0.6, 0.7, 0.8, 1.2, 1.3, 1.9, 2.0]
+    polls = iter(bursts)
+
+    def poll() -> bool:
+        burst = next(polls, None)
+        for j in burst or []:  # loop over the frames this poll finds complete
+            T = np.eye(4)
+            T[0, 3] = -xs[j]
+            follow.add(f"frame-{j:06d}", T, j)
+        return burst is None
+
+    follow = Follow(poll, "test capture", timeout=timeout, policy=policy)
+    follow.rule = KeyframeRule(translation, None)
+    src = Source(len(xs))
+    return follow, LazyFrames(0, lambda i, skip: src.load(follow.items[i], skip), follow=follow, parts=("rgb",))
+
+
+def test_a_followed_capture_is_taken_newest_first_keeping_keyframes_or_every_frame_in_order():
+    bursts = [[0], [1, 2, 3, 4], [5], [], [6, 7, 8]]  # frames as the polls find them complete
+    follow, frames = _followed(bursts, "newest", translation=0.5)  # keyframes: 0, 2, 5, 7 (x moved >= 0.5 m)
+    skipped = []
+    loop = FrameLoop(LazyFrames.mapped(frames, lambda i, f: f), "follow",  # a derived sequence follows too
+                     on_skip=lambda i, why: skipped.append((i, why)))
+    taken = [(i, f.name) for i, f in loop]
+    # the newest waiting frame first, then the waiting keyframes; the other waiting frames skipped as behind
+    assert [i for i, _ in taken] == [0, 4, 2, 5, 8, 7] and skipped == [(1, "behind"), (3, "behind"), (6, "behind")]
+    assert all(name == str(i) for i, name in taken) and frames.names[4] == "frame-000004"  # each index is its frame
+    assert {k: follow.info[k] for k in ("frames", "used", "skipped_behind", "skipped_bad", "keyframes_from_backlog",
+                                        "ended")} == {"frames": 9, "used": 6, "skipped_behind": 3, "skipped_bad": 0,
+                                                      "keyframes_from_backlog": 2, "ended": "closed"}
+    # ended: a fixed sequence of the frames found, read as any other (no policy: every frame)
+    assert len(frames) == 9 and [i for i, _ in FrameLoop(frames, "again")] == list(range(9))
+
+    follow, frames = _followed(bursts, "all")
+    assert [i for i, _ in FrameLoop(frames, "follow")] == list(range(9)) and follow.info["skipped_behind"] == 0
+    follow, frames = _followed(bursts, "newest")  # no keyframe rule: a backlog is skipped whole
+    assert [i for i, _ in FrameLoop(frames, "follow")] == [0, 4, 5, 8]
+
+
+def test_a_followed_capture_ends_when_no_frame_comes_and_says_what_it_waited_for():
+    follow, frames = _followed([[0, 1]] + [[]] * 10_000, "all", timeout=0.2)
+    t0 = time.monotonic()
+    assert [i for i, _ in FrameLoop(frames, "follow")] == [0, 1]
+    assert follow.ended == "idle" and 0.2 <= time.monotonic() - t0 < 2.0
+    follow, frames = _followed([[]] * 10_000, "all", timeout=0.1)
+    follow.waiting = "test capture/frame-XXXXXX.depth.png"
+    with pytest.raises(ValueError, match=r"^test capture: no complete frame within scene.options.follow_timeout=0.1 s "
+                                         r"\(waiting for test capture/frame-XXXXXX.depth.png\)$"):
+        list(FrameLoop(frames, "follow"))

@@ -16,12 +16,24 @@ the low bits carry flags, as in ``(raw >> 3) / 1e4`` m). 7-Scenes / ScanNet stor
 loader warns when the first frame's median depth looks like a wrong unit.
 
 Frames are read lazily (one frame's files per ``scene.frames[i]``), so memory does not
-grow with the sequence length. The readers it shares with the other formats live in
+grow with the sequence length.
+
+**Followed as it is written** (``follow=true``, protocol=online; docs/online.md): the folder is polled
+while a recorder writes it; a frame is taken, in name order, once its depth, colour (unless
+``color_suffix`` is null) and pose files are whole (:func:`~diffuser_lab.data.images.image_complete`: a
+PNG up to its IEND chunk, a JPEG up to its end marker; the pose parses as a 4x4 matrix). A frame still
+incomplete :data:`LATE_S` seconds after a later one is whole was cut short: it is handed on as a bad
+frame (skipped with one line), so one damaged frame does not hold up the rest. The intrinsics file is
+waited for too. A folder has no end mark: the run ends ``follow_timeout`` seconds after the last new
+frame (or at ``max_frames``). The readers it shares with the other formats live in
 :mod:`diffuser_lab.data.images`, :mod:`diffuser_lab.data.poses` and :mod:`diffuser_lab.data.intrinsics`.
 """
 from __future__ import annotations
 
+import bisect
+import os
 import re
+import time
 import warnings
 from pathlib import Path
 from dataclasses import dataclass, field
@@ -32,11 +44,12 @@ import numpy as np
 from omegaconf import MISSING
 
 from diffuser_lab import progress
-from diffuser_lab.config import Check, PoseConvention, SceneConfig, Section, above, at_least, key, rule, within
-from diffuser_lab.data.capture import fuse_depth, taxonomy_mapping, to_taxonomy
+from diffuser_lab.config import Check, PoseConvention, SceneConfig, above, at_least, key, rule, within
+from diffuser_lab.data.capture import FollowOptions, followed_scene, fuse_depth, taxonomy_mapping, to_taxonomy
 from diffuser_lab.data.clouds import read_cloud
-from diffuser_lab.data.frames import LazyFrames
-from diffuser_lab.data.images import label_ids_in, read_depth_png, read_label_png, read_rgb, resize_nearest
+from diffuser_lab.data.frames import Follow, LazyFrames, first_line
+from diffuser_lab.data.images import (image_complete, label_ids_in, read_depth_png, read_label_png, read_rgb,
+                                      resize_nearest)
 from diffuser_lab.data.intrinsics import read_intrinsics
 from diffuser_lab.data.mapping import ClassMapping
 from diffuser_lab.data.poses import CAMERA_TO_WORLD, pose_to_world_to_camera, read_pose_c2w
@@ -59,8 +72,13 @@ def _suffix(null: bool = False) -> Check:
     return rule(_SUFFIX, lambda v: bool(v) and "/" not in v and "*" not in v, null=null)
 
 
+LATE_S = 1.0
+"""Seconds a followed frame may stay incomplete once a later frame is whole (then it was cut short)."""
+RESCAN_S = 1.0  # a followed folder is listed again at least this often (else when its mtime changes)
+
+
 @dataclass
-class RgbdFolderOptions(Section):
+class RgbdFolderOptions(FollowOptions):
     """A posed RGB-D folder: frame-XXXXXX.{color.*,depth.png,pose.txt} + camera-intrinsics.txt.
     A frame's files are ``<frame_prefix><digits>.<suffix>``; docs/layouts.md describes each key."""
 
@@ -113,6 +131,7 @@ def load_rgbd_folder(
     frame_step: int = 1,
     max_frames: int | None = None,
     max_depth: float | None = None,
+    follow: Optional[FollowOptions] = None,
 ) -> Scene:
     """Load a posed RGB-D folder (see module docstring) as a Scene.
 
@@ -136,22 +155,42 @@ def load_rgbd_folder(
             ``max_depth`` metres (None = no cutoff), merged on a ``voxel_size`` grid,
             colours averaged from the colour images. ``max_depth`` only affects this fusion.
         frame_step, max_frames: use frames ``[::frame_step]``, at most ``max_frames`` of them.
+        follow: keys whose ``follow`` is true: the folder is followed as a recorder writes it (module
+            docstring); the scene's points are then ``cloud``'s, else none (an online growing map).
     Returns:
         Scene with lazily loaded frames (``Frame.labels`` None, depth-resolution images);
         normals only when the cloud PLY has them.
     """
     root = Path(root)
-    if not root.is_dir():
+    if not root.is_dir() and not (follow and follow.follow):  # a followed folder may not be made yet
         raise FileNotFoundError(f"RGB-D folder {root} does not exist")
     if depth_scale <= 0 or frame_step < 1 or cloud_stride < 1 or voxel_size <= 0:
         raise ValueError(f"depth_scale={depth_scale}, frame_step={frame_step}, cloud_stride={cloud_stride}, "
                          f"voxel_size={voxel_size}: expected positive values (steps >= 1)")
     pose_to_world_to_camera(np.eye(4), pose_convention)  # a wrong name fails before any file is read
-    K = read_intrinsics(root / intrinsics_file)
     mapping = taxonomy_mapping(mapping, taxonomy)
     if mapping is not None and mapping.target.names != taxonomy.names:
         raise ValueError(f"mapping {mapping.source} targets taxonomy {mapping.target.name}, expected {taxonomy.name}")
     name_re = re.compile(re.escape(frame_prefix) + r"\d+")
+
+    def read(K: np.ndarray, name: str, T_cw: np.ndarray, skip: frozenset = frozenset()) -> Frame:
+        """Frame ``name``'s files (colour left out when ``skip`` says so)."""
+        depth = read_depth_png(root / f"{name}.{depth_suffix}", depth_scale, depth_bit_shift, invalid_depth,
+                               depth_shift_kind)
+        rgb = read_rgb(root / f"{name}.{color_suffix}", depth.shape) if color_suffix and "rgb" not in skip else None
+        gt = None
+        if label_suffix:
+            lp = root / f"{name}.{label_suffix}"
+            if lp.is_file():
+                gt = to_taxonomy(resize_nearest(read_label_png(lp), depth.shape), mapping, taxonomy, str(lp),
+                                 _MAPPING_HINT)
+        return Frame(name=name, K=K.copy(), T_cw=T_cw, depth=depth, gt_labels=gt, rgb=rgb)
+
+    if follow and follow.follow:
+        return followed_scene(root.name, _followed(root, follow, intrinsics_file, frame_prefix, name_re, depth_suffix,
+                                                   color_suffix, pose_suffix, pose_convention, read),
+                              cloud, mapping, taxonomy)
+    K = read_intrinsics(root / intrinsics_file)
 
     def stems(suffix: str) -> list[str]:
         return sorted(n for n in (p.name[: -len(suffix) - 1] for p in root.glob(f"{frame_prefix}*.{suffix}"))
@@ -179,26 +218,13 @@ def load_rgbd_folder(
             path = root / f"{name}.{pose_suffix}"
             T = read_pose_c2w(path, convention=pose_convention)
             if T is None:
-                raise ValueError(f"{path}: pose has non-finite entries, expected a 4x4 rigid "
-                                 f"{pose_convention.replace('_', '-')} transform")
+                raise ValueError(_not_finite(path, pose_convention))
             poses.append(pose_to_world_to_camera(T, pose_convention))
             kept.append(name)
             bar.update()
 
-    def load(i: int, skip: frozenset = frozenset()) -> Frame:
-        name = kept[i]
-        depth = read_depth_png(root / f"{name}.{depth_suffix}", depth_scale, depth_bit_shift, invalid_depth,
-                               depth_shift_kind)
-        rgb = read_rgb(root / f"{name}.{color_suffix}", depth.shape) if color_suffix and "rgb" not in skip else None
-        gt = None
-        if label_suffix:
-            lp = root / f"{name}.{label_suffix}"
-            if lp.is_file():
-                gt = to_taxonomy(resize_nearest(read_label_png(lp), depth.shape), mapping, taxonomy, str(lp),
-                                 _MAPPING_HINT)
-        return Frame(name=name, K=K.copy(), T_cw=poses[i], depth=depth, gt_labels=gt, rgb=rgb)
-
-    frames = LazyFrames(kept, load, info={"n_frames_found": len(depth_stems)}, poses=poses, parts=("rgb",))
+    frames = LazyFrames(kept, lambda i, skip: read(K, kept[i], poses[i], skip),
+                        info={"n_frames_found": len(depth_stems)}, poses=poses, parts=("rgb",))
     # checked here, before a wrong unit scales the back-projected cloud; the pipeline skips it then
     check_depth_unit(frames[0], hint=f"depth_scale={depth_scale} (units per metre) / depth_bit_shift="
                                      f"{depth_bit_shift} / depth_shift_kind={depth_shift_kind}")
@@ -219,6 +245,79 @@ def load_rgbd_folder(
                  colors=colors, gt_labels=gt_points)
 
 
+def _not_finite(path: Path, convention: str) -> str:
+    return f"{path}: pose has non-finite entries, expected a 4x4 rigid {convention.replace('_', '-')} transform"
+
+
+def _followed(root: Path, options: FollowOptions, intrinsics_file: str, frame_prefix: str, name_re,
+              depth_suffix: str, color_suffix: Optional[str], pose_suffix: str, pose_convention: str,
+              read) -> LazyFrames:
+    """The frames of a folder a recorder is writing (module docstring), complete so far, as a growing
+    :class:`LazyFrames`: ``read(K, name, T_cw, skip)`` reads a frame's files once they are whole."""
+    # the intrinsics once read; the last frame taken; cut-short clocks; the listing, when and at which folder mtime
+    state: dict = {"K": None, "last": "", "late": {}, "names": [], "scanned": -RESCAN_S, "mtime": None}
+
+    def whole(name: str) -> tuple[Optional[tuple[np.ndarray, Optional[str]]], str]:
+        """((4, 4) world-to-camera, None) of a complete frame, (NaN, why) of one whose pose is not finite; or
+        None while it is incomplete, and what is missing."""
+        parts = [f"{name}.{depth_suffix}"] + ([f"{name}.{color_suffix}"] if color_suffix else [])
+        missing = [p for p in parts if not image_complete(root / p)]
+        try:
+            T = read_pose_c2w(root / f"{name}.{pose_suffix}", convention=pose_convention)
+        except (OSError, ValueError) as exc:  # not there, or not all of it yet
+            missing.append(f"{name}.{pose_suffix} ({first_line(exc)})")
+            T = None
+        if missing:
+            return None, ", ".join(missing)
+        if T is None:
+            return (np.full((4, 4), np.nan), _not_finite(root / f"{name}.{pose_suffix}", pose_convention)), ""
+        return (pose_to_world_to_camera(T, pose_convention), None), ""
+
+    def poll() -> bool:
+        if state["K"] is None:
+            try:
+                state["K"] = read_intrinsics(root / intrinsics_file)
+            except (OSError, ValueError) as exc:  # not written yet (or not all of it)
+                follow.waiting = first_line(exc)
+                return False
+        try:  # listed again when the folder changed (its mtime; at least every RESCAN_S: mtimes are coarse)
+            mtime, now = os.stat(root).st_mtime_ns, time.monotonic()
+            if mtime != state["mtime"] or now - state["scanned"] >= RESCAN_S:
+                with os.scandir(root) as it:
+                    state["names"] = sorted(n for n in (e.name[: -len(depth_suffix) - 1] for e in it
+                                                        if e.name.endswith(f".{depth_suffix}")) if name_re.fullmatch(n))
+                state.update(mtime=mtime, scanned=now)
+        except OSError as exc:
+            follow.waiting = first_line(exc)
+            return False
+        names = state["names"][bisect.bisect_right(state["names"], state["last"]):]  # not taken yet
+        follow.waiting = f"{root / frame_prefix}XXXXXX.{depth_suffix}" if not follow.names else ""
+        for k, name in enumerate(names):  # loop over the frames not taken yet, in name order
+            got, why = whole(name)
+            if got is None:
+                later = next((n for n in names[k + 1:k + 2] if whole(n)[0] is not None), None)
+                if later is None:
+                    state["late"].pop(name, None)
+                    return False  # the frame being written: waited for
+                since = state["late"].setdefault(name, time.monotonic())
+                if time.monotonic() - since < LATE_S:
+                    return False
+                got = (np.full((4, 4), np.nan), f"{root / name}.*: still incomplete {LATE_S:g} s after {later} was "
+                                                 f"whole ({why}): cut short")
+            follow.add(name, got[0], (name, got[1]))
+            state["last"] = name
+        return False  # a folder is never closed: the run ends follow_timeout after the last frame
+
+    def load(i: int, skip: frozenset) -> Frame:
+        name, bad = follow.items[i]
+        if bad:
+            raise ValueError(bad)
+        return read(state["K"], name, follow.poses[i], skip)
+
+    follow: Follow = options.follower(poll, f"RGB-D folder {root}")
+    return LazyFrames(0, load, info={"follow": follow.info}, parts=("rgb",), follow=follow)
+
+
 def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) -> Scene:
     """``scene.source=rgbd_folder``: the folder of the ``scene.options`` keys (real depth: the
     pipeline applies ``sensor`` with ``depth.apply_to_real``)."""
@@ -230,7 +329,7 @@ def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) ->
                             pose_convention=r.pose_convention.value,
                             color_suffix=r.color_suffix, label_suffix=r.label_suffix, mapping=r.mapping,
                             cloud=r.cloud, voxel_size=r.cloud_voxel, cloud_stride=r.cloud_stride,
-                            frame_step=r.frame_step, max_frames=r.max_frames, max_depth=r.max_depth)
+                            frame_step=r.frame_step, max_frames=r.max_frames, max_depth=r.max_depth, follow=r)
 
 
 def label_ids(cfg: SceneConfig, n: int) -> list[tuple[np.ndarray, str]]:

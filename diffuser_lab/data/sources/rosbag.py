@@ -29,24 +29,34 @@ skipped and counted in ``scene.frames.info``; frames are ordered by stamp.
 Frames are lazy: the first pass keeps (topic, record time, ordinal) per image message and decodes only
 the small messages (CameraInfo, tf, poses); an image is read from the bag when its frame is.
 
+**Followed as it is written** (``follow=true``, protocol=online; docs/online.md, :func:`follow_rosbag`): a
+ROS 2 bag in MCAP storage (a rosbag2 folder, or an .mcap file) is polled while the recorder writes it;
+only whole records are read (a chunk the writer still fills is not on disk yet), and a depth image becomes
+a frame once no later message can change it (:meth:`_Pass.settled`), so the frames are the closed bag's.
+
 The labelled points go out as a PointCloud2 bag through
 :func:`diffuser_lab.data.clouds.write_pointcloud2_bag`, beside the other cloud writers.
 """
 from __future__ import annotations
 
+import contextlib
 import mmap
+import os
+import re
 import struct
 import threading
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Callable, List, Optional
 
 import numpy as np
 from omegaconf import MISSING
 
-from diffuser_lab.config import SceneConfig, above, key, rule
-from diffuser_lab.data.capture import CaptureOptions, CapturedFrame, capture_scene
+from diffuser_lab.config import SceneConfig, above, check, key, rule
+from diffuser_lab.data.capture import CaptureOptions, CapturedFrame, FollowOptions, capture_scene, followed_capture
+from diffuser_lab.data.frames import first_line
 from diffuser_lab.data.distortion import LensModel, ros_lens, undistort_image
 from diffuser_lab.data.images import open_image
 from diffuser_lab.data.poses import associate, interpolate_poses, pose_matrices, rigid_inverse
@@ -55,7 +65,7 @@ from diffuser_lab.data.sensor import SensorModel
 from diffuser_lab.data.validate import check_depth_unit
 
 
-__all__ = ["RosbagOptions", "load", "load_rosbag", "decode_image"]
+__all__ = ["RosbagOptions", "load", "load_rosbag", "follow_rosbag", "decode_image"]
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 INFO_TYPE = "sensor_msgs/msg/CameraInfo"
@@ -70,7 +80,7 @@ _SEVEN = rule("[x, y, z, qx, qy, qz, qw] (metres, unit quaternion) or null", nul
 
 
 @dataclass
-class RosbagOptions(CaptureOptions):
+class RosbagOptions(FollowOptions, CaptureOptions):
     """``scene.options`` of ``scene=rosbag`` (docs/layouts.md, "ROS bags")."""
 
     path: str = MISSING  # the bag: a ROS 1 .bag, a rosbag2 folder (metadata.yaml), or its .mcap / .db3 file
@@ -87,6 +97,11 @@ class RosbagOptions(CaptureOptions):
     pose_interpolation: bool = True  # interpolate between the pose samples around a stamp; false = the nearest
     use_header_stamp: bool = True  # false = the bag's record (receive) time instead of header.stamp
     depth_scale: float = key(1000.0, above(0))  # 16UC1 depth: units per metre (REP 118: millimetres)
+
+    def _check_keys(self) -> None:
+        check(not self.follow or Path(self.path).suffix not in (".bag", ".db3"), "scene.options.path", self.path,
+              "a rosbag2 folder of .mcap files or an .mcap file with scene.options.follow=true (a bag is followed "
+              "in its MCAP storage: ros2 bag record -s mcap)")
 
 
 # --------------------------------------------------------------------------- images
@@ -436,15 +451,9 @@ def _undistorted(read: Callable[[], np.ndarray], K: np.ndarray, K_size: tuple[in
     return lambda: undistort_image(read(), K, lens, order=order, fill=fill, K_size=K_size)
 
 
-def load_rosbag(o: RosbagOptions, taxonomy: Taxonomy) -> Scene:
-    """The capture in the bag ``o.path`` (module docstring) as a Scene (lazy frames ordered by stamp)."""
-    bag = Path(o.path)
-    if not bag.exists():
-        raise FileNotFoundError(f"ROS bag {bag} does not exist (scene.options.path)")
-    handle = _Bag(bag)
-    r = handle.open()
-    ros2 = r.is2
-    topics = r.topics
+def _choose_topics(topics: dict, o: RosbagOptions, bag: Path) -> tuple:
+    """(depth, colour or None, labels or None, CameraInfo, pose topic or None, [/tf, /tf_static present])
+    of a bag's ``topics`` (name -> an object with ``msgtype``), as the keys say; one line otherwise."""
     depth_t = _pick(topics, o.depth_topic, IMAGE_TYPES, "depth_topic", bag, ("depth",))
     color_t = None if o.color_topic is None else _pick(topics, o.color_topic, IMAGE_TYPES, "color_topic", bag,
                                                        ("color", "rgb"), ("depth",))
@@ -455,128 +464,432 @@ def load_rosbag(o: RosbagOptions, taxonomy: Taxonomy) -> Scene:
     if not pose_t and not tf_t:
         raise ValueError(f"{bag}: no /tf or /tf_static topic and no scene.options.pose_topic; topics present: "
                          f"{_topics_line(topics)}")
+    return depth_t, color_t, label_t, info_t, pose_t, tf_t
 
-    images = {t: ([], [], []) for t in (depth_t, color_t, label_t) if t}  # stamps, record times, ordinals
-    depth_frame = None
-    info_msg = None
-    edges: dict[str, _Track] = {}
-    track = _Track("", False, f"{bag}: {pose_t}")
-    pose_frame = None
-    last: dict[str, tuple[int, int]] = {}
-    wanted = set(images) | {info_t, *tf_t} | ({pose_t} if pose_t else set())
-    conns = [c for c in r.connections if c.topic in wanted]
+
+@contextlib.contextmanager
+def _readable(bag: Path):
+    """Any error reading the bag's messages (a damaged chunk, a message that does not deserialise) as one
+    line naming the bag (a line that names it already passes as it is)."""
     try:
-        for c, t, raw in r.messages(connections=conns):  # the one pass: metadata; small messages decoded
-            topic = c.topic
-            if topic in images:
-                lt, n = last.get(topic, (None, 0))
-                n = n + 1 if lt == t else 0
-                last[topic] = (t, n)
-                stamp, fid = _header(raw, ros2, f"{bag}: {topic}")
-                s = images[topic]
-                s[0].append(stamp if o.use_header_stamp else t), s[1].append(t), s[2].append(n)
-                if topic == depth_t and depth_frame is None:
-                    depth_frame = fid
-            elif topic == info_t:
-                if info_msg is None:
-                    info_msg = r.deserialize(raw, c.msgtype)
-            elif topic == pose_t:
-                m = r.deserialize(raw, c.msgtype)
-                pose_frame = pose_frame or m.header.frame_id.lstrip("/")
-                track.t.append(_stamp_ns(m.header.stamp) if o.use_header_stamp else t)
-                track.v.append(_pose_values(m, c.msgtype))
-            else:  # /tf, /tf_static
-                for ts in r.deserialize(raw, c.msgtype).transforms:
-                    child, parent = ts.child_frame_id.lstrip("/"), ts.header.frame_id.lstrip("/")
-                    e = edges.setdefault(child, _Track(parent, topic == "/tf_static",
-                                                       f"{bag}: {topic} {parent} -> {child}"))
-                    if e.parent != parent or e.static != (topic == "/tf_static"):
-                        raise ValueError(f"{bag}: frame {child!r} has two parents in /tf + /tf_static ({e.parent!r} "
-                                         f"and {parent!r}), expected one tf tree")
-                    e.t.append(_stamp_ns(ts.header.stamp)), e.v.append(_tf_values(ts.transform))
-    except Exception as e:  # a damaged chunk, a message that does not deserialise
+        yield
+    except Exception as e:  # rosbags raises its own errors (and KeyError, struct.error)
         if isinstance(e, ValueError) and str(e).startswith(str(bag)):
             raise
         raise ValueError(f"{bag}: unreadable messages ({type(e).__name__}: "
                          f"{str(e).splitlines()[0] if str(e) else ''})") from None
-    if info_msg is None:
-        raise ValueError(f"{bag}: no message on {info_t} (scene.options.camera_info_topic)")
-    K, K_size, lens = _intrinsics(info_msg, bag, info_t)
-    d_st, d_rt, d_ord = (np.asarray(x, np.int64) for x in images[depth_t])
-    if len(d_st) == 0:
-        raise ValueError(f"{bag}: no message on {depth_t} (scene.options.depth_topic)")
-    order = np.argsort(d_st, kind="stable")
-    d_st, d_rt, d_ord = d_st[order], d_rt[order], d_ord[order]
-    keep = np.ones(len(d_st), bool)
-    info: dict = {"bag": str(bag), "depth_topic": depth_t, "n_frames_found": int(len(d_st))}
-    if lens is not None:
-        info["undistorted"] = lens.text()
 
-    def match(topic):  # (index into the topic's sorted messages per depth frame, their arrays)
-        st, rt, od = (np.asarray(x, np.int64) for x in images[topic])
-        o2 = np.argsort(st, kind="stable")
-        st, rt, od = st[o2], rt[o2], od[o2]
-        j = associate(d_st * 1e-9, st * 1e-9, o.max_time_diff, one_to_one=False) if len(st) else \
-            np.full(len(d_st), -1)
-        return j, rt, od
 
-    if color_t:
-        cj, c_rt, c_ord = match(color_t)
-        info["n_no_color"] = int(np.count_nonzero(cj < 0))
-        keep &= cj >= 0
-    if label_t:
-        lj, l_rt, l_ord = match(label_t)
-        info["n_no_labels"] = int(np.count_nonzero(keep & (lj < 0)))  # kept, without ground truth
-    if pose_t:
-        if not track.t:
-            raise ValueError(f"{bag}: no message on {pose_t} (scene.options.pose_topic)")
-        st, tr, q = track.arrays()
-        T_wb, ok = interpolate_poses(st, tr, q, d_st, o.pose_max_time_diff * 1e9, o.pose_interpolation)
-        T_bc = np.eye(4) if o.camera_in_body is None else pose_matrices(
-            np.asarray(o.camera_in_body[:3], float)[None], np.asarray(o.camera_in_body[3:], float)[None])[0]
-        T_wc = T_wb @ T_bc
-        world = pose_frame
-        camera = "(camera_in_body)" if o.camera_in_body is not None else pose_t
-    else:
-        world = o.world_frame
-        camera = o.camera_frame or depth_frame
-        if not world or not camera:
-            raise ValueError(f"{bag}: scene.options.world_frame / camera_frame not set and the depth images "
-                             f"have no header.frame_id")
-        T_wc, ok = _chain_poses(edges, world, camera, d_st, o.pose_max_time_diff, o.pose_interpolation, bag)
-    info["n_no_pose"] = int(np.count_nonzero(keep & ~ok))
-    keep &= ok
-    info.update(world_frame=world, camera_frame=camera)
-    sel = np.flatnonzero(keep)
-    if len(sel) == 0:
-        raise ValueError(f"{bag}: none of the {len(d_st)} depth images on {depth_t} has "
-                         f"{'a colour image and ' if color_t else ''}a pose within max_time_diff="
-                         f"{o.max_time_diff} s / pose_max_time_diff={o.pose_max_time_diff} s "
-                         f"({info.get('n_no_color', 0)} without colour, {info['n_no_pose']} without pose)")
-    if len(sel) < 0.5 * len(d_st):
-        warnings.warn(f"{bag}: {len(d_st) - len(sel)} of {len(d_st)} depth images dropped "
-                      f"({info.get('n_no_color', 0)} without colour, {info['n_no_pose']} without pose)", stacklevel=2)
-    T_cw = rigid_inverse(T_wc)  # every pose at once
-    info["timestamps"] = (d_st[sel] * 1e-9).tolist()
+class _Pass:
+    """The one pass over a bag's messages, in record order (a closed bag's, or a followed bag's as its
+    records come): image messages indexed by (stamp, record time, ordinal among the topic's messages of
+    that record time), the small ones (CameraInfo, tf, poses) decoded; :meth:`frames` makes the frames of
+    what it has seen. ``topics``: the bag's (name -> an object with ``msgtype``), chosen from by the keys."""
 
-    def reader(topic, t, n, convert, order=0, fill=0):
-        what = f"{bag}: {topic} at {t * 1e-9:.6f} s"
-        read = lambda: convert(*decode_image(handle.message(topic, int(t), int(n)), what), what)  # noqa: E731
-        return read if lens is None else _undistorted(read, K, K_size, lens, order, fill)
+    def __init__(self, o: RosbagOptions, bag: Path, ros2: bool, topics: dict):
+        self.o, self.bag, self.ros2 = o, bag, ros2
+        self.depth_t, self.color_t, self.label_t, self.info_t, self.pose_t, self.tf_t = _choose_topics(topics, o, bag)
+        # per image topic: stamps, record times, ordinals
+        self.images = {t: ([], [], []) for t in (self.depth_t, self.color_t, self.label_t) if t}
+        self.depth_frame: Optional[str] = None
+        self.info_msg = None
+        self.edges: dict[str, _Track] = {}
+        self.track = _Track("", False, f"{bag}: {self.pose_t}")
+        self.pose_frame: Optional[str] = None
+        self._last: dict[str, tuple[int, int]] = {}
+        self.wanted = set(self.images) | {self.info_t, *self.tf_t} | ({self.pose_t} if self.pose_t else set())
 
-    scale = o.depth_scale
-    frames = []
-    for i in sel:  # one CapturedFrame (readers only) per kept depth message
-        name = f"{d_st[i] // 1_000_000_000}.{d_st[i] % 1_000_000_000:09d}"
-        frames.append(CapturedFrame(
-            name=name, T_cw=T_cw[i], K=K, K_size=K_size, K_from=f"{bag}: {info_t} (width x height)",
-            depth=reader(depth_t, d_rt[i], d_ord[i], lambda a, e, w: _to_depth(a, e, scale, w)),
-            rgb=reader(color_t, c_rt[cj[i]], c_ord[cj[i]], _to_rgb, order=1) if color_t else None,
-            labels=reader(label_t, l_rt[lj[i]], l_ord[lj[i]], _to_labels, fill=IGNORE)
-            if label_t and lj[i] >= 0 else None))
+    def add(self, topic: str, msgtype: str, t: int, raw, deserialize: Callable) -> Optional[int]:
+        """One message of a wanted topic (record time ``t`` ns, ``raw`` serialised; ``deserialize(raw,
+        msgtype)``); returns an image message's ordinal (:meth:`frames`' readers fetch it by it)."""
+        o, bag = self.o, self.bag
+        if topic in self.images:
+            lt, n = self._last.get(topic, (None, 0))
+            n = n + 1 if lt == t else 0
+            self._last[topic] = (t, n)
+            stamp, fid = _header(raw, self.ros2, f"{bag}: {topic}")
+            s = self.images[topic]
+            s[0].append(stamp if o.use_header_stamp else t), s[1].append(t), s[2].append(n)
+            if topic == self.depth_t and self.depth_frame is None:
+                self.depth_frame = fid
+            return n
+        if topic == self.info_t:
+            if self.info_msg is None:
+                self.info_msg = deserialize(raw, msgtype)
+        elif topic == self.pose_t:
+            m = deserialize(raw, msgtype)
+            self.pose_frame = self.pose_frame or m.header.frame_id.lstrip("/")
+            self.track.t.append(_stamp_ns(m.header.stamp) if o.use_header_stamp else t)
+            self.track.v.append(_pose_values(m, msgtype))
+        else:  # /tf, /tf_static
+            for ts in deserialize(raw, msgtype).transforms:
+                child, parent = ts.child_frame_id.lstrip("/"), ts.header.frame_id.lstrip("/")
+                e = self.edges.setdefault(child, _Track(parent, topic == "/tf_static",
+                                                        f"{bag}: {topic} {parent} -> {child}"))
+                if e.parent != parent or e.static != (topic == "/tf_static"):
+                    raise ValueError(f"{bag}: frame {child!r} has two parents in /tf + /tf_static ({e.parent!r} "
+                                     f"and {parent!r}), expected one tf tree")
+                e.t.append(_stamp_ns(ts.header.stamp)), e.v.append(_tf_values(ts.transform))
+        return None
+
+    def settled(self) -> int:
+        """The latest depth stamp (ns) whose frame no later message can change, while the bag is written:
+        every stream the frame is matched against has a message stamped beyond its window after it (colour
+        and labels: ``max_time_diff``; the pose topic, or each moving tf link between the world and the
+        camera: ``pose_max_time_diff``). Streams keep their stamps' order, as recorders write them."""
+        o, none = self.o, np.iinfo(np.int64).min
+        img_tol, pose_tol = int(o.max_time_diff * 1e9), int(o.pose_max_time_diff * 1e9)
+        bounds = [max(self.images[t][0]) - img_tol for t in (self.color_t, self.label_t)
+                  if t and self.images[t][0]]
+        if self.color_t and not self.images[self.color_t][0]:
+            return none
+        if self.pose_t:
+            tracks = [self.track]
+        else:
+            try:
+                up_world, up_cam = _chain(self.edges, o.world_frame, o.camera_frame or self.depth_frame, self.bag)
+            except ValueError:  # the chain's links are not all there yet
+                return none
+            tracks = [self.edges[f] for f in up_world + up_cam if not self.edges[f].static]
+        for tr in tracks:  # loop over the few pose streams
+            if not tr.t:
+                return none
+            bounds.append(max(tr.t) - pose_tol)
+        return min(bounds) - 1 if bounds else none
+
+    def frames(self, fetch: Callable, upto: Optional[int] = None,
+               after: Optional[int] = None) -> tuple[list[CapturedFrame], np.ndarray, dict]:
+        """The frames of the messages seen (readers only: ``fetch(topic, record time, ordinal)`` gives a
+        message), their (F,) depth stamps (ns) and the statistics for ``scene.frames.info``. A bag still
+        being written: ``upto``, only the depth images stamped up to it (ns), ``after`` (ns), only those
+        stamped after it (the frames taken already are not made again); none is then no error."""
+        o, bag, live = self.o, self.bag, upto is not None
+        depth_t, color_t, label_t, info_t, pose_t = self.depth_t, self.color_t, self.label_t, self.info_t, self.pose_t
+        if self.info_msg is None:
+            if live:
+                return [], np.zeros(0, np.int64), {}
+            raise ValueError(f"{bag}: no message on {info_t} (scene.options.camera_info_topic)")
+        K, K_size, lens = _intrinsics(self.info_msg, bag, info_t)
+        d_st, d_rt, d_ord = (np.asarray(x, np.int64) for x in self.images[depth_t])
+        order = np.argsort(d_st, kind="stable")
+        if live:
+            lo, hi = np.searchsorted(d_st[order], [np.iinfo(np.int64).min if after is None else after, upto],
+                                     side="right")
+            order = order[lo:hi]
+        d_st, d_rt, d_ord = d_st[order], d_rt[order], d_ord[order]
+        if len(d_st) == 0:
+            if live:
+                return [], np.zeros(0, np.int64), {}
+            raise ValueError(f"{bag}: no message on {depth_t} (scene.options.depth_topic)")
+        keep = np.ones(len(d_st), bool)
+        info: dict = {"bag": str(bag), "depth_topic": depth_t, "n_frames_found": int(len(d_st))}
+        if lens is not None:
+            info["undistorted"] = lens.text()
+
+        def match(topic):  # (index into the topic's sorted messages per depth frame, their arrays)
+            st, rt, od = (np.asarray(x, np.int64) for x in self.images[topic])
+            o2 = np.argsort(st, kind="stable")
+            st, rt, od = st[o2], rt[o2], od[o2]
+            j = associate(d_st * 1e-9, st * 1e-9, o.max_time_diff, one_to_one=False) if len(st) else \
+                np.full(len(d_st), -1)
+            return j, rt, od
+
+        if color_t:
+            cj, c_rt, c_ord = match(color_t)
+            info["n_no_color"] = int(np.count_nonzero(cj < 0))
+            keep &= cj >= 0
+        if label_t:
+            lj, l_rt, l_ord = match(label_t)
+            info["n_no_labels"] = int(np.count_nonzero(keep & (lj < 0)))  # kept, without ground truth
+        if pose_t:
+            if not self.track.t:
+                raise ValueError(f"{bag}: no message on {pose_t} (scene.options.pose_topic)")
+            st, tr, q = self.track.arrays()
+            T_wb, ok = interpolate_poses(st, tr, q, d_st, o.pose_max_time_diff * 1e9, o.pose_interpolation)
+            T_bc = np.eye(4) if o.camera_in_body is None else pose_matrices(
+                np.asarray(o.camera_in_body[:3], float)[None], np.asarray(o.camera_in_body[3:], float)[None])[0]
+            T_wc = T_wb @ T_bc
+            world = self.pose_frame
+            camera = "(camera_in_body)" if o.camera_in_body is not None else pose_t
+        else:
+            world = o.world_frame
+            camera = o.camera_frame or self.depth_frame
+            if not world or not camera:
+                raise ValueError(f"{bag}: scene.options.world_frame / camera_frame not set and the depth images "
+                                 f"have no header.frame_id")
+            T_wc, ok = _chain_poses(self.edges, world, camera, d_st, o.pose_max_time_diff, o.pose_interpolation, bag)
+        info["n_no_pose"] = int(np.count_nonzero(keep & ~ok))
+        keep &= ok
+        info.update(world_frame=world, camera_frame=camera)
+        sel = np.flatnonzero(keep)
+        if len(sel) == 0 and not live:
+            raise ValueError(f"{bag}: none of the {len(d_st)} depth images on {depth_t} has "
+                             f"{'a colour image and ' if color_t else ''}a pose within max_time_diff="
+                             f"{o.max_time_diff} s / pose_max_time_diff={o.pose_max_time_diff} s "
+                             f"({info.get('n_no_color', 0)} without colour, {info['n_no_pose']} without pose)")
+        if len(sel) < 0.5 * len(d_st) and not live:
+            warnings.warn(f"{bag}: {len(d_st) - len(sel)} of {len(d_st)} depth images dropped "
+                          f"({info.get('n_no_color', 0)} without colour, {info['n_no_pose']} without pose)",
+                          stacklevel=3)
+        T_cw = rigid_inverse(T_wc)  # every pose at once
+        info["timestamps"] = (d_st[sel] * 1e-9).tolist()
+
+        def reader(topic, t, n, convert, order=0, fill=0):
+            what = f"{bag}: {topic} at {t * 1e-9:.6f} s"
+            read = lambda: convert(*decode_image(fetch(topic, int(t), int(n)), what), what)  # noqa: E731
+            return read if lens is None else _undistorted(read, K, K_size, lens, order, fill)
+
+        scale = o.depth_scale
+        frames = []
+        for i in sel:  # one CapturedFrame (readers only) per kept depth message
+            name = f"{d_st[i] // 1_000_000_000}.{d_st[i] % 1_000_000_000:09d}"
+            frames.append(CapturedFrame(
+                name=name, T_cw=T_cw[i], K=K, K_size=K_size, K_from=f"{bag}: {info_t} (width x height)",
+                depth=reader(depth_t, d_rt[i], d_ord[i], lambda a, e, w: _to_depth(a, e, scale, w)),
+                rgb=reader(color_t, c_rt[cj[i]], c_ord[cj[i]], _to_rgb, order=1) if color_t else None,
+                labels=reader(label_t, l_rt[lj[i]], l_ord[lj[i]], _to_labels, fill=IGNORE)
+                if label_t and lj[i] >= 0 else None))
+        return frames, d_st[sel], info
+
+
+def load_rosbag(o: RosbagOptions, taxonomy: Taxonomy) -> Scene:
+    """The capture in the bag ``o.path`` (module docstring) as a Scene (lazy frames ordered by stamp);
+    ``o.follow``: the bag followed as a recorder writes it (:func:`follow_rosbag`)."""
+    if o.follow:
+        return follow_rosbag(o, taxonomy)
+    bag = Path(o.path)
+    if not bag.exists():
+        raise FileNotFoundError(f"ROS bag {bag} does not exist (scene.options.path)")
+    handle = _Bag(bag)
+    r = handle.open()
+    one = _Pass(o, bag, r.is2, r.topics)
+    conns = [c for c in r.connections if c.topic in one.wanted]
+    with _readable(bag):
+        for c, t, raw in r.messages(connections=conns):  # the one pass: metadata; small messages decoded
+            one.add(c.topic, c.msgtype, t, raw, r.deserialize)
+    frames, _, info = one.frames(handle.message)
     scene = capture_scene(bag.stem if bag.is_file() else bag.name, frames, o, taxonomy, root=bag, info=info)
-    check_depth_unit(scene.frames[0], hint=f"scene.options.depth_scale={scale} (16UC1 units per metre)")
+    check_depth_unit(scene.frames[0], hint=f"scene.options.depth_scale={o.depth_scale} (16UC1 units per metre)")
     return scene
+
+
+# --------------------------------------------------------------------------- a bag followed as it is written
+
+
+class _McapTail:
+    """An MCAP file read while a recorder writes it: from where the last :meth:`read` stopped, each record
+    once it is whole on disk (its opcode, length and every byte it says); a chunk's messages once the
+    whole chunk is (a chunk still being filled is not on disk at all: writers keep it in memory).
+    ``done`` once the footer is read: the writer has closed the file."""
+
+    def __init__(self, path: Path):
+        self.path, self.pos, self.done = path, 0, False
+        self.schemas: dict[int, tuple[str, str, bytes]] = {}  # id -> (type name, encoding, definition)
+        self.channels: dict[int, tuple[str, int]] = {}  # id -> (topic, schema id)
+        self._chunk: tuple[int, bytes] = (-1, b"")  # the last chunk decompressed (its record's offset)
+        self._lock = threading.Lock()
+
+    def read(self) -> list[tuple[str, str, int, memoryview, tuple[int, int, int]]]:
+        """The messages of the records made whole since the last call: (topic, type name, record time ns,
+        serialised message, where it lies: (chunk record offset or -1, offset, length))."""
+        out: list = []
+        try:
+            fh = open(self.path, "rb")
+        except FileNotFoundError:
+            return out
+        with fh:
+            size = os.fstat(fh.fileno()).st_size
+            if self.pos == 0:
+                if size < len(_MCAP_MAGIC):
+                    return out
+                if fh.read(len(_MCAP_MAGIC)) != _MCAP_MAGIC:
+                    raise ValueError(f"{self.path}: not an MCAP file (its first bytes are not the MCAP magic)")
+                self.pos = len(_MCAP_MAGIC)
+            while not self.done and self.pos + 9 <= size:  # loop over the whole records not read yet
+                fh.seek(self.pos)
+                op, n = struct.unpack("<BQ", fh.read(9))
+                if self.pos + 9 + n > size:
+                    break  # being written
+                body = fh.read(n)
+                if op == _MCAP_CHUNK:
+                    data = self._decompress(body)
+                    self._chunk = (self.pos, data)
+                    at = 0
+                    while at + 9 <= len(data):  # loop over the chunk's records
+                        op2, n2 = struct.unpack_from("<BQ", data, at)
+                        self._record(op2, memoryview(data)[at + 9: at + 9 + n2], self.pos, at + 9, out)
+                        at += 9 + n2
+                else:
+                    self._record(op, memoryview(body), -1, self.pos + 9, out)
+                self.done = op == _MCAP_FOOTER
+                self.pos += 9 + n
+        return out
+
+    def _decompress(self, body: bytes) -> bytes:
+        """A chunk record's records: (start, end, uncompressed size, crc, compression, records)."""
+        raw_size, = struct.unpack_from("<Q", body, 16)
+        clen, = struct.unpack_from("<I", body, 28)
+        kind = body[32: 32 + clen].decode()
+        n, = struct.unpack_from("<Q", body, 32 + clen)
+        data = body[40 + clen: 40 + clen + n]
+        if kind == "zstd":
+            try:
+                from compression import zstd  # Python 3.14
+            except ImportError:
+                from backports import zstd  # rosbags' own dependency
+            data = zstd.decompress(data)
+        elif kind == "lz4":
+            from lz4.frame import decompress
+
+            data = decompress(data)
+        elif kind:
+            raise ValueError(f"{self.path}: chunk compression {kind!r}, expected zstd, lz4 or none")
+        if len(data) != raw_size:
+            raise ValueError(f"{self.path}: a chunk of {len(data):,} bytes says {raw_size:,} (damaged)")
+        return data
+
+    def _record(self, op: int, body: memoryview, chunk: int, at: int, out: list) -> None:
+        def text(k: int) -> tuple[str, int]:  # an MCAP string at k: uint32 length, UTF-8
+            m, = struct.unpack_from("<I", body, k)
+            return bytes(body[k + 4: k + 4 + m]).decode(), k + 4 + m
+
+        if op == 0x03:  # Schema: id, name, encoding, data
+            sid, = struct.unpack_from("<H", body, 0)
+            name, k = text(2)
+            enc, k = text(k)
+            m, = struct.unpack_from("<I", body, k)
+            self.schemas[sid] = (name, enc, bytes(body[k + 4: k + 4 + m]))
+        elif op == 0x04:  # Channel: id, schema id, topic, ...
+            cid, sid = struct.unpack_from("<HH", body, 0)
+            self.channels[cid] = (text(4)[0], sid)
+        elif op == 0x05:  # Message: channel id, sequence, log time, publish time, data
+            cid, _, t = struct.unpack_from("<HIQ", body, 0)
+            topic, sid = self.channels[cid]
+            out.append((topic, self.schemas[sid][0] if sid in self.schemas else "", t, body[22:],
+                        (chunk, at + 22, len(body) - 22)))
+
+    def raw(self, where: tuple[int, int, int]) -> bytes:
+        """A message's serialised bytes where :meth:`read` found it."""
+        chunk, at, n = where
+        with self._lock:
+            if chunk < 0:
+                with open(self.path, "rb") as fh:
+                    fh.seek(at)
+                    return fh.read(n)
+            if self._chunk[0] != chunk:
+                with open(self.path, "rb") as fh:
+                    fh.seek(chunk)
+                    _, size = struct.unpack("<BQ", fh.read(9))
+                    self._chunk = (chunk, self._decompress(fh.read(size)))
+            return self._chunk[1][at: at + n]
+
+
+def _mcap_files(bag: Path) -> list[Path]:
+    """A followed bag's MCAP files in recording order (a rosbag2 folder's split files, <name>_<n>.mcap, by n)."""
+    if bag.suffix == ".mcap":
+        return [bag] if bag.is_file() else []
+
+    def order(p: Path):
+        m = re.search(r"_(\d+)\.mcap$", p.name)
+        return (int(m.group(1)) if m else -1, p.name)
+
+    return sorted(bag.glob("*.mcap"), key=order) if bag.is_dir() else []
+
+
+FOLLOW_SPAN_S = 0.5
+"""A followed bag's topics are chosen once it holds this many seconds of messages (or is closed): every
+topic of a recorder has published by then."""
+
+
+def follow_rosbag(o: RosbagOptions, taxonomy: Taxonomy) -> Scene:
+    """The bag ``o.path`` (a rosbag2 folder of MCAP files, or an .mcap file) followed as a recorder writes
+    it (docs/online.md): polled for whole records; the topics chosen once :data:`FOLLOW_SPAN_S` seconds of
+    messages are there; a frame taken once :meth:`_Pass.settled` says later messages cannot change it.
+    Closed: an .mcap file once its footer is written; a rosbag2 folder once each MCAP file's footer is
+    and ``metadata.yaml`` (the recorder writes it when it stops: ``ros2 bag record`` and rosbags' Writer)."""
+    from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
+
+    bag = Path(o.path)
+    if bag.is_dir() and any(bag.glob("*.db3")):
+        raise ValueError(f"{bag}: a rosbag2 folder of .db3 (SQLite) files; scene.options.follow=true reads MCAP "
+                         f"storage (ros2 bag record -s mcap)")
+    types = get_typestore(Stores.EMPTY)
+    st: dict = {"tails": {}, "pass": None, "last": np.iinfo(np.int64).min, "types": set(), "locs": {}, "span": []}
+
+    def deserialize(raw, msgtype: str):
+        return types.deserialize_cdr(raw, msgtype)
+
+    def read() -> tuple[list, bool]:
+        files = _mcap_files(bag)
+        msgs = []
+        for f in files:  # loop over the bag's files, in recording order
+            tail = st["tails"].setdefault(f, _McapTail(f))
+            msgs += [(tail, *m) for m in tail.read()]
+            for name, enc, data in tail.schemas.values():  # the bag's own message definitions
+                if name not in st["types"] and data:
+                    st["types"].add(name)
+                    types.register(get_types_from_msg(data.decode(), name) if enc == "ros2msg"
+                                   else get_types_from_idl(data.decode()))
+        done = bool(files) and all(st["tails"][f].done for f in files) and (
+            bag.suffix == ".mcap" or (bag / "metadata.yaml").is_file())
+        return msgs, done
+
+    def fetch(topic: str, t: int, n: int):
+        tail, where, msgtype = st["locs"][(topic, t, n)]
+        with _readable(bag):
+            return deserialize(tail.raw(where), msgtype)
+
+    def poll() -> bool:
+        if st.get("closed"):
+            return True
+        with _readable(bag):
+            msgs, closed = read()
+            if st["pass"] is None:  # the topics are not chosen yet: the messages' times, their channels
+                if msgs:
+                    times = [m[3] for m in msgs] + st["span"]
+                    st["span"] = [min(times), max(times)]
+                span = st["span"]
+                if not closed and (not span or span[1] - span[0] < FOLLOW_SPAN_S * 1e9):
+                    follow.waiting = f"{FOLLOW_SPAN_S:g} s of messages in {bag}"
+                    return False
+                topics = {topic: SimpleNamespace(msgtype=tail.schemas[sid][0] if sid in tail.schemas else "")
+                          for tail in st["tails"].values() for topic, sid in tail.channels.values()}
+                try:
+                    st["pass"] = _Pass(o, bag, True, topics)
+                except ValueError as e:
+                    if closed:
+                        raise
+                    follow.waiting = first_line(e)
+                    return False
+                st["tails"] = {}  # chosen: the bag is read again from its start for them
+                msgs, closed = read()
+            one: _Pass = st["pass"]
+            for tail, topic, msgtype, t, raw, where in msgs:  # loop over the messages new since the last poll
+                if topic in one.wanted:
+                    n = one.add(topic, msgtype, t, raw, deserialize)
+                    if n is not None:
+                        st["locs"][(topic, t, n)] = (tail, where, msgtype)
+            if not msgs and not closed:
+                return False  # nothing new: nothing settled since the last poll
+            try:
+                frames, stamps, info = one.frames(fetch, None if closed else one.settled(), st["last"])
+            except ValueError as e:
+                if closed:
+                    raise
+                follow.waiting = first_line(e)
+                return False
+        if closed or "depth_topic" not in scene_info:  # the topics and frames read; the counts of the closed bag
+            scene_info.update({k: v for k, v in info.items() if k != "timestamps"})
+        for cf, s in zip(frames, stamps):  # loop over the frames settled: the new ones are added
+            if s > st["last"]:
+                follow.add(cf.name, cf.T_cw, cf)
+                st["last"] = s
+        st["closed"] = closed
+        return closed
+
+    follow = o.follower(poll, f"ROS bag {bag}")
+    scene_info: dict = {"bag": str(bag)}
+    return followed_capture(bag.stem if bag.suffix == ".mcap" else bag.name, follow, o, taxonomy, scene_info)
 
 
 def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) -> Scene:
