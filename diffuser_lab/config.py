@@ -547,7 +547,7 @@ class OnlineConfig(Section):
     # `frontier` hops of them (null: as many hops as the frame's steps reach); false = every row. Every
     # `sweep`-th frame adds one step on every row (its change bounds the error the regions leave)
     region: bool = True
-    frontier: Optional[int] = key(None, within(0, 1000, steps=True, null=True, note="(null = online.steps)"))
+    frontier: Optional[int] = key(4, within(0, 1000, steps=True, null=True, note="(null = online.steps)"))
     sweep: int = key(8, within(1, 100_000, steps=True))
     discount: Optional[float] = key(None, within(0, 1, open_lo=True, null=True, note="(= 2^(-2/horizon))"))  # gamma itself; null = from horizon; 1 = the undiscounted iteration
     voxel_size: float = key(0.03, above(0, "metres"))  # growing: map voxel edge, metres (online mappers use 2-10 cm; the paper 2 cm)

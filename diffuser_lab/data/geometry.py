@@ -60,26 +60,6 @@ def backproject(depth: np.ndarray, K: np.ndarray, T_cw: np.ndarray, stride: int 
     return pw.astype(np.float32), np.stack([rows, cols], 1)
 
 
-def view_box(K: np.ndarray, T_cw: np.ndarray, shape: tuple[int, int], z_lo: float, z_hi: float) -> np.ndarray:
-    """The world box around the part of a camera's view between the depths ``z_lo`` and ``z_hi``.
-
-    Args:
-        K: (3, 3) intrinsics, pixels; T_cw: (4, 4) world-to-camera, metres; shape: the image's (H, W).
-        z_lo, z_hi: camera z-depths, metres (0 <= z_lo <= z_hi).
-    Returns:
-        (2, 3) float64 the lower and upper world corners of the axis-aligned box around the frustum
-        of every point whose pixel ``rint(u), rint(v)`` lies in the image (the image's edges widened
-        by a pixel against rounding) at a depth in [z_lo, z_hi]: the convex hull of its 8 corners.
-    """
-    h, w = shape
-    px = np.array([[u, v, 1.0] for u in (-1.5, w + 0.5) for v in (-1.5, h + 0.5)])
-    rays = px @ np.linalg.inv(np.asarray(K, np.float64)).T  # z = 1
-    pc = np.concatenate([rays * z_lo, rays * z_hi])
-    T_wc = np.linalg.inv(np.asarray(T_cw, np.float64))
-    pw = pc @ T_wc[:3, :3].T + T_wc[:3, 3]
-    return np.stack([pw.min(0), pw.max(0)])
-
-
 def scaled_intrinsics(K: np.ndarray, src_shape: tuple[int, int], dst_shape: tuple[int, int]) -> np.ndarray:
     """(3, 3) K of an image of (H, W) ``src_shape`` resized to ``dst_shape`` with pixel centres
     aligned (pixel centre at integer coordinates): f' = f s, c' = (c + 0.5) s - 0.5 per axis."""

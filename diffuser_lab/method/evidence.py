@@ -71,8 +71,10 @@ class Evidence:
         return self.links > 0
 
 
-def _class_vectors(frame: Frame, num_classes: int, hard: bool) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """The frame's per-pixel labels: (H,W) ids for hard evidence or (H,W,C) probabilities."""
+def _class_vectors(frame: Frame, num_classes: int, hard: bool,
+                   checked: bool = False) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The frame's per-pixel labels: (H,W) ids for hard evidence or (H,W,C) probabilities
+    (``checked``: the label ids were checked before, when the frame's evidence was first added)."""
     if frame.probs is not None and not hard:
         probs = frame.probs
         if probs.ndim != 3 or probs.shape[2] != num_classes or probs.shape[:2] != frame.shape:
@@ -85,6 +87,8 @@ def _class_vectors(frame: Frame, num_classes: int, hard: bool) -> tuple[np.ndarr
         raise ValueError(f"frame {frame.name}: no 2D labels or probabilities to take evidence from")
     if frame.labels.shape != frame.shape:
         raise ValueError(f"frame {frame.name}: label image {frame.labels.shape} != depth {frame.shape}")
+    if checked:
+        return frame.labels, None
     lo, hi = int(frame.labels.min()), int(frame.labels.max())
     if lo < IGNORE or hi >= num_classes:
         raise ValueError(f"frame {frame.name}: label ids in [{lo}, {hi}], expected {IGNORE} (no label) "
@@ -303,7 +307,7 @@ def _add_features(ev: Evidence, points: np.ndarray, frame: Frame, depth_tol: flo
 
 def add_frame(ev: Evidence, points: np.ndarray, frame: Frame, *, depth_tol: float = 0.05,
               pixel_radius: int = 0, hard: bool = False, best: BestView | None = None, basis=None,
-              energy: np.ndarray | None = None, hook: Optional[LinkHook] = None) -> np.ndarray:
+              energy: np.ndarray | None = None, hook: Optional[LinkHook] = None, checked: bool = False) -> np.ndarray:
     """Add one frame's pixel-to-point links to ``ev`` in place (Eq. 12, one term of Eq. 11):
     class masses, or unit features when the frame has a feature map (module docstring); ``hook``
     (:data:`LinkHook`) sees each link set with its vectors.
@@ -312,6 +316,8 @@ def add_frame(ev: Evidence, points: np.ndarray, frame: Frame, *, depth_tol: floa
     has its k + s columns and each unit feature is added as its coordinates (:func:`sample_basis`:
     exactly the projection of the full path's unit feature); ``energy`` (2,) float64, when given,
     gains the linked pixels' kept energy (sum of |coordinates on the k vectors|^2) and their number.
+    ``checked``: the frame's label ids were checked when its evidence was first added (an online
+    map adds a kept frame's evidence again for its new points).
 
     Returns (M,) int64 sorted indices of the points that passed the visibility check (their
     rows of ``ev`` may have changed; the others did not)."""
@@ -321,7 +327,7 @@ def add_frame(ev: Evidence, points: np.ndarray, frame: Frame, *, depth_tol: floa
         with blas_one_thread():  # a basis' products are small: OpenBLAS's spinning workers cost more
             return _add_features(ev, points, frame, depth_tol, pixel_radius, best, basis, energy, hook)
     n, num_classes = ev.mass.shape
-    labels, probs = _class_vectors(frame, num_classes, hard)
+    labels, probs = _class_vectors(frame, num_classes, hard, checked)
     if probs is None and pixel_radius == 0 and hook is None:
         seen = hard_votes(points, frame.T_cw, frame.K, frame.depth, labels, depth_tol, ev.mass, ev.links)
         if seen is not None:
@@ -442,8 +448,24 @@ class RunEvidence:
         return Evidence(mass=self._base_mass[: self.n], links=self._base_links[: self.n],
                         points_per_frame=self._base_ppf)
 
-    def add(self, points: np.ndarray, frame: Frame, lo: int = 0) -> tuple[np.ndarray, np.ndarray]:
-        """Add ``frame``'s evidence for the points ``points`` (M, 3) world metres, rows lo..lo+M-1.
+    def fused(self, frame: Frame) -> bool:
+        """Whether ``frame``'s evidence is the compiled single pass's (:func:`~diffuser_lab.backends.evidence.hard_votes`:
+        hard labels, one pixel, the baseline shared, no hook, no basis), which
+        :class:`~diffuser_lab.backends.evidence.KeptVotes` adds again for many frames at once."""
+        return not (self.separate or self.pixel_radius or self.hook is not None or self.basis is not None
+                    or frame.labels is None or frame.probs is not None
+                    or getattr(frame, "features", None) is not None)
+
+    def add_kept(self, points: np.ndarray, kept, which: np.ndarray, lo: int = 0) -> None:
+        """The :meth:`fused` frames ``which`` of ``kept`` (a :class:`~diffuser_lab.backends.evidence.KeptVotes`),
+        added before (their checks done then), added again for the points rows lo..lo+M-1."""
+        if len(which):
+            hi = lo + points.shape[0]
+            kept.add_to(points, which, self.depth_tol, self._mass[lo:hi], self._links[lo:hi])
+
+    def add(self, points: np.ndarray, frame: Frame, lo: int = 0, checked: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Add ``frame``'s evidence for the points ``points`` (M, 3) world metres, rows lo..lo+M-1
+        (``checked``: its label ids were checked before, :func:`add_frame`).
         Returns the rows (sorted int64) that passed its visibility check for the method's and for
         the baseline's evidence (the same array when shared)."""
         hi = lo + points.shape[0]
@@ -452,9 +474,9 @@ class RunEvidence:
         hook = self.hook if lo == 0 else None
         seen = lo + add_frame(ev, points, frame, depth_tol=self.depth_tol, pixel_radius=self.pixel_radius,
                               best=None if self.separate else best, basis=self.basis, energy=self.energy,
-                              hook=hook)
+                              hook=hook, checked=checked)
         if not self.separate:
             return seen, seen
         base = Evidence(mass=self._base_mass[lo:hi], links=self._base_links[lo:hi], points_per_frame=self._base_ppf)
         return seen, lo + add_frame(base, points, frame, depth_tol=self.depth_tol, hard=self.votes, best=best,
-                                    basis=self.basis)
+                                    basis=self.basis, checked=checked)

@@ -49,9 +49,10 @@ from typing import Optional
 import numpy as np
 
 from diffuser_lab.backends.base import residual, union_rows
+from diffuser_lab.backends.evidence import KeptVotes
 from diffuser_lab.backends.region import reach
 from diffuser_lab.config import FinalPass, OnlineMap, OnlineSolver, SolverBackend
-from diffuser_lab.data.geometry import backproject, normals_from_depth, view_box
+from diffuser_lab.data.geometry import backproject, normals_from_depth
 from diffuser_lab.data.scene import IGNORE, Frame, Taxonomy
 from diffuser_lab.data.voxel_map import VoxelMap
 from diffuser_lab.method.diffusion import System, labels_from_scores
@@ -73,16 +74,17 @@ ROWS_HINT = 1 << 20
 """The online system's backend is sized (threads) as for this many rows: a map may start small."""
 
 
+_NO_VOTES = (np.zeros((4, 4)), np.zeros((3, 3)), np.zeros((1, 1), np.float32), np.zeros((1, 1), np.int16))
+
+
 class FrameStore:
     """Growing map: the frames taken so far, kept for the points added after them (a point is
     added by the first frame whose depth lands in its voxel, but earlier frames may see it within
     ``evidence.depth_tol``; the batch run on the final cloud links them all).
 
     Each frame is kept as what its evidence reads (K, T_cw, depth, the 2D labels / probabilities /
-    features; not the colour) with the world box of its view between its nearest and farthest
-    valid depth widened by the depth check's tolerance (:func:`~diffuser_lab.data.geometry.view_box`):
-    a point outside it cannot pass the frame's depth check, so :meth:`seeing` skips such frames
-    without changing any evidence.
+    features; not the colour) with its projection and the range of its valid depths: a frame whose
+    view cannot hold any of the new points (:meth:`seeing`) is skipped without changing any evidence.
 
     Args:
         limit: frames kept at most (None: all); max_bytes: their arrays' bytes at most; the
@@ -97,7 +99,10 @@ class FrameStore:
         self.max_bytes = float(max_bytes)
         self.depth_tol = float(depth_tol)
         self.frames: list[Frame] = []
-        self._boxes = np.zeros((0, 2, 3))
+        self.fused: list[bool] = []  # the frame's evidence is the compiled pass's: kept in `votes` too
+        self.votes = KeptVotes.make()  # the frames again, for that pass over many at once (None: numpy)
+        self._proj = np.zeros((0, 3, 4))  # per frame K [R | t]
+        self._view = np.zeros((0, 4))  # per frame the image's width and height, its depths' range (+- tol)
         self._sizes: list[int] = []
         self.bytes = 0
         self.dropped = 0
@@ -105,8 +110,10 @@ class FrameStore:
     def __len__(self) -> int:
         return len(self.frames)
 
-    def add(self, frame: Frame) -> None:
-        """Keep ``frame`` (its arrays are referenced, not copied), letting the oldest go past the limits."""
+    def add(self, frame: Frame, fused: bool = False) -> None:
+        """Keep ``frame`` (its arrays are referenced, not copied; ``fused``: its evidence is the
+        compiled single pass's, :meth:`~diffuser_lab.method.evidence.RunEvidence.fused`), letting the
+        oldest go past the limits."""
         if self.limit == 0:
             self.dropped += 1
             return
@@ -115,28 +122,50 @@ class FrameStore:
         valid = frame.depth[frame.depth > 0]
         if valid.size == 0:
             return
-        z_lo = max(float(valid.min()) - self.depth_tol, 0.0)
-        box = view_box(frame.K, frame.T_cw, frame.shape, z_lo, float(valid.max()) + self.depth_tol)
+        T = np.asarray(frame.T_cw, np.float64)
+        proj = np.asarray(frame.K, np.float64) @ T[:3]  # (3, 4): world -> (u z, v z, z)
+        h, w = frame.shape
+        view = np.array([w, h, float(valid.min()) - self.depth_tol, float(valid.max()) + self.depth_tol])
         size = sum(a.nbytes for a in (kept.depth, kept.labels, kept.probs, kept.features) if a is not None)
+        fused = bool(fused) and self.votes is not None
         self.frames.append(kept)
+        self.fused.append(fused)
+        if self.votes is not None:  # every frame a place, so that the indices match (the others never read)
+            self.votes.add(*((frame.T_cw, frame.K, frame.depth, frame.labels) if fused else _NO_VOTES))
         self._sizes.append(size)
-        self._boxes = np.concatenate([self._boxes, box[None]])
+        self._proj = np.concatenate([self._proj, proj[None]])
+        self._view = np.concatenate([self._view, view[None]])
         self.bytes += size
         while self.frames and ((self.limit is not None and len(self.frames) > self.limit)
                                or self.bytes > self.max_bytes):
             self.frames.pop(0)
+            self.fused.pop(0)
+            if self.votes is not None:
+                self.votes.drop_oldest()
             self.bytes -= self._sizes.pop(0)
-            self._boxes = self._boxes[1:]
+            self._proj, self._view = self._proj[1:], self._view[1:]
             self.dropped += 1
 
-    def seeing(self, points: np.ndarray) -> list[Frame]:
-        """The kept frames, oldest first, whose view box meets the box of ``points`` (m, 3) world metres."""
+    def seeing(self, points: np.ndarray) -> list[int]:
+        """The kept frames (their places in :attr:`frames`), oldest first, that may see some of
+        ``points`` (m, 3) world metres: the box around the points is not wholly behind the camera,
+        beyond its valid depths (widened by the depth check's tolerance), or (wholly in front of it)
+        past one edge of its image (widened by a pixel against rounding). A convex box projects
+        inside its corners' projections and a point's depth is affine, so no frame that can link one
+        of the points is left out."""
         if not self.frames or points.shape[0] == 0:
             return []
-        lo, hi = points.min(0), points.max(0)
-        b = self._boxes
-        meet = np.all((b[:, 0] <= hi) & (b[:, 1] >= lo), axis=1)
-        return [self.frames[i] for i in np.flatnonzero(meet)]
+        lo, hi = points.min(0).astype(np.float64), points.max(0).astype(np.float64)
+        corners = np.array([[x, y, z, 1.0] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        uvz = np.einsum("fij,cj->fic", self._proj, corners)  # (F, 3, 8)
+        z = uvz[:, 2]
+        w, h, z_lo, z_hi = self._view.T
+        far = (z.max(1) < z_lo) | (z.min(1) > z_hi) | (z.max(1) <= 1e-6)
+        front = z.min(1) > 1e-6
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u, v = uvz[:, 0] / z, uvz[:, 1] / z
+        off = front & ((u.max(1) < -1.5) | (u.min(1) > w[:] + 0.5) | (v.max(1) < -1.5) | (v.min(1) > h + 0.5))
+        return np.flatnonzero(~(far | off)).tolist()
 
 
 def discount(horizon: int) -> float:
@@ -348,7 +377,7 @@ class OnlineDiffuser:
             edges, moved = self._extend(new_pts, new_nrm, st)
             t2 = time.perf_counter()
             self._revisit(n0, self._n - n0)
-            self.store.add(frame)
+            self.store.add(frame, self.ev.fused(frame))
         else:
             t1 = t2 = t0
         n = self._n
@@ -382,10 +411,11 @@ class OnlineDiffuser:
         return st
 
     # -- the parts -------------------------------------------------------------------------------
-    def _add_evidence(self, frame: Frame, lo: int, hi: int) -> np.ndarray:
+    def _add_evidence(self, frame: Frame, lo: int, hi: int, checked: bool = False) -> np.ndarray:
         """The frame's evidence (the method's and the Bayesian baseline's) for map points lo..hi-1;
-        their Bayesian labels. Returns the map rows that passed the visibility check."""
-        seen, seen_base = self.ev.add(self._pts[lo:hi], frame, lo)
+        their Bayesian labels (``checked``: a kept frame, its label ids checked). Returns the map
+        rows that passed the visibility check."""
+        seen, seen_base = self.ev.add(self._pts[lo:hi], frame, lo, checked)
         if seen_base.size:
             self._bayes[seen_base] = labels_from_scores(self.ev.baseline.mass[seen_base])
         return seen
@@ -442,8 +472,15 @@ class OnlineDiffuser:
     def _revisit(self, n0: int, m: int) -> None:
         """Give the new points n0..n0+m-1 the evidence of the kept frames before this one (:class:`FrameStore`;
         those that see them pass the same depth check), oldest first, as the batch adds them."""
-        for f in self.store.seeing(self._pts[n0 : n0 + m]):
-            self._add_evidence(f, n0, n0 + m)
+        pts = self._pts[n0 : n0 + m]
+        st = self.store
+        which = st.seeing(pts)
+        self.ev.add_kept(pts, st.votes, np.array([i for i in which if st.fused[i]], np.int64), n0)  # one call
+        for i in which:
+            if not st.fused[i]:
+                self._add_evidence(st.frames[i], n0, n0 + m, checked=True)
+        if m:
+            self._bayes[n0 : n0 + m] = labels_from_scores(self.ev.baseline.mass[n0 : n0 + m])
 
     def _region(self, rows: np.ndarray) -> Optional[np.ndarray]:
         """The system rows a frame's steps take (``online.region``, ``online.frontier``): ``rows``

@@ -47,6 +47,22 @@ if NB is not None:
             _vote(i, pts, R, t, K, depth, labels, tol, mass, links, seen)
 
 
+    @njit(cache=True, boundscheck=False)
+    def evidence_hard_frames(pts, Rs, ts, Ks, depths, labels, which, tol, mass, links):
+        """The frames ``which`` (indices into the (F, 3, 3) Rs, (F, 3) ts, (F, 3, 3) Ks and the typed
+        lists of (H, W) float32 depths and int16 labels), in that order, added to the points as
+        :func:`evidence_hard` adds one frame (one thread: a growing map's new points are few)."""
+        seen = np.empty(pts.shape[0], np.bool_)
+        for f in which:
+            R = Rs[f]
+            t = ts[f]
+            K = Ks[f]
+            depth = depths[f]
+            lab = labels[f]
+            for i in range(pts.shape[0]):
+                _vote(i, pts, R, t, K, depth, lab, tol, mass, links, seen)
+
+
 PARALLEL_ABOVE = 16384
 """Points above which one frame's evidence runs on numba's threads (a parallel launch costs ~50 us:
 measured, more than a growing map's few thousand new points take on one thread)."""

@@ -136,50 +136,73 @@ if NB is not None:
 
     @njit(cache=True, parallel=True, boundscheck=False)
     def query_rows(Q, P, h, cell_c, cell_of, cell_nb, cstart, cend, X, Y, Z, J, kth2, n_old, mark, k, nbr, d2, d0,
-                   fail, aff, nparts):
+                   fail, aff, nparts, cap):
         """Rows of the queried points Q (in nparts parallel chunks; sorted by cell for locality)
         from their cell's 3x3x3 block: nbr/d2 sorted by (d2, index), d0 the smallest positive d2
         (inf if none), kth2 the K-th d2; fail[i] = 1 where the K-th distance exceeds the block's
         guaranteed radius (search again with rings). With ``mark``, every old point (index < n_old)
         within ``h`` of a queried point and closer to it than its own K-th neighbour (kth2, read
-        for the old points) is flagged in aff (the same value from any thread)."""
+        for the old points) is flagged in aff (the same value from any thread).
+
+        The block's points are copied once per run of queries in one cell (``cap``: room for the
+        largest block) and each query's squared distances to them computed in one pass (a loop
+        without branches: vectorised); then the K best by (d2, index) under a threshold guessed
+        from the previous query (measured, 2.4k queries on a 30k-point map, one thread: 7.0 ->
+        4.5 ms)."""
         nq = Q.shape[0]
         h2 = h * h
         for t in prange(nparts):
             bd = np.empty(k)
             bj = np.empty(k, np.int64)
+            bx = np.empty(cap)
+            by = np.empty(cap)
+            bz = np.empty(cap)
+            bjs = np.empty(cap, np.int64)
+            dd = np.empty(cap)
+            prev = -1
+            m = 0
             thr = 0.5 * h2  # then guessed from the previous point (the rows are sorted by cell)
             for qi in range(t * nq // nparts, (t + 1) * nq // nparts):
                 i = Q[qi]
                 c = cell_of[i]
-                px = np.float64(P[i, 0])
-                py = np.float64(P[i, 1])
-                pz = np.float64(P[i, 2])
-                mk = mark
-                while True:
-                    # K best by (d2, index), self excluded, among the candidates within thr
-                    cnt = 0
-                    lim = thr
+                if c != prev:  # the block's points, contiguous
+                    m = 0
                     for o in range(27):
                         cc = cell_nb[c, o]
                         if cc < 0:
                             continue
                         for p in range(cstart[cc], cend[cc]):
-                            ex = X[p] - px
-                            ey = Y[p] - py
-                            ez = Z[p] - pz
-                            d = ex * ex + ey * ey + ez * ez
-                            j = J[p]
-                            if mk and d < h2 and j < n_old and d < kth2[j]:
-                                aff[j] = 1
-                            if d <= lim and j != i:
-                                cnt = push(bd, bj, cnt, k, d, j)
-                                if cnt == k:
-                                    lim = min(lim, bd[k - 1])
+                            bx[m] = X[p]
+                            by[m] = Y[p]
+                            bz[m] = Z[p]
+                            bjs[m] = J[p]
+                            m += 1
+                    prev = c
+                px = np.float64(P[i, 0])
+                py = np.float64(P[i, 1])
+                pz = np.float64(P[i, 2])
+                for e in range(m):
+                    ex = bx[e] - px
+                    ey = by[e] - py
+                    ez = bz[e] - pz
+                    dd[e] = ex * ex + ey * ey + ez * ez
+                if mark:
+                    for e in range(m):
+                        j = bjs[e]
+                        if dd[e] < h2 and j < n_old and dd[e] < kth2[j]:
+                            aff[j] = 1
+                while True:
+                    # K best by (d2, index), self excluded, among the candidates within thr
+                    cnt = 0
+                    lim = thr
+                    for e in range(m):
+                        if dd[e] <= lim and bjs[e] != i:
+                            cnt = push(bd, bj, cnt, k, dd[e], bjs[e])
+                            if cnt == k:
+                                lim = min(lim, bd[k - 1])
                     if cnt == k or thr == np.inf:
                         break
                     thr = thr * 4.0 if thr < 16.0 * h2 else np.inf  # too few within the guess: wider
-                    mk = False  # flags are set already
                 for e in range(cnt, k):  # fewer than K candidates: fail below
                     bd[e] = np.inf
                     bj[e] = i
@@ -393,8 +416,10 @@ class GridRows:
             return aff
         Q, parts = self._by_cell(rows)
         fail = np.zeros(n, np.uint8)
+        nc = g["ncells"]
+        cap = 27 * int((g["cend"][:nc] - g["cstart"][:nc]).max()) + 1  # room for the largest block
         query_rows(Q, P, g["h"], g["cell_c"], g["cell_of"], g["cell_nb"], g["cstart"], g["cend"], *g["pool"], kth,
-                   n_old, mark, self.k, nbr, d2, d0, fail, aff, parts)
+                   n_old, mark, self.k, nbr, d2, d0, fail, aff, parts, cap)
         self._rings(arrays, rows[fail[rows] != 0])
         return aff
 
