@@ -29,36 +29,60 @@ def hard_votes(points: np.ndarray, T_cw: np.ndarray, K: np.ndarray, depth: np.nd
 class KeptVotes:
     """Frames kept for the compiled pass (:func:`hard_votes`) to be added again, several at a time
     in one call (an online map adds the earlier frames' evidence to its new points): each frame's
-    pose and intrinsics stacked, its depth and label images in numba's typed lists. Made only
-    where the compiled kernels run (:meth:`make`)."""
+    pose and intrinsics stacked, its depth and label images in two flat pools (numba's typed lists
+    cost seconds of compiling on first use). The oldest frame goes first (:meth:`drop_oldest`); the
+    pools are compacted when half of them is dead. Made only where the compiled kernels run (:meth:`make`)."""
 
     def __init__(self):
-        from numba import types
-        from numba.typed import List
-
         self.Rt = np.zeros((0, 4, 3))  # per frame R (rows 0-2) and t (row 3)
         self.K = np.zeros((0, 3, 3))
-        self.depths = List.empty_list(types.float32[:, ::1])
-        self.labels = List.empty_list(types.int16[:, ::1])
+        self.off = np.zeros(0, np.int64)  # where each frame's pixels start in the pools
+        self.hw = np.zeros((0, 2), np.int64)
+        self._depth = np.zeros(0, np.float32)
+        self._labels = np.zeros(0, np.int16)
+        self._end = 0  # pool entries in use (the dead ones included)
+        self._dead = 0
 
     @classmethod
     def make(cls) -> Optional["KeptVotes"]:
         return cls() if nb.available() else None
 
     def __len__(self) -> int:
-        return len(self.depths)
+        return self.off.size
 
     def add(self, T_cw: np.ndarray, K: np.ndarray, depth: np.ndarray, labels: np.ndarray) -> None:
         T = np.asarray(T_cw, np.float64)
+        h, w = depth.shape
+        if self._end + h * w > self._depth.size:
+            self._grow(h * w)
+        self._depth[self._end : self._end + h * w] = depth.ravel()
+        self._labels[self._end : self._end + h * w] = labels.ravel()
         self.Rt = np.concatenate([self.Rt, np.vstack([T[:3, :3], T[:3, 3]])[None]])
         self.K = np.concatenate([self.K, np.asarray(K, np.float64)[None]])
-        self.depths.append(np.ascontiguousarray(depth, np.float32))
-        self.labels.append(np.ascontiguousarray(labels, np.int16))
+        self.off = np.r_[self.off, self._end]
+        self.hw = np.concatenate([self.hw, [[h, w]]])
+        self._end += h * w
+
+    def _grow(self, need: int) -> None:
+        """Room for ``need`` more pixels: the live frames compacted, the pools doubled if still short."""
+        live = self.hw.prod(1)
+        size = int(live.sum())
+        cap = max(self._depth.size, 1024)
+        while size + need > cap // 2 if self._dead == 0 else size + need > cap:
+            cap *= 2
+        depth, labels = np.empty(cap, np.float32), np.empty(cap, np.int16)
+        pos = 0
+        for f in range(self.off.size):
+            o, n = self.off[f], live[f]
+            depth[pos : pos + n] = self._depth[o : o + n]
+            labels[pos : pos + n] = self._labels[o : o + n]
+            self.off[f] = pos
+            pos += n
+        self._depth, self._labels, self._end, self._dead = depth, labels, pos, 0
 
     def drop_oldest(self) -> None:
-        self.Rt, self.K = self.Rt[1:], self.K[1:]
-        self.depths.pop(0)
-        self.labels.pop(0)
+        self._dead += int(self.hw[0].prod())
+        self.Rt, self.K, self.off, self.hw = self.Rt[1:], self.K[1:], self.off[1:], self.hw[1:]
 
     def add_to(self, points: np.ndarray, which: np.ndarray, depth_tol: float, mass: np.ndarray,
                links: np.ndarray) -> None:
@@ -66,5 +90,6 @@ class KeptVotes:
         ``mass`` (N, C) C-contiguous and ``links`` (N,), as :func:`hard_votes` adds each."""
         if len(which):
             compiled.evidence_hard_frames(np.ascontiguousarray(points, np.float32), np.ascontiguousarray(self.Rt[:, :3]),
-                                          np.ascontiguousarray(self.Rt[:, 3]), self.K, self.depths, self.labels,
-                                          np.asarray(which, np.int64), float(depth_tol), mass, links)
+                                          np.ascontiguousarray(self.Rt[:, 3]), self.K, self._depth, self._labels,
+                                          self.off, self.hw, np.asarray(which, np.int64), float(depth_tol), mass,
+                                          links)

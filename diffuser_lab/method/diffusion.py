@@ -149,8 +149,11 @@ def progress_chunk(max_iter: int) -> int:
 
 
 def _grown(a: np.ndarray, rows: int, fill=0) -> np.ndarray:
-    """``a`` with room for ``rows`` rows (the used ones copied, the new ones ``fill``)."""
-    out = np.full((rows,) + a.shape[1:], fill, a.dtype)
+    """``a`` with room for ``rows`` rows (the used ones copied, the new ones ``fill``). Zero fill
+    takes the system's zeroed pages (``np.zeros``): a page is touched when its rows are first
+    written, not all at once (measured: growing a 36k-row system to 65k took 52 ms in ``np.full``,
+    a page fault at a time)."""
+    out = np.zeros((rows,) + a.shape[1:], a.dtype) if fill == 0 else np.full((rows,) + a.shape[1:], fill, a.dtype)
     out[: a.shape[0]] = a
     return out
 

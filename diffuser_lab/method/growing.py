@@ -39,11 +39,13 @@ class IncrementalKnnGraph:
         rho: mean distance of a point to its nearest distinct neighbour (0 distances skipped),
             maintained from each row's nearest distinct distance; nan until one exists.
         sigma_d: the bandwidth of the weights: the given one, or sigma_d_factor * rho_w with
-            rho_w the rho at the last weight refresh (refreshed when rho moves more than rho_tol).
+            rho_w the rho at the last weight refresh (refreshed when rho moves more than rho_tol);
+            with ``rho_tol=None`` the current rho, new and changed rows weighted with it, the other
+            rows when the caller asks (:meth:`reweigh`; :meth:`refresh_weights`: every row).
     """
 
     def __init__(self, k: int = 24, *, sigma_s: float = 0.2, sigma_d: float | None = None, sigma_d_factor: float = 2.0,
-                 invariant_normals: bool = False, rho_tol: float = 0.02):
+                 invariant_normals: bool = False, rho_tol: float | None = 0.02):
         if k < 1:
             raise ValueError(f"k must be >= 1, got {k}")
         self.k = int(k)
@@ -51,7 +53,7 @@ class IncrementalKnnGraph:
         self._sigma_d_fixed = None if sigma_d is None else float(sigma_d)
         self.sigma_d_factor = float(sigma_d_factor)
         self.invariant_normals = bool(invariant_normals)
-        self.rho_tol = float(rho_tol)
+        self.rho_tol = None if rho_tol is None else float(rho_tol)
         self.n = 0
         self.refreshed: np.ndarray | None = None  # the last add refreshed every weight: the rows its points changed
         self._use_n: bool | None = None  # fixed by the first add
@@ -176,7 +178,15 @@ class IncrementalKnnGraph:
             self._rows.update(self._arrays(), old_rows)
             changed = np.concatenate([old_rows, np.arange(n_old, n, dtype=np.int64)])
             self._update_rho(changed, np.concatenate([d0_before, np.full(m, np.inf)]))
-        if self._sigma_d_fixed is None:
+        if self._sigma_d_fixed is None and self.rho_tol is None:  # sigma_d follows rho; rows take it as they change
+            if self._rcnt:
+                self._rho_w = self.rho
+                self.sigma_d = self.sigma_d_factor * self._rho_w
+            else:
+                self._w[changed] = 0
+                self._ws[changed] = 0
+                return changed
+        elif self._sigma_d_fixed is None:
             rho = self.rho
             if self._rcnt and (self._rho_w is None or abs(rho - self._rho_w) > self.rho_tol * self._rho_w):
                 self.refresh_weights()
@@ -188,6 +198,12 @@ class IncrementalKnnGraph:
                 return changed
         self._weights(changed)
         return changed
+
+    def reweigh(self, rows: np.ndarray) -> None:
+        """Eq. 4 for ``rows`` (int64) with the current sigma_d (``rho_tol=None``: the rows the
+        points did not change keep the sigma_d of their last change until the caller brings them here)."""
+        if self._rho_w is not None or self._sigma_d_fixed is not None:
+            self._weights(np.asarray(rows, np.int64))
 
     def refresh_weights(self) -> None:
         """Recompute every weight with sigma_d = sigma_d_factor * rho (rho recomputed from the rows'

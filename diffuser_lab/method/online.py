@@ -67,9 +67,6 @@ STEPS_GROWING = 16
 """... on a growing map: its new points start from Z = 0, not from a warm state."""
 
 
-RHO_TOL = 0.05
-"""Growing map: every weight is recomputed (sigma_d = sigma_d_factor * rho) when the map's mean
-spacing rho has moved this much (relative) since the last time; new rows use the current sigma_d."""
 ROWS_HINT = 1 << 20
 """The online system's backend is sized (threads) as for this many rows: a map may start small."""
 
@@ -251,7 +248,7 @@ class OnlineDiffuser:
             self.voxels = VoxelMap(oc.voxel_size)
             self.graph = IncrementalKnnGraph(g.k, sigma_s=g.sigma_s, sigma_d=g.sigma_d,
                                              sigma_d_factor=g.sigma_d_factor,
-                                             invariant_normals=False, rho_tol=RHO_TOL)
+                                             invariant_normals=False, rho_tol=None)
             self.map_index = None
             self.rho = self.sigma_d = 0.0
             # the system's rows: the map's points, in the order they were added
@@ -276,7 +273,7 @@ class OnlineDiffuser:
         cap = max(need, 2 * self._cap, 1024)
 
         def grow(name, shape, dtype, fill=0):
-            out = np.full(shape, fill, dtype)
+            out = np.zeros(shape, dtype) if fill == 0 else np.full(shape, fill, dtype)  # zeros: pages touched as used
             old = getattr(self, name, None)
             if old is not None:
                 out[: self._n] = old[: self._n]
@@ -463,11 +460,18 @@ class OnlineDiffuser:
         g = self.graph
         changed = np.asarray(g.add(new_pts, new_nrm), np.int64)  # sorted
         sysm.sorted_neighbors[changed] = g.neighbors[changed]
-        sysm.edge_weights[changed] = g.weights[changed]
-        sysm.edge_sums[changed] = g.row_sums[changed]
+        # sigma_d follows the map's spacing rho: new and changed rows take it now, the others in turn (the
+        # sweep's slice of rows every frame: a row's weights are at most `sweep` frames old)
+        part = -(-self._n // self.sweep)
+        lo = (self.frames_seen % self.sweep) * part
+        turn = np.arange(lo, min(lo + part, n0))
+        g.reweigh(turn)
+        edges = union_rows(changed, turn, self._n)
+        sysm.edge_weights[edges] = g.weights[edges]
+        sysm.edge_sums[edges] = g.row_sums[edges]
         self.rho, self.sigma_d = g.rho, g.sigma_d
         st.graph_rows = int(changed.size)
-        return changed, (changed if g.refreshed is None else np.asarray(g.refreshed, np.int64))
+        return edges, changed
 
     def _revisit(self, n0: int, m: int) -> None:
         """Give the new points n0..n0+m-1 the evidence of the kept frames before this one (:class:`FrameStore`;

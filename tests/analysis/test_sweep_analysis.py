@@ -90,9 +90,18 @@ def test_launcher_configs_compose(launcher, plugin):
     assert cfg.hydra.sweeper.params["graph.k"] == "8,16,24,32,48"
 
 
-def _mixed_copy(sweep, tmp_path):
-    """The smoke sweep copied, one job's summary as if run on an AMD AVX2 machine and another's with
-    an older numpy: (the copy, {job folder name: what was changed})."""
+def _other_cpu(here: dict) -> tuple[str, str]:
+    """(model, vendor) of a CPU of the other vendor than ``here``'s (a summary's provenance): the
+    suite runs on Intel and AMD machines."""
+    if here["machine"].get("cpu_vendor") == "AuthenticAMD":
+        return "Intel(R) Xeon(R) Platinum 8480+", "GenuineIntel"
+    return "AMD EPYC 7742 64-Core Processor", "AuthenticAMD"
+
+
+def _mixed_copy(sweep, tmp_path, other=None):
+    """The smoke sweep copied, one job's summary as if run on another vendor's machine (``other``:
+    :func:`_other_cpu`'s, by default of the sweep's host) and another's with an older numpy: (the
+    copy, its job folders)."""
     import json
     import shutil
 
@@ -100,10 +109,12 @@ def _mixed_copy(sweep, tmp_path):
     shutil.copytree(sweep / "smoke", copy)
     jobs = sorted(p.parent for p in copy.glob("*/summary.json"))
     assert len(jobs) == 4
+    if other is None:
+        other = _other_cpu(json.loads((jobs[0] / "summary.json").read_text())["provenance"])
     for job, change in ((jobs[2], "cpu"), (jobs[3], "numpy")):
         s = json.loads((job / "summary.json").read_text())
-        if change == "cpu":
-            s["provenance"]["machine"].update(cpu_model="AMD EPYC 7742 64-Core Processor", cpu_vendor="AuthenticAMD")
+        if change == "cpu":  # another vendor's CPU than the host's
+            s["provenance"]["machine"].update(cpu_model=other[0], cpu_vendor=other[1])
         else:
             s["provenance"]["versions"]["numpy"] = "1.26.4"
         (job / "summary.json").write_text(json.dumps(s))
@@ -130,13 +141,14 @@ def test_collect_and_the_sweep_table_say_when_jobs_ran_on_different_machines(swe
     with open(tmp_path / "same_runs.csv") as fh:
         assert {"host", "cpu", "isa", "blas", "versions", "commit"} <= set(next(csv.DictReader(fh)))
 
-    mixed, jobs = _mixed_copy(sweep, tmp_path)
-    line = (f"mixed machines or versions: CPU {cpu} (3 {{n}}), AMD EPYC 7742 64-Core Processor (1 {{one}}) "
+    other = _other_cpu(here)
+    mixed, jobs = _mixed_copy(sweep, tmp_path, other)
+    line = (f"mixed machines or versions: CPU {cpu} (3 {{n}}), {other[0]} (1 {{one}}) "
             f"(with it: vendor); numpy {numpy_v} (3 {{n}}), 1.26.4 (1 {{one}})")
     rrows, _, md = collect([str(mixed)], tmp_path / "mixed")
     assert md.endswith("\n\n" + line.format(n="runs", one="run"))
     assert (tmp_path / "mixed.md").read_text().strip().endswith(line.format(n="runs", one="run"))
-    assert sorted(r["cpu"] for r in rrows).count("AMD EPYC 7742 64-Core Processor") == 1
+    assert sorted(r["cpu"] for r in rrows).count(other[0]) == 1
     assert line.format(n="runs", one="run") in (report([str(mixed)], tmp_path / "rep").read_text())
 
     out = io.StringIO()  # the end-of-sweep table, as the launching process prints it
@@ -162,7 +174,10 @@ def test_collect_and_the_sweep_table_say_when_jobs_ran_on_different_machines(swe
 def test_compare_says_which_fields_differ(sweep, tmp_path, capsys):
     from analysis.compare import compare, main
 
-    mixed, jobs = _mixed_copy(sweep, tmp_path)  # jobs 0 and 2 have seed 0 (one room), 1 and 3 seed 1
+    import json
+
+    other = _other_cpu(json.loads(next((sweep / "smoke").glob("*/summary.json")).read_text())["provenance"])
+    mixed, jobs = _mixed_copy(sweep, tmp_path, other)  # jobs 0 and 2 have seed 0 (one room), 1 and 3 seed 1
     smoke = [sweep / "smoke" / j.name for j in jobs]
     same = compare(smoke[0], smoke[2])["provenance"]
     assert same["same"] is True and same["differs"] == []
@@ -170,9 +185,9 @@ def test_compare_says_which_fields_differ(sweep, tmp_path, capsys):
     assert "ran on the same machine and versions: " in capsys.readouterr().out
     p = compare(smoke[2], jobs[2])["provenance"]
     assert p["same"] is False and [d["field"] for d in p["differs"]] == ["CPU", "vendor"]
-    assert p["differs"][0]["b"] == "AMD EPYC 7742 64-Core Processor"
+    assert p["differs"][0]["b"] == other[0]
     p = compare(jobs[1], jobs[3])["provenance"]
     assert [(d["field"], d["b"]) for d in p["differs"]] == [("numpy", "1.26.4")]
     assert main([str(smoke[0]), str(jobs[2])]) == 0
     out = capsys.readouterr().out
-    assert "ran on different machines or versions: CPU, vendor differ" in out and "B AMD EPYC 7742" in out
+    assert "ran on different machines or versions: CPU, vendor differ" in out and f"B {other[0]}" in out

@@ -48,19 +48,18 @@ if NB is not None:
 
 
     @njit(cache=True, boundscheck=False)
-    def evidence_hard_frames(pts, Rs, ts, Ks, depths, labels, which, tol, mass, links):
-        """The frames ``which`` (indices into the (F, 3, 3) Rs, (F, 3) ts, (F, 3, 3) Ks and the typed
-        lists of (H, W) float32 depths and int16 labels), in that order, added to the points as
-        :func:`evidence_hard` adds one frame (one thread: a growing map's new points are few)."""
+    def evidence_hard_frames(pts, Rs, ts, Ks, depth_pool, label_pool, off, hw, which, tol, mass, links):
+        """The frames ``which`` (indices into the (F, 3, 3) Rs, (F, 3) ts, (F, 3, 3) Ks, and frame f's
+        (H, W) = hw[f] depth and label images at off[f] in the flat float32 / int16 pools), in that
+        order, added to the points as :func:`evidence_hard` adds one frame (one thread: a growing
+        map's new points are few)."""
         seen = np.empty(pts.shape[0], np.bool_)
         for f in which:
-            R = Rs[f]
-            t = ts[f]
-            K = Ks[f]
-            depth = depths[f]
-            lab = labels[f]
+            h, w = hw[f, 0], hw[f, 1]
+            depth = depth_pool[off[f]:off[f] + h * w].reshape((h, w))
+            lab = label_pool[off[f]:off[f] + h * w].reshape((h, w))
             for i in range(pts.shape[0]):
-                _vote(i, pts, R, t, K, depth, lab, tol, mass, links, seen)
+                _vote(i, pts, Rs[f], ts[f], Ks[f], depth, lab, tol, mass, links, seen)
 
 
 PARALLEL_ABOVE = 16384
