@@ -204,6 +204,13 @@ class CloudFormat(Enum):
     ros2 = "ros2"  # labels_ros2/ (a ROS 2 bag: labels_ros2.mcap + metadata.yaml, one sensor_msgs/PointCloud2)
 
 
+class Split(Enum):
+    """split: which part of a tuning protocol a run belongs to (summary.json's ``split``; docs/sweeps.md)."""
+
+    validation = "validation"  # a parameter search's run: its figures chose the configuration
+    test = "test"  # a held-out run of the chosen configuration (and of what it is compared with)
+
+
 class BayesianMode(Enum):
     likelihood = "likelihood"  # sum of per-pixel class probabilities (one-hot for hard labels)
     votes = "votes"  # sum of one-hot argmax votes
@@ -671,6 +678,10 @@ class OutputConfig(Section):
     # also write the labelled cloud as: las, laz (class in the classification field), ros2 (a ROS 2
     # MCAP bag with a sensor_msgs/PointCloud2 that rviz2 and Foxglove open); docs/layouts.md
     clouds: List[CloudFormat] = field(default_factory=list)
+    # also write scores.npy ((N, C) float16: each point's class distribution, Eq. 16's normalised row; 0 where
+    # nothing reached it) and the points' confidence (top score, margin, entropy) in labels.ply, the LAS output
+    # and run.rrd; global_3d only (docs/calibration.md "Saved scores")
+    scores: bool = False
     quiet: bool = False  # do not print the result table
 
 
@@ -686,6 +697,7 @@ class Config(Section):
     seed: int = 0  # seeds the demo room, the rendered camera path and the simulated mistakes
     n_views: int = 30  # views rendered by the demo and mesh_views sources
     memory_budget_gb: float = 16.0  # refuse runs whose estimated peak memory exceeds this
+    split: Optional[Split] = None  # validation or test: the run's part of a tuning protocol (summary.json's split); null = neither
     scene: SceneConfig = field(default_factory=SceneConfig)
     depth: DepthNoiseConfig = field(default_factory=DepthNoiseConfig)
     taxonomy: TaxonomyConfig = field(default_factory=TaxonomyConfig)

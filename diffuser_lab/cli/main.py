@@ -137,7 +137,8 @@ def _task(cfg: Any) -> Optional[float]:
     try:
         summary = report.SummaryFile(run_dir, hc.overrides.task)
         conf = resolve(to_object(cfg), PROTOCOLS)
-        summary.update(method=conf.method.name)
+        # split: validation / test of a tuning protocol (docs/sweeps.md), null otherwise; reports keep them apart
+        summary.update(method=conf.method.name, split=conf.split.value if conf.split is not None else None)
         deferred = _defer_compile(conf)
         protocol = PROTOCOLS[conf.protocol.name]
         hooks = _record_hooks(conf, run_dir, hc) if protocol.records else None
