@@ -209,13 +209,15 @@ def _read_las_here(path: str | Path) -> dict:
     return out
 
 
-def write_las(path: str | Path, points: np.ndarray, labels: np.ndarray, names, colors: np.ndarray | None = None) -> list[Path]:
+def write_las(path: str | Path, points: np.ndarray, labels: np.ndarray, names, colors: np.ndarray | None = None,
+              extra: Optional[dict] = None) -> list[Path]:
     """Labelled points -> LAS (``.las``) or LAZ (``.laz``) at ``path`` (module docstring).
 
     Args:
         points: (N, 3) world metres. labels: (N,) int class ids, -1 = unlabelled.
         names: the taxonomy's class names (class id c -> ``names[c]``).
         colors: (N, 3) uint8 (e.g. the class colours); None = no RGB.
+        extra: {name: (N,) float32} more extra dimensions (float32), e.g. a run's per-point confidence.
     Returns:
         The files written (the cloud and its ``.classes.json``).
     """
@@ -226,6 +228,8 @@ def write_las(path: str | Path, points: np.ndarray, labels: np.ndarray, names, c
         raise ValueError(f"{path}: {len(names)} classes do not fit LAS classification (at most 254 besides 0)")
     header = laspy.LasHeader(point_format=7, version="1.4")
     header.add_extra_dim(laspy.ExtraBytesParams(name="label", type=np.int16, description="class id, -1 unlabelled"))
+    for name in extra or {}:
+        header.add_extra_dim(laspy.ExtraBytesParams(name=name, type=np.float32))
     pts = np.asarray(points, np.float64)
     header.offsets = np.floor(pts.min(0)) if len(pts) else np.zeros(3)
     header.scales = np.array([1e-4, 1e-4, 1e-4])  # 0.1 mm: below any cloud's noise
@@ -237,6 +241,8 @@ def write_las(path: str | Path, points: np.ndarray, labels: np.ndarray, names, c
     lab = np.asarray(labels).astype(np.int64)
     las.classification = np.where(lab >= 0, lab + 1, 0).astype(np.uint8)
     las["label"] = lab.astype(np.int16)
+    for name, values in (extra or {}).items():
+        las[name] = np.asarray(values, np.float32)
     if colors is not None:
         c = np.asarray(colors, np.uint16) * 257  # 8 -> 16 bit, as LAS stores colour
         las.red, las.green, las.blue = c[:, 0], c[:, 1], c[:, 2]

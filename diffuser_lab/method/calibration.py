@@ -25,6 +25,11 @@ so a uniform row has confidence = accuracy = 1/C.
 Everything is accumulated per point with vectorised numpy (:class:`Calibration`), so frames can
 be added one at a time, and a (M, C) score array on a voxel cloud is scored on the N original
 points through a row index, CHUNK points at a time (no (N, C) or extra (M, C) array).
+
+A run's methods (:func:`of_methods`, summary.json's ``metrics.calibration``) are scored on their
+distributions as ``scores.npy`` keeps them (:func:`stored`: float16 rows), so the figures of a run
+computed again from its saved scores (:func:`diffuser_lab.runs.scores.calibration_of_run`) are
+the same numbers; :func:`confidence` is a point's top score, margin and entropy of that row.
 """
 from __future__ import annotations
 
@@ -36,10 +41,14 @@ from diffuser_lab.data.scene import IGNORE
 
 BINS = 15
 """Equal-width confidence bins of the ECE and the reliability diagram (Guo et al. 2017)."""
-EDGE_TOL = 1e-5
-"""Confidences within this (in bin widths) of a bin's upper edge count in that bin (float32 rounding)."""
+EDGE_TOL = 3e-4
+"""Confidences within this (a probability) above a bin's upper edge count in that bin: a vote fraction
+such as 3/5 sits on an edge, and float16 (:func:`stored`, rounding by at most 2^-12 = 2.4e-4) or
+float32 puts it just above."""
+STORED = np.float16
+"""The precision of the distributions a run saves (scores.npy) and scores (:func:`stored`)."""
 CHUNK = 1 << 16
-"""Points scored at a time by :meth:`Calibration.add` (memory CHUNK x C)."""
+"""Points scored at a time by :meth:`Calibration.add`, and made at a time by :func:`point_rows` (memory CHUNK x C)."""
 EPS = 1e-6
 """Floor on p_gt in the NLL (float32 distributions carry ~7 digits: below this p is rounding)."""
 
@@ -50,8 +59,37 @@ def posterior(scores: np.ndarray) -> np.ndarray:
     s = np.asarray(scores, np.float32)
     if s.ndim != 2:
         raise ValueError(f"class scores must be (points, classes), got shape {s.shape}")
-    total = s.sum(1, keepdims=True, dtype=np.float64)
+    total = _row_sums(s)
     return np.divide(s, total, out=np.zeros_like(s), where=total > 0).astype(np.float32, copy=False)
+
+
+def _row_sums(s: np.ndarray) -> np.ndarray:
+    """(M, 1) float64 row sums of (M, C) ``s``, each a function of its row alone (a sum cast on the
+    fly goes through numpy's buffers, which may cut a row where another chunk of rows would not)."""
+    return np.ascontiguousarray(s, np.float64).sum(1, keepdims=True)
+
+
+def stored(scores: np.ndarray) -> np.ndarray:
+    """(M, C) non-negative scores -> (M, C) :data:`STORED` (float16) rows, each its row divided by its
+    sum (all zero where the row is: no distribution): what ``scores.npy`` holds and what
+    :func:`of_methods` scores. Each row is a function of its own scores only (any chunk of rows gives
+    the same bits)."""
+    s = np.ascontiguousarray(scores, np.float64)
+    if s.ndim != 2:
+        raise ValueError(f"class scores must be (points, classes), got shape {s.shape}")
+    total = s.sum(1, keepdims=True)
+    return np.divide(s, total, out=np.zeros_like(s), where=total > 0).astype(STORED)
+
+
+def confidence(p: np.ndarray) -> np.ndarray:
+    """(M, C) class distributions (:func:`stored` rows) -> (M, 3) float32 per point: the top score
+    max_c p_c, the margin top - second, the entropy -sum_c p_c ln p_c in nats (0: one class; ln C:
+    uniform); a row without a distribution (all zero) gets 0, 0, NaN."""
+    q = np.asarray(p, np.float32)
+    q = np.concatenate([q, np.zeros((q.shape[0], 2 - q.shape[1]), np.float32)], 1) if q.shape[1] < 2 else q
+    two = -np.partition(-q, 1, axis=1)[:, :2]  # the top score, then the second
+    ent = 0.0 - np.sum(q * np.log(q, out=np.zeros_like(q), where=q > 0), axis=1, dtype=np.float64)
+    return np.stack([two[:, 0], two[:, 0] - two[:, 1], np.where(two[:, 0] > 0, ent, np.nan)], 1).astype(np.float32)
 
 
 def with_temperature(p: np.ndarray, temperature: float) -> np.ndarray:
@@ -71,6 +109,24 @@ def with_temperature(p: np.ndarray, temperature: float) -> np.ndarray:
     return posterior(q)
 
 
+def point_rows(scores: np.ndarray, rows: Optional[np.ndarray], n: int):
+    """(lo, hi, (hi - lo, C) float16 stored rows) of the N = ``n`` original points in order, CHUNK at a
+    time: point i's row is ``scores[rows[i]]`` (``rows`` None: row i) normalised as scores.npy keeps it."""
+    for lo in range(0, n, CHUNK):
+        hi = min(n, lo + CHUNK)
+        yield lo, hi, stored(scores[lo:hi] if rows is None else scores[rows[lo:hi]])
+
+
+def point_confidence(scores: np.ndarray, rows: Optional[np.ndarray]) -> np.ndarray:
+    """(N, 3) float32 top score, margin and entropy (:func:`confidence`) of each original point's
+    stored row (:func:`point_rows`): the values labels.ply, the LAS output and run.rrd carry."""
+    n = len(scores) if rows is None else len(rows)
+    out = np.empty((n, 3), np.float32)
+    for lo, hi, p in point_rows(scores, rows, n):
+        out[lo:hi] = confidence(p)
+    return out
+
+
 class Calibration:
     """Accumulates a method's calibration over points (or pixels) added in parts.
 
@@ -78,10 +134,11 @@ class Calibration:
     gives the figures. ``num_classes`` is C (the uniform distribution of points without one).
     """
 
-    def __init__(self, num_classes: int, bins: int = BINS):
+    def __init__(self, num_classes: int, bins: int = BINS, stored: bool = False):
         if bins < 1:
             raise ValueError(f"calibration bins={bins!r}: expected >= 1")
         self.num_classes, self.bins = int(num_classes), int(bins)
+        self.stored = bool(stored)  # score the rows as scores.npy keeps them (:func:`stored`)
         self.count = np.zeros(self.bins, np.int64)
         self.sum_conf = np.zeros(self.bins)
         self.sum_acc = np.zeros(self.bins)
@@ -94,7 +151,9 @@ class Calibration:
 
         Args:
             scores: (M, C) non-negative class scores (Z, pixel mass, or distributions already):
-                each row is normalised (:func:`posterior`) and tempered (:func:`with_temperature`).
+                each row is normalised (:func:`posterior`; made with ``stored``: :func:`stored`) and
+                tempered (:func:`with_temperature`). float16 scores are stored rows (scores.npy),
+                scored as they are.
             gt: (N,) or any-shape integer ground truth (class ids or IGNORE).
             rows: ``gt``'s shape, int: the row of ``scores`` of each ground-truth point, -1 = no
                 distribution (uniform); None = row i for point i (needs M = N).
@@ -126,7 +185,11 @@ class Calibration:
     def _add(self, scores: np.ndarray, g: np.ndarray, r: np.ndarray, temperature: float) -> None:
         c = self.num_classes
         has = r >= 0
-        p = with_temperature(posterior(scores[r[has]]), temperature)  # (n with a row, C)
+        s = scores[r[has]]
+        if s.dtype == STORED or self.stored:  # the rows as saved, taken as they are (sums 1 within float16's step)
+            p = with_temperature((s if s.dtype == STORED else stored(s)).astype(np.float32), temperature)
+        else:
+            p = with_temperature(posterior(s), temperature)  # (n with a row, C)
         pmax = p.max(1)
         with_p = pmax > 0  # a row of zeros (no evidence reached it) is no distribution either
         has[has] = with_p
@@ -139,9 +202,9 @@ class Calibration:
         conf[has] = pmax
         acc[has] = (pg[has] == conf[has]) / (p == pmax[:, None]).sum(1)  # ties: expected accuracy
         brier[has] = np.einsum("ij,ij->i", p, p, dtype=np.float64) - 2.0 * pg[has] + 1.0
-        # bin m holds ((m-1)/B, m/B]; vote fractions such as 4/5 sit on an edge, where float32
+        # bin m holds ((m-1)/B, m/B]; vote fractions such as 3/5 sit on an edge, where float16 or float32
         # rounding would scatter them over two bins: an edge within EDGE_TOL belongs to the lower one
-        b = np.clip(np.ceil(conf * self.bins - EDGE_TOL).astype(np.int64) - 1, 0, self.bins - 1)
+        b = np.clip(np.ceil((conf - EDGE_TOL) * self.bins).astype(np.int64) - 1, 0, self.bins - 1)
         self.count += np.bincount(b, minlength=self.bins)
         self.sum_conf += np.bincount(b, conf, minlength=self.bins)
         self.sum_acc += np.bincount(b, acc, minlength=self.bins)
@@ -182,11 +245,12 @@ def calibration(p: np.ndarray, gt: np.ndarray, rows: Optional[np.ndarray] = None
 def of_methods(scores: dict, gt: np.ndarray, rows: Optional[np.ndarray], num_classes: int,
                temperature: float = 1.0, bins: int = BINS) -> dict:
     """``{method: figures}`` (:meth:`Calibration.result` plus its ``temperature``) of each
-    method's (M, C) ``scores`` (Z or pixel mass), normalised (:func:`posterior`), tempered
-    (:func:`with_temperature`) and scored at ``gt`` through ``rows`` (see :meth:`Calibration.add`)."""
+    method's (M, C) ``scores`` (Z or pixel mass), normalised as scores.npy keeps them
+    (:func:`stored`), tempered (:func:`with_temperature`) and scored at ``gt`` through ``rows``
+    (see :meth:`Calibration.add`)."""
     out = {}
     for name, s in scores.items():
-        cal = Calibration(num_classes, bins)
+        cal = Calibration(num_classes, bins, stored=True)
         cal.add(s, gt, rows, temperature)
         out[name] = {**cal.result(), "temperature": float(temperature)}
     return out

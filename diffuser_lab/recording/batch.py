@@ -120,6 +120,8 @@ class BatchHooks(RecordingHooks):
                 and getattr(lifted, "method", None) is not None:
             # the last iteration's features were not observed (early stop, or diffused in blocks)
             self._send_features(d.iterations, lifted.observed(lifted.method))
+        if getattr(result, "confidence", None) is not None and self.lane.live("rerun"):  # output.scores
+            self.lane.send("batch.confidence", result.confidence)
         self.lane.send("batch.result", slim_result(result))
 
     def files(self) -> dict:
@@ -178,6 +180,11 @@ class BatchRecorder:
         r = self.recs
         self._dense_last = int(rows[-1, 0])
         r.each(lambda: r.rerun.log_metrics_columns(rows), None)
+
+    def confidence(self, values: np.ndarray) -> None:
+        """The original points' (N, 3) top score, margin and entropy (``output.scores``): run.rrd's layer."""
+        r = self.recs
+        r.each(lambda: r.rerun.log_confidence(r.scene.points, values), None)
 
     def step(self, iteration: int, Z: np.ndarray, residual: float) -> None:
         """A recorded iteration (Z valid during the call only)."""

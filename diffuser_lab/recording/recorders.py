@@ -79,7 +79,8 @@ class Recorders:
         if is_single_frame(self.conf):
             self.rerun = SingleFrameRerun(self.run_dir / RRD_NAME, **kw)
         else:
-            self.rerun = RerunRecorder(self.run_dir / RRD_NAME, online=is_online(self.conf), **kw)
+            self.rerun = RerunRecorder(self.run_dir / RRD_NAME, online=is_online(self.conf),
+                                       confidence=bool(getattr(self.conf.output, "scores", False)), **kw)
         self._files["rrd"] = RRD_NAME
 
     def _open_mcap(self, overrides: Sequence[str]) -> None:

@@ -17,6 +17,10 @@ Entity tree (``world`` is z-up, metres; class colours come from the AnnotationCo
                                    per iteration (its own AnnotationContext: viridis colours, labels)
     world/diffusion/wrong          Points3D per iteration: annotated points whose label is wrong, in
                                    :func:`wrong_color` (a colour no class of the taxonomy has)
+    world/result/confidence        Points3D, static (``output.scores=true``): the original points coloured
+                                   by their top score (viridis), its values as components ``confidence``
+                                   (top score), ``margin`` (top - second) and ``entropy`` (nats) of the
+                                   distribution scores.npy saves (NaN entropy: no distribution)
     world/scores/<class>           Points3D: positions static, colour = Z_ic / sum_c Z_ic (viridis) and
                                    the value (component ``score``) per iteration; only in a re-logged
                                    .rrd (``diffuser-lab-inspect RUN --to-rrd OUT --scores chair,table``)
@@ -323,10 +327,15 @@ def plot(name: str, contents: Sequence[str], ranges: Optional[dict] = None, lege
                               plot_legend=rrb.PlotLegend(corner=corner, visible=bool(legend)), **kw)
 
 
+RESULT_CONFIDENCE = "world/result/confidence"
+"""``output.scores=true``: each original point's top score, margin and entropy (:meth:`RerunRecorder.log_confidence`)."""
+
+
 def blueprint(score_layers: Sequence[tuple[str, str]] = (), eye=None, feature_tabs: Sequence[tuple[str, str]] = (),
-              ranges: Optional[dict] = None):
+              ranges: Optional[dict] = None, confidence: bool = False):
     """The default layout: the labelled points in 3D beside the time series; other 3D views
-    (confidence, errors, ground truth, input + cameras, depth, evidence, and one per
+    (confidence, with ``confidence`` the result's (:data:`RESULT_CONFIDENCE`), errors, ground truth,
+    input + cameras, depth, evidence, and one per
     ``score_layers`` (class name, entity path), and a features run's ``feature_tabs`` (tab name,
     entity path)) in tabs behind it; ``ranges`` {entity: (lo, hi)}: the plotted scalars' (the
     layout is sent again at the end with them, :func:`y_range`). Every 3D view opens on ``eye``
@@ -352,6 +361,7 @@ def blueprint(score_layers: Sequence[tuple[str, str]] = (), eye=None, feature_ta
             rrb.Vertical(rrb.Tabs(
                 view3d("diffusion: labels", ["/world/diffusion/labels"]),
                 view3d("confidence", ["/world/diffusion/confidence"]),
+                *([view3d("confidence: scores.npy", [f"/{RESULT_CONFIDENCE}"])] if confidence else []),
                 *feats,
                 view3d("errors", ["/world/diffusion/labels", "/world/diffusion/wrong"], overrides=dim),
                 view3d("ground truth", ["/world/scene/ground_truth"]),
@@ -466,16 +476,18 @@ class RerunRecorder:
             gRPC URL such as ``rerun+http://127.0.0.1:9876/proxy`` (see ``record.live``).
         score_classes: (name, class index) of the classes whose scores :meth:`log_scores` logs
             (``world/scores/<name>``, one blueprint tab each).
+        confidence: the layout has the result's confidence tab (:meth:`log_confidence`; ``output.scores``).
     """
 
     file_key = "rrd"
 
     def __init__(self, path: Path, *, application_id: Optional[str] = None, recording_id: Optional[str] = None,
                  max_image_side: int = 320, max_depth_side: int = 160, live: Optional[str] = None,
-                 score_classes: Sequence[tuple[str, int]] = (), online: bool = False):
+                 score_classes: Sequence[tuple[str, int]] = (), online: bool = False, confidence: bool = False):
         import rerun as rr
 
         self.rr = rr
+        self.confidence = bool(confidence)
         self.path = Path(path)
         self.online = bool(online)
         self.max_image_side = int(max_image_side)
@@ -552,7 +564,8 @@ class RerunRecorder:
         pts = getattr(self, "_scene_points", None)
         eye = overview_eye(pts, T_cw) if pts is not None else None
         self._bp_args = (self._layers, eye, self._feature_tabs)
-        self.rec.send_blueprint(blueprint(*self._bp_args), make_active=True, make_default=True)
+        self.rec.send_blueprint(blueprint(*self._bp_args, confidence=self.confidence), make_active=True,
+                                make_default=True)
         self._eye_up = scene_up(T_cw)
 
     def _scalar(self, key: str, value: float) -> None:
@@ -837,6 +850,17 @@ class RerunRecorder:
             e = self._extent.setdefault(f"/metrics/{key}", [float(v[ok].min()), float(v[ok].max())])
             e[0], e[1] = min(e[0], float(v[ok].min())), max(e[1], float(v[ok].max()))
 
+    def log_confidence(self, points: np.ndarray, confidence: np.ndarray) -> None:
+        """Static :data:`RESULT_CONFIDENCE`: the (N, 3) original ``points`` coloured by the top score of
+        their (N, 3) float32 ``confidence`` (top score, margin, entropy; viridis over 0..1), the three as
+        its components ``confidence``, ``margin``, ``entropy``."""
+        rr = self.rr
+        c = np.asarray(confidence, np.float32)
+        q = np.multiply(np.clip(c[:, 0], 0.0, 1.0), 255.0, dtype=np.float32).astype(np.uint8)
+        self.rec.log(RESULT_CONFIDENCE, rr.Points3D(points, colors=_CONFIDENCE_RGBA[q], radii=self.radius),
+                     rr.AnyValues(confidence=np.ascontiguousarray(c[:, 0]), margin=np.ascontiguousarray(c[:, 1]),
+                                  entropy=np.ascontiguousarray(c[:, 2])), static=True)
+
     def score_values(self, Z: np.ndarray) -> np.ndarray:
         """(M, C) scores -> (M, k) float32 Z_ic / sum_c Z_ic of the score classes, 0 where the row is 0."""
         tot = Z.sum(1, dtype=np.float32)[:, None]
@@ -862,10 +886,11 @@ class RerunRecorder:
             return
         self._closed = True
         if not self.online and self._eye_up is None:  # no scene came (a run that failed early): the layout
-            self.rec.send_blueprint(blueprint(self._layers, feature_tabs=self._feature_tabs), make_active=True,
-                                    make_default=True)
+            self.rec.send_blueprint(blueprint(self._layers, feature_tabs=self._feature_tabs, confidence=self.confidence),
+                                    make_active=True, make_default=True)
         elif self._extent:  # the layout again with the plots' y ranges, now known
-            bp = (blueprint(*self._bp_args, ranges=self._extent) if self._bp_args and not self.online
+            bp = (blueprint(*self._bp_args, ranges=self._extent, confidence=self.confidence)
+                  if self._bp_args and not self.online
                   else online_blueprint(*self._online_bp, ranges=self._extent) if self._online_bp else None)
             if bp is not None:
                 self.rec.send_blueprint(bp, make_active=True, make_default=True)
@@ -895,5 +920,5 @@ class RerunRecorder:
                 size = now
 
 
-__all__ = ["RerunRecorder", "blueprint", "unlabeled_color", "log_legend", "legend_entries", "LEGEND", "APP_BATCH", "APP_ONLINE", "APP_TILED", "APP_SINGLE_FRAME", "online_blueprint", "class_ids", "wrong_color", "score_entity", "UNLABELED_ID", "TIMELINE",
+__all__ = ["RerunRecorder", "blueprint", "RESULT_CONFIDENCE", "unlabeled_color", "log_legend", "legend_entries", "LEGEND", "APP_BATCH", "APP_ONLINE", "APP_TILED", "APP_SINGLE_FRAME", "online_blueprint", "class_ids", "wrong_color", "score_entity", "UNLABELED_ID", "TIMELINE",
            "CONFIDENCE_LUT"]

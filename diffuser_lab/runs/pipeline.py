@@ -193,6 +193,11 @@ class RunResult:
     timings_s: dict = field(default_factory=dict)
     rows: Optional[np.ndarray] = None  # (N,) int64 each original point's work point
     lifted: Optional["FeatureLift"] = None  # a features run's queries and per-point features
+    # (M, C) the method's class scores on the work points (Z, pixel mass, a features run's query
+    # scores): a point's class distribution is its row normalised (calibration.stored); None
+    # without ground truth or output.scores
+    scores: Optional[np.ndarray] = None
+    confidence: Optional[np.ndarray] = None  # output.scores: (N, 3) float32 top score, margin, entropy (nats)
 
 
 def _work_cloud(scene: Scene, voxel_size) -> tuple[np.ndarray, Optional[np.ndarray], Optional[VoxelGrid]]:
@@ -643,19 +648,24 @@ def _run(cfg: Config, scene: Optional[Scene], observer: Optional[Observer], hook
                     work_points=pts, work_normals=nrm, evidence=ev, voxels=grid, graph=graph, diffusion=diff,
                     predictions_2d=pred2d, predictions_stats=dict(getattr(frames, "stats", {})), rows=rows,
                     lifted=lift)
+    if scene.gt_labels is not None or cfg.output.scores:
+        # the method's class distribution (Diffuser, LDLS: Z; the others: their pixel mass) per point;
+        # a features run's from the queries' cosines (its diff.Z already is)
+        res.scores = diff.Z if diff is not None else chosen.mass if lift is None or lift.method is None \
+            else lift.scores(lift.method)
+    if cfg.output.scores:
+        ts = time.perf_counter()
+        res.confidence = calibration.point_confidence(res.scores, rows)
+        t["scores"] = time.perf_counter() - ts
     if scene.gt_labels is not None:
         tm = time.perf_counter()
         res.metrics = score(labels, scene.gt_labels, tax.names)
         res.baseline["bayesian"] = score(bayes, scene.gt_labels, tax.names)
-        # each method's class distribution (Diffuser, LDLS: Z; the others: their pixel mass) per point;
-        # a features run's from the queries' cosines (its diff.Z already is)
+        post = {method.name: res.scores}
         if lift is None:
-            post = {method.name: diff.Z if diff is not None else chosen.mass}
             if method.name != "bayesian":
                 post["bayesian"] = ev_base.mass
         else:
-            post = {method.name: diff.Z if diff is not None else
-                    chosen.mass if lift.method is None else lift.scores(lift.method)}
             if method.name != "bayesian":
                 post["bayesian"] = lift.scores(lift.average)
             post["best_view"] = lift.scores(lift.best_view)

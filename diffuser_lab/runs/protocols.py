@@ -28,7 +28,7 @@ from diffuser_lab.registry import Registry
 from . import online as online_mod
 from . import report, single_frame, tiled
 from .pipeline import run
-from .records import write_features, write_labels
+from .records import write_features, write_labels, write_scores
 
 __all__ = ["Protocol", "PROTOCOLS", "register", "get"]
 
@@ -65,9 +65,11 @@ class Protocol:
 def _finish_global(result, cfg: Config, run_dir: Path, summary: report.SummaryFile, records: dict) -> dict:
     t = time.perf_counter()
     files = write_labels(run_dir, result.scene.points, result.labels, result.scene.taxonomy, ply=cfg.output.labels_ply,
-                         clouds=cfg.output.clouds)
+                         clouds=cfg.output.clouds, confidence=result.confidence)
     if result.lifted is not None:
         files.update(write_features(run_dir, result))
+    if cfg.output.scores:
+        files.update(write_scores(run_dir, result))
     result.timings_s["write"] = time.perf_counter() - t
     return summary.result(result, cfg, records=records, files=files)
 

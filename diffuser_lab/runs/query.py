@@ -36,7 +36,7 @@ from diffuser_lab.method.basis import BasisFeatures
 from diffuser_lab.method.metrics import score
 from diffuser_lab.method.queries import Queries, labels_of_cosines, query_classes, query_labels
 
-from .records import BASIS_FILE, write_json_atomic
+from .records import BASIS_FILE, load_npy, read_gt, write_json_atomic
 
 __all__ = ["METHODS", "FEATURES", "RunFeatures", "QueryResult", "read_run", "query_run", "output_names", "table", "basis_line"]
 
@@ -46,7 +46,6 @@ METHODS = (("diffuser", "features.npy", "diffuser"),
 """(key in query.json, file in the run folder, row of the table), in the table's order."""
 FEATURES = METHODS[0][1]
 """The file that makes a folder a features run."""
-GT_FILE = "gt_labels.npy"
 _OUT_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
 
 
@@ -121,21 +120,6 @@ class QueryResult:
         }
 
 
-def _load_npy(path: Path) -> np.ndarray:
-    try:
-        with open(path, "rb") as fh:
-            if fh.read(6) != b"\x93NUMPY":
-                raise ValueError(f"{path}: not a .npy file, expected a numpy array")
-        return np.load(path, mmap_mode="r", allow_pickle=False)
-    except ValueError as exc:
-        if str(exc).startswith(str(path)):
-            raise
-        raise ValueError(f"{path}: unreadable ({first_line(exc)}), expected a .npy array") from None
-    except Exception as exc:  # noqa: BLE001 - a damaged or foreign file: one line
-        raise ValueError(f"{path}: unreadable ({type(exc).__name__}: {first_line(exc)}), expected a .npy array") \
-            from None
-
-
 def read_run(run_dir: str | Path) -> RunFeatures:
     """The features, ground truth and class names a features run saved (features as memory maps).
 
@@ -160,21 +144,13 @@ def read_run(run_dir: str | Path) -> RunFeatures:
     features = {}
     for key, fname, _ in METHODS:
         if (run_dir / fname).is_file():
-            f = _load_npy(run_dir / fname)
+            f = load_npy(run_dir / fname)
             ref = features.get("diffuser")
             if f.ndim != 2 or f.dtype.kind != "f" or (ref is not None and f.shape != ref.shape):
                 want = f"{ref.shape} as {FEATURES}" if ref is not None else "(N, D)"
                 raise ValueError(f"{run_dir / fname}: shape {f.shape} dtype {f.dtype}, expected {want} floats")
             features[key] = f
-    gt = None
-    if (run_dir / GT_FILE).is_file():
-        gt = np.asarray(_load_npy(run_dir / GT_FILE))
-        n = features["diffuser"].shape[0]
-        if gt.shape != (n,) or gt.dtype.kind not in "iu":
-            raise ValueError(f"{run_dir / GT_FILE}: shape {gt.shape} dtype {gt.dtype}, expected ({n},) class ids")
-        if gt.size and (gt.min() < IGNORE or gt.max() >= len(names)):
-            raise ValueError(f"{run_dir / GT_FILE}: class ids {int(gt.min())}..{int(gt.max())}, expected "
-                             f"{IGNORE}..{len(names) - 1} ({len(names)} classes in summary.json)")
+    gt = read_gt(run_dir, features["diffuser"].shape[0], len(names))
     feats = summary.get("features") if isinstance(summary.get("features"), dict) else {}
     basis = feats.get("basis") if isinstance(feats.get("basis"), dict) else {"kind": "full"}
     vectors = None

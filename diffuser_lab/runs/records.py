@@ -8,7 +8,7 @@ import math
 import os
 from enum import Enum
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 import yaml
@@ -19,7 +19,9 @@ from diffuser_lab.data.clouds import write_las, write_pointcloud2_bag
 from diffuser_lab.data.embeddings import write_queries
 from diffuser_lab.data.o3d import open3d
 from diffuser_lab.backends.threads import blas_one_thread
-from diffuser_lab.data.scene import Taxonomy
+from diffuser_lab.data.frames import first_line
+from diffuser_lab.data.scene import IGNORE, Taxonomy
+from diffuser_lab.method.calibration import point_rows
 
 
 def config_yaml(conf: Any) -> str:
@@ -65,41 +67,60 @@ def write_json_atomic(path: Path, data: dict) -> None:
     os.replace(tmp, path)
 
 
-def _las(suffix: str) -> Callable[[Path, np.ndarray, np.ndarray, Taxonomy], list[Path]]:
-    def write(run_dir: Path, points: np.ndarray, labels: np.ndarray, taxonomy: Taxonomy) -> list[Path]:
-        return write_las(run_dir / f"labels.{suffix}", points, labels, taxonomy.names, taxonomy.colorize(labels))
+CONFIDENCE_FIELDS = ("confidence", "margin", "entropy")
+"""The per-point confidence's vertex properties (labels.ply) and extra dimensions (LAS / LAZ), float32:
+the top score, top - second score, entropy in nats (:func:`~diffuser_lab.method.calibration.confidence`)."""
+
+
+def _fields(confidence: Optional[np.ndarray]) -> dict:
+    """{property: (N,) float32} of an (N, 3) ``confidence`` (None: {})."""
+    if confidence is None:
+        return {}
+    c = np.asarray(confidence, np.float32)
+    return {name: np.ascontiguousarray(c[:, j]) for j, name in enumerate(CONFIDENCE_FIELDS)}
+
+
+def _las(suffix: str) -> Callable[..., list[Path]]:
+    def write(run_dir: Path, points: np.ndarray, labels: np.ndarray, taxonomy: Taxonomy,
+              confidence: Optional[np.ndarray] = None) -> list[Path]:
+        return write_las(run_dir / f"labels.{suffix}", points, labels, taxonomy.names, taxonomy.colorize(labels),
+                         extra=_fields(confidence))
 
     return write
 
 
-def _ros2(run_dir: Path, points: np.ndarray, labels: np.ndarray, taxonomy: Taxonomy) -> list[Path]:
-    return [write_pointcloud2_bag(run_dir / "labels_ros2", points, labels, taxonomy)]
+def _ros2(run_dir: Path, points: np.ndarray, labels: np.ndarray, taxonomy: Taxonomy,
+          confidence: Optional[np.ndarray] = None) -> list[Path]:
+    return [write_pointcloud2_bag(run_dir / "labels_ros2", points, labels, taxonomy)]  # its fields are fixed
 
 
-CLOUD_WRITERS: dict[str, Callable[[Path, np.ndarray, np.ndarray, Taxonomy], list[Path]]] = {
+CLOUD_WRITERS: dict[str, Callable[..., list[Path]]] = {
     "las": _las("las"),
     "laz": _las("laz"),
     "ros2": _ros2,
 }
-"""``output.clouds`` formats: ``(run folder, points, labels, taxonomy) -> files written``."""
+"""``output.clouds`` formats: ``(run folder, points, labels, taxonomy, confidence=None) -> files written``
+(the LAS formats carry ``confidence`` as extra dimensions, :data:`CONFIDENCE_FIELDS`)."""
 
 
 def write_labels(run_dir: Path, points: np.ndarray, labels: np.ndarray, taxonomy: Taxonomy, ply: bool = True,
-                 clouds: Sequence = ()) -> dict:
+                 clouds: Sequence = (), confidence: Optional[np.ndarray] = None) -> dict:
     """labels.npy ((N,) int16, -1 = unlabeled), labels.ply (points coloured by class, with a
     per-vertex ``label`` property) and the ``clouds`` formats (:data:`CLOUD_WRITERS`, names or
-    :class:`~diffuser_lab.config.CloudFormat`). Returns the file names written."""
+    :class:`~diffuser_lab.config.CloudFormat`); ``confidence`` ((N, 3) float32, ``output.scores``)
+    adds the :data:`CONFIDENCE_FIELDS` to labels.ply and the LAS files. Returns the file names written."""
     run_dir = Path(run_dir)
     names = [getattr(c, "value", c) for c in clouds]
     with progress.stage("writing " + " + ".join(["labels.npy"] + (["labels.ply"] if ply else []) + names)):
-        out = _write_labels(run_dir, points, labels, taxonomy, ply)
+        out = _write_labels(run_dir, points, labels, taxonomy, ply, confidence)
         for name in names:  # loop over output formats
-            written = CLOUD_WRITERS[name](run_dir, points, labels, taxonomy)
+            written = CLOUD_WRITERS[name](run_dir, points, labels, taxonomy, confidence)
             out[f"labels_{name}"] = Path(written[0]).relative_to(run_dir).as_posix()
         return out
 
 
-def _write_labels(run_dir: Path, points: np.ndarray, labels: np.ndarray, taxonomy: Taxonomy, ply: bool) -> dict:
+def _write_labels(run_dir: Path, points: np.ndarray, labels: np.ndarray, taxonomy: Taxonomy, ply: bool,
+                  confidence: Optional[np.ndarray] = None) -> dict:
     np.save(run_dir / "labels.npy", labels.astype(np.int16))
     out = {"labels": "labels.npy"}
     if ply:
@@ -108,10 +129,79 @@ def _write_labels(run_dir: Path, points: np.ndarray, labels: np.ndarray, taxonom
         pcd = o3d.t.geometry.PointCloud(o3d.core.Tensor(np.asarray(points, np.float32)))
         pcd.point.colors = o3d.core.Tensor(taxonomy.colorize(labels))
         pcd.point.label = o3d.core.Tensor(labels.astype(np.int32)[:, None])
+        for name, values in _fields(confidence).items():
+            setattr(pcd.point, name, o3d.core.Tensor(values[:, None]))
         if not o3d.t.io.write_point_cloud(str(run_dir / "labels.ply"), pcd, write_ascii=False):
             raise OSError(f"could not write {run_dir / 'labels.ply'}")
         out["labels_ply"] = "labels.ply"
     return out
+
+
+def write_rows(path: Path, shape: tuple, chunks) -> None:
+    """An (N, D) float16 ``.npy`` at ``path`` from ``chunks`` of consecutive rows, appended as they come:
+    no (N, D) array, no memory map's page faults."""
+    with open(path, "wb") as fh:
+        np.lib.format.write_array_header_2_0(fh, {"descr": np.lib.format.dtype_to_descr(np.dtype(np.float16)),
+                                                  "fortran_order": False, "shape": tuple(shape)})
+        for chunk in chunks:
+            fh.write(memoryview(np.ascontiguousarray(chunk, np.float16)))
+
+
+SCORES_FILE, GT_FILE = "scores.npy", "gt_labels.npy"
+"""``output.scores``: each point's class distribution, and the ground truth it is scored against."""
+
+
+def load_npy(path: Path) -> np.ndarray:
+    """A run folder's ``.npy`` file as a read-only memory map; one line naming the file when it is not one."""
+    try:
+        with open(path, "rb") as fh:
+            if fh.read(6) != b"\x93NUMPY":
+                raise ValueError(f"{path}: not a .npy file, expected a numpy array")
+        return np.load(path, mmap_mode="r", allow_pickle=False)
+    except ValueError as exc:
+        if str(exc).startswith(str(path)):
+            raise
+        raise ValueError(f"{path}: unreadable ({first_line(exc)}), expected a .npy array") from None
+    except Exception as exc:  # noqa: BLE001 - a damaged or foreign file: one line
+        raise ValueError(f"{path}: unreadable ({type(exc).__name__}: {first_line(exc)}), expected a .npy array") \
+            from None
+
+
+def read_gt(run_dir: Path, n: int, num_classes: int) -> Optional[np.ndarray]:
+    """:data:`GT_FILE` of ``run_dir`` ((n,) class ids in IGNORE..num_classes - 1), None when the run wrote
+    none; one line naming the file when it does not fit."""
+    path = Path(run_dir) / GT_FILE
+    if not path.is_file():
+        return None
+    gt = np.asarray(load_npy(path))
+    if gt.shape != (n,) or gt.dtype.kind not in "iu":
+        raise ValueError(f"{path}: shape {gt.shape} dtype {gt.dtype}, expected ({n},) class ids")
+    if gt.size and (gt.min() < IGNORE or gt.max() >= num_classes):
+        raise ValueError(f"{path}: class ids {int(gt.min())}..{int(gt.max())}, expected "
+                         f"{IGNORE}..{num_classes - 1} ({num_classes} classes in summary.json)")
+    return gt
+
+
+def write_gt(run_dir: Path, scene) -> dict:
+    """:data:`GT_FILE` ((N,) int16, IGNORE = unannotated) when ``scene`` has ground truth: a run's saved
+    features or scores are scored again without the scene."""
+    if scene.gt_labels is None:
+        return {}
+    np.save(run_dir / GT_FILE, np.asarray(scene.gt_labels, np.int16))
+    return {"gt_labels": GT_FILE}
+
+
+def write_scores(run_dir: Path, result) -> dict:
+    """``output.scores``: :data:`SCORES_FILE`, (N, C) float16, row i the class distribution of original
+    point i (labels.npy's order) as the run's calibration scores it
+    (:func:`~diffuser_lab.method.calibration.point_rows`: Eq. 16's row of Z, or a per-point method's mass,
+    divided by its sum; all zero where nothing reached the point), written CHUNK rows at a time; and
+    :data:`GT_FILE` ((N,) int16, IGNORE = unannotated) when the scene has ground truth, so that the run's
+    calibration can be computed from its folder (:func:`diffuser_lab.runs.scores.calibration_of_run`)."""
+    n, c = len(result.labels), result.scene.taxonomy.num_classes
+    write_rows(run_dir / SCORES_FILE, (n, c), (p for _, _, p in point_rows(result.scores, result.rows, n)))
+    out = {"scores": SCORES_FILE}
+    return {**out, **write_gt(run_dir, result.scene)}
 
 
 BASIS_FILE = "features_basis.npz"
@@ -154,19 +244,16 @@ def _write_features(run_dir: Path, result, lf, rows) -> dict:
         if work is None:  # a rule without features of its own (vote: class votes)
             continue
         n = len(work) if rows is None else len(rows)
-        # a chunk of rows at a time (a basis' rows reconstructed in R^D: FeatureLift.unit_rows), appended
-        # to the file: no (N, D) array, no memory map's page faults
-        with open(run_dir / f"{name}.npy", "wb") as fh:
-            np.lib.format.write_array_header_2_0(fh, {"descr": np.lib.format.dtype_to_descr(np.dtype(np.float16)),
-                                                      "fortran_order": False, "shape": (n, lf.queries.dim)})
-            buf = np.empty((min(n, WRITE_ROWS), lf.queries.dim), np.float16)
+        # a chunk of rows at a time (a basis' rows reconstructed in R^D: FeatureLift.unit_rows)
+        buf = np.empty((min(n, WRITE_ROWS), lf.queries.dim), np.float16)
+
+        def chunks(work=work, buf=buf, n=n):
             for lo in range(0, n, WRITE_ROWS):  # chunks of rows: 4 MB at D = 512
                 sel = np.arange(lo, min(lo + WRITE_ROWS, n)) if rows is None else rows[lo:lo + WRITE_ROWS]
-                fh.write(memoryview(lf.unit_rows(work, sel, out=buf[: len(sel)])))
+                yield lf.unit_rows(work, sel, out=buf[: len(sel)])
+
+        write_rows(run_dir / f"{name}.npy", (n, lf.queries.dim), chunks())
         out[name] = f"{name}.npy"
     write_queries(run_dir / "queries.npz", list(lf.queries.names), lf.queries.embeddings)
     out["queries"] = "queries.npz"
-    if result.scene.gt_labels is not None:
-        np.save(run_dir / "gt_labels.npy", np.asarray(result.scene.gt_labels, np.int16))
-        out["gt_labels"] = "gt_labels.npy"
-    return out
+    return {**out, **write_gt(run_dir, result.scene)}

@@ -16,7 +16,7 @@ from .pipeline import RunResult
 from .records import write_json_atomic
 from .results import calibration_key
 
-STAGES = ("load", "predictions", "evidence", "graph", "diffusion", "labels", "metrics", "write", "total")
+STAGES = ("load", "predictions", "evidence", "graph", "diffusion", "labels", "scores", "metrics", "write", "total")
 
 
 def summary(res: RunResult, cfg: Config) -> dict:

@@ -71,7 +71,11 @@ LIFTING_PROTOCOLS = ("global_3d", "single_frame")
 
 def _check_protocol_keys(cfg: Config) -> None:
     """The lifting rules, ``graph.affinity`` and ``solver.tikhonov`` run in the global and the
-    single-frame protocol; elsewhere one line says so (rather than a run that ignores them)."""
+    single-frame protocol, ``output.scores`` in the global one; elsewhere one line says so (rather than
+    a run that ignores them)."""
+    if cfg.output.scores and cfg.protocol.name != "global_3d":
+        raise config.ConfigError(f"output.scores=true: scores.npy is written by protocol=global_3d, not "
+                                 f"protocol={cfg.protocol.name}")
     if cfg.protocol.name in LIFTING_PROTOCOLS:
         return
     what = []

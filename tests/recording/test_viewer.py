@@ -426,3 +426,35 @@ def test_viewer_screenshots_kinds_compose_and_a_bad_kind_is_one_line(capsys):
     with pytest.raises(SystemExit) as e:
         shots.main(["/tmp/unused", "--kinds", "batch,nope"])
     assert e.value.code == 2 and "unknown nope" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_scores_run_has_the_confidence_layer_of_its_saved_scores(tmp_path):
+    """output.scores=true: run.rrd's ``confidence: scores.npy`` tab shows world/result/confidence, the
+    original points with the top score, margin and entropy of the rows scores.npy saved; the rest of
+    the batch layout is unchanged."""
+    from rrd_layout import check_layout, static_column
+
+    from diffuser_lab.data.taxonomy import load_taxonomy
+    from diffuser_lab.method.calibration import confidence
+    from diffuser_lab.recording.rerun_log import APP_BATCH, RESULT_CONFIDENCE
+
+    d = tmp_path / "run"
+    p = run_cli(*SMALL_DEMO, "scene.voxel_size=0.1", "output.scores=true", "record=rerun", "output.quiet=true",
+                f"hydra.run.dir={d}")
+    assert p.returncode == 0, p.stderr[-2000:]
+    rrd = d / "run.rrd"
+    gt = np.asarray(static_column(rrd, "/world/scene/ground_truth", "Points3D:class_ids"))
+    v = check_layout(rrd, APP_BATCH, load_taxonomy("scannet20"), gt[gt != UNLABELED_ID],
+                     {"confidence: scores.npy": [f"/{RESULT_CONFIDENCE}"],
+                      "mean confidence": ["/metrics/confidence"]})
+    assert v["tabs"][:3] == ["diffusion: labels", "confidence", "confidence: scores.npy"]
+    conf = confidence(np.load(d / "scores.npy"))
+    pts = np.asarray(static_column(rrd, f"/{RESULT_CONFIDENCE}", "Points3D:positions"), np.float32)
+    assert pts.shape == (len(conf), 3)  # the original points (the diffusion ran on 10 cm voxels)
+    for j, name in enumerate(("confidence", "margin", "entropy")):
+        np.testing.assert_array_equal(np.asarray(static_column(rrd, f"/{RESULT_CONFIDENCE}", name), np.float32),
+                                      conf[:, j])
+    colors = np.asarray(static_column(rrd, f"/{RESULT_CONFIDENCE}", "Points3D:colors"), np.uint32)
+    lut = CONFIDENCE_LUT[(np.clip(conf[:, 0], 0, 1) * np.float32(255)).astype(np.uint8)].astype(np.uint32)
+    np.testing.assert_array_equal(colors >> 8, (lut[:, 0] << 16) | (lut[:, 1] << 8) | lut[:, 2])
