@@ -10,11 +10,15 @@ sweep's time).
 No ``from __future__ import annotations`` here: Hydra's plugin scan runs this file outside
 ``sys.modules``, where a dataclass needs evaluated annotations.
 """
+import copy
+import dataclasses
 from dataclasses import dataclass
 from typing import Dict, List, Optional, Sequence
 
+from hydra._internal.config_repository import CachingConfigRepository
 from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
 from hydra.core.config_store import ConfigStore
+from omegaconf import OmegaConf
 
 
 @dataclass
@@ -44,24 +48,52 @@ def covering(batch: Sequence[Sequence[str]]) -> List[Sequence[str]]:
 class _OneRepository:
     """Stands in for ``ConfigLoaderImpl._parse_overrides_and_create_caching_repo``, which deep-copies
     the config repository and reads every YAML file again for each job's compose (~a third of it):
-    the jobs of one sweep share one caching repository per search path (results unchanged: Hydra
-    copies what it loads before changing it). A picklable object, for the launchers that ship the
-    loader to other processes."""
+    the jobs of one sweep share one repository per search path and one parse of each YAML file
+    (:class:`_Fresh`), while each compose gets config objects of its own: Hydra merges the loaded
+    configs into a job's config without copying them, so a job's overrides (a value set, a key added
+    or deleted) would otherwise change what the next job loads. A picklable object, for the launchers
+    that ship the loader to other processes."""
 
     def __init__(self, loader) -> None:
         from hydra.core.override_parser.overrides_parser import OverridesParser
 
-        self.loader, self.parser, self.repos = loader, OverridesParser.create(), {}
+        self.loader, self.parser, self.repos, self.files = loader, OverridesParser.create(), {}, {}
 
     def __call__(self, config_name, overrides):
-        from hydra._internal.config_repository import CachingConfigRepository
-
         parsed = self.parser.parse_overrides(overrides=overrides)
         key = tuple(o for o in overrides if o.lstrip("+~").startswith("hydra.searchpath"))
         if key not in self.repos:
-            self.repos[key] = CachingConfigRepository(self.loader.repository)
-        self.loader._process_config_searchpath(config_name, parsed, self.repos[key])
-        return parsed, self.repos[key]
+            self.repos[key] = CachingConfigRepository(self.loader.repository).delegate  # a copy of its own
+        repo = _Fresh(self.repos[key], self.files.setdefault(key, {}))
+        self.loader._process_config_searchpath(config_name, parsed, repo)
+        return parsed, repo
+
+
+class _Fresh(CachingConfigRepository):
+    """One compose's repository: Hydra's caching one over a shared delegate (not a copy of it); a
+    YAML file's config is parsed once per sweep (``files``: config path -> the loaded result and its
+    config as plain data) and made a new OmegaConf object at each load; the ConfigStore's
+    (``structured://``) are loaded as Hydra loads them, fresh each time."""
+
+    def __init__(self, delegate, files: dict) -> None:  # not super().__init__: it deep-copies the delegate
+        self.delegate, self.cache, self.files = delegate, {}, files
+
+    def load_config(self, config_path: str):
+        key = f"config_path={config_path}"
+        if key not in self.cache:
+            self.cache[key] = self._load(config_path)
+        return self.cache[key]
+
+    def _load(self, config_path: str):
+        got = self.files.get(config_path)
+        if got is None:
+            ret = self.delegate.load_config(config_path=config_path)
+            if ret is None or not str(ret.path).startswith(("file://", "pkg://")):
+                return ret
+            got = self.files[config_path] = (ret, OmegaConf.to_container(ret.config, resolve=False))
+        ret, plain = got
+        return dataclasses.replace(ret, config=OmegaConf.create(copy.deepcopy(plain)), header=dict(ret.header),
+                                   defaults_list=copy.deepcopy(ret.defaults_list))
 
 
 class CoveringSweeper(BasicSweeper):
@@ -77,4 +109,3 @@ class CoveringSweeper(BasicSweeper):
 
     def validate_batch_is_legal(self, batch: Sequence[Sequence[str]]) -> None:
         super().validate_batch_is_legal(covering(batch))
-

@@ -13,6 +13,7 @@ def _compose(overrides):
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
+    import diffuser_lab.data.sources  # noqa: F401 - stores scene/options/<source>: alone, this module imports nothing that does
     from diffuser_lab.config import register
     from diffuser_lab.runs import launchers
 
@@ -157,13 +158,18 @@ def test_a_sweeps_jobs_share_one_config_repository_and_compose_the_same_configs(
     from hydra_plugins.diffuser_lab_sweeper.sweeper import _OneRepository
     from omegaconf import OmegaConf
 
+    import diffuser_lab.data.sources  # noqa: F401 - stores scene/options/<source>: alone, this module imports nothing that does
     from diffuser_lab.config import register
     from diffuser_lab.runs import launchers
 
     register()
     launchers.register()
-    jobs = [["graph.k=8", "seed=0"], ["graph.k=32", "seed=2", "hydra.searchpath=[file://" + str(ROOT / "conf") + "]"],
-            ["graph.k=8", "seed=1"]]
+    # jobs of different keys (a tuning sweep's): what one job sets, adds or deletes is not the next one's
+    # (Hydra merges the loaded configs without copying: a shared repository once leaked graph.k=8 into
+    # the fourth job and failed the third's deletion)
+    jobs = [["graph.k=8", "seed=0", "+scene.options.spare=1", "~hydra.callbacks.sweep"],
+            ["graph.k=32", "seed=2", "hydra.searchpath=[file://" + str(ROOT / "conf") + "]"],
+            ["graph.k=8", "seed=1", "+scene.options.spare=2", "~hydra.callbacks.sweep"], ["seed=1"]]
 
     def composed(share: bool) -> list[str]:
         loader = ConfigLoaderImpl(config_search_path=create_config_search_path(str(ROOT / "conf")))
@@ -177,7 +183,9 @@ def test_a_sweeps_jobs_share_one_config_repository_and_compose_the_same_configs(
             cloudpickle.loads(cloudpickle.dumps(loader))
         return out
 
-    assert composed(True) == composed(False)
+    shared = composed(True)
+    assert shared == composed(False)
+    assert "k: 24" in shared[3] and "spare" not in shared[3] and "spare: 2" in shared[2]
 
 
 def test_the_sweep_table_names_jobs_on_other_machines(tmp_path, monkeypatch):
