@@ -33,6 +33,12 @@ DEMO_SMALL = ["scene.options.point_spacing=0.15", "scene.options.image_width=80"
 SCANNET_SMALL = ["scene.voxel_size=0.08", "scene.options.image_width=80", "scene.options.image_height=60",
                  "seed=0"]  # 8 cm voxels, 80x60 views, one seed of the three
 SINGLE_FRAME_SMALL = ["protocol.max_targets=8"]
+# A search (hydra.sweeper.tune): 2 trials on one validation room, one test room for the tuned value
+# and what it is compared with (4 jobs), on the small demo
+TUNE_SMALL = ["hydra.sweeper.tune.n_trials=2", "hydra.sweeper.tune.validation.demo.seed=3",
+              "hydra.sweeper.tune.test.demo.seed=0", "~hydra.sweeper.tune.test.scannet0470"]
+TUNE_EXPERIMENTS = {p.stem for p in (ROOT / "conf" / "experiment").glob("*.yaml") if "\n    tune:" in p.read_text()}
+"""Experiments that search (their sweeper's ``tune`` section) rather than sweep a grid."""
 VENV = Path(sys.prefix)
 HAVE_SHARED = (SHARED / "data" / "scannet").is_dir()
 HAVE_7SCENES = (SHARED / "data" / "7scenes_sample" / "camera-intrinsics.txt").is_file()
@@ -120,6 +126,8 @@ def classify(c: Command) -> Command:
         # table, and the launchers compared with the basic one on the same jobs)
         c.append = SCANNET_SMALL if "scene=scannet0470" in t else \
             DEMO_SMALL + ([] if re.search(r"\+experiment=k\b", t) else ["seed=0"])
+        if re.search(r"\+experiment=(\w+)", t).group(1) in TUNE_EXPERIMENTS:
+            c.append = [*c.append, *TUNE_SMALL]
     elif " -m " in t and "diffuser-lab " in t:
         c.key = "multirun"
     elif "diffuser-lab --cfg" in t:

@@ -26,6 +26,7 @@ from readme_commands import (
     README,
     ROOT,
     SHARED,
+    TUNE_EXPERIMENTS,
     VENV,
     Command,
     _env,
@@ -187,6 +188,9 @@ def check_sweep(c: Command, p, work):
     scene = "scannet0470" if "scene=scannet0470" in c.text else "demo"
     rel = sweep_dir.relative_to(work["repo"])
     assert re.fullmatch(rf"logs/multirun/{name}/\d{{4}}-\d\d-\d\d_\d\d-\d\d-\d\d-\d{{6}}_{scene}", str(rel)), rel
+    if name in TUNE_EXPERIMENTS:  # a search: its own job count, test jobs after the validation ones
+        check_tune(c, n, sweep_dir, summaries)
+        return
     assert n == _readme_jobs(name) // (_seeds(name) if "seed=0" in c.append else 1)
     launcher = re.search(r"hydra/launcher=(\w+)", c.text)
     metrics = {s["_dir"]: s["metrics"]["miou"] for s in summaries}
@@ -203,6 +207,24 @@ def check_sweep(c: Command, p, work):
         assert metrics == basic, (launcher.group(1), metrics, basic)
         if launcher.group(1) == "submitit_local":
             assert not list(sweep_dir.rglob("%j")), "submitit left a literal %j folder"
+
+
+def check_tune(c: Command, n: int, sweep_dir: Path, summaries: list[dict]):
+    """A search (hydra.sweeper.tune): the README's job count is the full one; shrunk (TUNE_SMALL) it
+    has 2 trials x 1 validation job and 1 test job x (the tuned value + each compared one); every job
+    says its split, the validation ones come first, and the preset was written."""
+    from omegaconf import OmegaConf
+
+    name = re.search(r"\+experiment=(\w+)", c.text).group(1)
+    tune_cfg = OmegaConf.load(ROOT / "conf" / "experiment" / f"{name}.yaml").hydra.sweeper.tune
+    trials, arms = tune_cfg.n_trials, 1 + len(tune_cfg.compare)
+    val = len(str(tune_cfg.validation.demo.seed).split(","))
+    tests = sum(len(str(s.seed).split(",")) for s in tune_cfg.test.values())
+    assert _readme_jobs(name) == trials * val + tests * arms
+    assert n == 2 * 1 + 1 * arms
+    splits = [s["split"] for s in sorted(summaries, key=lambda s: int(s["_dir"].split("_")[0]))]
+    assert splits == ["validation"] * 2 + ["test"] * arms, splits
+    assert (sweep_dir / "tuned" / f"{name}.yaml").is_file() and (sweep_dir / "tune.json").is_file()
 
 
 def check_multirun(c: Command, p, work):

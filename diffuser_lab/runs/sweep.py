@@ -39,14 +39,19 @@ def say(line: str, file=None) -> None:
 
 def count_jobs(config: Any) -> Optional[int]:
     """Number of jobs Hydra's basic sweeper makes of ``hydra.sweeper.params`` and the command
-    line (the same parsing and precedence as ``BasicSweeper.sweep``; ours makes the same jobs); None
-    for other sweepers."""
+    line (the same parsing and precedence as ``BasicSweeper.sweep``; ours makes the same jobs), or
+    a search's (``hydra.sweeper.tune``: :func:`diffuser_lab.runs.tune.count_jobs`); None for other sweepers."""
     try:
         from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
         from hydra.core.override_parser.overrides_parser import OverridesParser
         from omegaconf import OmegaConf
 
-        if not str(config.hydra.sweeper.get("_target_", "")).endswith(("BasicSweeper", "CoveringSweeper")):
+        target = str(config.hydra.sweeper.get("_target_", ""))
+        if target.endswith("CoveringSweeper") and config.hydra.sweeper.get("tune") is not None:
+            from . import tune  # it prints through this module
+
+            return tune.count_jobs(tune.TuneSpec(**config.hydra.sweeper.tune))
+        if not target.endswith(("BasicSweeper", "CoveringSweeper")):
             return None  # CoveringSweeper: hydra_plugins/diffuser_lab_sweeper, the basic one's jobs
         params = config.hydra.sweeper.get("params") or {}
         items = [f"{k}={v}" for k, v in params.items()]
@@ -147,8 +152,9 @@ def started_sweep() -> Optional[Path]:
 
 def print_table(file=sys.stdout) -> None:
     """The collected table of the sweep this process launched (one row per configuration, seeds
-    as mean ± std) and, when its jobs ran on different machines, ISA levels or versions, one line
-    saying what differs and how many jobs per value; nothing if it launched none."""
+    as mean ± std; a tuning sweep's validation and test runs in a table each) and, when its jobs ran
+    on different machines, ISA levels or versions, one line saying what differs and how many jobs
+    per value; nothing if it launched none."""
     if _started.get("watcher") is not None:
         _started.pop("watcher").stop()
     sweep_dir = _started.get("dir")
@@ -157,10 +163,15 @@ def print_table(file=sys.stdout) -> None:
     runs = find_runs([sweep_dir])
     if not runs:
         return
-    cols, rows = aggregate(runs)
     ok = sum(r.status == "ok" for r in runs)
     print(f"\nsweep {sweep_dir}: {ok} of {len(runs)} jobs ok", file=file)
-    print(markdown(cols, rows), file=file, flush=True)
+    splits = sorted({r.summary.get("split") for r in runs}, key=lambda s: ("", "validation", "test").index(s or ""))
+    for split in splits:  # a tuning sweep's validation and test runs: never one table (summary.json's split)
+        part = [r for r in runs if r.summary.get("split") == split]
+        if len(splits) > 1:
+            print(f"{split or 'no split'} runs ({len(part)}):", file=file)
+        cols, rows = aggregate(part)
+        print(markdown(cols, rows), file=file, flush=True)
     mixed = provenance_line(runs, "jobs")
     if mixed:
         print(mixed, file=file, flush=True)

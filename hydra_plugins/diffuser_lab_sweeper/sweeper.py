@@ -7,13 +7,23 @@ value of the wrong type stops the sweep at start-up), and a 5 x 3 sweep composes
 front, not 15. The jobs' composes then share one cache of the config files (a fifth of a small
 sweep's time).
 
+With ``hydra.sweeper.tune`` set (an experiment's config: ``+experiment=tune_tikhonov``) it runs a
+parameter search instead of the grid: Optuna trials on validation jobs, the best written as a
+preset, then the held-out test jobs (:mod:`diffuser_lab.runs.tune`, docs/sweeps.md "Tuning"; the
+``tune`` extra). A section of this sweeper rather than a sweeper of its own: conf/config.yaml
+chooses this one, and a choice of the primary config's defaults list is not overridden from an
+experiment's. Not Hydra's Optuna sweeper (hydra-optuna-sweeper): its last release, 1.3.0, requires
+optuna<3, and its trial is one job, where a trial here is the mean over several validation jobs
+followed by jobs held out from the search.
+
 No ``from __future__ import annotations`` here: Hydra's plugin scan runs this file outside
 ``sys.modules``, where a dataclass needs evaluated annotations.
 """
 import copy
 import dataclasses
 from dataclasses import dataclass
-from typing import Dict, List, Optional, Sequence
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Sequence
 
 from hydra._internal.config_repository import CachingConfigRepository
 from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
@@ -26,6 +36,7 @@ class CoveringSweeperConf:
     _target_: str = "hydra_plugins.diffuser_lab_sweeper.sweeper.CoveringSweeper"
     max_batch_size: Optional[int] = None
     params: Optional[Dict[str, str]] = None
+    tune: Optional[Dict[str, Any]] = None  # a parameter search's keys (diffuser_lab/runs/tune.py); null: the grid
 
 
 ConfigStore.instance().store(group="hydra/sweeper", name="diffuser_lab", node=CoveringSweeperConf,
@@ -98,7 +109,13 @@ class _Fresh(CachingConfigRepository):
 
 class CoveringSweeper(BasicSweeper):
     """:class:`BasicSweeper` whose :meth:`validate_batch_is_legal` composes :func:`covering`'s jobs
-    and whose jobs' composes share one config repository (:class:`_OneRepository`)."""
+    and whose jobs' composes share one config repository (:class:`_OneRepository`); with ``tune``,
+    the search of :func:`diffuser_lab.runs.tune.search` on the same launcher."""
+
+    def __init__(self, max_batch_size: Optional[int] = None, params: Optional[Dict[str, str]] = None,
+                 tune: Optional[Dict[str, Any]] = None) -> None:
+        super().__init__(max_batch_size=max_batch_size, params=params)
+        self.tune = tune
 
     def setup(self, *, hydra_context, task_function, config) -> None:
         super().setup(hydra_context=hydra_context, task_function=task_function, config=config)
@@ -109,3 +126,21 @@ class CoveringSweeper(BasicSweeper):
 
     def validate_batch_is_legal(self, batch: Sequence[Sequence[str]]) -> None:
         super().validate_batch_is_legal(covering(batch))
+
+    def sweep(self, arguments: List[str]) -> Any:
+        if self.tune is None:
+            return super().sweep(arguments)
+        from omegaconf import OmegaConf
+
+        from diffuser_lab.runs import tune
+
+        if self.params:
+            raise tune.TuneError(f"hydra.sweeper.params {dict(self.params)} with hydra.sweeper.tune: a search's "
+                                 f"swept keys are hydra.sweeper.tune.params")
+        sweep_dir = Path(self.config.hydra.sweep.dir)
+        sweep_dir.mkdir(parents=True, exist_ok=True)
+        OmegaConf.save(self.config, sweep_dir / "multirun.yaml")
+        name = str(self.config.hydra.runtime.choices.get("experiment") or "best")
+        return tune.search(tune.TuneSpec(**self.tune), arguments,
+                           lambda jobs, idx: self.launcher.launch(jobs, initial_job_idx=idx),
+                           self.validate_batch_is_legal, sweep_dir, name)
