@@ -39,7 +39,7 @@ from diffuser_lab import seeding
 
 from .sweep import say
 
-__all__ = ["TuneSpec", "set_jobs", "merge", "count_jobs", "preset_text", "search", "RECORD", "PRESET_GROUP"]
+__all__ = ["TuneSpec", "TuneError", "set_jobs", "merge", "count_jobs", "preset_text", "search", "RECORD", "PRESET_GROUP"]
 
 RECORD = "tune.json"
 """The search's record in the sweep folder: space, trials (overrides, jobs, value), choice, test jobs."""
@@ -270,6 +270,12 @@ def _mean_std(xs: Sequence[float]) -> str:
     return f"{statistics.fmean(xs):.1f} +- {statistics.stdev(xs):.1f}" if len(xs) > 1 else f"{xs[0]:.1f}"
 
 
+def _best(trials: Sequence[Trial], direction: str) -> Optional[Trial]:
+    """The completed trial of the best value (ties: the earliest), None if none completed."""
+    done = [t for t in trials if t.value is not None]
+    return (max if direction == "maximize" else min)(done, key=lambda t: t.value) if done else None
+
+
 def search(spec: TuneSpec, arguments: Sequence[str], launch: Callable, validate: Callable, sweep_dir: Path,
            name: str) -> dict:
     """Run the search (module doc): ``launch(job_overrides, initial_job_idx)`` the launcher's,
@@ -282,7 +288,8 @@ def search(spec: TuneSpec, arguments: Sequence[str], launch: Callable, validate:
         raise TuneError("hydra.sweeper.tune needs Optuna: pip install -e '.[tune]'") from None
 
     optuna.logging.set_verbosity(optuna.logging.WARNING)
-    cmd = command_line(arguments)
+    # every job in this sweep's folder: its name may interpolate the job's own choices (the scene)
+    cmd = [*command_line(arguments), f"hydra.sweep.dir='{sweep_dir}'"]
     dists, fixed = space(spec.params)
     val_jobs, test_jobs = set_jobs(spec.validation), set_jobs(spec.test)
     arms = {"": []} | {k: _items(v) for k, v in spec.compare.items()}
@@ -290,37 +297,9 @@ def search(spec: TuneSpec, arguments: Sequence[str], launch: Callable, validate:
     validate([merge(cmd, job, sample, ["split=validation"]) for _, job in val_jobs]
              + [merge(cmd, job, arm, ["split=test"]) for _, job in test_jobs for arm in arms.values()])
     sweep_dir.mkdir(parents=True, exist_ok=True)
-    sampler = optuna.samplers.TPESampler(seed=sampler_seed(spec.seed), n_startup_trials=int(spec.n_startup_trials))
-    study = optuna.create_study(direction=spec.direction, sampler=sampler)
-    trials: list[Trial] = []
-    idx = 0
     say(f"tune: {spec.n_trials} trials of {', '.join(dists)} on {len(val_jobs)} validation jobs "
         f"({_jobs_text(val_jobs)}), then the best and {len(arms) - 1} compared on {len(test_jobs)} test jobs")
-    while len(trials) < spec.n_trials:
-        batch = []
-        for _ in range(min(int(spec.n_jobs), spec.n_trials - len(trials))):
-            t = study.ask(dists)
-            batch.append((t, Trial(t.number, trial_overrides(t.params, fixed))))
-        jobs = [merge(cmd, job, tr.overrides, ["split=validation"]) for _, tr in batch for _, job in val_jobs]
-        got = _returns(launch(jobs, idx))
-        idx += len(jobs)
-        for k, (t, tr) in enumerate(batch):
-            mine = got[k * len(val_jobs):(k + 1) * len(val_jobs)]
-            tr.jobs, tr.values = [g[0] for g in mine], [g[1] for g in mine]
-            errors = [g[2] for g in mine if g[1] is None]
-            if errors:
-                tr.error = errors[0]
-                study.tell(t, state=optuna.trial.TrialState.FAIL)
-            else:
-                tr.value = statistics.fmean(tr.values)
-                study.tell(t, tr.value)
-            trials.append(tr)
-            done = [x for x in trials if x.value is not None]
-            best = (max if spec.direction == "maximize" else min)(done, key=lambda x: x.value) if done else None
-            say(f"tune: trial {tr.number + 1}/{spec.n_trials} {' '.join(tr.overrides)}: " +
-                (f"validation mIoU {tr.value:.2f} ({len(tr.values)} jobs)" if tr.value is not None else
-                 f"FAILED ({tr.error})") + (f"; best {best.value:.2f} (trial {best.number + 1})" if best else ""))
-    done = [x for x in trials if x.value is not None]
+    trials = _trials(optuna, spec, dists, fixed, [merge(cmd, job) for _, job in val_jobs], launch)
     record: dict[str, Any] = {
         "experiment": name, "direction": spec.direction, "params": {k: str(v) for k, v in spec.params.items()},
         "sampler": {"kind": "tpe", "seed": int(spec.seed), "n_startup_trials": int(spec.n_startup_trials)},
@@ -328,11 +307,10 @@ def search(spec: TuneSpec, arguments: Sequence[str], launch: Callable, validate:
         "test": {s: [" ".join(j) for t, j in test_jobs if t == s] for s in spec.test},
         "compare": {k: " ".join(v) for k, v in arms.items() if k},
         "trials": [vars(t) for t in trials], "best": None, "preset": None, "test_jobs": []}
-    if not done:
+    best = _best(trials, spec.direction)
+    if best is None:
         _write(sweep_dir, record)
         raise TuneError(f"tune: none of the {len(trials)} trials completed (first: {trials[0].error}); no test job ran")
-    # ties: the earliest trial (max/min keep the first)
-    best = (max if spec.direction == "maximize" else min)(done, key=lambda x: x.value)
     preset = sweep_dir / PRESET_GROUP / f"{name}.yaml"
     preset.parent.mkdir(parents=True, exist_ok=True)
     header = [f"hydra.sweeper.tune, {name}: trial {best.number + 1} of {len(trials)}, the best mean validation mIoU "
@@ -350,7 +328,7 @@ def search(spec: TuneSpec, arguments: Sequence[str], launch: Callable, validate:
         for arm, extra in arms.items():
             jobs.append(merge(cmd, job, extra or best.overrides, ["split=test"]))
             tags.append((s, arm or "tuned"))
-    got = _returns(launch(jobs, idx))
+    got = _returns(launch(jobs, sum(len(t.jobs) for t in trials)))
     record["test_jobs"] = [{"set": s, "arm": a, "job": g[0], "value": g[1], "error": g[2]} for (s, a), g in zip(tags, got)]
     _write(sweep_dir, record)
     for arm in ["tuned", *[a for a in arms if a]]:
@@ -362,6 +340,41 @@ def search(spec: TuneSpec, arguments: Sequence[str], launch: Callable, validate:
     if failed:
         raise TuneError(f"tune: {len(failed)} of {len(got)} test jobs failed (first {failed[0][0]}: {failed[0][2]})")
     return record
+
+
+def _trials(optuna, spec: TuneSpec, dists: dict, fixed: list[str], val_jobs: list[list[str]],
+            launch: Callable) -> list[Trial]:
+    """``spec.n_trials`` trials, ``spec.n_jobs`` at a time: each asked of the TPE sampler, its
+    validation jobs (``val_jobs``' overrides, its values, ``split=validation``) launched, told their
+    mean (a trial with a failed job: failed); a line per trial."""
+    sampler = optuna.samplers.TPESampler(seed=sampler_seed(spec.seed), n_startup_trials=int(spec.n_startup_trials))
+    study = optuna.create_study(direction=spec.direction, sampler=sampler)
+    trials: list[Trial] = []
+    idx = 0
+    while len(trials) < spec.n_trials:
+        batch = []
+        for _ in range(min(int(spec.n_jobs), spec.n_trials - len(trials))):
+            t = study.ask(dists)
+            batch.append((t, Trial(t.number, trial_overrides(t.params, fixed))))
+        jobs = [merge(job, tr.overrides, ["split=validation"]) for _, tr in batch for job in val_jobs]
+        got = _returns(launch(jobs, idx))
+        idx += len(jobs)
+        for k, (t, tr) in enumerate(batch):
+            mine = got[k * len(val_jobs):(k + 1) * len(val_jobs)]
+            tr.jobs, tr.values = [g[0] for g in mine], [g[1] for g in mine]
+            errors = [g[2] for g in mine if g[1] is None]
+            if errors:
+                tr.error = errors[0]
+                study.tell(t, state=optuna.trial.TrialState.FAIL)
+            else:
+                tr.value = statistics.fmean(tr.values)
+                study.tell(t, tr.value)
+            trials.append(tr)
+            best = _best(trials, spec.direction)
+            say(f"tune: trial {tr.number + 1}/{spec.n_trials} {' '.join(tr.overrides)}: " +
+                (f"validation mIoU {tr.value:.2f} ({len(tr.values)} jobs)" if tr.value is not None else
+                 f"FAILED ({tr.error})") + (f"; best {best.value:.2f} (trial {best.number + 1})" if best else ""))
+    return trials
 
 
 def _write(sweep_dir: Path, record: dict) -> None:

@@ -3,6 +3,7 @@ space and preset; a small search end to end: validation jobs only on validation 
 written before any test job, the test jobs of the chosen value and of Diffuser, summary.json's split."""
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 from conftest import run_cli
@@ -72,6 +73,79 @@ def test_the_preset_loads_as_a_config(tmp_path):
     cfg = OmegaConf.load(tmp_path / "p.yaml")
     assert cfg.defaults == [{"/lifter": "tikhonov"}, "_self_"]
     assert cfg.solver.tikhonov == 0.00412 and cfg.graph.k == 16
+
+
+class _Return:
+    """What a launcher returns of a job (hydra.core.utils.JobReturn's fields the search reads)."""
+
+    def __init__(self, out_dir, value=None, error=None):
+        self.hydra_cfg = SimpleNamespace(hydra=SimpleNamespace(runtime=SimpleNamespace(output_dir=str(out_dir))))
+        self._value, self._error = value, error
+
+    @property
+    def return_value(self):
+        if self._error is not None:
+            raise self._error
+        return self._value
+
+
+def _fake_launcher(objective):
+    """(launch, the batches launched): each job's value objective(overrides as a dict) (None: it fails)."""
+    batches = []
+
+    def launch(jobs, idx):
+        batches.append([list(j) for j in jobs])
+        out = []
+        for k, job in enumerate(jobs):
+            keys = dict(o.lstrip("+").split("=", 1) for o in job)
+            v = objective(keys)
+            out.append(_Return(f"/sweep/{idx + k}_job", v, None if v is not None else RuntimeError("job died")))
+        return out
+
+    return launch, batches
+
+
+def test_the_search_runs_every_test_job_after_the_choice_in_the_sweeps_folder(tmp_path):
+    import math
+
+    def objective(keys):  # a peak at t = 10^-2.5; the first trial's seed-4 job fails
+        if len(batches) == 1 and keys["seed"] == "4":
+            return None
+        t = float(keys.get("solver.tikhonov", 1e-9))
+        return 60 - (math.log10(t) + 2.5) ** 2 + (0 if keys.get("lifter") != "diffuser" else -5)
+
+    launch, batches = _fake_launcher(objective)
+    checked = []
+    spec = _spec(n_trials=6, n_startup_trials=3, compare={"diffuser": {"lifter": "diffuser"}})
+    record = tune.search(spec, ["+experiment=tune_tikhonov", "seed=0"], launch, checked.append, tmp_path, "tune_tikhonov")
+    # the start-up check saw every validation and test job once, before any ran
+    assert len(checked) == 1 and len(checked[0]) == 3 + 6 * 2
+    val, test = [j for b in batches[:-1] for j in b], batches[-1]
+    assert len(batches) == 7 and len(val) == 18 and len(test) == 12  # the test jobs in one batch, last
+    assert all(f"hydra.sweep.dir='{tmp_path}'" in j for j in val + test)  # one folder, whatever the job's scene
+    assert {o for j in val for o in j if o.startswith(("seed=", "split="))} == {"seed=3", "seed=4", "seed=5",
+                                                                                 "split=validation"}
+    assert {o for j in test for o in j if o.startswith("split=")} == {"split=test"}
+    assert sum("scene=scannet0470" in j for j in test) == 6 and sum("lifter=diffuser" in j for j in test) == 6
+    first, *rest = record["trials"]
+    assert first["value"] is None and first["error"] == "RuntimeError: job died"  # failed, the search went on
+    values = [t["value"] for t in rest]
+    assert None not in values and record["best"]["value"] == max(values) and len(rest) == 5
+    chosen = record["best"]["overrides"][0]
+    assert all(chosen in j for j in test if "lifter=diffuser" not in j)
+    assert not any(o.startswith("solver.tikhonov") for j in test if "lifter=diffuser" in j for o in j)
+    assert (tmp_path / "tuned" / "tune_tikhonov.yaml").read_text().count(chosen.split("=")[1]) >= 2
+    assert json.loads((tmp_path / "tune.json").read_text()) == json.loads(json.dumps(record))
+    assert [t["arm"] for t in record["test_jobs"]][:2] == ["tuned", "diffuser"]
+
+
+def test_a_search_without_a_completed_trial_runs_no_test_job(tmp_path):
+    launch, batches = _fake_launcher(lambda keys: None if keys["split"] == "validation" else 50.0)
+    with pytest.raises(TuneError, match=r"^tune: none of the 2 trials completed \(first: RuntimeError: job died\); "
+                                        r"no test job ran$"):
+        tune.search(_spec(n_trials=2), [], launch, lambda jobs: None, tmp_path, "x")
+    assert len(batches) == 2 and not (tmp_path / "tuned").exists()
+    assert json.loads((tmp_path / "tune.json").read_text())["best"] is None
 
 
 @pytest.mark.slow
