@@ -37,6 +37,7 @@ from typing import Optional
 
 import numpy as np
 
+from diffuser_lab.backends.records import to_float16
 from diffuser_lab.data.scene import IGNORE
 
 BINS = 15
@@ -78,7 +79,8 @@ def stored(scores: np.ndarray) -> np.ndarray:
     if s.ndim != 2:
         raise ValueError(f"class scores must be (points, classes), got shape {s.shape}")
     total = s.sum(1, keepdims=True)
-    return np.divide(s, total, out=np.zeros_like(s), where=total > 0).astype(STORED)
+    # via float32: numpy's own float16 cast takes a slow path for subnormals (a distribution's tiny shares)
+    return to_float16(np.divide(s, total, out=np.zeros_like(s), where=total > 0).astype(np.float32))
 
 
 def confidence(p: np.ndarray) -> np.ndarray:

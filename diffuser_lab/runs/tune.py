@@ -267,7 +267,8 @@ def _jobs_text(jobs: Sequence[tuple[str, list[str]]]) -> str:
 
 
 def _mean_std(xs: Sequence[float]) -> str:
-    return f"{statistics.fmean(xs):.1f} +- {statistics.stdev(xs):.1f}" if len(xs) > 1 else f"{xs[0]:.1f}"
+    """``mean ± std`` as the sweep's table writes it (the standard deviation of the values themselves)."""
+    return f"{statistics.fmean(xs):.1f} ± {statistics.pstdev(xs):.1f}" if len(xs) > 1 else f"{xs[0]:.1f}"
 
 
 def _best(trials: Sequence[Trial], direction: str) -> Optional[Trial]:
