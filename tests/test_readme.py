@@ -235,6 +235,9 @@ def check_slurm(c: Command, work):
 
 
 def check_analysis(c: Command, p, work):
+    if "--where-a" in c.text:  # two groups of the k sweep, paired by seed
+        assert re.search(r"^B - A over \d+ pairs \(seed=0", p.stdout, re.M) and "Common support: " in p.stdout, p.stdout
+        return
     out = Path(work["repo"]) / re.search(r"--(?:out|rrd) (\S+)", c.text).group(1)
     if "analysis.collect" in c.text:
         assert "| graph.k |" in p.stdout and out.with_suffix(".csv").is_file() and out.with_suffix(".md").is_file()
@@ -243,6 +246,10 @@ def check_analysis(c: Command, p, work):
     elif "analysis.report" in c.text:
         md = (out / "report.md").read_text()
         assert md.startswith("# Experiment k"), md[:200]
+        assert "Reference: `graph.k=24` (the default run's" in md and "![forest](forest.png)" in md
+        if "--html" in c.text:
+            page = (out / "report.html").read_text()
+            assert page.count('src="data:image/png;base64,') == md.count("](") and 'src="forest.png"' not in page
     elif "analysis.compare" in c.text:
         assert out.is_file() and out.stat().st_size > 1000 and "differ" in p.stdout.lower()
 
