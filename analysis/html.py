@@ -15,7 +15,7 @@ from pathlib import Path
 
 STYLE = """
 body { font: 15px/1.45 system-ui, -apple-system, "Segoe UI", sans-serif; color: #1d1d1f; margin: 2em auto;
-       max-width: 1200px; padding: 0 1.5em; }
+       max-width: 1400px; padding: 0 1.5em; }
 h1 { font-size: 1.6em; margin-bottom: .3em; } h2 { font-size: 1.25em; margin-top: 1.8em;
      border-bottom: 1px solid #ddd; padding-bottom: .2em; }
 code { background: #f2f2f4; padding: 0 .25em; border-radius: 3px; font-size: .92em; }
@@ -51,15 +51,15 @@ _DIFF = re.compile(r"^([+-][\d.]+)( \[[^\]]+\])?( p \S+)( n\.s\.)?$")  # a paire
 
 
 def _cell(text: str) -> str:
-    """A table cell; a paired difference (``+4.7 [+2.1, +7.3] p 0.031 n.s.``) on two lines, the mean
-    bold when significant, the whole cell grey when not."""
+    """A table cell; a paired difference (``+4.7 [+2.1, +7.3] p 0.031 n.s.``) on two lines (the mean,
+    bold when significant; the interval and p), the whole cell grey when not significant."""
     m = _DIFF.match(text)
     if not m:
         return f"<td>{_inline(text)}</td>"
     mean, interval, p, ns = m.groups()
     mean = mean if ns else f"<strong>{mean}</strong>"
-    return (f'<td class="{"diff ns" if ns else "diff"}">{mean}{html.escape(interval or "")}<br>'
-            f"<small>{html.escape(p.strip())}{' n.s.' if ns else ''}</small></td>")
+    return (f'<td class="{"diff ns" if ns else "diff"}">{mean}<br>'
+            f"<small>{html.escape((interval or '').strip())} {html.escape(p.strip())}{' n.s.' if ns else ''}</small></td>")
 
 
 def _cells(line: str) -> list[str]:

@@ -178,7 +178,7 @@ def _support_section(ok: list[Run], support: paired.Support, keys: list[str]) ->
             row[name], row[name + "_std"] = (float(v.mean()), float(v.std())) if v.size else (None, None)
         rows.append(row)
     names = [n for n in paired.COMMON if any(r[n] is not None for r in rows)]
-    lines = ["## The same points (common support)", "", support.line(),
+    lines = ["## The same points (common support)", "", support.line(), "",
              "mIoU and accuracy of each configuration's method and of its runs' Bayesian baseline on those points "
              "(mean ± std over seeds; coverage there is 100 % by definition): every method scored on the same points, "
              "beside the all-points table above.", "",
