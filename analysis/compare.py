@@ -105,7 +105,7 @@ def compare_groups(a: str | Path, b: str | Path, where_a: dict | None = None, wh
     support = paired.common_support(ra + rb)
     metrics = paired.metrics_of(ra + rb, support)
     unmatched: list[str] = []
-    diffs, per_class, units = paired.pair_up(rb, ra, unmatched, f"compare {a} {b}", metrics, support, "group A")
+    diffs, per_class, units = paired.pair_up(rb, ra, unmatched, metrics, support, "group A")
     unmatched += [f"`{r.path.name}`: no run of group B at {paired.unit_label(u)}"
                   for u, r in ((paired.unit_of(r), r) for r in ra) if u not in set(units)]
     return {"a": str(a), "b": str(b), "where_a": where_a or {}, "where_b": where_b or {}, "runs_a": len(ra),

@@ -14,8 +14,8 @@ at matched units (seed, scene); the mean of d; a percentile bootstrap interval o
 sign flipped, exact over all 2^n flips up to n = 16 pairs). Significant: the interval excludes 0
 and p < 0.05; with n pairs the smallest p is 2 / 2^n (0.25 at 3, 0.0625 at 5), so with 5 pairs or
 fewer no difference is significant: a statement about the design, not the methods. Every draw is
-keyed by :mod:`diffuser_lab.seeding` (the comparison's name): a row's interval does not depend on
-what else is in the report.
+keyed by :mod:`diffuser_lab.seeding` with the differences themselves: the same differences give the
+same interval in a report, a group comparison and this command.
 """
 from __future__ import annotations
 
@@ -114,16 +114,17 @@ def _mean(x, axis=-1):
     return np.mean(x, axis=axis)
 
 
-def _rng(fn, name: str, what: str) -> dict:
-    """scipy's keyword for a Generator keyed by the comparison's name (``rng``; ``random_state``
-    before scipy 1.15)."""
-    gen = seeding.rng(STATS_SEED, f"analysis.paired.{what}", seeding.purpose_id(name))
+def _rng(fn, d: np.ndarray, what: str) -> dict:
+    """scipy's keyword (``rng``; ``random_state`` before scipy 1.15) for a Generator keyed by the
+    differences themselves: the same differences get the same interval wherever they are computed
+    (a report, a group comparison, ``python -m analysis.paired``)."""
+    gen = seeding.rng(STATS_SEED, f"analysis.paired.{what}", zlib.crc32(np.ascontiguousarray(d, "<f8").tobytes()))
     return {"rng" if "rng" in inspect.signature(fn).parameters else "random_state": gen}
 
 
-def paired_difference(d: Iterable[float], name: str = "") -> Difference:
+def paired_difference(d: Iterable[float]) -> Difference:
     """The mean of the paired differences ``d`` ((n,) a - b per unit; NaN / None left out), its
-    bootstrap interval and sign-flip p-value (module docstring). ``name`` keys the draws."""
+    bootstrap interval and sign-flip p-value (module docstring)."""
     from scipy import stats
 
     d = np.array([np.nan if is_nan(x) else float(x) for x in d], float)
@@ -137,13 +138,13 @@ def paired_difference(d: Iterable[float], name: str = "") -> Difference:
         low = high = mean
     elif n >= 2:
         ci = stats.bootstrap((d,), _mean, vectorized=True, confidence_level=CONFIDENCE, n_resamples=RESAMPLES,
-                             method="percentile", **_rng(stats.bootstrap, name, "bootstrap")).confidence_interval
+                             method="percentile", **_rng(stats.bootstrap, d, "bootstrap")).confidence_interval
         low, high = float(ci.low), float(ci.high)
     if n == 1:  # the two flips +d and -d: each as extreme as the other
         return Difference(1, mean, None, None, 1.0, True)
     exact = n <= EXACT_PAIRS
     res = stats.permutation_test((d,), _mean, vectorized=True, permutation_type="samples", alternative="two-sided",
-                                 n_resamples=np.inf if exact else RESAMPLES, **_rng(stats.permutation_test, name, "flips"))
+                                 n_resamples=np.inf if exact else RESAMPLES, **_rng(stats.permutation_test, d, "flips"))
     return Difference(n, mean, low, high, float(min(1.0, res.pvalue)), exact)
 
 
@@ -409,7 +410,7 @@ def _by_unit(members: list[Run], unmatched: list[str]) -> dict:
     return out
 
 
-def pair_up(a: list[Run], b: list[Run], unmatched: list[str], name: str, metrics: Iterable[str],
+def pair_up(a: list[Run], b: list[Run], unmatched: list[str], metrics: Iterable[str],
             support: Optional[Support] = None, what_b: str = "the reference") -> tuple[dict, dict, list]:
     """Differences a - b over the units both ran: (metric -> Difference, class -> Difference of
     the per-class IoU, the units). Runs of either side without a partner go to ``unmatched``."""
@@ -420,7 +421,7 @@ def pair_up(a: list[Run], b: list[Run], unmatched: list[str], name: str, metrics
     diffs = {}
     for m in metrics:
         d = [(metric(ua[u], m, support), metric(ub[u], m, support)) for u in units]
-        diffs[m] = paired_difference([x - y for x, y in d if x is not None and y is not None], f"{name}|{m}")
+        diffs[m] = paired_difference([x - y for x, y in d if x is not None and y is not None])
     classes: dict[str, list] = {}
     for u in units:
         ia = ua[u].metric("metrics.per_class_iou") or {}
@@ -428,7 +429,7 @@ def pair_up(a: list[Run], b: list[Run], unmatched: list[str], name: str, metrics
         for c in ia:
             if c in ib:
                 classes.setdefault(c, []).append(ia[c] - ib[c])
-    per_class = {c: paired_difference(v, f"{name}|class {c}") for c, v in classes.items()}
+    per_class = {c: paired_difference(v) for c, v in classes.items()}
     return diffs, per_class, units
 
 
@@ -466,7 +467,7 @@ def compare_configurations(runs: list[Run], reference: Optional[dict] = None,
             unmatched += [f"`{r.path.name}`: no reference run ({config_label(target)})" for r in groups[cfg]]
             rows.append(Row(config, target, {m: Difference(0) for m in metrics}, {}, []))
             continue
-        diffs, per_class, units = pair_up(groups[cfg], groups[mine], unmatched, config_label(config), metrics,
+        diffs, per_class, units = pair_up(groups[cfg], groups[mine], unmatched, metrics,
                                           support, f"`{config_label(target)}`")
         rows.append(Row(config, target, diffs, per_class, units))
     return Comparison(keys, ref, how, held, rows, references, sorted(set(unmatched)), metrics)
@@ -491,7 +492,7 @@ def baseline_differences(runs: list[Run], support: Optional[Support] = None) -> 
             d = [(metric(r, m, support), metric(r, b, support)) for r in groups[cfg]]
             d = [x - y for x, y in d if x is not None and y is not None]
             if d:
-                diffs[m] = paired_difference(d, f"{config_label(config)}|baseline|{m}")
+                diffs[m] = paired_difference(d)
         if diffs:
             out.append((config, diffs))
     return out
@@ -538,7 +539,7 @@ def main(argv=None) -> int:
     except ValueError as exc:
         print(f"paired: error: {exc}", file=sys.stderr)
         return 2
-    r = paired_difference(d, "cli")
+    r = paired_difference(d)
     how = f"exact over {2 ** r.n} sign flips" if r.exact else f"{RESAMPLES} random sign flips"
     print(f"x - y over {r.n} pair{'' if r.n == 1 else 's'}: {r.cell()} (95 % percentile bootstrap interval; two-sided sign-flip p, {how})")
     if not r.significant:
