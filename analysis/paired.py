@@ -525,6 +525,7 @@ def main(argv=None) -> int:
     ap.add_argument("--x", help="one value per unit (comma-separated)")
     ap.add_argument("--y", help="the other side's values at the same units, in the same order")
     ap.add_argument("--d", help="the differences x - y themselves (instead of --x and --y)")
+    ap.add_argument("--digits", type=int, default=1, help="decimals printed (default 1)")
     a = ap.parse_args(argv)
     try:
         if a.d is not None:
@@ -541,7 +542,7 @@ def main(argv=None) -> int:
         return 2
     r = paired_difference(d)
     how = f"exact over {2 ** r.n} sign flips" if r.exact else f"{RESAMPLES} random sign flips"
-    print(f"x - y over {r.n} pair{'' if r.n == 1 else 's'}: {r.cell()} (95 % percentile bootstrap interval; two-sided sign-flip p, {how})")
+    print(f"x - y over {r.n} pair{'' if r.n == 1 else 's'}: {r.cell(a.digits)} (95 % percentile bootstrap interval; two-sided sign-flip p, {how})")
     if not r.significant:
         print(f"not significant: {r.why}")
     return 0
