@@ -158,12 +158,14 @@ def unit_of(run: Run) -> tuple[str, ...]:
         v = run.overrides.get(k, "")
         if k == "scene" and not v:
             v = run.hydra_choices.get("scene", "")
+        elif k in SEED_KEYS and not v:  # not overridden: the default seed (seed=0 given or not: one unit)
+            v = str(default_value(k))
         out.append(v)
     return tuple(out)
 
 
 def unit_label(unit: tuple[str, ...]) -> str:
-    return ", ".join(f"{k}={v}" for k, v in zip(UNIT_KEYS, unit) if v) or "default seed"
+    return ", ".join(f"{k}={v}" for k, v in zip(UNIT_KEYS, unit) if v) or "one unit"
 
 
 def config_keys(runs: list[Run]) -> list[str]:
