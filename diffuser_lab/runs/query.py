@@ -36,7 +36,7 @@ from diffuser_lab.method.basis import BasisFeatures
 from diffuser_lab.method.metrics import score
 from diffuser_lab.method.queries import Queries, labels_of_cosines, query_classes, query_labels
 
-from .records import BASIS_FILE, write_json_atomic
+from .records import BASIS_FILE, GT_FILE, write_json_atomic
 
 __all__ = ["METHODS", "FEATURES", "RunFeatures", "QueryResult", "read_run", "query_run", "output_names", "table", "basis_line"]
 
@@ -46,7 +46,6 @@ METHODS = (("diffuser", "features.npy", "diffuser"),
 """(key in query.json, file in the run folder, row of the table), in the table's order."""
 FEATURES = METHODS[0][1]
 """The file that makes a folder a features run."""
-GT_FILE = "gt_labels.npy"
 _OUT_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
 
 

@@ -10,9 +10,11 @@ sweep's time).
 No ``from __future__ import annotations`` here: Hydra's plugin scan runs this file outside
 ``sys.modules``, where a dataclass needs evaluated annotations.
 """
+import copy
 from dataclasses import dataclass
 from typing import Dict, List, Optional, Sequence
 
+from hydra._internal.config_repository import CachingConfigRepository
 from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
 from hydra.core.config_store import ConfigStore
 
@@ -41,12 +43,22 @@ def covering(batch: Sequence[Sequence[str]]) -> List[Sequence[str]]:
     return [batch[i] for i in sorted(picked)]
 
 
+class _CopyingRepository(CachingConfigRepository):
+    """A CachingConfigRepository whose cached files are handed out as deep copies: Hydra merges a
+    ``@package _global_`` option (method=ldls's ``graph.k: 10``) into the loaded nodes of other
+    groups in place, so a shared node carried one job's values into the next (every Diffuser job of
+    a sweep with an LDLS job ran LDLS's graph: K = 10, no normals)."""
+
+    def load_config(self, config_path):
+        return copy.deepcopy(super().load_config(config_path))
+
+
 class _OneRepository:
     """Stands in for ``ConfigLoaderImpl._parse_overrides_and_create_caching_repo``, which deep-copies
     the config repository and reads every YAML file again for each job's compose (~a third of it):
-    the jobs of one sweep share one caching repository per search path (results unchanged: Hydra
-    copies what it loads before changing it). A picklable object, for the launchers that ship the
-    loader to other processes."""
+    the jobs of one sweep share one caching repository per search path, which hands out copies of
+    the files it read (:class:`_CopyingRepository`). A picklable object, for the launchers that ship
+    the loader to other processes."""
 
     def __init__(self, loader) -> None:
         from hydra.core.override_parser.overrides_parser import OverridesParser
@@ -54,12 +66,10 @@ class _OneRepository:
         self.loader, self.parser, self.repos = loader, OverridesParser.create(), {}
 
     def __call__(self, config_name, overrides):
-        from hydra._internal.config_repository import CachingConfigRepository
-
         parsed = self.parser.parse_overrides(overrides=overrides)
         key = tuple(o for o in overrides if o.lstrip("+~").startswith("hydra.searchpath"))
         if key not in self.repos:
-            self.repos[key] = CachingConfigRepository(self.loader.repository)
+            self.repos[key] = _CopyingRepository(self.loader.repository)
         self.loader._process_config_searchpath(config_name, parsed, self.repos[key])
         return parsed, self.repos[key]
 

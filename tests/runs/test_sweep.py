@@ -14,6 +14,7 @@ def _compose(overrides):
     from hydra.core.global_hydra import GlobalHydra
 
     from diffuser_lab.config import register
+    from diffuser_lab.data import sources  # noqa: F401 - stores the scene/options configs (the module run alone)
     from diffuser_lab.runs import launchers
 
     register()
@@ -158,12 +159,14 @@ def test_a_sweeps_jobs_share_one_config_repository_and_compose_the_same_configs(
     from omegaconf import OmegaConf
 
     from diffuser_lab.config import register
+    from diffuser_lab.data import sources  # noqa: F401 - stores the scene/options configs (the module run alone)
     from diffuser_lab.runs import launchers
 
     register()
     launchers.register()
+    # method=ldls's @package _global_ graph keys once leaked into the later jobs' graph (a shared node)
     jobs = [["graph.k=8", "seed=0"], ["graph.k=32", "seed=2", "hydra.searchpath=[file://" + str(ROOT / "conf") + "]"],
-            ["graph.k=8", "seed=1"]]
+            ["graph.k=8", "seed=1"], ["method=ldls", "seed=0"], ["method=diffuser", "seed=0"]]
 
     def composed(share: bool) -> list[str]:
         loader = ConfigLoaderImpl(config_search_path=create_config_search_path(str(ROOT / "conf")))
