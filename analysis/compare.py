@@ -1,12 +1,20 @@
 """Two runs side by side: where they ran, per-class IoU deltas, the points whose label differs,
-and an .rrd showing both label sets on the same cloud.
+both scored on the points both label, and an .rrd showing both label sets on the same cloud; or two
+groups of runs: their paired differences over matched seeds and scenes.
 
     python -m analysis.compare RUN_A RUN_B [--rrd compare.rrd]
+    python -m analysis.compare SWEEP SWEEP --where-a method=bayesian --where-b method=diffuser
 
-Both runs must label the same cloud (same scene, same number of points). The first line says
+Two runs must label the same cloud (same scene, same number of points). The first line says
 whether they ran on the same machine and versions (summary.json ``provenance``) or which fields
 differ (CPU, ISA, numba target, numpy SIMD, BLAS, a package's version, the commit, ...): runs of
 one seed on different machines may differ in their figures.
+
+Two groups (a folder of runs on either side, or ``--where-a`` / ``--where-b KEY=VALUE`` picking
+runs by their overrides): B - A per metric and per class over the seeds and scenes both ran, with a
+95 % bootstrap interval and the sign-flip p-value (:mod:`analysis.paired`), every run scored on the
+points all of them label; runs without a partner are listed. Runs of the validation and the test
+split (summary.json ``split``): one error line, unless ``--mix-splits``.
 """
 from __future__ import annotations
 
@@ -17,7 +25,10 @@ from pathlib import Path
 
 import numpy as np
 
+from analysis import paired
+from analysis.runs import find_runs
 from diffuser_lab.backends import provenance
+from diffuser_lab.runs.results import provenance_line
 
 
 def _load(run: Path) -> tuple[dict, np.ndarray]:
@@ -44,11 +55,88 @@ def compare(run_a: str | Path, run_b: str | Path, rrd: str | Path | None = None)
     out = {"a": str(run_a), "b": str(run_b), "miou_a": (sa.get("metrics") or {}).get("miou"),
            "miou_b": (sb.get("metrics") or {}).get("miou"), "n_points": int(la.size),
            "n_differ": int(differ.sum()), "share_differ": float(differ.mean()) if la.size else 0.0,
-           "per_class": per_class, "provenance": _provenance(sa, sb)}
+           "per_class": per_class, "provenance": _provenance(sa, sb), "common": _common(run_a, run_b)}
     if rrd is not None:
         _write_rrd(Path(run_a), Path(run_b), la, lb, Path(rrd), sa)
         out["rrd"] = str(rrd)
     return out
+
+
+def _common(run_a, run_b) -> dict | None:
+    """Both runs scored on the points both label (and their Bayesian baselines, when saved):
+    ``{"points", "of", "a": {miou, accuracy}, "b": {...}}``; None without gt_labels.npy."""
+    runs = find_runs([run_a])[:1] + find_runs([run_b])[:1]
+    support = paired.common_support(runs, unit=lambda r: ())
+    if len(support.scores) != 2 or len(support.sizes) != 1:
+        return None
+    _, points, of = support.sizes[0]
+    side = lambda r: {"miou": support.scores[r.path]["miou_common"], "accuracy": support.scores[r.path]["accuracy_common"]}  # noqa: E731
+    return {"points": points, "of": of, "baseline": support.baseline, "a": side(runs[0]), "b": side(runs[1])}
+
+
+def _select(path: str | Path, where: dict | None, side: str) -> list:
+    """The finished runs under ``path`` whose overrides match ``where``; one line when none."""
+    runs = [r for r in find_runs([path]) if r.status == "ok"]
+    if where:
+        runs = [r for r in runs if all(paired.config_value(r, k) == v for k, v in where.items())]
+    if not runs:
+        picked = f" with {paired.config_label(where)}" if where else ""
+        raise ValueError(f"{path}: no finished run{picked} for group {side}")
+    return runs
+
+
+def compare_groups(a: str | Path, b: str | Path, where_a: dict | None = None, where_b: dict | None = None,
+                   mix_splits: bool = False) -> dict:
+    """B - A over the seeds and scenes both groups ran (module docstring): ``differences`` metric ->
+    :meth:`analysis.paired.Difference.as_dict`, ``per_class`` [{class, ...}], ``units`` paired,
+    ``unmatched`` lines, ``support`` the common support's sentence."""
+    ra, rb = _select(a, where_a, "A"), _select(b, where_b, "B")
+    paired.check_splits(ra + rb, mix_splits)
+    for side, runs, flag in (("A", ra, "--where-a"), ("B", rb, "--where-b")):
+        seen: dict = {}
+        for r in runs:
+            u = paired.unit_of(r)
+            if u in seen:
+                keys = paired.config_keys(runs)
+                hint = f" (they differ in {', '.join(keys)})" if keys else ""
+                raise ValueError(f"group {side} holds two runs at {paired.unit_label(u)}: `{seen[u].path}` and `{r.path}`"
+                                 f"{hint}; pick one configuration with {flag} KEY=VALUE")
+            seen[u] = r
+    support = paired.common_support(ra + rb)
+    metrics = paired.metrics_of(ra + rb, support)
+    unmatched: list[str] = []
+    diffs, per_class, units = paired.pair_up(rb, ra, unmatched, metrics, support, "group A")
+    unmatched += [f"`{r.path.name}`: no run of group B at {paired.unit_label(u)}"
+                  for u, r in ((paired.unit_of(r), r) for r in ra) if u not in set(units)]
+    return {"a": str(a), "b": str(b), "where_a": where_a or {}, "where_b": where_b or {}, "runs_a": len(ra),
+            "runs_b": len(rb), "units": [paired.unit_label(u) for u in units],
+            "differences": {m: d.as_dict() for m, d in diffs.items()},
+            "per_class": [{"class": c, **d.as_dict()} for c, d in sorted(per_class.items(), key=lambda kv: kv[0])],
+            "unmatched": sorted(set(unmatched)), "support": support.line(),
+            "machines": provenance_line(ra + rb, "runs")}
+
+
+def _cell(d: dict, digits: int = 1) -> str:
+    return paired.Difference(**{k: d[k] for k in ("n", "mean", "low", "high", "p", "exact")}).cell(digits)
+
+
+def group_lines(res: dict) -> list[str]:
+    """What :func:`main` prints of :func:`compare_groups`'s dict."""
+    pick = lambda w: f" ({paired.config_label(w)})" if w else ""  # noqa: E731
+    lines = [f"A: {res['a']}{pick(res['where_a'])}: {res['runs_a']} runs",
+             f"B: {res['b']}{pick(res['where_b'])}: {res['runs_b']} runs"]
+    if res["machines"]:
+        lines.append(res["machines"])
+    lines.append(f"B - A over {len(res['units'])} pairs ({'; '.join(res['units']) or 'none'}): mean [95 % bootstrap "
+                 "interval] two-sided sign-flip p; n.s.: the interval crosses 0 or p >= 0.05")
+    lines += [f"  {m:18s}{_cell(d, paired.digits(m))}" for m, d in res["differences"].items()]
+    if res["support"]:
+        lines.append(res["support"])
+    lines.append(f"{'class':16s}B - A (IoU)")
+    lines += [f"{r['class']:16s}{_cell(r)}" for r in res["per_class"]]
+    if res["unmatched"]:
+        lines.append("without a partner: " + "; ".join(res["unmatched"]))
+    return lines
 
 
 def _provenance(sa: dict, sb: dict) -> dict:
@@ -129,26 +217,52 @@ def _classes(summary: dict, pcd, labels: np.ndarray) -> tuple[tuple, np.ndarray]
         return tuple(f"class_{i}" for i in range(n)), colors
 
 
+def _is_run(path: str) -> bool:
+    return (Path(path) / "summary.json").is_file()
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m analysis.compare", description=__doc__.splitlines()[0])
-    ap.add_argument("run_a")
-    ap.add_argument("run_b")
-    ap.add_argument("--rrd", help="write an .rrd with both label sets (open with `rerun FILE`)")
+    ap.add_argument("run_a", help="a run folder, or a folder of runs (group A)")
+    ap.add_argument("run_b", help="a run folder, or a folder of runs (group B)")
+    ap.add_argument("--where-a", action="append", default=[], metavar="KEY=VALUE",
+                    help="group A: the runs with these overrides (repeat or comma-separate)")
+    ap.add_argument("--where-b", action="append", default=[], metavar="KEY=VALUE", help="group B: likewise")
+    ap.add_argument("--mix-splits", action="store_true",
+                    help="allow runs of the validation and the test split (summary.json split) together")
+    ap.add_argument("--rrd", help="two runs: write an .rrd with both label sets (open with `rerun FILE`)")
     ap.add_argument("--json", action="store_true", help="print JSON instead of a table")
     a = ap.parse_args(argv)
+    groups = a.where_a or a.where_b or not (_is_run(a.run_a) and _is_run(a.run_b))
     try:
-        res = compare(a.run_a, a.run_b, a.rrd)
+        if groups:
+            if a.rrd:
+                raise ValueError("--rrd: two run folders only (a folder of runs or --where-a/-b compares groups)")
+            res = compare_groups(a.run_a, a.run_b, paired.parse_assignments(a.where_a, "--where-a"),
+                                 paired.parse_assignments(a.where_b, "--where-b"), a.mix_splits)
+        else:
+            paired.check_splits(find_runs([a.run_a, a.run_b]), a.mix_splits)
+            res = compare(a.run_a, a.run_b, a.rrd)
     except (FileNotFoundError, ValueError) as exc:
         print(f"compare: error: {exc}", file=sys.stderr)
         return 2
     if a.json:
         print(json.dumps(res, indent=2))
         return 0
+    if groups:
+        print("\n".join(group_lines(res)))
+        return 0
     f = lambda v: "-" if v is None else f"{v:.1f}"  # noqa: E731
     print(f"A: {res['a']}\nB: {res['b']}")
     print("\n".join(provenance_lines(res["provenance"])))
     print(f"mIoU  A {f(res['miou_a'])}  B {f(res['miou_b'])}   labels differ on {res['n_differ']:,} of "
           f"{res['n_points']:,} points ({100 * res['share_differ']:.1f}%)")
+    c = res["common"]
+    if c:
+        both = "both runs" + (" and their Bayesian baselines" if c["baseline"] else "")
+        print(f"on the {c['points']:,} points {both} label ({100 * c['points'] / max(c['of'], 1):.1f}%): "
+              f"mIoU A {f(c['a']['miou'])}  B {f(c['b']['miou'])}, accuracy A {f(c['a']['accuracy'])}  "
+              f"B {f(c['b']['accuracy'])}")
     print(f"{'class':16s}{'A':>7s}{'B':>7s}{'B-A':>7s}")
     for r in res["per_class"]:
         print(f"{r['class']:16s}{f(r['a']):>7s}{f(r['b']):>7s}{f(r['delta']):>7s}")

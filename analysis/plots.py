@@ -16,7 +16,9 @@
   value (sequential colour map for numbers, qualitative for names), a second swept parameter as
   line style (or as panel rows when it has more than four values);
 - ``online.png``: for online runs (``protocol=online``), mIoU and latency frame by frame
-  (:mod:`analysis.online`).
+  (:mod:`analysis.online`);
+- ``forest.png`` (:mod:`analysis.report` draws it): each configuration's paired difference from the
+  reference with its 95 % interval, per metric (:func:`forest_figure`).
 
 Each ``plot_*`` function saves a PNG; the ``*_figure`` function behind it returns the matplotlib
 Figure (or None when there is nothing to draw) for inspection.
@@ -204,7 +206,7 @@ def sweep_figure(runs: list[Run], key: str) -> Figure:
     if not numeric:
         long = max(map(len, xs_all)) > 8
         ax.set_xticks(range(len(xs_all)), xs_all, rotation=30 if long else 0, ha="right" if long else "center")
-        ax.margins(x=0.15)
+        ax.margins(x=0.12)
     handles, labels = ax.get_legend_handles_labels()
     handles.append(Line2D([], [], ls="--", color=BASELINE_COLOR))
     labels.append(BASELINE_LABEL)
@@ -590,6 +592,77 @@ def plot_reliability(runs: list[Run], out: Path) -> Path | None:
     """Reliability diagrams of the runs' class distributions (summary ``metrics.calibration``)."""
     fig = reliability_figure(runs)
     return None if fig is None else _save(fig, out / "reliability.png")
+
+
+# --- paired differences from the reference -------------------------------------------------------
+
+METRIC_TITLES = {"miou": "mIoU", "accuracy": "accuracy", "coverage": "coverage",
+                 "miou_common": "mIoU, common support", "accuracy_common": "accuracy, common support",
+                 "ece": "ECE", "nll": "NLL (nats)", "brier": "Brier"}
+FOREST_COLUMNS = 4  # panels per row
+SIGNIFICANT_COLOR = "#4c72b0"
+NOT_SIGNIFICANT_COLOR = "#9a9a9a"
+
+
+def forest_figure(comparison) -> Figure | None:
+    """One panel per metric: each configuration's mean paired difference from the reference
+    (:class:`analysis.paired.Comparison`) with its 95 % bootstrap interval, the reference at 0;
+    significant ones filled blue, the others hollow grey with a dashed interval. None without pairs."""
+    rows = [r for r in comparison.rows if any(d.n for d in r.diffs.values())]
+    metrics = [m for m in comparison.metrics if any(r.diffs[m].n for r in rows)]
+    if not rows or not metrics:
+        return None
+    ncols = min(FOREST_COLUMNS, len(metrics))
+    nrows = -(-len(metrics) // ncols)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(2.2 + 2.9 * ncols, 0.5 + nrows * (1.3 + 0.36 * len(rows))),
+                             sharey=True, squeeze=False)
+    for ax in axes.flat[len(metrics):]:
+        ax.set_visible(False)
+    y = np.arange(len(rows))[::-1]
+    for ax, m in zip(axes.flat, metrics):
+        ax.axvline(0.0, color="0.25", lw=1.0, zorder=1)
+        for yi, row in zip(y, rows):
+            d = row.diffs[m]
+            if d.mean is None:
+                continue
+            sig = d.significant
+            color = SIGNIFICANT_COLOR if sig else NOT_SIGNIFICANT_COLOR
+            lo, hi = (d.low, d.high) if d.low is not None else (d.mean, d.mean)
+            bars = ax.errorbar(d.mean, yi, xerr=[[d.mean - lo], [hi - d.mean]], fmt="o", ms=6, color=color,
+                               mfc=color if sig else "white", mew=1.5, ecolor=color, elinewidth=1.6, capsize=3, zorder=3)
+            if not sig:
+                for lc in bars[2]:
+                    lc.set_linestyle("--")
+        ends = [x for r in rows for x in (r.diffs[m].low, r.diffs[m].high, r.diffs[m].mean) if x is not None]
+        if ends and max(abs(x) for x in ends) < 1e-9:  # all zero (a metric the swept key leaves alone)
+            ax.set_xlim(-1.0, 1.0)
+        ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(5))
+        ax.set_title(METRIC_TITLES.get(m, m), fontsize=10)
+        ax.set_xlabel("difference" + (" (points)" if m not in ("nll", "brier") else ""), fontsize=9)
+        ax.grid(axis="x", alpha=0.3)
+        ax.margins(x=0.12)
+    keys = [k for k in comparison.keys if len({r.config.get(k) for r in rows}) > 1] or comparison.keys
+    labels = [", ".join(f"{k}={r.config[k]}" for k in keys) + f"  (n={max(d.n for d in r.diffs.values())})"
+              for r in rows]
+    for ax in axes[:, 0]:
+        ax.set_yticks(y, labels, fontsize=9)
+    axes[0][0].set_ylim(-0.7, len(rows) - 0.3)
+    ref = ", ".join(f"{k}={v}" for k, v in comparison.reference.items())
+    held = f"; same {', '.join(comparison.held)}" if comparison.held else ""
+    handles = [Line2D([], [], marker="o", color=SIGNIFICANT_COLOR, ls="-", label="significant (interval excludes 0, p < 0.05)"),
+               Line2D([], [], marker="o", color=NOT_SIGNIFICANT_COLOR, mfc="white", ls="--", label="not significant")]
+    fig.legend(handles=handles, loc="lower center", ncol=2, fontsize=8, frameon=False)
+    fig.suptitle(f"Paired difference from the reference ({ref}{held}; matched seeds and scenes): "
+                 "mean, 95 % bootstrap interval", fontsize=10)
+    h = fig.get_figheight()
+    fig.tight_layout(rect=(0, 0.3 / h, 1, 1 - 0.15 / h))
+    return fig
+
+
+def plot_forest(comparison, out: Path) -> Path | None:
+    """:func:`forest_figure` saved as ``forest.png``."""
+    fig = forest_figure(comparison)
+    return None if fig is None else _save(fig, out / "forest.png")
 
 
 # --- all of them ---------------------------------------------------------------------------------

@@ -6,7 +6,8 @@
 Each picture comes from a run of this package on a seeded scene (the demo room, the procedural city),
 drawn with matplotlib: the 3D views are the run's points splatted into a virtual pinhole camera with
 a z-buffer (numpy, no display needed), so the script runs headless. The sweep's plot and the
-reliability diagram are :mod:`analysis.plots`' own PNGs of a real sweep run through the command line.
+reliability diagram are :mod:`analysis.plots`' own PNGs of a real sweep run through the command line;
+the report's paired section is ``analysis.report --html``'s page in a real browser (chromium --headless).
 The viewer's screenshots come from ``scripts/viewer_screenshots.py`` (the real Rerun viewer under
 Xvfb) when that script is there. PNGs are written palette-quantised (small: the docs' images stay
 under 4 MB together, tests/test_docs.py).
@@ -347,6 +348,42 @@ def sweep_plots(out: Path, tmp: Path) -> list[Path]:
     return made
 
 
+def report_page(out: Path, tmp: Path) -> Path | None:
+    """The paired section of ``analysis.report --html`` (+experiment=methods, seeds 0-5, the demo room)
+    as a real browser shows it (chromium --headless; none installed: no picture, a line says so)."""
+    import shutil
+
+    from PIL import ImageOps
+
+    from analysis.html import to_html
+
+    browser = next((shutil.which(b) for b in ("chromium", "chromium-browser", "google-chrome") if shutil.which(b)), None)
+    if browser is None:
+        print("no chromium on PATH (apt-get install chromium): no report picture")
+        return None
+    env = dict(os.environ, PYTHONPATH=str(ROOT), DIFFUSER_LAB_PROGRESS="0")
+    sweep = tmp / "methods"
+    subprocess.run([sys.executable, "-m", "diffuser_lab", "-m", "+experiment=methods", "seed=0,1,2,3,4,5", "record=off",
+                    "output.labels_ply=false", f"hydra.sweep.dir={sweep}"], cwd=tmp, env=env, check=True,
+                   stdout=subprocess.DEVNULL)
+    rep = tmp / "report"
+    subprocess.run([sys.executable, "-m", "analysis.report", str(sweep), "--out", str(rep), "--html"], cwd=ROOT,
+                   env=env, check=True, stdout=subprocess.DEVNULL)
+    md = (rep / "report.md").read_text()
+    page = rep / "paired.html"  # the section alone: the page's styles, its table and the forest plot
+    page.write_text(to_html(md[md.index("## Paired differences"):md.index("## The same points")], rep, "paired"))
+    shot = tmp / "report.png"
+    subprocess.run([browser, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars", f"--screenshot={shot}",
+                    "--window-size=1440,1400", page.as_uri()], check=True, capture_output=True)
+    im = Image.open(shot).convert("RGB")
+    bottom = ImageOps.invert(im).getbbox()[3]  # the page's last non-white row
+    im = im.crop((0, 0, im.width, min(im.height, bottom + 16)))
+    im.resize((1152, round(im.height * 1152 / im.width)), Image.LANCZOS).save(tmp / "report_small.png")
+    quantise(tmp / "report_small.png", out / "report_paired.png")
+    print(f"{out / 'report_paired.png'} ({(out / 'report_paired.png').stat().st_size / 1024:.0f} KB)")
+    return out / "report_paired.png"
+
+
 def viewer_shots(out: Path) -> list[Path]:
     """The real Rerun viewer's tabs, by scripts/viewer_screenshots.py (when that script exists)."""
     path = ROOT / "scripts" / "viewer_screenshots.py"
@@ -359,7 +396,7 @@ def viewer_shots(out: Path) -> list[Path]:
     return mod.shoot_all(out)
 
 
-PICTURES = ("overview", "iterations", "online", "city", "query", "sweep", "viewer")
+PICTURES = ("overview", "iterations", "online", "city", "query", "sweep", "report", "viewer")
 
 
 def main(argv=None) -> int:
@@ -388,6 +425,8 @@ def main(argv=None) -> int:
             city_tiles(args.out, tmp)
         if "sweep" in only:
             sweep_plots(args.out, tmp)
+        if "report" in only:
+            report_page(args.out, tmp)
         if "viewer" in only:
             viewer_shots(args.out)
     return 0

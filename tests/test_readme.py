@@ -265,6 +265,10 @@ def check_analysis(c: Command, p, work):
     elif "analysis.report" in c.text:
         md = (out / "report.md").read_text()
         assert md.startswith("# Experiment k"), md[:200]
+        assert "Reference: `graph.k=24` (the default run's" in md and "![forest](forest.png)" in md
+        if "--html" in c.text:
+            page = (out / "report.html").read_text()
+            assert page.count('src="data:image/png;base64,') == md.count("](") and 'src="forest.png"' not in page
     elif "analysis.compare" in c.text:
         assert out.is_file() and out.stat().st_size > 1000 and "differ" in p.stdout.lower()
 

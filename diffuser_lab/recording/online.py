@@ -281,7 +281,8 @@ class OnlineRecorder:
         meta = online_meta(r.conf, scene)
         self.mirror = MapMirror(growing, scene.points, scene.gt_labels)
         spacing = float(r.conf.online.voxel_size) or None
-        r.each(lambda: r.rerun.log_online_start(scene.gt_labels is not None, growing, scene.points, spacing),
+        budget = 1000.0 / r.conf.online.rate if r.conf.online.rate > 0 else None
+        r.each(lambda: r.rerun.log_online_start(scene.gt_labels is not None, growing, scene.points, spacing, budget),
                lambda: r.mcap.log_online_start(meta))
 
     def frame(self, rec: FrameRecord) -> None:

@@ -47,6 +47,7 @@ An online run (protocol=online, :meth:`RerunRecorder.log_online_frame`) has, bes
     world/online/camera            Transform3D + Pinhole: the frame's camera (one entity that moves),
                                    child labels (SegmentationImage, the 2D predictions)
     metrics/latency_ms|points_k|changed|diffuser_miou|bayesian_miou   Scalars per frame (points_k: thousands)
+    metrics/budget_ms, metrics/latency/{map,graph,evidence,steps}_ms  the frame budget (1 / online.rate) and the latency's parts
 
 Application ids: :data:`APP_BATCH`, :data:`APP_ONLINE` (and :data:`APP_TILED`, :mod:`.tiled`).
 """
@@ -427,12 +428,14 @@ FOLLOW_CAMERA = "/world/online/camera"
 """The entity of an online run's moving camera, which the "through the camera" tab's eye tracks."""
 
 
-def online_blueprint(has_gt: bool, growing: bool, eye=None, ranges: Optional[dict] = None):
+def online_blueprint(has_gt: bool, growing: bool, eye=None, budget_ms: Optional[float] = None,
+                     ranges: Optional[dict] = None):
     """The layout of an online run: the map's labels (with the moving camera) seen from ``eye``
     (:func:`~.eyes.overview_eye`; None: Rerun's own), the same labels through the moving camera
     (its eye tracks :data:`FOLLOW_CAMERA`: pose and field of view of the frame shown), the
     Bayesian labels, errors and ground truth (with ground truth) from ``eye``, in tabs beside
-    the per-frame plots and the camera's label image."""
+    the per-frame plots and the camera's label image. The latency plot has a row of its own, its
+    y axis up to 3 ``budget_ms`` (a first frame that loads the kernels does not flatten the others)."""
     import rerun as rr
     import rerun.blueprint as rrb
 
@@ -454,8 +457,12 @@ def online_blueprint(has_gt: bool, growing: bool, eye=None, ranges: Optional[dic
     # of a 0-70 range), so five plots stacked showed no number on their y axes
     rows = [plot("mIoU so far [%]", ["/metrics/diffuser_miou", "/metrics/bayesian_miou"], ranges,
                  legend=True)] if has_gt else []
-    rows += [rrb.Horizontal(plot("latency [ms]", ["/metrics/latency_ms"], ranges),
-                            plot("labels changed", ["/metrics/changed"], ranges),
+    lat = plot("latency against the frame budget [ms]", ["/metrics/latency_ms", "/metrics/budget_ms",
+                                                         "/metrics/latency/**"],
+               ranges if not budget_ms else {"/metrics/budget_ms": (0.0, 3.0 * budget_ms)}, legend=True,
+               corner="RightTop")
+    rows += [lat,
+             rrb.Horizontal(plot("labels changed", ["/metrics/changed"], ranges),
                             plot("finishing pass: relative residual, log10", ["/metrics/finish_residual_log10"],
                                  ranges)),
              rrb.Horizontal(plot("map points [thousands]", ["/metrics/points_k"], ranges),
@@ -466,6 +473,12 @@ def online_blueprint(has_gt: bool, growing: bool, eye=None, ranges: Optional[dic
         rrb.TimePanel(state="collapsed", timeline=FRAME_TIMELINE, play_state="following"),
         collapse_panels=True,
     )
+
+
+LATENCY_PARTS = (("map_ms", (188, 189, 34)), ("graph_ms", (23, 190, 207)), ("evidence_ms", (227, 119, 194)),
+                 ("steps_ms", (127, 60, 20)))
+"""An online frame's parts of its latency (:class:`~diffuser_lab.method.online.FrameStats`), plotted
+under ``metrics/latency/`` with these colours."""
 
 
 class RerunRecorder:
@@ -508,6 +521,7 @@ class RerunRecorder:
         self._extent: dict[str, list[float]] = {}  # /metrics/<key> -> [min, max] logged: the plots' y ranges
         self._bp_args: Optional[tuple] = None  # the layout's arguments, sent again with the ranges at close
         self._online_bp: Optional[tuple] = None
+        self._budget_ms: Optional[float] = None  # an online run: the frame budget (1 / online.rate), ms
         bp = None
         batcher = rr.ChunkBatcherConfig(flush_tick=BATCH_SECONDS, flush_num_bytes=BATCH_BYTES)
         if application_id is None:
@@ -751,13 +765,15 @@ class RerunRecorder:
 
     # -- protocol=online ------------------------------------------------------------------------
     def log_online_start(self, has_gt: bool, growing: bool, points: Optional[np.ndarray] = None,
-                         spacing: Optional[float] = None) -> None:
+                         spacing: Optional[float] = None, budget_ms: Optional[float] = None) -> None:
         """An online run: its blueprint (:func:`online_blueprint`, the overview eye over ``points``
         (N, 3) world m, the scene's cloud; None or empty: Rerun's eye) and plot styles.
-        ``spacing``: a growing map's voxel size, m (its points are drawn with half of it as radius)."""
+        ``spacing``: a growing map's voxel size, m (its points are drawn with half of it as radius);
+        ``budget_ms``: the sensor's time between frames (1 / ``online.rate``), drawn beside each
+        frame's latency and its parts (None: no line)."""
         rr = self.rr
         eye = overview_eye(points) if points is not None and len(points) else None
-        self._online_bp = (has_gt, growing, eye)
+        self._online_bp = (has_gt, growing, eye, budget_ms)
         self.rec.send_blueprint(online_blueprint(*self._online_bp), make_active=True, make_default=True)
         for key, name, color in (("diffuser_miou", "online Diffuser mIoU so far [%]", (31, 119, 180)),
                                  ("bayesian_miou", "online Bayesian mIoU so far [%]", (255, 127, 14)),
@@ -765,8 +781,11 @@ class RerunRecorder:
                                  ("changed", "labels changed", (148, 103, 189)),
                                  ("points_k", "map points [thousands]", (44, 160, 44)),
                                  ("finish_residual_log10", "finishing pass: log10 relative residual",
-                                  (140, 86, 75))):
+                                  (140, 86, 75)),
+                                 ("budget_ms", "frame budget (1 / online.rate)", (127, 127, 127)),
+                                 *((f"latency/{part}", f"{part[:-3]} [ms]", color) for part, color in LATENCY_PARTS)):
             self.rec.log(f"metrics/{key}", rr.SeriesLines(names=name, colors=color), static=True)
+        self._budget_ms = budget_ms
         # a growing map's points are its voxels' centroids: half the voxel touch. (Estimated from
         # the first frame's map, the radius came out 3x that: its points are far sparser than the
         # map's, and the walls were drawn as a shell of overlapping balls.)
@@ -806,6 +825,11 @@ class RerunRecorder:
             log("world/online/camera/labels", rr.SegmentationImage(class_ids(rec.image)))
         st, m = rec.stats, rec.metrics or {}
         self._scalar("latency_ms", st["latency_ms"])
+        if self._budget_ms:
+            self._scalar("budget_ms", self._budget_ms)
+        for part, _ in LATENCY_PARTS:
+            if st.get(part) is not None:
+                self._scalar(f"latency/{part}", st[part])
         self._scalar("points_k", rec.n / 1000.0)  # thousands: the axis' numbers fit
         self._scalar("changed", st["changed"])
         for key in ("diffuser_miou", "bayesian_miou"):

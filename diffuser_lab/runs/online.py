@@ -271,7 +271,7 @@ def compare_with_batch(cfg: Config, scene: Scene, kept: list[int], od: OnlineDif
            "diffusion_s": float(b.timings_s.get("diffusion", 0.0)),
            "points": int(online_map.size)}
     if b.metrics is not None:
-        out["diffuser"] = {k: b.metrics[k] for k in ("miou", "accuracy", "coverage")}
+        out["diffuser"] = {k: b.metrics[k] for k in ("miou", "accuracy", "coverage", "per_class_iou")}
         out["bayesian"] = {k: b.baseline["bayesian"][k] for k in ("miou", "accuracy", "coverage")}
     return out
 
@@ -323,8 +323,8 @@ def table(res: OnlineResult) -> str:
     if st.get("rate_hz") or fin:
         idle = f"idle steps at {st['rate_hz']:g} Hz: median {part('idle_steps'):.0f} a frame" if st.get("rate_hz") \
             else "no idle steps (online.rate=0)"
-        lines.append(idle + (f"; finishing pass {fin['steps']} steps ({fin['ms'] / 1e3:.2f} s, relative change "
-                             f"{fin['residual']:.1e})" if fin else ""))
+        lines.append(idle + (f"; final pass ({fin.get('final', 'settle')}) {fin['steps']} steps ({fin['ms'] / 1e3:.2f} s, "
+                             f"relative change {fin['residual']:.1e})" if fin else ""))
     b = res.batch or {}
     if res.metrics is not None:
         lines.append(f"{'':22s}{'mIoU':>7s}{'acc':>7s}{'cover':>7s}")

@@ -28,7 +28,7 @@ from diffuser_lab.registry import Registry
 from . import online as online_mod
 from . import report, single_frame, tiled
 from .pipeline import run
-from .records import write_features, write_labels, write_scores
+from .records import write_features, write_labels, write_scores, write_scoring
 
 __all__ = ["Protocol", "PROTOCOLS", "register", "get"]
 
@@ -66,6 +66,7 @@ def _finish_global(result, cfg: Config, run_dir: Path, summary: report.SummaryFi
     t = time.perf_counter()
     files = write_labels(run_dir, result.scene.points, result.labels, result.scene.taxonomy, ply=cfg.output.labels_ply,
                          clouds=cfg.output.clouds, confidence=result.confidence)
+    files.update(write_scoring(run_dir, result.scene, result.bayesian_labels))
     if result.lifted is not None:
         files.update(write_features(run_dir, result))
     if cfg.output.scores:
@@ -111,6 +112,7 @@ def _finish_tiled(result, cfg: Config, run_dir: Path, summary: report.SummaryFil
     t = time.perf_counter()
     files = write_labels(run_dir, result.scene.points, result.labels, result.scene.taxonomy, ply=cfg.output.labels_ply,
                          clouds=cfg.output.clouds)
+    files.update(write_scoring(run_dir, result.scene, result.bayesian_labels))
     files.update(result.files)
     result.timings_s["write"] = time.perf_counter() - t
     summary.data.update(tiled.summary(result, cfg))

@@ -147,8 +147,27 @@ def write_rows(path: Path, shape: tuple, chunks) -> None:
             fh.write(memoryview(np.ascontiguousarray(chunk, np.float16)))
 
 
-SCORES_FILE, GT_FILE = "scores.npy", "gt_labels.npy"
-"""``output.scores``: each point's class distribution, and the ground truth it is scored against."""
+GT_FILE = "gt_labels.npy"
+"""The scene's ground truth on its points, (N,) int16 (IGNORE = unannotated), when it has one."""
+BAYESIAN_FILE = "bayesian_labels.npy"
+"""The Bayesian baseline's labels of the same run, (N,) int16 (-1 = unlabeled)."""
+SCORES_FILE = "scores.npy"
+"""``output.scores``: each point's class distribution, (N, C) float16 (:func:`write_scores`)."""
+
+
+def write_scoring(run_dir: Path, scene, bayesian_labels: np.ndarray | None = None) -> dict:
+    """What scores a run's labels again without its scene: :data:`GT_FILE` (when the scene has
+    ground truth) and :data:`BAYESIAN_FILE` (the baseline's labels, when given), beside labels.npy:
+    ``analysis.report`` scores every method on the points all of them label (2 bytes a point each:
+    0.1 MB at 51k points, 6 MB at 3M). Returns the file names written."""
+    out = {}
+    if scene.gt_labels is not None:
+        np.save(run_dir / GT_FILE, np.asarray(scene.gt_labels, np.int16))
+        out["gt_labels"] = GT_FILE
+    if bayesian_labels is not None:
+        np.save(run_dir / BAYESIAN_FILE, np.asarray(bayesian_labels, np.int16))
+        out["bayesian_labels"] = BAYESIAN_FILE
+    return out
 
 
 def load_npy(path: Path) -> np.ndarray:
@@ -182,26 +201,16 @@ def read_gt(run_dir: Path, n: int, num_classes: int) -> Optional[np.ndarray]:
     return gt
 
 
-def write_gt(run_dir: Path, scene) -> dict:
-    """:data:`GT_FILE` ((N,) int16, IGNORE = unannotated) when ``scene`` has ground truth: a run's saved
-    features or scores are scored again without the scene."""
-    if scene.gt_labels is None:
-        return {}
-    np.save(run_dir / GT_FILE, np.asarray(scene.gt_labels, np.int16))
-    return {"gt_labels": GT_FILE}
-
-
 def write_scores(run_dir: Path, result) -> dict:
     """``output.scores``: :data:`SCORES_FILE`, (N, C) float16, row i the class distribution of original
     point i (labels.npy's order) as the run's calibration scores it
     (:func:`~diffuser_lab.method.calibration.point_rows`: Eq. 16's row of Z, or a per-point method's mass,
-    divided by its sum; all zero where nothing reached the point), written CHUNK rows at a time; and
-    :data:`GT_FILE` ((N,) int16, IGNORE = unannotated) when the scene has ground truth, so that the run's
-    calibration can be computed from its folder (:func:`diffuser_lab.runs.scores.calibration_of_run`)."""
+    divided by its sum; all zero where nothing reached the point), written CHUNK rows at a time; with
+    :data:`GT_FILE` (:func:`write_scoring`) the run's calibration is computed from its folder
+    (:func:`diffuser_lab.runs.scores.calibration_of_run`)."""
     n, c = len(result.labels), result.scene.taxonomy.num_classes
     write_rows(run_dir / SCORES_FILE, (n, c), (p for _, _, p in point_rows(result.scores, result.rows, n)))
-    out = {"scores": SCORES_FILE}
-    return {**out, **write_gt(run_dir, result.scene)}
+    return {"scores": SCORES_FILE}
 
 
 BASIS_FILE = "features_basis.npz"
@@ -256,4 +265,5 @@ def _write_features(run_dir: Path, result, lf, rows) -> dict:
         out[name] = f"{name}.npy"
     write_queries(run_dir / "queries.npz", list(lf.queries.names), lf.queries.embeddings)
     out["queries"] = "queries.npz"
-    return {**out, **write_gt(run_dir, result.scene)}
+    out.update(write_scoring(run_dir, result.scene))
+    return out

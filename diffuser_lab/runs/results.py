@@ -244,13 +244,32 @@ def provenance_line(runs: list[Run], noun: str = "jobs") -> Optional[str]:
     return provenance.differences_line([r.provenance for r in runs], noun)
 
 
+SPLIT = "split"
+"""summary.json's split of the data a run was scored on (``validation``, ``test``; null: not said):
+a column of the tables when a run says it."""
+
+
+def _keys(runs: list[Run], drop=()) -> list[str]:
+    """The tables' configuration columns: the runs' override keys (without ``drop``), sorted, and
+    ``split`` when a summary names one."""
+    keys = sorted({k for r in runs for k in r.overrides} - set(drop))
+    return keys + [SPLIT] if SPLIT not in keys and any(r.summary.get(SPLIT) for r in runs) else keys
+
+
+def config_value(r: Run, key: str) -> str:
+    """A run's value of a table's configuration column: its override, or for ``split`` summary.json's."""
+    if key == SPLIT and key not in r.overrides:
+        return str(r.summary.get(SPLIT) or "")
+    return r.overrides.get(key, "")
+
+
 def run_rows(runs: list[Run]) -> tuple[list[str], list[dict]]:
-    keys = sorted({k for r in runs for k in r.overrides})
+    keys = _keys(runs)
     rows = []
     for r in runs:
         row = {"run": str(r.path), "status": r.status, "error": r.summary.get("error", ""),
                "method": r.summary.get("method", ""), "scene": r.summary.get("scene", "")}
-        row.update({k: r.overrides.get(k, "") for k in keys})
+        row.update({k: config_value(r, k) for k in keys})
         row.update({name: r.metric(path) for name, path in METRICS.items()})
         row.update(provenance_cells(r.provenance))
         rows.append(row)
@@ -258,12 +277,12 @@ def run_rows(runs: list[Run]) -> tuple[list[str], list[dict]]:
 
 
 def aggregate(runs: list[Run]) -> tuple[list[str], list[dict]]:
-    """One row per configuration (overrides without the seed): mean/std of each metric over the
-    runs that finished, and counts of runs and failures."""
-    keys = sorted({k for r in runs for k in r.overrides} - set(SEED_KEYS))
+    """One row per configuration (overrides without the seed; the split when the runs name one):
+    mean/std of each metric over the runs that finished, and counts of runs and failures."""
+    keys = _keys(runs, SEED_KEYS)
     groups: dict[tuple, list[Run]] = {}
     for r in runs:
-        groups.setdefault(tuple(r.overrides.get(k, "") for k in keys), []).append(r)
+        groups.setdefault(tuple(config_value(r, k) for k in keys), []).append(r)
     rows = []
     for cfg, members in sorted(groups.items(), key=lambda kv: tuple(_sortable(x) for x in kv[0])):
         ok = [m for m in members if m.status == "ok"]

@@ -20,7 +20,6 @@ No ``from __future__ import annotations`` here: Hydra's plugin scan runs this fi
 ``sys.modules``, where a dataclass needs evaluated annotations.
 """
 import copy
-import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence
@@ -56,14 +55,22 @@ def covering(batch: Sequence[Sequence[str]]) -> List[Sequence[str]]:
     return [batch[i] for i in sorted(picked)]
 
 
+class _CopyingRepository(CachingConfigRepository):
+    """A CachingConfigRepository whose cached files are handed out as deep copies: Hydra merges a
+    ``@package _global_`` option (method=ldls's ``graph.k: 10``) into the loaded nodes of other
+    groups in place, so a shared node carried one job's values into the next (every Diffuser job of
+    a sweep with an LDLS job ran LDLS's graph: K = 10, no normals)."""
+
+    def load_config(self, config_path):
+        return copy.deepcopy(super().load_config(config_path))
+
+
 class _OneRepository:
     """Stands in for ``ConfigLoaderImpl._parse_overrides_and_create_caching_repo``, which deep-copies
     the config repository and reads every YAML file again for each job's compose (~a third of it):
-    the jobs of one sweep share one repository per search path and one parse of each YAML file
-    (:class:`_Fresh`), while each compose gets config objects of its own: Hydra merges the loaded
-    configs into a job's config without copying them, so a job's overrides (a value set, a key added
-    or deleted) would otherwise change what the next job loads. A picklable object, for the launchers
-    that ship the loader to other processes."""
+    the jobs of one sweep share one caching repository per search path, which hands out copies of
+    the files it read (:class:`_CopyingRepository`). A picklable object, for the launchers that ship
+    the loader to other processes."""
 
     def __init__(self, loader) -> None:
         from hydra.core.override_parser.overrides_parser import OverridesParser
@@ -74,37 +81,9 @@ class _OneRepository:
         parsed = self.parser.parse_overrides(overrides=overrides)
         key = tuple(o for o in overrides if o.lstrip("+~").startswith("hydra.searchpath"))
         if key not in self.repos:
-            self.repos[key] = CachingConfigRepository(self.loader.repository).delegate  # a copy of its own
-        repo = _Fresh(self.repos[key], self.files.setdefault(key, {}))
-        self.loader._process_config_searchpath(config_name, parsed, repo)
-        return parsed, repo
-
-
-class _Fresh(CachingConfigRepository):
-    """One compose's repository: Hydra's caching one over a shared delegate (not a copy of it); a
-    YAML file's config is parsed once per sweep (``files``: config path -> the loaded result and its
-    config as plain data) and made a new OmegaConf object at each load; the ConfigStore's
-    (``structured://``) are loaded as Hydra loads them, fresh each time."""
-
-    def __init__(self, delegate, files: dict) -> None:  # not super().__init__: it deep-copies the delegate
-        self.delegate, self.cache, self.files = delegate, {}, files
-
-    def load_config(self, config_path: str):
-        key = f"config_path={config_path}"
-        if key not in self.cache:
-            self.cache[key] = self._load(config_path)
-        return self.cache[key]
-
-    def _load(self, config_path: str):
-        got = self.files.get(config_path)
-        if got is None:
-            ret = self.delegate.load_config(config_path=config_path)
-            if ret is None or not str(ret.path).startswith(("file://", "pkg://")):
-                return ret
-            got = self.files[config_path] = (ret, OmegaConf.to_container(ret.config, resolve=False))
-        ret, plain = got
-        return dataclasses.replace(ret, config=OmegaConf.create(copy.deepcopy(plain)), header=dict(ret.header),
-                                   defaults_list=copy.deepcopy(ret.defaults_list))
+            self.repos[key] = _CopyingRepository(self.loader.repository)
+        self.loader._process_config_searchpath(config_name, parsed, self.repos[key])
+        return parsed, self.repos[key]
 
 
 class CoveringSweeper(BasicSweeper):
@@ -130,8 +109,6 @@ class CoveringSweeper(BasicSweeper):
     def sweep(self, arguments: List[str]) -> Any:
         if self.tune is None:
             return super().sweep(arguments)
-        from omegaconf import OmegaConf
-
         from diffuser_lab.runs import tune
 
         if self.params:

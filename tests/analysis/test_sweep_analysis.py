@@ -1,6 +1,7 @@
 """Hydra multirun of a tiny sweep, then the analysis scripts on its output; launcher configs compose."""
 import csv
 import importlib.util
+import re
 
 import numpy as np
 import pytest
@@ -191,3 +192,100 @@ def test_compare_says_which_fields_differ(sweep, tmp_path, capsys):
     assert main([str(smoke[0]), str(jobs[2])]) == 0
     out = capsys.readouterr().out
     assert "ran on different machines or versions: CPU, vendor differ" in out and f"B {other[0]}" in out
+
+
+def _by_seed(folder, key="graph.use_normals"):
+    """{(value, seed): (run folder, summary)} of the smoke sweep."""
+    import json
+
+    out = {}
+    for p in folder.glob("*/summary.json"):
+        s = json.loads(p.read_text())
+        ov = dict(o.split("=", 1) for o in s["overrides"] if not o.startswith("+"))
+        out[(ov[key], ov["seed"])] = (p.parent, s)
+    return out
+
+
+@pytest.mark.slow
+def test_report_pairs_seeds_scores_the_common_support_and_renders_one_html_page(sweep, tmp_path):
+    import base64
+    import csv as csv_mod
+    import re
+
+    from analysis.report import report
+    from diffuser_lab.method.metrics import score
+    from diffuser_lab.data.taxonomy import load_taxonomy
+
+    runs = _by_seed(sweep / "smoke")
+    names = load_taxonomy("scannet20").names
+    for folder, s in runs.values():  # what the run wrote scores as the run did
+        gt, bayes = np.load(folder / "gt_labels.npy"), np.load(folder / "bayesian_labels.npy")
+        assert gt.dtype == bayes.dtype == np.int16 and gt.shape == (s["n_points"],)
+        assert score(bayes, gt, names)["miou"] == pytest.approx(s["baseline"]["bayesian"]["miou"], abs=1e-9)
+    md = report([str(sweep / "smoke")], tmp_path / "rep", html=True).read_text()
+    assert "Reference: `graph.use_normals=True` (the default run's" in md
+    row = next(ln for ln in md.splitlines() if ln.startswith("| False | 2 |"))
+    want = np.mean([runs[("False", s)][1]["metrics"]["miou"] - runs[("True", s)][1]["metrics"]["miou"] for s in "01"])
+    assert row.split(" | ")[2].startswith(f"{want:+.1f} [") and row.endswith("n.s. |")  # 2 pairs: p >= 0.5
+    # the common support at seed 0: the points all four label arrays of that room label
+    seed0 = [np.load(runs[(v, "0")][0] / f) for v in ("True", "False") for f in ("labels.npy", "bayesian_labels.npy")]
+    size = int((np.stack(seed0) >= 0).all(0).sum())
+    assert f" {size:,} of {runs[('True', '0')][1]['n_points']:,} at seed=0, scene=demo)." in md
+    assert "| graph.use_normals | miou_common | accuracy_common | bayesian_miou_common |" in md
+    rep = tmp_path / "rep"
+    assert (rep / "forest.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and "![forest](forest.png)" in md
+    with open(rep / "paired.csv") as fh:
+        metrics = {r["metric"] for r in csv_mod.DictReader(fh)}
+    assert {"miou", "miou_common", "iou wall"} <= metrics
+    page = (rep / "report.html").read_text()
+    images = re.findall(r'<img alt="([^"]+)" src="data:image/png;base64,([^"]+)"', page)
+    assert [a for a, _ in images] == re.findall(r"^!\[([^\]]+)\]", md, re.M)  # every image, inlined
+    assert base64.b64decode(images[0][1]) == (rep / f"{images[0][0]}.png").read_bytes()
+    assert "src=\"" + "forest.png" not in page and "<h2>Paired differences against the reference</h2>" in page
+
+
+@pytest.mark.slow
+def test_report_and_compare_refuse_to_mix_the_splits_unless_asked(sweep, tmp_path, capsys):
+    import json
+    import shutil
+
+    from analysis import compare, report
+
+    copy = tmp_path / "splits"
+    shutil.copytree(sweep / "smoke", copy)
+    for i, p in enumerate(sorted(copy.glob("*/summary.json"))):
+        s = json.loads(p.read_text())
+        s["split"] = "validation" if i < 1 else "test"
+        p.write_text(json.dumps(s))
+    assert report.main([str(copy), "--out", str(tmp_path / "r")]) == 2
+    err = capsys.readouterr().err
+    assert err == ("report: error: runs of the validation and test splits in one table (1 validation, 3 test); "
+                   "pass --mix-splits to allow\n")
+    assert not (tmp_path / "r").exists()
+    assert compare.main([str(copy), str(copy), "--where-a", "graph.use_normals=True",
+                         "--where-b", "graph.use_normals=False"]) == 2
+    assert "(1 validation, 3 test); pass --mix-splits to allow" in capsys.readouterr().err
+    assert report.main([str(copy), "--out", str(tmp_path / "r"), "--mix-splits"]) == 0
+    md = (tmp_path / "r" / "report.md").read_text()
+    assert "| graph.use_normals | split | miou |" in md and "| split | pairs |" in md
+
+
+@pytest.mark.slow
+def test_compare_two_groups_pairs_their_seeds(sweep, capsys):
+    from analysis.compare import main
+
+    runs = _by_seed(sweep / "smoke")
+    smoke = str(sweep / "smoke")
+    assert main([smoke, smoke, "--where-a", "graph.use_normals=True", "--where-b", "graph.use_normals=False"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[2].startswith("B - A over 2 pairs (seed=0, scene=demo; seed=1, scene=demo)")
+    want = np.mean([runs[("False", s)][1]["metrics"]["miou"] - runs[("True", s)][1]["metrics"]["miou"] for s in "01"])
+    line = next(ln for ln in out if ln.strip().startswith("miou "))
+    assert line.split()[1] == f"{want:+.1f}"
+    assert any(ln.startswith("Common support: ") for ln in out) and any(ln.startswith("wall ") for ln in out)
+    assert main([smoke, smoke]) == 2
+    assert "group A holds two runs at seed=0, scene=demo" in capsys.readouterr().err
+    a, b = runs[("True", "0")][0], runs[("False", "0")][0]
+    assert main([str(a), str(b)]) == 0
+    assert re.search(r"^on the [\d,]+ points both runs and their Bayesian baselines label \(\d+\.\d%\): mIoU A ",
+                     capsys.readouterr().out, re.M)

@@ -481,41 +481,39 @@ def test_online_run_keeps_blas_on_one_thread_while_it_plays(demo):
     assert max(before) == 2 or len(os.sched_getaffinity(0)) == 1, before  # BLAS ran on 2 threads before the run
 
 
-ACCURACY_TARGETS = {  # docs/online.md's accuracy targets; their latency: tests/benchmarks/test_online_targets.py
-    "scannet0470-given": (["scene=scannet0470"], 99.0, 0.5, SHARED / "data" / "scannet" / "scene0470_00"),
+ACCURACY_TARGETS = {  # issue 57's accuracy targets; their latency: tests/benchmarks/test_online_targets.py
+    "scannet0470-given": (["scene=scannet0470"], SHARED / "data" / "scannet" / "scene0470_00"),
+    "scannet0470-growing": (["scene=scannet0470", "online.map=growing"], SHARED / "data" / "scannet" / "scene0470_00"),
     "7scenes-growing": (["scene=rgbd_folder", f"scene.options.root={SHARED / 'data' / '7scenes_sample'}",
                          "online.map=growing", "predictions=model",
                          "predictions.model._target_=tests.toy_networks.grey_levels", "predictions.cache_dir=null"],
-                        97.0, None, SHARED / "data" / "7scenes_sample"),
-    "demo-growing": (["online.map=growing"], 97.0, 0.5, None),
+                        SHARED / "data" / "7scenes_sample"),
+    "demo-growing": (["online.map=growing"], None),
 }
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("case", list(ACCURACY_TARGETS))
 def test_the_documented_accuracy_targets_at_full_size(case):
-    """The targets docs/online.md states, on the sequences it states them for (not a smaller stand-in):
-    final labels equal to the batch Diffuser's on >= 99 % (a given map) or >= 97 % (a growing one) of
-    the points, mIoU within 0.5 of the batch run's where there is ground truth."""
+    """Issue 57's targets on the sequences it states them for (not a smaller stand-in): final labels
+    equal to the batch Diffuser's (on the same frames; a growing map: on its final cloud) on >= 99 %
+    of the points, and where there is ground truth the final mIoU within 0.5 of the batch run's and
+    no class the batch labels (IoU >= 10) below half its batch IoU online."""
     from conftest import compose
 
-    args, equal_t, miou_t, data = ACCURACY_TARGETS[case]
+    args, data = ACCURACY_TARGETS[case]
     if data is not None and not data.is_dir():
         pytest.skip(f"real data absent: {data} not found")
     res = online(compose(*args, "protocol=online", "record=off"))
     b = res.batch
-    assert b["equal_labels"] >= equal_t, b
-    if miou_t is None:
+    assert b["equal_labels"] >= 99.0, b
+    if res.metrics is None:
         return
-    gap = abs(res.metrics["miou"] - b["diffuser"]["miou"])
-    if case in MIOU_NOT_MET:
-        assert gap > miou_t, f"the target is met now ({gap:.2f} <= {miou_t}): take {case} out of MIOU_NOT_MET"
-        pytest.xfail(f"target not met (issue 53): mIoU {res.metrics['miou']:.1f} vs the batch's "
-                     f"{b['diffuser']['miou']:.1f}, {gap:.1f} apart > {miou_t}")
-    assert gap <= miou_t, (res.metrics["miou"], b)
-
-
-MIOU_NOT_MET: set[str] = set()
-"""Cases whose mIoU target is not met today (measured 2026-12-07: the demo's growing map 78.3 vs 81.3,
-labels equal on 98.6 %): reported as expected failures, with the figure, until issue 53 meets it
-(then remove the case from here: the test asserts the target)."""
+    assert abs(res.metrics["miou"] - b["diffuser"]["miou"]) <= 0.5, (res.metrics["miou"], b)
+    mine, theirs = res.metrics["per_class_iou"], b["diffuser"]["per_class_iou"]
+    lost = {c: (mine.get(c, 0.0), v) for c, v in theirs.items() if v >= 10 and mine.get(c, 0.0) < v / 2}
+    assert not lost, lost
+    # the labels the frames left (before the final pass) track the batch's: measured 2026-12-07
+    # demo 84.5 vs 81.3 (the early stop of the batch smooths the picture class away), scene0470 (growing)
+    # 88.7 vs 88.9, (given) 88.8 vs 89.7
+    assert abs(res.frames[-1]["diffuser_miou"] - b["diffuser"]["miou"]) <= 4.0, (res.frames[-1], b)

@@ -28,7 +28,7 @@ SMALL = {"protocol.name": "online", "scene.options.n_views": 6, "scene.options.i
 # per-frame records compared bit for bit between runs: no idle steps (they follow the wall clock), no finishing pass
 SMALL_CLI = ["protocol=online", "scene.options.n_views=6", "scene.options.image_width=64", "scene.options.image_height=48",
              "online.compare_batch=false", "online.rate=0", "online.finish=0"]
-TIMING = {"latency_ms", "map_ms", "evidence_ms", "steps_ms", "idle_ms"}
+TIMING = {"latency_ms", "map_ms", "graph_ms", "evidence_ms", "steps_ms", "idle_ms", "sweep_residual", "error_bound"}
 RERUN = str(Path(sys.executable).with_name("rerun"))
 HAS_GROWING = importlib.util.find_spec("diffuser_lab.method.growing") is not None
 
@@ -125,9 +125,9 @@ def thread_run(tmp_path_factory):
 def cli_runs(tmp_path_factory):
     base = tmp_path_factory.mktemp("online_cli")
     out = {}
-    for mode in ("both", "off"):
+    for mode, extra in (("both", []), ("off", []), ("rerun", ["online.rate=20"])):  # rerun: a frame budget of 50 ms
         d = base / mode
-        p = run_cli(*SMALL_CLI, f"record={mode}", "output.quiet=true", f"hydra.run.dir={d}")
+        p = run_cli(*SMALL_CLI, f"record={mode}", "output.quiet=true", f"hydra.run.dir={d}", *extra)
         assert p.returncode == 0, p.stderr
         out[mode] = d
     return out
@@ -508,8 +508,24 @@ def test_online_layout_has_its_app_id_a_legend_and_its_plots(cli_runs):
     tax = load_taxonomy(json.loads((cli_runs["both"] / "summary.json").read_text())["taxonomy"])
     v = check_layout(rrd, APP_ONLINE, tax, gt[gt != UNLABELED_ID], {
         "mIoU so far [%]": ["/metrics/diffuser_miou", "/metrics/bayesian_miou"],
-        "map points [thousands]": ["/metrics/points_k"], "latency [ms]": ["/metrics/latency_ms"]})
+        "map points [thousands]": ["/metrics/points_k"],
+        "latency against the frame budget [ms]": ["/metrics/latency_ms", "/metrics/budget_ms", "/metrics/latency/**"]})
     assert v["tabs"][0] == "online: labels"
+    assert rrd_rows(rrd, "/metrics/budget_ms", "Scalars:scalars") == {}  # online.rate=0: no frame budget
+    # each frame's latency and its parts beside the sensor's frame budget (1 / online.rate)
+    rrd = cli_runs["rerun"] / "run.rrd"
+    summary = json.loads((cli_runs["rerun"] / "summary.json").read_text())
+    frames = {f["index"]: f for f in summary["online"]["frames"] if not f.get("skipped")}
+    budget = rrd_rows(rrd, "/metrics/budget_ms", "Scalars:scalars")
+    rate = summary["online"]["rate_hz"]
+    assert rate == 20 and sorted(budget) == sorted(frames)
+    assert all(v == [pytest.approx(1000.0 / rate)] for v in budget.values()), budget
+    for part in ("map_ms", "graph_ms", "evidence_ms", "steps_ms"):
+        got = rrd_rows(rrd, f"/metrics/latency/{part}", "Scalars:scalars")
+        assert {f: v[0] for f, v in got.items()} == pytest.approx({i: f[part] for i, f in frames.items()}), part
+    lat = rrd_rows(rrd, "/metrics/latency_ms", "Scalars:scalars")
+    assert all(sum(frames[i][p] for p in ("map_ms", "graph_ms", "evidence_ms", "steps_ms")) <= v[0] + 1e-6
+               for i, v in lat.items())  # the parts add up to at most the frame's latency
 
 
 def test_online_blocks_only_fill_and_get_added():

@@ -13,8 +13,8 @@ def _compose(overrides):
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
-    import diffuser_lab.data.sources  # noqa: F401 - stores scene/options/<source>: alone, this module imports nothing that does
     from diffuser_lab.config import register
+    from diffuser_lab.data import sources  # noqa: F401 - stores the scene/options configs (the module run alone)
     from diffuser_lab.runs import launchers
 
     register()
@@ -158,17 +158,17 @@ def test_a_sweeps_jobs_share_one_config_repository_and_compose_the_same_configs(
     from hydra_plugins.diffuser_lab_sweeper.sweeper import _OneRepository
     from omegaconf import OmegaConf
 
-    import diffuser_lab.data.sources  # noqa: F401 - stores scene/options/<source>: alone, this module imports nothing that does
     from diffuser_lab.config import register
+    from diffuser_lab.data import sources  # noqa: F401 - stores the scene/options configs (the module run alone)
     from diffuser_lab.runs import launchers
 
     register()
     launchers.register()
-    # jobs of different keys (a tuning sweep's): what one job sets, adds or deletes is not the next one's
-    # (Hydra merges the loaded configs without copying: a shared repository once leaked graph.k=8 into
-    # the fourth job and failed the third's deletion)
-    jobs = [["graph.k=8", "seed=0", "+scene.options.spare=1", "~hydra.callbacks.sweep"],
-            ["graph.k=32", "seed=2", "hydra.searchpath=[file://" + str(ROOT / "conf") + "]"],
+    # method=ldls's @package _global_ graph keys once leaked into the later jobs' graph (a shared node);
+    # jobs of different keys (a tuning sweep's): what one sets, adds or deletes is not the next one's
+    jobs = [["graph.k=8", "seed=0"], ["graph.k=32", "seed=2", "hydra.searchpath=[file://" + str(ROOT / "conf") + "]"],
+            ["graph.k=8", "seed=1"], ["method=ldls", "seed=0"], ["method=diffuser", "seed=0"],
+            ["graph.k=8", "seed=0", "+scene.options.spare=1", "~hydra.callbacks.sweep"],
             ["graph.k=8", "seed=1", "+scene.options.spare=2", "~hydra.callbacks.sweep"], ["seed=1"]]
 
     def composed(share: bool) -> list[str]:
@@ -185,7 +185,7 @@ def test_a_sweeps_jobs_share_one_config_repository_and_compose_the_same_configs(
 
     shared = composed(True)
     assert shared == composed(False)
-    assert "k: 24" in shared[3] and "spare" not in shared[3] and "spare: 2" in shared[2]
+    assert "k: 24" in shared[7] and "spare" not in shared[7] and "spare: 2" in shared[6]
 
 
 def test_the_sweep_table_names_jobs_on_other_machines(tmp_path, monkeypatch):
