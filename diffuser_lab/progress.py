@@ -50,7 +50,7 @@ import threading
 import warnings
 from typing import Iterator, Optional
 
-__all__ = ["stage", "enabled", "quiet", "Stage", "DELAY", "COMPILING"]
+__all__ = ["stage", "enabled", "quiet", "Stage", "DELAY", "COMPILING", "say"]
 
 DELAY = 1.0
 """Seconds a stage runs before its line appears (0 when forced on with DIFFUSER_LAB_PROGRESS=1)."""
@@ -256,3 +256,11 @@ def stage(name: str, total: Optional[int] = None, unit: str = "it") -> Iterator[
             bar.last_print_t = max(bar.last_print_t, bar.start_t + bar.delay)  # close() then finishes the line
         bar.close()
 
+
+def say(line: str, file=None) -> None:
+    """One line on stdout in one write (a sweep's and a search's lines): jobs that run side by side
+    share the launcher's stdout, and print() writes the text and its newline separately (two jobs'
+    lines then interleave mid-line)."""
+    f = file or sys.stdout
+    f.write(line + "\n")
+    f.flush()

@@ -22,7 +22,8 @@ from diffuser_lab.runs.pipeline import reuse_scenes
 from diffuser_lab.data.frames import read_ahead
 from diffuser_lab.runs.protocols import PROTOCOLS
 from diffuser_lab.runs.resolve import resolve
-from diffuser_lab.runs.sweep import job_line, job_tag, print_table, say
+from diffuser_lab.progress import say
+from diffuser_lab.runs.sweep import job_line, job_tag, print_table
 
 log = logging.getLogger("diffuser_lab")
 PROG = "diffuser-lab"

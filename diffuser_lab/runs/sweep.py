@@ -22,6 +22,8 @@ from typing import Any, Optional
 
 from hydra.experimental.callback import Callback
 
+from diffuser_lab.progress import say
+
 from .results import aggregate, find_runs, markdown, provenance_line
 
 JOBS_ENV = "DIFFUSER_LAB_SWEEP_JOBS"
@@ -29,13 +31,6 @@ WATCHED_LAUNCHERS = ("ray_launcher", "submitit")  # whose jobs' stdout does not 
 _started: dict[str, Any] = {}  # the sweep this process launched: {"dir": Path, "watcher": Watcher}
 
 
-
-def say(line: str, file=None) -> None:
-    """One line in one write: jobs that run side by side share the launcher's stdout, and print()
-    writes the text and its newline separately (two jobs' lines then interleave mid-line)."""
-    f = file or sys.stdout
-    f.write(line + "\n")
-    f.flush()
 
 def count_jobs(config: Any) -> Optional[int]:
     """Number of jobs Hydra's basic sweeper makes of ``hydra.sweeper.params`` and the command

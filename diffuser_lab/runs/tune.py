@@ -36,8 +36,7 @@ from typing import Any, Callable, Mapping, Optional, Sequence
 import yaml
 
 from diffuser_lab import seeding
-
-from .sweep import say
+from diffuser_lab.progress import say
 
 __all__ = ["TuneSpec", "TuneError", "set_jobs", "merge", "count_jobs", "preset_text", "search", "RECORD", "PRESET_GROUP"]
 
