@@ -22,7 +22,7 @@ from typing import Any, Optional
 
 from hydra.experimental.callback import Callback
 
-from .results import aggregate, find_runs, markdown, provenance_line
+from .results import aggregate, find_runs, markdown, notes
 
 JOBS_ENV = "DIFFUSER_LAB_SWEEP_JOBS"
 WATCHED_LAUNCHERS = ("ray_launcher", "submitit")  # whose jobs' stdout does not reach this terminal
@@ -148,7 +148,8 @@ def started_sweep() -> Optional[Path]:
 def print_table(file=sys.stdout) -> None:
     """The collected table of the sweep this process launched (one row per configuration, seeds
     as mean ± std) and, when its jobs ran on different machines, ISA levels or versions, one line
-    saying what differs and how many jobs per value; nothing if it launched none."""
+    saying what differs and how many jobs per value (and one when jobs of one scene name read
+    different inputs); nothing if it launched none."""
     if _started.get("watcher") is not None:
         _started.pop("watcher").stop()
     sweep_dir = _started.get("dir")
@@ -161,6 +162,5 @@ def print_table(file=sys.stdout) -> None:
     ok = sum(r.status == "ok" for r in runs)
     print(f"\nsweep {sweep_dir}: {ok} of {len(runs)} jobs ok", file=file)
     print(markdown(cols, rows), file=file, flush=True)
-    mixed = provenance_line(runs, "jobs")
-    if mixed:
-        print(mixed, file=file, flush=True)
+    for line in notes(runs, "jobs"):  # other machines or versions; other inputs under one scene name
+        print(line, file=file, flush=True)
