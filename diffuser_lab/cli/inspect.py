@@ -380,8 +380,8 @@ def score_classes(mcap_path: Path | str, wanted: Sequence[str]) -> list[tuple[st
 def mcap_to_rrd(mcap_path: Path | str, rrd_path: Path | str, *, max_image_side: int = 320,
                 scores: Sequence[str] = ()) -> Any:
     """Re-log a run into a fresh .rrd from its run.mcap alone (same entities, blueprint and
-    per-iteration class ids as the live run.rrd, the cameras with their label images; not their
-    depth or colour images, which run.mcap does not hold). ``scores``: class names whose
+    per-iteration class ids as the live run.rrd, the cameras with their label images and what made
+    the run; not their depth or colour images, which run.mcap does not hold). ``scores``: class names whose
     row-normalised scores Z_ic / sum_c Z_ic are logged too (``world/scores/<class>`` per recorded
     iteration, a blueprint tab each; a name not in the taxonomy raises :class:`UsageError` before
     anything is written). Returns the :class:`~diffuser_lab.recording.mcap_read.RunLog` (truncation)."""
@@ -443,6 +443,8 @@ def mcap_to_rrd(mcap_path: Path | str, rrd_path: Path | str, *, max_image_side: 
                 step = tracker.step(it, decode_z(msg), residual.get(it, float("nan")), labels=labels)
                 rec.log_step(step, points)
                 rec.log_scores(step)
+        if log.provenance:  # what made the run, as the live run.rrd has it
+            rec.log_provenance(log.provenance)
     finally:
         rec.close()
     return log

@@ -190,7 +190,8 @@ def details(c: cmp.Comparison, run_dir: Path, new_dir: Path, old: dict, new: dic
     lines += [f"          {_figure(*f)}" for f in c.figures_differ]
     for k in ("machine", "versions", "commit", "kernels"):
         diff = c.changed.get(k)
-        lines.append(f"{k:<9s} " + ("; ".join(f"{f} {a} -> {b}" for f, a, b in diff) if diff else "same"))
+        lines.append(f"{k:<9s} " + ("; ".join(f"{'' if f == k else f + ' '}{a} -> {b}" for f, a, b in diff)
+                                    if diff else "same"))
     inp = (old.get("inputs") or {})
     lines.append("inputs    " + (_inputs_text(c, 20) if c.inputs_changed else
                                  f"same (sha256 {(inp.get('sha256') or '?')[:12]}, config "

@@ -13,8 +13,8 @@ thread-safe (stat and hash outside the lock, the bookkeeping inside).
 no second read. Others (LAS, a bag, an ONNX file) are read once more for the hash, from the page
 cache.
 
-**The hash cache** (:class:`HashCache`): sha256 by (absolute path, size, mtime_ns, inode), in an
-SQLite file ``~/.cache/diffuser-lab/input-hashes.sqlite`` (``$XDG_CACHE_HOME`` when set;
+**The hash cache** (:class:`HashCache`): sha256 by (absolute path, size, mtime_ns, inode), read a
+folder at a time (the first file of a folder a run reads brings its folder's rows), in an SQLite file ``~/.cache/diffuser-lab/input-hashes.sqlite`` (``$XDG_CACHE_HOME`` when set;
 ``DIFFUSER_LAB_HASH_CACHE=PATH`` elsewhere, ``=off`` none). In the user's cache dir, not a run's
 folder or a checkout's ``logs/``: the keys are absolute paths of data every checkout and sweep of
 the user reads. SQLite's locks (WAL, a 30 s busy timeout) let the jobs of a sweep on the joblib or
@@ -108,10 +108,11 @@ Key = tuple[str, int, int, int]  # (absolute path, size, mtime_ns, inode)
 
 
 class HashCache:
-    """sha256 by (path, size, mtime_ns, inode) in an SQLite file (module doc). New entries are
-    written in batches (:meth:`flush`: at :data:`FLUSH_EVERY` and when a run's collecting ends); an
-    entry replaces the path's older ones (a file edited in place leaves one row). Not thread-safe
-    by itself: :func:`record` calls it under its lock."""
+    """sha256 by (path, size, mtime_ns, inode) in an SQLite file (module doc): one row per path (its
+    latest hash: a file edited in place replaces its row), read a folder at a time (:meth:`folder`:
+    one query answers every frame of a folder), new rows written in batches (:meth:`flush`: at
+    :data:`FLUSH_EVERY` and when a run's collecting ends). Not thread-safe by itself: :func:`record`
+    calls it under its lock."""
 
     FLUSH_EVERY = 512
 
@@ -123,9 +124,8 @@ class HashCache:
         self._pending: list[tuple] = []
 
     @staticmethod
-    def _row(key: Key) -> tuple:
-        p, size, mtime, ino = key
-        return p, size, mtime, ino if ino < 2**63 else ino - 2**64  # SQLite's integers are signed 64-bit
+    def _ino(ino: int) -> int:
+        return ino if ino < 2**63 else ino - 2**64  # SQLite's integers are signed 64-bit
 
     def _conn(self) -> Optional[sqlite3.Connection]:
         if self.error is not None:
@@ -138,9 +138,9 @@ class HashCache:
             db = sqlite3.connect(str(self.path), timeout=30, check_same_thread=False, isolation_level=None)
             with contextlib.suppress(sqlite3.Error):  # a file system without shared memory: rollback journal
                 db.execute("PRAGMA journal_mode=WAL")
-            db.execute("CREATE TABLE IF NOT EXISTS hashes (path TEXT NOT NULL, size INTEGER NOT NULL, "
-                       "mtime_ns INTEGER NOT NULL, inode INTEGER NOT NULL, sha256 TEXT NOT NULL, "
-                       "PRIMARY KEY (path, size, mtime_ns, inode)) WITHOUT ROWID")
+            db.execute("CREATE TABLE IF NOT EXISTS files (dir TEXT NOT NULL, name TEXT NOT NULL, "
+                       "size INTEGER NOT NULL, mtime_ns INTEGER NOT NULL, inode INTEGER NOT NULL, "
+                       "sha256 TEXT NOT NULL, PRIMARY KEY (dir, name)) WITHOUT ROWID")
         except (sqlite3.Error, OSError) as exc:
             self._off(exc)
             return None
@@ -151,34 +151,35 @@ class HashCache:
         self.error = f"off ({type(exc).__name__}: {exc})"
         self._db, self._pending = None, []
 
-    def get(self, key: Key) -> Optional[str]:
+    def folder(self, folder: str) -> dict[Key, str]:
+        """{key: sha256} of every file of ``folder`` (absolute) in the cache."""
         db = self._conn()
         if db is None:
-            return None
+            return {}
         try:
-            row = db.execute("SELECT sha256 FROM hashes WHERE path=? AND size=? AND mtime_ns=? AND inode=?",
-                             self._row(key)).fetchone()
+            rows = db.execute("SELECT name, size, mtime_ns, inode, sha256 FROM files WHERE dir=?", (folder,)).fetchall()
         except sqlite3.Error as exc:
             self._off(exc)
-            return None
-        return row[0] if row else None
+            return {}
+        return {(os.path.join(folder, n), size, mtime, ino if ino >= 0 else ino + 2**64): sha
+                for n, size, mtime, ino, sha in rows}
 
     def put(self, key: Key, sha: str) -> None:
         if self.error is None:
-            self._pending.append((*self._row(key), sha))
+            p, size, mtime, ino = key
+            self._pending.append((*os.path.split(p), size, mtime, self._ino(ino), sha))
             if len(self._pending) >= self.FLUSH_EVERY:
                 self.flush()
 
     def flush(self) -> None:
-        """Write the new entries in one transaction (the path's older rows removed)."""
+        """Write the new rows in one transaction."""
         db = self._conn() if self._pending else None
         if db is None:
             return
         rows, self._pending = self._pending, []
         try:
             db.execute("BEGIN IMMEDIATE")
-            db.executemany("DELETE FROM hashes WHERE path=?", [(r[0],) for r in rows])
-            db.executemany("INSERT OR REPLACE INTO hashes VALUES (?, ?, ?, ?, ?)", rows)
+            db.executemany("INSERT OR REPLACE INTO files VALUES (?, ?, ?, ?, ?, ?)", rows)
             db.execute("COMMIT")
         except sqlite3.Error as exc:
             with contextlib.suppress(sqlite3.Error):
@@ -213,7 +214,8 @@ class Collector:
 
 _LOCK = threading.Lock()
 _ACTIVE: list[Collector] = []
-_MEMO: dict[Key, str] = {}  # this process's hashes by key: a frame read by several tiles or windows once
+_MEMO: dict[Key, str] = {}  # this run's hashes by key: the cache's rows of the folders read, and those hashed
+_FOLDERS: set[str] = set()  # the folders whose cache rows are in _MEMO
 _CACHE: list[Optional[HashCache]] = [None]
 
 
@@ -243,7 +245,12 @@ def record(path: PathLike, role: str, data=None) -> Optional[str]:
         return None
     key: Key = (p, st.st_size, st.st_mtime_ns, st.st_ino)
     with _LOCK:
-        sha = _MEMO.get(key) or _cache().get(key)
+        sha = _MEMO.get(key)
+        folder = os.path.dirname(p)
+        if sha is None and folder not in _FOLDERS:  # one query per folder, not per frame
+            _FOLDERS.add(folder)
+            _MEMO.update(_cache().folder(folder))
+            sha = _MEMO.get(key)
     size, n_hashed = st.st_size, 0
     if sha is None:
         if data is not None:
@@ -302,6 +309,7 @@ def collecting() -> Iterator[Collector]:
             if not _ACTIVE:
                 _cache().flush()
                 _MEMO.clear()  # a long-lived process (a sweep's, a Ray worker) keeps no run's hashes
+                _FOLDERS.clear()
 
 
 # --------------------------------------------------------------------------- the report

@@ -277,7 +277,8 @@ class SummaryFile:
         every one listed in the run folder's ``inputs.tsv``; ``config_sha256``; ``generator`` of a
         procedural scene) and ``outputs`` (``files``: the hashes of the files in ``files``, read back;
         ``figures_sha256``: of :func:`figures`), written. ``cfg``: the resolved config (None: the run
-        failed before it was)."""
+        failed before it was). Its own time: ``timings_s.hashes``."""
+        t0 = time.perf_counter()
         run_dir = self.path.parent
         rows = read.rows() if read is not None else []
         block = inputs.block(rows, read)
@@ -292,6 +293,7 @@ class SummaryFile:
         self.data["inputs"] = block
         self.data["outputs"] = {"files": output_hashes(run_dir, self.data.get("files") or {}),
                                 "figures_sha256": inputs.sha256_bytes(canonical_json(figures(self.data)).encode())}
+        self.data.setdefault("timings_s", {})["hashes"] = round(time.perf_counter() - t0, 4)
         self.write()
         return {"inputs": block, "outputs": self.data["outputs"]}
 

@@ -12,6 +12,7 @@ from PIL import Image
 from diffuser_lab.cli.inspect import main as inspect_main
 from diffuser_lab.cli.verify import main as verify_main
 from diffuser_lab.data import inputs
+from diffuser_lab.recording.rerun_log import read_provenance
 
 SCANNET = ["scene=scannet", "scene.options.frame_step=1", "solver.max_iter=40"]
 
@@ -72,6 +73,10 @@ def test_summary_and_records_carry_the_inputs_and_outputs(scannet_run, capsys):
         assert f"inputs    {inp['sha256'][:12]}: frames {len(frames)} files" in text
         assert f"mesh {mesh} " in text and f"labels.npy {out['files']['labels.npy']['sha256'][:12]}" in text
         assert f"figures {out['figures_sha256'][:12]}" in text
+    replay = run.parent / "replay.rrd"  # re-logged from run.mcap: what made the run comes along
+    assert inspect_main([str(run), "--to-rrd", str(replay)]) == 0
+    assert read_provenance(replay) == read_provenance(run / "run.rrd")
+    assert read_provenance(replay)["inputs"] == inp and read_provenance(replay)["outputs"] == out
 
 
 @pytest.mark.slow
@@ -115,7 +120,7 @@ def test_a_different_commit_is_named(scannet_run, tmp_path, capsys):
     (run / "summary.json").write_text(json.dumps(s))
     code, lines = _verify(capsys, run, tmp_path / "again")
     assert code == 0 and lines[0].startswith("identical: ") and lines[0].endswith("changed since: commit")
-    assert f"commit    commit 0123456789ab -> {(here or 'unknown')[:12]}" in lines
+    assert f"commit    0123456789ab -> {(here or 'unknown')[:12]}" in lines
 
 
 @pytest.mark.slow
