@@ -38,7 +38,7 @@ import yaml
 from diffuser_lab.config import Config, claim_run_dir, register
 from diffuser_lab.runs import compare as cmp
 from diffuser_lab.runs.memory import snapshot
-from diffuser_lab.runs.records import write_json_atomic
+from diffuser_lab.runs.records import timed_output, write_json_atomic
 
 PROG = "diffuser-lab-verify"
 SHOW = 5
@@ -145,8 +145,9 @@ def verdict(c: cmp.Comparison, why_not: Optional[str] = None) -> str:
     """The one verdict line (module doc)."""
     changed = [k for k in ("machine", "versions", "commit", "kernels") if k in c.changed]
     since = f"; changed since: {', '.join(changed)}" if changed else ""
+    timed = f" (but {', '.join(c.outputs_timed)}: written with the time)" if c.outputs_timed else ""
     equal = (f"labels bit for bit ({c.n_points:,} points), " if c.n_points is not None else
-             "no labels file (single-frame), ") + f"every output and {c.figures} figures equal"
+             "no labels file (single-frame), ") + f"every output{timed} and {c.figures} figures equal"
     if c.identical:
         return f"identical: {equal}, the same inputs{since or '; nothing changed since'}"
     if c.inputs_changed:
@@ -184,8 +185,7 @@ def details(c: cmp.Comparison, run_dir: Path, new_dir: Path, old: dict, new: dic
                                      f"{c.labels_differ:,} of {c.n_points:,} differ" if c.labels_differ > 0 else
                                      "not comparable (lengths differ)"))
     files = sorted((new.get("outputs") or {}).get("files") or {})
-    lines.append("outputs   " + (", ".join(f"{f} {'differs' if f in c.outputs_differ else 'equal'}" for f in files)
-                                 or "none"))
+    lines.append("outputs   " + (", ".join(f"{f} {_output_state(c, f)}" for f in files) or "none"))
     lines.append(f"figures   {c.figures - len(c.figures_differ)} of {c.figures} equal")
     lines += [f"          {_figure(*f)}" for f in c.figures_differ]
     for k in ("machine", "versions", "commit", "kernels"):
@@ -202,6 +202,12 @@ def details(c: cmp.Comparison, run_dir: Path, new_dir: Path, old: dict, new: dic
     lines.append(f"cost      run {_opt(t_old, 's')}, peak {_opt(m_old, 'GB')}; re-run {_opt(t_new, 's')}, peak "
                  f"{_opt(m_new, 'GB')}; verify {wall:.2f} s, peak {snapshot().get('peak_rss_gb', 0):.2f} GB")
     return "\n".join(lines)
+
+
+def _output_state(c: cmp.Comparison, name: str) -> str:
+    if name in c.outputs_timed:
+        return f"differs ({timed_output(name)})"
+    return "differs" if name in c.outputs_differ else "equal"
 
 
 def _opt(v: Optional[float], unit: str) -> str:

@@ -16,6 +16,7 @@ import numpy as np
 from diffuser_lab.backends import provenance
 from diffuser_lab.data import inputs
 
+from .records import timed_output
 from .report import figures
 
 __all__ = ["Comparison", "compare", "flat_figures", "missing_inputs", "input_entries", "nondeterminism",
@@ -82,7 +83,9 @@ class Comparison:
         n_points: labels.npy's length in the old run (None: no labels.npy, a single-frame run).
         labels_differ: points whose label differs (None: no labels to compare; -1: the lengths differ).
         new_points: labels.npy's length in the new run.
-        outputs_differ: output files (summary.json ``outputs.files``) whose hashes differ or that one lacks.
+        outputs_differ: output files (summary.json ``outputs.files``) whose hashes differ or that one lacks;
+            outputs_timed those of them that hold their write time (:func:`~.records.timed_output`):
+            not counted against identical.
         figures: the figures compared; figures_differ (path, old, new) of those that differ.
         changed: {"machine" | "versions" | "commit": [(field, old, new)]} of the provenance fields that
             differ, and "kernels" when one ran numba's kernels and the other their numpy twins.
@@ -94,6 +97,7 @@ class Comparison:
     new_points: Optional[int] = None
     labels_differ: Optional[int] = None
     outputs_differ: list[str] = field(default_factory=list)
+    outputs_timed: list[str] = field(default_factory=list)
     figures: int = 0
     figures_differ: list[tuple[str, Any, Any]] = field(default_factory=list)
     changed: dict[str, list[tuple[str, str, str]]] = field(default_factory=dict)
@@ -130,8 +134,9 @@ def compare(old_dir: Path, new_dir: Path) -> Comparison:
             c.labels_differ = int(np.count_nonzero(a != b))
     oa = (old_s.get("outputs") or {}).get("files") or {}
     ob = (new_s.get("outputs") or {}).get("files") or {}
-    c.outputs_differ = sorted(k for k in oa.keys() | ob.keys()
-                              if (oa.get(k) or {}).get("sha256") != (ob.get(k) or {}).get("sha256"))
+    differ = sorted(k for k in oa.keys() | ob.keys() if (oa.get(k) or {}).get("sha256") != (ob.get(k) or {}).get("sha256"))
+    c.outputs_timed = [k for k in differ if timed_output(k) and k in oa and k in ob]
+    c.outputs_differ = [k for k in differ if k not in c.outputs_timed]
     fa, fb = flat_figures(old_s), flat_figures(new_s)
     c.figures = len(fa.keys() | fb.keys())
     c.figures_differ = [(k, fa.get(k), fb.get(k)) for k in sorted(fa.keys() | fb.keys(), key=_natural)

@@ -9,7 +9,7 @@ import math
 import os
 from enum import Enum
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 import yaml
@@ -101,6 +101,17 @@ def _las(suffix: str) -> Callable[[Path, np.ndarray, np.ndarray, Taxonomy], list
 def _ros2(run_dir: Path, points: np.ndarray, labels: np.ndarray, taxonomy: Taxonomy) -> list[Path]:
     return [write_pointcloud2_bag(run_dir / "labels_ros2", points, labels, taxonomy)]
 
+
+TIMED_OUTPUTS = {"labels.las": "its header has the day it was written", "labels.laz": "its header has the day it was written",
+                 "labels_ros2/": "its message is stamped with the time it was written"}
+"""Output files (a name, or a folder's prefix) whose bytes hold when they were written: two runs' differ
+there whatever their labels (``diffuser-lab-verify`` names them apart; their labels are labels.npy's)."""
+
+
+def timed_output(name: str) -> Optional[str]:
+    """Why an output file's bytes hold its write time (:data:`TIMED_OUTPUTS`), None for the others."""
+    return next((why for k, why in TIMED_OUTPUTS.items() if name == k or k.endswith("/") and name.startswith(k)),
+                None)
 
 CLOUD_WRITERS: dict[str, Callable[[Path, np.ndarray, np.ndarray, Taxonomy], list[Path]]] = {
     "las": _las("las"),
