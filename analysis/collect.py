@@ -6,7 +6,9 @@ writes ``<out>_runs.csv`` (one row per run: overrides, status, metrics, timings,
 host, cpu, isa, blas, versions, commit), ``<out>.csv`` and ``<out>.md`` (one row per configuration:
 mean and standard deviation over seeds, number of runs and failures). When the runs ran on
 different machines, ISA levels or versions, the Markdown ends with one line saying what differs
-and how many runs per value (nothing when they agree).
+and how many runs per value (nothing when they agree); when runs of one scene name read different
+inputs (summary.json ``inputs``: a frame folder edited between jobs), with one line naming the scene,
+the role and the hashes. The runs CSV's ``inputs`` column is each run's inputs hash (12 hex digits).
 """
 from __future__ import annotations
 
@@ -21,7 +23,7 @@ from diffuser_lab.runs.results import (  # noqa: F401
     find_runs,
     is_nan,
     markdown,
-    provenance_line,
+    notes,
     run_rows,
     swept_keys,
 )
@@ -47,9 +49,8 @@ def collect(paths: list[str], out: str | Path) -> tuple[list[dict], list[dict], 
     acols, arows = aggregate(runs)
     write_csv(out.with_suffix(".csv"), acols, arows)
     md = markdown(acols, arows)
-    mixed = provenance_line(runs, "runs")
-    if mixed:  # figures of different machines or versions may differ at the same seed
-        md += "\n\n" + mixed
+    for line in notes(runs, "runs"):  # figures of other machines, versions or inputs may differ at one seed
+        md += "\n\n" + line
     out.with_suffix(".md").write_text(md + "\n")
     return rrows, arows, md
 

@@ -233,10 +233,9 @@ def report(paths: list[str], out: str | Path, title: str | None = None, referenc
     rrows, arows, md = collect(paths, out / "table")
     columns = COLUMNS.get(experiment_name(runs, paths))
     if columns:  # the experiment's own columns (the CSVs hold every metric)
-        from diffuser_lab.runs.results import aggregate, markdown, provenance_line
+        from diffuser_lab.runs.results import aggregate, markdown, notes
 
-        mixed = provenance_line(runs, "runs")
-        md = markdown(*aggregate(runs), metrics=columns) + (f"\n\n{mixed}" if mixed else "")
+        md = markdown(*aggregate(runs), metrics=columns) + "".join(f"\n\n{line}" for line in notes(runs, "runs"))
     plots = make_plots(paths, out)
     ok = [r for r in runs if r.status == "ok"]
     s0 = ok[0].summary if ok else {}

@@ -10,6 +10,8 @@
     wants(iteration) -> bool, observe(iteration, Z, stats)   during the diffusion
         (a features run: observe_features(iteration, F) first, then observe with class scores)
     on_result(result)                                once, at the end (also gets the final Z)
+The command line then calls on_provenance(block) once the run's files are written (summary.json's
+provenance, inputs and outputs), before it closes the records.
 :func:`diffuser_lab.runs.online.online` (protocol=online) calls on_scene, then per frame taken
 on_frame(index, frame) and on_online_frame(frame, update), after the last frame its finishing pass
 (``online.finish``) as a diffusion (statistics, on_statistics, wants, observe: iteration = the
@@ -99,6 +101,10 @@ class RunHooks:
 
     def on_result(self, result: Any) -> None:
         """result: :class:`~diffuser_lab.runs.pipeline.RunResult` (``result.diffusion.Z`` is the final Z)."""
+
+    def on_provenance(self, block: dict) -> None:
+        """What made the run, once its files are written: ``provenance`` (machine, versions, commit),
+        ``inputs`` and ``outputs`` as summary.json has them (plain JSON values)."""
 
     def close(self) -> None:
         """Flush and close files (called even when the run fails)."""

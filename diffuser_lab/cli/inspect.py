@@ -1,6 +1,7 @@
 """`diffuser-lab-inspect`: read a run's records back.
 
     diffuser-lab-inspect RUN                      summary + per-iteration table (RUN: run folder or run.mcap)
+    diffuser-lab-inspect RUN/run.rrd              what made a run.rrd: machine, versions, commit, inputs, outputs
     diffuser-lab-inspect RUN --config             also print the resolved config
     diffuser-lab-inspect RUN --at 120 --out z.npy extract Z (M, C) float32 of a recorded iteration ("last" works)
     diffuser-lab-inspect RUN --to-rrd OUT.rrd     re-log the run from its MCAP alone into a fresh .rrd
@@ -19,7 +20,9 @@ takes a step of the run's timeline (target k's iteration t is its start + t); ``
 re-logs every target's recorded iterations, images and Table II.
 
 Everything is read from run.mcap (no summary section needed): a truncated file (killed run,
-cut copy) gives its complete leading iterations and a warning on stderr, exit code 0.
+cut copy) gives its complete leading iterations and a warning on stderr, exit code 0. Every kind
+ends with what made the run (``made by``, ``inputs``, ``outputs``: the records' provenance, the same
+blocks as summary.json's); a run.rrd given alone prints those lines from its recording property.
 Exit codes: 0 ok, 1 unreadable file, 2 bad arguments (missing file, iteration not recorded).
 """
 from __future__ import annotations
@@ -34,6 +37,7 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 
+from diffuser_lab.backends import provenance as provenance_mod
 from diffuser_lab.method.diffusion import labels_from_scores
 from diffuser_lab.recording import schema
 from diffuser_lab.recording.features import feature_view_of
@@ -55,7 +59,7 @@ from diffuser_lab.recording.mcap_encode import (
 )
 from diffuser_lab.recording.mcap_read import RunLog, iter_run, metrics_dict, read_run, relog_scene, work_points
 from diffuser_lab.recording.mcap_write import FOXGLOVE_LAYOUT, online_foxglove_layout
-from diffuser_lab.recording.rerun_log import RerunRecorder
+from diffuser_lab.recording.rerun_log import RerunRecorder, read_provenance
 from diffuser_lab.recording.schedule import describe
 from diffuser_lab.recording.single_frame import replay as replay_single_frame
 from diffuser_lab.recording.steps import StepTracker
@@ -80,12 +84,7 @@ def _mcap_path(run: Path) -> Path:
 
 
 def _size(path: Path) -> str:
-    n = path.stat().st_size
-    for unit in ("B", "KiB", "MiB", "GiB"):
-        if n < 1024 or unit == "GiB":
-            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
-        n /= 1024
-    return ""
+    return _size_of(path.stat().st_size)
 
 
 def _f(x: Optional[float], spec: str = ".1f") -> str:
@@ -138,6 +137,50 @@ def summary_text(log: Any) -> str:
     else:
         lines.append("result    (no summary: the run did not finish)")
     return "\n".join(lines)
+
+
+def _hash(h: Optional[str]) -> str:
+    return (h or "?")[:12]
+
+
+def made_by_text(block: Optional[dict]) -> str:
+    """What made a run, three lines (``made by``, ``inputs``, ``outputs``) from its records'
+    provenance block (:meth:`~diffuser_lab.hooks.RunHooks.on_provenance`); hashes shortened to 12
+    hex digits (summary.json and ``inputs.tsv`` have them whole)."""
+    if not block:
+        return "made by   (not recorded: a run from before its records held their provenance)"
+    inp, out = block.get("inputs") or {}, block.get("outputs")
+    cfg = f" | config sha256 {_hash(inp.get('config_sha256'))}" if inp.get("config_sha256") else ""
+    lines = [f"made by   {provenance_mod.summary_line(block.get('provenance'))}{cfg}"]
+    parts = []
+    gen = inp.get("generator")
+    if gen:
+        parts.append(f"generator {gen.get('source')} seed {gen.get('seed')}")
+    for role, m in sorted((inp.get("manifests") or {}).items()):
+        parts.append(f"{role} {m['count']:,} files ({_size_of(m['bytes'])}, manifest {_hash(m['sha256'])})")
+    for f in inp.get("files") or []:
+        parts.append(f"{f['role']} {f['path']} ({_size_of(f['size'])}, {_hash(f['sha256'])})")
+    if "sha256" in inp:
+        lines.append(f"inputs    {_hash(inp['sha256'])}: " + ("; ".join(parts) or "no files"))
+    else:
+        lines.append("inputs    (not yet recorded: the run did not finish)")
+    if out is not None:
+        files = [f"{name} {_hash(v['sha256'])}" for name, v in sorted((out.get("files") or {}).items())]
+        lines.append("outputs   " + ", ".join(files + [f"figures {_hash(out.get('figures_sha256'))}"]))
+    return "\n".join(lines)
+
+
+def _size_of(n: float) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if n < 1024 or unit == "GiB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return ""
+
+
+def rrd_text(path: Path) -> str:
+    """A run.rrd alone: its size and what made it (its recording property)."""
+    return f"run.rrd: {path} ({_size(path)})\n" + made_by_text(read_provenance(path))
 
 
 def online_text(log: Any) -> str:
@@ -337,8 +380,8 @@ def score_classes(mcap_path: Path | str, wanted: Sequence[str]) -> list[tuple[st
 def mcap_to_rrd(mcap_path: Path | str, rrd_path: Path | str, *, max_image_side: int = 320,
                 scores: Sequence[str] = ()) -> Any:
     """Re-log a run into a fresh .rrd from its run.mcap alone (same entities, blueprint and
-    per-iteration class ids as the live run.rrd, the cameras with their label images; not their
-    depth or colour images, which run.mcap does not hold). ``scores``: class names whose
+    per-iteration class ids as the live run.rrd, the cameras with their label images and what made
+    the run; not their depth or colour images, which run.mcap does not hold). ``scores``: class names whose
     row-normalised scores Z_ic / sum_c Z_ic are logged too (``world/scores/<class>`` per recorded
     iteration, a blueprint tab each; a name not in the taxonomy raises :class:`UsageError` before
     anything is written). Returns the :class:`~diffuser_lab.recording.mcap_read.RunLog` (truncation)."""
@@ -400,6 +443,8 @@ def mcap_to_rrd(mcap_path: Path | str, rrd_path: Path | str, *, max_image_side: 
                 step = tracker.step(it, decode_z(msg), residual.get(it, float("nan")), labels=labels)
                 rec.log_step(step, points)
                 rec.log_scores(step)
+        if log.provenance:  # what made the run, as the live run.rrd has it
+            rec.log_provenance(log.provenance)
     finally:
         rec.close()
     return log
@@ -457,6 +502,9 @@ def _main(args: argparse.Namespace) -> int:
         rrd = run if run.suffix == ".rrd" else run / "run.rrd"
         print(f"opening {rrd} in the Rerun viewer")
         return subprocess.call(_viewer() + [str(rrd)])
+    if run.suffix == ".rrd" and run.is_file() and not (args.at or args.to_rrd or args.view or args.foxglove_layout):
+        print(rrd_text(run))
+        return 0
     mcap = _mcap_path(run)
     if args.foxglove_layout:
         if is_online_mcap(mcap):  # its topics and plot fields
@@ -519,27 +567,27 @@ def _main(args: argparse.Namespace) -> int:
         return 0
     meta = tiled_meta(log.metadata)
     if meta is not None:
-        print(tiled_text(log, meta))
+        print(tiled_text(log, meta) + "\n" + made_by_text(log.provenance))
         if args.config:
             print("config:\n" + log.config_yaml)
         if not args.no_table:
             print(tiles_table_text(meta.get("tiles", [])))
         return 0
     if single:
-        print(single_frame_text(log))
+        print(single_frame_text(log) + "\n" + made_by_text(log.provenance))
         if args.config:
             print("config:\n" + log.config_yaml)
         if not args.no_table:
             print(single_frame_table_text(log))
         return 0
     if log.online is not None:
-        print(online_text(log))
+        print(online_text(log) + "\n" + made_by_text(log.provenance))
         if args.config:
             print("config:\n" + log.config_yaml)
         if not args.no_table and log.frames:
             print(online_table_text(log.frames, log.z_iterations))
         return 0
-    print(summary_text(log))
+    print(summary_text(log) + "\n" + made_by_text(log.provenance))
     if args.config:
         print("config:\n" + log.config_yaml)
     if not args.no_table and log.metrics:

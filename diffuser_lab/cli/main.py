@@ -11,10 +11,11 @@ import sys
 import time
 import warnings
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Optional, Sequence
 
 from diffuser_lab.backends import numba as nb
 from diffuser_lab.config import ConfigError, RecordMode, SolverBackend, check_moved, moved_key, register, to_object
+from diffuser_lab.data import inputs
 from diffuser_lab.recording import make_hooks, record_result
 from diffuser_lab.recording.heap import retain_freed_memory
 from diffuser_lab.runs import launchers, memory, report
@@ -108,9 +109,103 @@ def _prevalidate(argv: list[str]) -> None:
         GlobalHydra.instance().clear()
 
 
+class JobFailed(Exception):
+    """A run that failed: ``summary`` its summary.json content (``status: failed``, the error, the
+    inputs read so far), ``cause`` the exception."""
+
+    def __init__(self, cause: BaseException, summary: dict):
+        super().__init__(str(cause))
+        self.cause, self.summary = cause, summary
+
+
+def execute(cfg: Any, run_dir: Path, overrides: Sequence[str], *, multirun: bool = False,
+            kernels: Optional[str] = None) -> tuple[Any, Any, dict]:
+    """One run into ``run_dir`` (a new, empty folder): resolve the composed config ``cfg`` (a
+    DictConfig of the schema), run its protocol (the protocols' registry entry) with its records,
+    write its files and summary.json with what it read (the inputs recorded while it ran:
+    :mod:`diffuser_lab.data.inputs`) and wrote (their hashes), and hand those to the records before
+    they close. Returns (the resolved config, the protocol's result, summary.json's content); raises
+    :class:`JobFailed` (summary.json says ``failed``) when the run fails. The ``diffuser-lab``
+    command's job (:func:`_task`) and ``diffuser-lab-verify``'s re-run. ``kernels``: ``numba`` or
+    ``numpy`` to take that path whatever numba's cache holds (a re-run takes its run's, summary.json
+    ``kernels``); None: the numpy/scipy path while the cache is cold (:func:`_defer_compile`)."""
+    summary: Optional[report.SummaryFile] = None
+    conf: Any = None
+    read: Optional[inputs.Collector] = None
+    show = warnings.showwarning
+
+    def keep(message, category, filename, lineno, file=None, line=None):  # print and record
+        if summary is not None:
+            summary.warn(str(message))
+        show(message, category, filename, lineno, file, line)
+
+    warnings.showwarning = keep
+    deferred = pinned = False
+    memory.reset_peak()  # summary.json's memory: this job's peak, also in a sweep's shared process
+    reuse_scenes(multirun)  # a sweep's jobs in this process load each scene once
+    try:
+        with inputs.collecting() as read:  # every file the readers read from here on, hashed
+            summary = report.SummaryFile(run_dir, overrides)
+            conf = resolve(to_object(cfg), PROTOCOLS)
+            if kernels == "numpy" and nb.available():
+                nb.defer_compile()
+                pinned = True
+            elif kernels is None:
+                deferred = _defer_compile(conf)
+            # which kernels ran (numba's or their numpy/scipy twins: figures agree to float rounding only)
+            # split: validation / test of a tuning protocol (docs/sweeps.md), null otherwise; reports keep them apart
+            summary.update(method=conf.method.name, kernels="numba" if nb.available() else "numpy",
+                           split=conf.split.value if conf.split is not None else None)
+            protocol = PROTOCOLS[conf.protocol.name]
+            hooks = _record_hooks(conf, run_dir, overrides) if protocol.records else None
+            try:
+                with read_ahead(conf.scene.read_ahead):  # every protocol's frame loops
+                    result = protocol.run(conf, hooks=hooks, **({"run_dir": run_dir} if protocol.run_dir else {}))
+            except BaseException:
+                if hooks is not None:
+                    hooks.close()
+                raise
+        try:  # the records close once they have the run's inputs and outputs (killed before: still readable)
+            done = protocol.finish(result, conf, run_dir, summary, {})
+            sealed = summary.seal(conf, read)
+            if hooks is not None:
+                hooks.on_provenance({"provenance": summary.data.get("provenance"), **sealed})
+        finally:
+            if hooks is not None:
+                hooks.close()
+        if hooks is not None:
+            records = hooks.files()
+        elif protocol.result_records:  # written by this process from the result (a tiled run's)
+            t_rec = time.perf_counter()
+            records = record_result(conf, run_dir, result, overrides=list(overrides),
+                                    provenance={"provenance": summary.data.get("provenance"), **sealed})
+            if records:
+                summary.data.setdefault("timings_s", {})["records"] = round(time.perf_counter() - t_rec, 4)
+                if isinstance(getattr(result, "timings_s", None), dict):  # the table's line
+                    result.timings_s["records"] = time.perf_counter() - t_rec
+        else:
+            records = {}
+        summary.update(records=records, memory=memory.snapshot())
+        return conf, result, summary.data
+    except Exception as exc:  # noqa: BLE001 - recorded in summary.json, then raised
+        error = f"{type(exc).__name__}: {one_line(exc)}"
+        if summary is None:
+            raise JobFailed(exc, {"status": "failed", "error": error}) from exc
+        try:  # what it read until then: a bad input file is among them
+            summary.seal(conf, read)
+        except Exception:  # noqa: BLE001 - the error is what is reported
+            pass
+        raise JobFailed(exc, summary.failed(error) or {"status": "failed", "error": error}) from exc
+    finally:
+        warnings.showwarning = show
+        if pinned:  # this process's next run decides again
+            nb.undefer()
+        if deferred:  # after the run: the compile does not compete with it for the CPUs
+            nb.compile_in_background()
+
+
 def _task(cfg: Any) -> Optional[float]:
-    """The Hydra job: resolve the config, run its protocol (the protocols' registry entry) and
-    write the run folder."""
+    """The Hydra job: :func:`execute` into Hydra's run folder, then the table (a sweep: a line)."""
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
 
@@ -123,76 +218,36 @@ def _task(cfg: Any) -> Optional[float]:
         say(f"{job_tag(hc.job.num)} started {' '.join(hc.overrides.task)}")
         if hc.launcher.get("cpus_per_task"):  # submitit: the job's share of the CPUs
             nb.limit_threads(int(hc.launcher.cpus_per_task))
-    summary: Optional[report.SummaryFile] = None
-    show = warnings.showwarning
-
-    def keep(message, category, filename, lineno, file=None, line=None):  # print and record
-        if summary is not None:
-            summary.warn(str(message))
-        show(message, category, filename, lineno, file, line)
-
-    warnings.showwarning = keep
-    deferred = False
-    memory.reset_peak()  # summary.json's memory: this job's peak, also in a sweep's shared process
-    reuse_scenes(multirun)  # a sweep's jobs in this process load each scene once
     try:
-        summary = report.SummaryFile(run_dir, hc.overrides.task)
-        conf = resolve(to_object(cfg), PROTOCOLS)
-        # split: validation / test of a tuning protocol (docs/sweeps.md), null otherwise; reports keep them apart
-        summary.update(method=conf.method.name, split=conf.split.value if conf.split is not None else None)
-        deferred = _defer_compile(conf)
-        protocol = PROTOCOLS[conf.protocol.name]
-        hooks = _record_hooks(conf, run_dir, hc) if protocol.records else None
-        try:
-            with read_ahead(conf.scene.read_ahead):  # every protocol's frame loops
-                result = protocol.run(conf, hooks=hooks, **({"run_dir": run_dir} if protocol.run_dir else {}))
-        finally:
-            if hooks is not None:
-                hooks.close()
-        if hooks is not None:
-            records = hooks.files()
-        elif protocol.result_records:  # written by this process from the result (a tiled run's)
-            t_rec = time.perf_counter()
-            records = record_result(conf, run_dir, result, overrides=list(hc.overrides.task))
-            if records and isinstance(getattr(result, "timings_s", None), dict):
-                result.timings_s["records"] = time.perf_counter() - t_rec
-        else:
-            records = {}
-        done = protocol.finish(result, conf, run_dir, summary, records)
-        summary.update(memory=memory.snapshot())
-        if multirun:  # one line per job; the sweep's table comes at the end (sweep.print_table)
-            say(job_line(hc.job.num, run_dir, done, time.perf_counter() - t_start))
-        elif not conf.output.quiet:
-            print(protocol.table(result, run_dir))
-        failed = (records or {}).get("errors")
-        if failed and not multirun:  # the labels are written: now say the records are not, in one line
-            names = {"rerun": "run.rrd", "mcap": "run.mcap"}
-            which = "; ".join(f"{names.get(k, k)}: {why}" for k, why in sorted(failed.items()))
-            print(f"{PROG}: error: {run_dir}: a record could not be written ({_one(which)}); the labels and "
-                  f"summary.json are written", file=sys.stderr)
-            sys.exit(1)
-        return (done.get("metrics") or {}).get("miou")
-    except Exception as exc:  # noqa: BLE001 - recorded, then reported as one line
-        error = f"{type(exc).__name__}: {one_line(exc)}"
-        failed = summary.failed(error) if summary is not None else {"status": "failed", "error": error}
+        conf, result, done = execute(cfg, run_dir, list(hc.overrides.task), multirun=multirun)
+    except JobFailed as failed:
+        exc = failed.cause
         if multirun:
-            say(job_line(hc.job.num, run_dir, failed))
+            say(job_line(hc.job.num, run_dir, failed.summary))
         if multirun or _verbose():
-            raise  # Hydra marks this job failed and goes on with the others
+            raise exc  # Hydra marks this job failed and goes on with the others
         print(f"{PROG}: error: {one_line(exc)}", file=sys.stderr)
         sys.exit(1)
-    finally:
-        warnings.showwarning = show
-        if deferred:  # after the run: the compile does not compete with it for the CPUs
-            nb.compile_in_background()
+    if multirun:  # one line per job; the sweep's table comes at the end (sweep.print_table)
+        say(job_line(hc.job.num, run_dir, done, time.perf_counter() - t_start))
+    elif not conf.output.quiet:
+        print(PROTOCOLS[conf.protocol.name].table(result, run_dir))
+    failed_records = (done.get("records") or {}).get("errors")
+    if failed_records and not multirun:  # the labels are written: now say the records are not, in one line
+        names = {"rerun": "run.rrd", "mcap": "run.mcap"}
+        which = "; ".join(f"{names.get(k, k)}: {why}" for k, why in sorted(failed_records.items()))
+        print(f"{PROG}: error: {run_dir}: a record could not be written ({_one(which)}); the labels and "
+              f"summary.json are written", file=sys.stderr)
+        sys.exit(1)
+    return (done.get("metrics") or {}).get("miou")
 
 
-def _record_hooks(conf: Any, run_dir: Path, hc: Any):
+def _record_hooks(conf: Any, run_dir: Path, overrides: Sequence[str]):
     """The run's recorders (in a recording process), or None for record=off."""
     if conf.record.mode == RecordMode.off:
         return None
     retain_freed_memory(conf.record.retain_heap_mb)  # process-wide: the command line's choice
-    return make_hooks(conf, run_dir, overrides=list(hc.overrides.task), process=True)
+    return make_hooks(conf, run_dir, overrides=list(overrides), process=True)
 
 
 def _defer_compile(conf: Any) -> bool:

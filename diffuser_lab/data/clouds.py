@@ -25,6 +25,7 @@ from typing import Optional
 
 import numpy as np
 
+from diffuser_lab.data import inputs
 from diffuser_lab.data.scene import IGNORE, Taxonomy
 
 __all__ = ["read_cloud", "read_point_cloud_ply", "read_las", "write_las", "write_pointcloud2_bag",
@@ -41,6 +42,7 @@ def read_cloud(path: str | Path) -> dict:
         raise ValueError(f"{path}: point cloud of unknown type {suffix or '(no suffix)'}, expected one of "
                          f"{', '.join(CLOUD_SUFFIXES)}")
     out = read_point_cloud_ply(path) if suffix == ".ply" else read_las(path)
+    inputs.record(path, "cloud")  # after the reader: a missing or unreadable file is its one line
     out["source"] = path.name
     return out
 

@@ -24,6 +24,7 @@ from typing import Sequence
 
 import numpy as np
 
+from . import inputs
 from .frames import first_line
 from .scene import IGNORE
 
@@ -280,6 +281,7 @@ def load_queries(path: str | Path, dim: int | None = None) -> tuple[list[str], n
     if names.ndim != 1 or names.dtype.kind not in "US":
         raise ValueError(f"{path}: names of shape {names.shape} dtype {names.dtype}, expected a (Q,) array of strings")
     names = [n.decode("utf-8") if isinstance(n, bytes) else str(n) for n in names.tolist()]
+    inputs.record(path, "queries")
     return check_queries(names, emb, str(path), dim)
 
 

@@ -26,6 +26,8 @@ from typing import Union
 
 import numpy as np
 
+from . import inputs
+
 __all__ = ["read_depth_png", "read_rgb", "read_label_png", "label_ids_in", "read_array", "open_image", "image_size",
            "image_complete", "max_pixels", "resize_nearest", "resize_bilinear"]
 
@@ -158,14 +160,15 @@ def _check_declared(im, size: int, where: str, what: str) -> None:
 
 
 @contextmanager
-def open_image(source: Source, what: str, name: str | None = None):
+def open_image(source: Source, what: str, name: str | None = None, role: str | None = "frames"):
     """PIL image of ``source`` (a file, or an image's bytes named ``name``) whose pixels are loaded,
     its declared size checked before they are decoded (module doc); an unreadable, truncated,
     corrupt or lying file is one ValueError naming it (Pillow raises OSError, its decompression-bomb
-    error and friends)."""
+    error and friends). A file is read once, its bytes hashed as the run's input of ``role``
+    (:func:`diffuser_lab.data.inputs.record`; None: not an input)."""
     from PIL import Image, UnidentifiedImageError
 
-    im, where = _opened(source, what, name)
+    im, where = _opened(source, what, name, role)
     try:
         im.load()
     except (OSError, UnidentifiedImageError, SyntaxError, ValueError, MemoryError, EOFError,
@@ -178,7 +181,7 @@ def open_image(source: Source, what: str, name: str | None = None):
 
 def image_size(source: Source, what: str, name: str | None = None) -> tuple[int, int]:
     """(H, W) an image's header declares, checked as :func:`open_image` checks it, no pixel decoded."""
-    im, _ = _opened(source, what, name)
+    im, _ = _opened(source, what, name, None)
     with im:
         return int(im.size[1]), int(im.size[0])
 
@@ -186,8 +189,9 @@ def image_size(source: Source, what: str, name: str | None = None) -> tuple[int,
 _QUIET = threading.Lock()  # warnings.catch_warnings is process-wide: one reader's at a time
 
 
-def _opened(source: Source, what: str, name: str | None):
-    """(the lazily opened PIL image, the name errors give), its declared size checked."""
+def _opened(source: Source, what: str, name: str | None, role: str | None):
+    """(the lazily opened PIL image, the name errors give), its declared size checked; a file read
+    whole and recorded as an input of ``role`` (None: its header only, not recorded)."""
     from PIL import Image, UnidentifiedImageError
 
     if isinstance(source, (bytes, bytearray, memoryview)):
@@ -199,10 +203,15 @@ def _opened(source: Source, what: str, name: str | None):
         where = str(path)
         if not path.is_file():
             raise FileNotFoundError(f"{what} {path} does not exist")
-        size = path.stat().st_size
-        with open(path, "rb") as chunks:
-            _check_png_chunks(chunks, size, where, what)
-        fh = path  # Pillow opens (and closes) the file itself
+        if role is None or not inputs.active():
+            size = path.stat().st_size
+            with open(path, "rb") as chunks:
+                _check_png_chunks(chunks, size, where, what)
+            fh = path  # Pillow opens (and closes) the file itself
+        else:  # read once: the bytes decoded are the bytes hashed
+            fh = io.BytesIO(inputs.read_bytes(path, role))
+            size = len(fh.getbuffer())
+            _check_png_chunks(fh, size, where, what)
     try:
         with _QUIET, warnings.catch_warnings():  # the size is refused below in one line, not warned of
             warnings.simplefilter("ignore", Image.DecompressionBombWarning)
@@ -244,14 +253,14 @@ def image_complete(path: str | Path) -> bool:
     if head[:2] == b"\xff\xd8":
         return tail.rstrip(b"\x00").endswith(_JPEG_END)
     try:
-        with open_image(path, "image"):
+        with open_image(path, "image", role=None):
             return True
     except (ValueError, OSError):
         return False
 
 
 def read_depth_png(path: str | Path, depth_scale: float, bit_shift: int = 0,
-                   invalid=(0, 65535), shift_kind: str = "circular") -> np.ndarray:
+                   invalid=(0, 65535), shift_kind: str = "circular", role: str = "frames") -> np.ndarray:
     """16-bit depth PNG -> (H, W) float32 z-depth in metres, 0 = invalid.
 
     Args:
@@ -260,11 +269,12 @@ def read_depth_png(path: str | Path, depth_scale: float, bit_shift: int = 0,
         invalid: raw stored values (before the shift) meaning "no depth".
         shift_kind: ``circular`` = 16-bit rotate right (SUN3D, ``bit_shift=3``), ``plain`` =
             ``raw >> bit_shift`` (low bits dropped, e.g. ``(raw >> 3) / 1e4`` m).
+        role: the run's input role of the file (:mod:`diffuser_lab.data.inputs`).
     """
     if shift_kind not in ("circular", "plain"):
         raise ValueError(f"depth shift kind {shift_kind!r}: expected circular or plain")
     path = Path(path)
-    with open_image(path, "depth image") as im:
+    with open_image(path, "depth image", role=role) as im:
         raw = np.asarray(im)
     if raw.ndim != 2 or raw.dtype.kind not in "ui" or raw.dtype.itemsize < 2:
         raise ValueError(f"{path}: depth image of dtype {raw.dtype} shape {raw.shape}, expected single-channel 16-bit")
@@ -285,20 +295,20 @@ def read_depth_png(path: str | Path, depth_scale: float, bit_shift: int = 0,
     return depth
 
 
-def read_rgb(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndarray:
+def read_rgb(path: str | Path, shape: tuple[int, int] | None = None, role: str = "frames") -> np.ndarray:
     """Colour image -> (H, W, 3) uint8, resized to ``shape`` = (H, W) when given (:func:`resize_bilinear`)."""
     path = Path(path)
-    with open_image(path, "colour image") as im:
+    with open_image(path, "colour image", role=role) as im:
         rgb = np.asarray(im.convert("RGB"), dtype=np.uint8).copy()
     return rgb if shape is None else resize_bilinear(rgb, shape)
 
 
-def read_label_png(path: str | Path, stored: bool = False) -> np.ndarray:
+def read_label_png(path: str | Path, stored: bool = False, role: str = "frames") -> np.ndarray:
     """Single-channel label image -> (H, W) int64 ids (8/16-bit grey, 32-bit int, or palette indices);
     ``stored``: in the integer type the image holds them (uint8 / uint16 / int32: a mapping's lookup
-    reads them as they are)."""
+    reads them as they are); ``role``: the run's input role of the file."""
     path = Path(path)
-    with open_image(path, "label image") as im:
+    with open_image(path, "label image", role=role) as im:
         if im.mode not in ("L", "P", "I", "I;16", "I;16B", "I;16L"):
             raise ValueError(f"{path}: label image mode {im.mode}, expected single-channel 8/16-bit ids "
                              f"(grey or palette), not colour-coded labels")
@@ -308,13 +318,13 @@ def read_label_png(path: str | Path, stored: bool = False) -> np.ndarray:
     return arr.astype(np.int64)
 
 
-def label_ids_in(files, n: int, what: str) -> list[tuple[np.ndarray, str]]:
+def label_ids_in(files, n: int, what: str, role: str = "frames") -> list[tuple[np.ndarray, str]]:
     """The label ids in the first ``n`` of ``files`` (label images, in name order), as
     ``[(unique ids, "<k> <what> label images")]``; ``[]`` without files (``taxonomy=ids``)."""
     files = sorted(files)[:n]
     if not files:
         return []
-    ids = np.unique(np.concatenate([np.unique(read_label_png(p)) for p in files]))  # <= n images
+    ids = np.unique(np.concatenate([np.unique(read_label_png(p, role=role)) for p in files]))  # <= n images
     return [(ids, f"{len(files)} {what} label images")]
 
 
@@ -347,15 +357,17 @@ def _npy_checked(fh, size: int, where: str) -> np.ndarray:
     return np.frombuffer(buf, dtype).reshape(shape, order="F" if fortran else "C")
 
 
-def read_array(path: str | Path, what: str, key: str | None = None) -> np.ndarray:
+def read_array(path: str | Path, what: str, key: str | None = None, role: str = "frames") -> np.ndarray:
     """A ``.npy`` file, or a ``.npz``'s array ``key`` (absent: its first), as stored, read only after its
     header's shape and dtype are checked against the file's bytes (one ValueError naming the file
-    otherwise; missing file: FileNotFoundError). For depth and probability images kept as arrays."""
+    otherwise; missing file: FileNotFoundError). For depth and probability images kept as arrays;
+    recorded as the run's input of ``role``."""
     import zipfile
 
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{what} {path} does not exist")
+    inputs.record(path, role)
     if path.suffix.lower() == ".npz":
         try:
             with zipfile.ZipFile(path) as z:

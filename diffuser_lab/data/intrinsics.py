@@ -17,12 +17,15 @@ the file (and the field) and what was expected.
 """
 from __future__ import annotations
 
+import io
 import json
 import warnings
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
+
+from . import inputs
 
 __all__ = ["FORMATS", "read_matrix_file", "read_intrinsics", "read_intrinsics_file", "read_matrix_intrinsics",
            "read_scannet_info", "read_scannet_info_intrinsics", "scannet_depth_shift", "read_ros_camera_info",
@@ -50,16 +53,17 @@ def _checked_size(h, w, path: Path, field: str) -> tuple[int, int]:
     return h, w
 
 
-def read_matrix_file(path: str | Path, what: str) -> np.ndarray:
+def read_matrix_file(path: str | Path, what: str, role: str = "intrinsics") -> np.ndarray:
     """A whitespace-separated numeric text matrix -> (r, c) float64; one line naming the file
-    (and ``what`` it holds) otherwise. Shared with the pose reader (poses.read_pose_c2w)."""
+    (and ``what`` it holds) otherwise. Shared with the pose reader (poses.read_pose_c2w); recorded
+    as the run's input of ``role``."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{what} file {path} does not exist")
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # an empty file is reported below, not as a warning
-            M = np.loadtxt(path, dtype=np.float64, ndmin=2)
+            M = np.loadtxt(io.BytesIO(inputs.read_bytes(path, role)), dtype=np.float64, ndmin=2)
     except ValueError as e:
         raise ValueError(f"{path}: cannot parse {what} as a numeric matrix ({str(e).splitlines()[0]})") from None
     if M.size == 0:
@@ -94,7 +98,7 @@ def read_scannet_info(path: str | Path) -> dict[str, str]:
     if not path.is_file():
         raise FileNotFoundError(f"intrinsics file {path} does not exist")
     out = {}
-    for n, line in enumerate(path.read_text(errors="replace").splitlines(), 1):  # a dozen lines
+    for n, line in enumerate(inputs.read_bytes(path, "intrinsics").decode(errors="replace").splitlines(), 1):  # a dozen lines
         if not line.strip():
             continue
         k, sep, v = line.partition("=")
@@ -147,7 +151,7 @@ def _load_yaml(path: Path) -> dict:
     if not path.is_file():
         raise FileNotFoundError(f"intrinsics file {path} does not exist")
     try:
-        text = path.read_text(errors="replace")
+        text = inputs.read_bytes(path, "intrinsics").decode(errors="replace")
         if text.startswith("%YAML:1"):  # OpenCV FileStorage header: not plain YAML 1.1
             text = text.split("\n", 1)[1] if "\n" in text else ""
         doc = yaml.safe_load(text)
@@ -200,7 +204,7 @@ def read_json_intrinsics(path: str | Path, key_path: Optional[str] = None) -> tu
     if not path.is_file():
         raise FileNotFoundError(f"intrinsics file {path} does not exist")
     try:
-        doc = json.loads(path.read_text(errors="replace"))
+        doc = json.loads(inputs.read_bytes(path, "intrinsics").decode(errors="replace"))
     except json.JSONDecodeError as e:
         raise ValueError(f"{path}: not readable JSON ({e})") from None
     where = "the top level"

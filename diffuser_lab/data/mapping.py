@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import inputs
 from .scene import IGNORE, Taxonomy
 
 __all__ = ["ClassMapping", "load_mapping", "identity_mapping", "native_mapping", "mapping_header",
@@ -157,8 +158,7 @@ def load_mapping(name_or_path: str | Path, target: Taxonomy) -> ClassMapping:
     by_name = {n.lower(): i for i, n in enumerate(target.names)}
     rows: dict[int, tuple[str, int]] = {}
     header_seen = False
-    with open(path, newline="", encoding="utf-8") as f:
-        lines = f.read().splitlines()
+    lines = inputs.read_bytes(path, "mapping").decode("utf-8").splitlines()
     for lineno, line in enumerate(lines, start=1):  # loop over table rows (tens to hundreds)
         if not line.strip() or line.lstrip().startswith("#"):
             continue

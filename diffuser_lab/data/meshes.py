@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from diffuser_lab.data import inputs
 from diffuser_lab.data.geometry import estimate_normals
 
 __all__ = ["read_labelled_mesh", "triangle_normals", "vertex_normals", "mesh_label_ids", "closed_components",
@@ -53,6 +54,7 @@ def read_labelled_mesh(path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None,
     triangles = np.asarray(fdata[key]).astype(np.int64).reshape(-1, 3)
     if triangles.min() < 0 or triangles.max() >= len(vertices):
         raise ValueError(f"{path}: face vertex indices outside 0..{len(vertices) - 1}")
+    inputs.record(path, "mesh")
     labels = np.asarray(v["label"]).astype(np.int64) if "label" in names else None
     colors = np.stack([v["red"], v["green"], v["blue"]], 1).astype(np.uint8) \
         if {"red", "green", "blue"} <= names else None

@@ -47,6 +47,7 @@ from omegaconf import OmegaConf
 from diffuser_lab import progress
 from diffuser_lab.config import ChannelOrder, OnnxConfig, OnnxOutput, PredictionsConfig, TensorLayout
 
+from . import inputs
 from .frames import LazyFrames
 from .mapping import ClassMapping, load_mapping
 from .images import resize_bilinear, resize_nearest
@@ -140,6 +141,19 @@ def build_callable(spec: dict) -> Callable:
         raise ValueError(f"predictions.model._target_={spec['_target_']} gave a {type(model).__name__}, "
                          f"expected a callable model(rgb) -> ids or probabilities")
     return model
+
+
+def record_model_files(target: Any, spec: dict) -> None:
+    """A Python network's files as the run's inputs (role ``network``): the source file of the
+    ``_target_``'s module, and every keyword argument naming an existing file (its weights)."""
+    try:
+        src = inspect.getsourcefile(inspect.getmodule(target) or target)
+    except TypeError:  # a builtin: no file
+        src = None
+    files = [src] + [v for k, v in spec.items() if not str(k).startswith("_") and isinstance(v, str)]
+    for f in files:  # the module and a few keyword arguments
+        if f and os.path.isfile(os.path.expanduser(f)):
+            inputs.record(os.path.expanduser(f), "network")
 
 
 class OnnxModel:
@@ -347,11 +361,8 @@ def onnx_key(cfg: OnnxConfig) -> tuple[str, dict]:
     path = Path(cfg.path).expanduser()
     if not path.is_file():
         raise FileNotFoundError(f"predictions.onnx.path={path} does not exist")
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    ident = {"source": "onnx", "file": path.name, "sha256": h.hexdigest(), "version": CACHE_VERSION,
+    sha = inputs.record(path, "network") or inputs.sha256_file(path)[1]  # the run's input, its hash cached
+    ident = {"source": "onnx", "file": path.name, "sha256": sha, "version": CACHE_VERSION,
              "input_size": None if cfg.input_size is None else [int(v) for v in cfg.input_size],
              "mean": [float(v) for v in cfg.mean], "std": [float(v) for v in cfg.std],
              "channels": cfg.channels.value, "layout": cfg.layout.value, "output": cfg.output.value,
@@ -492,7 +503,8 @@ def model_predictions(frames: Sequence[Frame], cfg: PredictionsConfig, taxonomy:
     (``predictions=features predictions.embeddings=model``)."""
     spec = cfg.model if isinstance(cfg.model, dict) else OmegaConf.to_container(cfg.model, resolve=True)
     spec = dict(spec)
-    check_target(spec)  # a wrong import path stops here, before any frame
+    target = check_target(spec)  # a wrong import path stops here, before any frame
+    record_model_files(target, spec)
     key, ident = model_key(spec, cfg.pass_depth)
     return _predicted(frames, cfg, taxonomy, scene_name, lambda: build_callable(spec), key, ident,
                       f"model {spec['_target_']}", cfg.pass_depth, features)

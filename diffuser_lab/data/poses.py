@@ -37,7 +37,7 @@ def read_pose_c2w(path: str | Path, tol: float = 1e-3, convention: str = CAMERA_
             det R != 1, last row != 0 0 0 1), naming the file.
     """
     path = Path(path)
-    T = read_matrix_file(path, "pose")
+    T = read_matrix_file(path, "pose", role="frames")
     if T.shape != (4, 4):
         raise ValueError(f"{path}: pose of shape {T.shape}, expected a 4x4 {convention.replace('_', '-')} matrix")
     if not np.isfinite(T).all():

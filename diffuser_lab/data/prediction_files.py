@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import inputs
 from .images import read_array, read_label_png, resize_bilinear, resize_nearest
 from .mapping import ClassMapping
 
@@ -45,7 +46,7 @@ def load_label_prediction(path: str | Path, mapping: ClassMapping | None,
         labels: (H, W) int16 evaluation class ids, IGNORE for unmapped classes;
         n_unmapped: pixels whose source class maps to ignore.
     """
-    ids = resize_nearest(read_label_png(path, stored=True), shape)
+    ids = resize_nearest(read_label_png(path, stored=True, role="predictions"), shape)
     if mapping is not None:
         try:
             return mapping.apply(ids)
@@ -72,7 +73,7 @@ def load_probability_prediction(path: str | Path, num_classes: int, shape: tuple
         raise FileNotFoundError(f"probability file {path} does not exist")
     if path.suffix not in (".npy", ".npz"):
         raise ValueError(f"{path}: probability file must be .npy or .npz, got {path.suffix or 'no suffix'}")
-    arr = read_array(path, "array of class probabilities", key="probs")
+    arr = read_array(path, "array of class probabilities", key="probs", role="predictions")
     if arr.ndim != 3 or arr.dtype.kind not in "fiu":
         raise ValueError(f"{path}: probabilities of shape {arr.shape} dtype {arr.dtype}, expected numeric "
                          f"(H, W, {num_classes}) or ({num_classes}, H, W)")
@@ -130,6 +131,7 @@ def load_feature_prediction(path: str | Path, *, key: str = "features", layout: 
         raise FileNotFoundError(f"feature file {path} does not exist")
     if layout not in FEATURE_LAYOUTS:
         raise ValueError(f"predictions.layout={layout}: expected one of {', '.join(FEATURE_LAYOUTS)}")
+    inputs.record(path, "features")
     mask = None
     try:
         if path.suffix == ".npy":

@@ -211,7 +211,7 @@ def file_label_ids(cfg: PredictionsConfig, n: int) -> list[tuple[np.ndarray, str
     folder = Path(cfg.folder)
     pngs = [p for p in cfg.pattern if p.lower().endswith(".png")]
     files = {f for p in pngs for f in folder.glob(p.replace("{name}", "*")) if f.is_file()}
-    return label_ids_in(list(files), n, f"prediction ({folder})")
+    return label_ids_in(list(files), n, f"prediction ({folder})", role="predictions")
 
 
 def _need_gt(f: Frame) -> None:

@@ -29,7 +29,7 @@ import numpy as np
 
 from diffuser_lab.config import SPECIAL_TAXONOMIES
 
-from . import predictions, sources
+from . import inputs, predictions, sources
 from .scene import Taxonomy
 
 __all__ = ["TAXONOMIES_DIR", "shipped_taxonomies", "taxonomy_names", "load_taxonomy", "resolve_taxonomy", "generated_colors", "ids_taxonomy",
@@ -96,8 +96,7 @@ def _read_csv(path: Path) -> Taxonomy:
     keys: dict[str, str] = {}
     rows: list[tuple] = []
     header = None
-    with open(path, newline="", encoding="utf-8") as f:
-        lines = f.read().splitlines()
+    lines = inputs.read_bytes(path, "taxonomy").decode("utf-8").splitlines()
     for lineno, line in enumerate(lines, start=1):  # loop over table rows (tens to hundreds)
         s = line.strip()
         if not s:
@@ -133,7 +132,7 @@ def _read_yaml(path: Path) -> Taxonomy:
     import yaml
 
     try:
-        doc = yaml.safe_load(path.read_text(encoding="utf-8"))
+        doc = yaml.safe_load(inputs.read_bytes(path, "taxonomy").decode("utf-8"))
     except yaml.YAMLError as e:
         raise ValueError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
     if not isinstance(doc, dict) or "classes" not in doc:
@@ -176,6 +175,8 @@ def load_taxonomy(name_or_path: str | Path) -> Taxonomy:
             raise FileNotFoundError(f"no shipped taxonomy named {s!r}; shipped: {', '.join(shipped_taxonomies())} "
                                     f"(or taxonomy=file taxonomy.path=FILE.csv|.yaml)")
         _CACHE[s] = _read_csv(shipped)
+    else:  # read by an earlier run of this process: this run read it too
+        inputs.record(TAXONOMIES_DIR / f"{s}.csv", "taxonomy")
     return _CACHE[s]
 
 

@@ -31,7 +31,7 @@ Usage (the CLI does this when ``record != off``)::
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Optional, Sequence
 
 from diffuser_lab.config import RecordMode
 from diffuser_lab.hooks import RunHooks
@@ -82,14 +82,16 @@ def make_hooks(conf: Any, run_dir: Path | str, overrides: Sequence[str] = (), *,
     return (OnlineHooks if is_online(conf) else BatchHooks)(conf, lane)
 
 
-def record_result(conf: Any, run_dir: Path | str, result: Any, overrides: Sequence[str] = ()) -> dict:
+def record_result(conf: Any, run_dir: Path | str, result: Any, overrides: Sequence[str] = (),
+                  provenance: Optional[dict] = None) -> dict:
     """The records of a run whose protocol writes them from its result once it is done
-    (``Protocol.result_records``: a tiled run, :func:`.tiled.record_tiled`); ``{}`` for record=off.
-    Returns ``{"rrd": .., "mcap": ..}`` as :meth:`RecordingHooks.files` does."""
+    (``Protocol.result_records``: a tiled run, :func:`.tiled.record_tiled`), with what made it
+    (``provenance``: as :meth:`~diffuser_lab.hooks.RunHooks.on_provenance` gets it); ``{}`` for
+    record=off. Returns ``{"rrd": .., "mcap": ..}`` as :meth:`RecordingHooks.files` does."""
     if conf.record.mode == RecordMode.off:
         return {}
     Path(run_dir).mkdir(parents=True, exist_ok=True)
-    return record_tiled(conf, run_dir, result, overrides)
+    return record_tiled(conf, run_dir, result, overrides, provenance)
 
 
 __all__ = ["make_hooks", "record_result", "RecordingHooks", "BatchHooks", "OnlineHooks", "Step", "StepTracker", "RRD_NAME",

@@ -53,6 +53,9 @@ class RecordingHooks(RunHooks):
         self.scene = scene
         self.lane.send("log_scene", slim_scene(scene))
 
+    def on_provenance(self, block: dict) -> None:
+        self.lane.send("log_provenance", block)
+
     def recording(self) -> bool:
         """Whether any recorder asked for still writes."""
         return any(self.lane.live(w) for w in self.lane.wanted)

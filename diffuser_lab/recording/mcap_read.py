@@ -74,6 +74,13 @@ class RunLog:
         return json.loads(s["json"]) if s else None
 
     @property
+    def provenance(self) -> Optional[dict]:
+        """What made the run (``diffuser_lab.provenance``, the last record: ``provenance``, ``inputs``,
+        ``outputs`` decoded), None in a record without it."""
+        m = self.metadata.get("diffuser_lab.provenance")
+        return {k: json.loads(v) for k, v in m.items()} if m else None
+
+    @property
     def online(self) -> Optional[dict]:
         """The ``diffuser_lab.online`` metadata of an online run (map, n_frames, ...), else None."""
         return self.metadata.get("diffuser_lab.online")

@@ -22,8 +22,10 @@ panels show one frame at a time and playing the file sweeps through them, while 
 frame stays in the transform tree.
 
 Metadata records: ``diffuser_lab.config`` (``yaml``: the resolved config, ``overrides``: JSON list),
-``diffuser_lab.run`` (scene, method, sizes, taxonomy as JSON) and, once the run has finished,
-``diffuser_lab.summary`` (``json``: the summary.json content).
+``diffuser_lab.run`` (scene, method, sizes, taxonomy as JSON), ``diffuser_lab.provenance`` (JSON
+texts ``provenance``: machine, versions, commit, and ``inputs``: at the start the config's hash; once
+the files are written again with ``inputs`` and ``outputs`` as summary.json has them) and, once the
+run has finished, ``diffuser_lab.summary`` (``json``: the summary.json content).
 
 Each recorded iteration ends its chunk and flushes the file, so a run that is killed leaves
 every completed iteration readable (:func:`.mcap_read.read_run` reads such a truncated file).
@@ -521,6 +523,14 @@ class McapRecorder:
         for i, rec in enumerate(tiles):  # loop over tiles
             raw = json.dumps(rec, default=_json_default).encode()
             self._write(TOPIC_TILED_RECORDS, _RawMessage(raw), i, t + i)
+        self._flush()
+
+    def log_provenance(self, block: dict) -> None:
+        """What made the run (``provenance``, ``inputs``, ``outputs``) as the metadata record
+        ``diffuser_lab.provenance``, one JSON text per key; a later record replaces the first for a
+        reader (:attr:`.mcap_read.RunLog.provenance`)."""
+        self._submit(self.w.add_metadata, "diffuser_lab.provenance",
+                     {k: json.dumps(v, sort_keys=True, default=_json_default) for k, v in block.items()})
         self._flush()
 
     def log_summary(self, summary: dict) -> None:

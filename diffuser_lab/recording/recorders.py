@@ -19,7 +19,8 @@ import logging
 from pathlib import Path
 from typing import Any, Callable, Optional, Sequence
 
-from diffuser_lab.runs.records import config_yaml
+from diffuser_lab.backends import provenance
+from diffuser_lab.runs.records import config_sha256, config_yaml
 
 from .batch import BatchRecorder
 from .mcap_write import McapRecorder
@@ -72,6 +73,16 @@ class Recorders:
             self.guard("rerun", self._open_rerun)
         if "mcap" in self.wanted:
             self.guard("mcap", self._open_mcap, overrides)
+        try:  # where and with what it runs, from the start: a killed run's records still say it
+            block = {"provenance": provenance.collect(), "inputs": {"config_sha256": config_sha256(self.conf)}}
+        except Exception:  # noqa: BLE001 - a library caller's plain config object
+            block = {"provenance": provenance.collect()}
+        self.log_provenance(block)
+
+    def log_provenance(self, block: dict) -> None:
+        """What made the run (:meth:`~diffuser_lab.hooks.RunHooks.on_provenance`): run.rrd's recording
+        property and run.mcap's metadata ``diffuser_lab.provenance``, each a later one replacing the first."""
+        self.each(lambda: self.rerun.log_provenance(block), lambda: self.mcap.log_provenance(block))
 
     def _open_rerun(self) -> None:
         rc = self.conf.record

@@ -53,6 +53,7 @@ Application ids: :data:`APP_BATCH`, :data:`APP_ONLINE` (and :data:`APP_TILED`, :
 """
 from __future__ import annotations
 
+import json
 import logging
 import sys
 import uuid
@@ -905,6 +906,13 @@ class RerunRecorder:
             self.rec.log(p, rr.Points3D.from_fields(colors=_CONFIDENCE_RGBA[q[:, j]]),
                          rr.AnyValues(score=np.ascontiguousarray(vals[:, j])))
 
+    def log_provenance(self, block: dict) -> None:
+        """What made the run (``provenance``, ``inputs``, ``outputs``: summary.json's blocks) as the
+        recording property :data:`PROVENANCE`, one JSON text per key (:func:`read_provenance`); a
+        later call replaces it (Rerun's viewer shows the last with the recording's info)."""
+        self.rec.send_property(PROVENANCE, self.rr.AnyValues(
+            **{k: json.dumps(v, sort_keys=True, default=str) for k, v in block.items()}))
+
     def close(self) -> None:
         if self._closed:
             return
@@ -944,5 +952,30 @@ class RerunRecorder:
                 size = now
 
 
-__all__ = ["RerunRecorder", "blueprint", "RESULT_CONFIDENCE", "unlabeled_color", "log_legend", "legend_entries", "LEGEND", "APP_BATCH", "APP_ONLINE", "APP_TILED", "APP_SINGLE_FRAME", "online_blueprint", "class_ids", "wrong_color", "score_entity", "UNLABELED_ID", "TIMELINE",
+PROVENANCE = "diffuser_lab.provenance"
+"""run.rrd's recording property (entity ``/__properties/diffuser_lab.provenance``) of what made the run."""
+
+
+def read_provenance(path: Path | str) -> Optional[dict]:
+    """The :data:`PROVENANCE` property of an .rrd (the last one sent: at close, the inputs and
+    outputs; a killed run's: the machine and the config's hash) as {key: decoded JSON}; None
+    without one. Reads the file's chunks through Rerun's reader (a truncated file: those before the cut)."""
+    from rerun.chunk import RrdReader
+
+    rows: list[dict] = []
+    try:
+        for ch in RrdReader(str(path)).stream():  # every chunk; only the property's decoded
+            if ch.entity_path == "/__properties/" + PROVENANCE:
+                rows += ch.to_record_batch().to_pylist()
+    except Exception:  # noqa: BLE001 - a cut file: the chunks read before the cut
+        if not rows:
+            raise
+    if not rows:
+        return None
+    # chunks are not in the order sent: the last sent has the largest row id (time-ordered TUIDs)
+    last = max(rows, key=lambda r: bytes(r.get("rerun.controls.RowId") or b""))
+    return {k: json.loads(v[0]) for k, v in last.items() if not k.startswith("rerun.") and isinstance(v, list) and v}
+
+
+__all__ = ["RerunRecorder", "PROVENANCE", "read_provenance", "blueprint", "RESULT_CONFIDENCE", "unlabeled_color", "log_legend", "legend_entries", "LEGEND", "APP_BATCH", "APP_ONLINE", "APP_TILED", "APP_SINGLE_FRAME", "online_blueprint", "class_ids", "wrong_color", "score_entity", "UNLABELED_ID", "TIMELINE",
            "CONFIDENCE_LUT"]

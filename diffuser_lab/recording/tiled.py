@@ -181,7 +181,8 @@ def tile_accuracy(labels: np.ndarray, gt: np.ndarray, cell: np.ndarray, tiles: S
         return np.where(n[t] > 0, 100.0 * ok[t] / np.maximum(n[t], 1), np.nan)
 
 
-def _rerun(path: Path, res: Any, idx: np.ndarray, centers: np.ndarray, half: np.ndarray, conf: Any) -> None:
+def _rerun(path: Path, res: Any, idx: np.ndarray, centers: np.ndarray, half: np.ndarray, conf: Any,
+           provenance: Optional[dict]) -> None:
     import rerun as rr
 
     scene = res.scene
@@ -189,6 +190,8 @@ def _rerun(path: Path, res: Any, idx: np.ndarray, centers: np.ndarray, half: np.
     rec = RerunRecorder(path, application_id=APP_TILED, max_image_side=conf.record.max_image_side,
                         online=True)  # online: no batch blueprint
     try:
+        if provenance:
+            rec.log_provenance(provenance)
         pts = scene.points[idx]
         has_gt = scene.gt_labels is not None
         miou = (res.metrics or {}).get("miou") if has_gt else None
@@ -237,7 +240,7 @@ def _tile_palette(n: int) -> np.ndarray:
 
 
 def _mcap(path: Path, res: Any, idx: np.ndarray, stride: int, centers: np.ndarray, half: np.ndarray, conf: Any,
-          overrides: Sequence[str], summary: dict) -> None:
+          overrides: Sequence[str], summary: dict, provenance: Optional[dict]) -> None:
     scene = res.scene
     try:
         yaml = config_yaml(conf)
@@ -247,6 +250,8 @@ def _mcap(path: Path, res: Any, idx: np.ndarray, stride: int, centers: np.ndarra
     rec = McapRecorder(path, config_yaml=yaml, overrides=overrides, compression=rc.compression.value,
                        writer_thread=False, max_image_side=rc.max_image_side)
     try:
+        if provenance:
+            rec.log_provenance(provenance)
         shown = SimpleNamespace(name=scene.name, n_points=scene.n_points, points=scene.points[idx],
                                 colors=None if scene.colors is None else scene.colors[idx],
                                 gt_labels=None if scene.gt_labels is None else scene.gt_labels[idx],
@@ -262,10 +267,13 @@ def _mcap(path: Path, res: Any, idx: np.ndarray, stride: int, centers: np.ndarra
         rec.close()
 
 
-def record_tiled(conf: Any, run_dir: Path | str, res: Any, overrides: Sequence[str] = ()) -> dict:
+def record_tiled(conf: Any, run_dir: Path | str, res: Any, overrides: Sequence[str] = (),
+                 provenance: Optional[dict] = None) -> dict:
     """Write run.rrd and/or run.mcap (``conf.record.mode``) of a finished tiled run ``res``
-    (:class:`~diffuser_lab.runs.tiled.TiledResult`); returns ``{"rrd": .., "mcap": ..}`` of the
-    files written and ``errors`` {recorder: why} where one failed (the run's result stands)."""
+    (:class:`~diffuser_lab.runs.tiled.TiledResult`), with what made it (``provenance``: the
+    provenance, inputs and outputs blocks of its summary.json, :meth:`RerunRecorder.log_provenance`);
+    returns ``{"rrd": .., "mcap": ..}`` of the files written and ``errors`` {recorder: why} where one
+    failed (the run's result stands)."""
     mode = conf.record.mode
     if mode == RecordMode.off:
         return {}
@@ -276,11 +284,11 @@ def record_tiled(conf: Any, run_dir: Path | str, res: Any, overrides: Sequence[s
     errors: dict[str, str] = {}
     jobs = []
     if mode in (RecordMode.rerun, RecordMode.both):
-        jobs.append(("rerun", "rrd", RRD_NAME, lambda p: _rerun(p, res, idx, centers, half, conf)))
+        jobs.append(("rerun", "rrd", RRD_NAME, lambda p: _rerun(p, res, idx, centers, half, conf, provenance)))
     if mode in (RecordMode.mcap, RecordMode.both):
         summary = tiled_run.summary(res, conf)
         jobs.append(("mcap", "mcap", MCAP_NAME,
-                     lambda p: _mcap(p, res, idx, stride, centers, half, conf, overrides, summary)))
+                     lambda p: _mcap(p, res, idx, stride, centers, half, conf, overrides, summary, provenance)))
     for which, key, name, write in jobs:  # loop over the (two) files
         try:
             write(run_dir / name)

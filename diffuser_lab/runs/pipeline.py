@@ -16,7 +16,7 @@ import numpy as np
 from diffuser_lab import progress
 from diffuser_lab.backends import resolve_backend
 from diffuser_lab.config import Config, DepthNoiseConfig, GraphAffinity, SceneConfig, SolverName, SparseClasses
-from diffuser_lab.data import sources, validate
+from diffuser_lab.data import inputs, sources, validate
 from diffuser_lab.data.frames import FrameLoop, KeyframeRule, LazyFrames, follow_of, keyframes, read_ahead, without
 from diffuser_lab.data.geometry import VoxelGrid, nearest_transfer, voxel_downsample, voxel_edge
 from diffuser_lab.data.embeddings import prototypes
@@ -52,6 +52,7 @@ class _SceneReuse:
     def __init__(self) -> None:
         self.on = False
         self.kept: collections.OrderedDict[tuple, Scene] = collections.OrderedDict()
+        self.read: dict[tuple, list] = {}  # the input files each kept scene's load read (data/inputs.py)
 
     @staticmethod
     def key_of(cfg: SceneConfig, taxonomy: Taxonomy, depth: Optional[DepthNoiseConfig]) -> tuple:
@@ -62,10 +63,13 @@ class _SceneReuse:
     def get(self, key: tuple, load: Callable[[], Scene]) -> Scene:
         scene = self.kept.get(key)
         if scene is None:
-            scene = load()
+            with inputs.collecting() as got:
+                scene = load()
             if scene.n_points <= self.MAX_POINTS:
+                self.read[key] = got.rows()
                 self._keep(key, scene)
-        else:
+        else:  # this job reads the files the kept scene was loaded from: its summary lists them
+            inputs.merge(self.read.get(key, ()))
             self.kept.move_to_end(key)
         return self._handout(scene)
 
@@ -79,7 +83,7 @@ class _SceneReuse:
                 a.setflags(write=False)
         self.kept[key] = scene
         while len(self.kept) > self.MAX_SCENES or sum(x.n_points for x in self.kept.values()) > self.MAX_POINTS:
-            self.kept.popitem(last=False)
+            self.read.pop(self.kept.popitem(last=False)[0], None)
 
     @staticmethod
     def _handout(s: Scene) -> Scene:
@@ -99,6 +103,7 @@ def reuse_scenes(on: bool = True) -> None:
     _REUSE.on = bool(on)
     if not on:
         _REUSE.kept.clear()
+        _REUSE.read.clear()
 
 
 def load_scene(cfg: SceneConfig, taxonomy: Taxonomy = SCANNET20, depth: Optional[DepthNoiseConfig] = None) -> Scene:

@@ -1,5 +1,6 @@
 """Files a run writes into its own folder: summary.json (atomically replaced), labels.npy, labels.ply;
-and the config as the records keep it (:func:`config_yaml`)."""
+the config as the records keep it (:func:`config_yaml`) and its hash (:func:`config_sha256`); the
+hashes of what a run wrote (:func:`output_hashes`)."""
 from __future__ import annotations
 
 import dataclasses
@@ -15,6 +16,7 @@ import yaml
 from omegaconf import OmegaConf
 
 from diffuser_lab import progress
+from diffuser_lab.data import inputs
 from diffuser_lab.data.clouds import write_las, write_pointcloud2_bag
 from diffuser_lab.data.embeddings import write_queries
 from diffuser_lab.data.o3d import open3d
@@ -41,12 +43,36 @@ def config_yaml(conf: Any) -> str:
     return OmegaConf.to_yaml(conf)
 
 
-def _clean(obj: Any) -> Any:
+def config_sha256(conf: Any) -> str:
+    """sha256 of the config as :func:`config_yaml` writes it (every key, enums by name): equal
+    hashes, the same resolved config."""
+    return inputs.sha256_bytes(config_yaml(conf).encode())
+
+
+def output_hashes(run_dir: Path, files: dict) -> dict:
+    """{file name relative to the run folder: {"size", "sha256"}} of the files a run wrote
+    (summary.json ``files``' values: labels.npy, labels.ply, features, map.npy, ...); a folder
+    (``labels_ros2/``) as the :func:`~diffuser_lab.data.inputs.manifest` of its files (and their
+    count). Read back after writing: what is hashed is what is on disk."""
+    out = {}
+    for name in sorted({str(v) for v in (files or {}).values() if isinstance(v, str)}):  # a few files
+        path = Path(run_dir) / name
+        if path.is_file():
+            size, sha = inputs.sha256_file(path)
+            out[name] = {"size": size, "sha256": sha}
+        elif path.is_dir():
+            parts = [inputs.sha256_file(p) for p in sorted(path.rglob("*")) if p.is_file()]
+            out[name] = {"size": sum(n for n, _ in parts), "count": len(parts),
+                         "sha256": inputs.manifest(h for _, h in parts)}
+    return out
+
+
+def json_ready(obj: Any) -> Any:
     """JSON-safe copy: numpy scalars -> Python, NaN/inf -> None."""
     if isinstance(obj, dict):
-        return {str(k): _clean(v) for k, v in obj.items()}
+        return {str(k): json_ready(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_clean(v) for v in obj]
+        return [json_ready(v) for v in obj]
     if isinstance(obj, np.generic):
         obj = obj.item()
     if isinstance(obj, float) and not math.isfinite(obj):
@@ -60,7 +86,7 @@ def write_json_atomic(path: Path, data: dict) -> None:
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "w") as fh:
-        json.dump(_clean(data), fh, indent=2)
+        json.dump(json_ready(data), fh, indent=2)
         fh.write("\n")
         fh.flush()
         os.fsync(fh.fileno())
@@ -92,6 +118,18 @@ def _las(suffix: str) -> Callable[..., list[Path]]:
 def _ros2(run_dir: Path, points: np.ndarray, labels: np.ndarray, taxonomy: Taxonomy,
           confidence: Optional[np.ndarray] = None) -> list[Path]:
     return [write_pointcloud2_bag(run_dir / "labels_ros2", points, labels, taxonomy)]  # its fields are fixed
+
+
+TIMED_OUTPUTS = {"labels.las": "its header has the day it was written", "labels.laz": "its header has the day it was written",
+                 "labels_ros2/": "its message is stamped with the time it was written"}
+"""Output files (a name, or a folder's prefix) whose bytes hold when they were written: two runs' differ
+there whatever their labels (``diffuser-lab-verify`` names them apart; their labels are labels.npy's)."""
+
+
+def timed_output(name: str) -> Optional[str]:
+    """Why an output file's bytes hold its write time (:data:`TIMED_OUTPUTS`), None for the others."""
+    return next((why for k, why in TIMED_OUTPUTS.items() if name == k or k.endswith("/") and name.startswith(k)),
+                None)
 
 
 CLOUD_WRITERS: dict[str, Callable[..., list[Path]]] = {

@@ -1,7 +1,8 @@
-"""What a run tells: summary.json (built here only, :class:`SummaryFile`) and the table printed
-at the end."""
+"""What a run tells: summary.json (built here only, :class:`SummaryFile`), its figures as a
+comparison reads them (:func:`figures`) and the table printed at the end."""
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 from typing import Any, Optional, Sequence
@@ -10,10 +11,11 @@ import numpy as np
 
 from diffuser_lab.backends import provenance
 from diffuser_lab.config import Config
+from diffuser_lab.data import inputs, sources
 from diffuser_lab.data.scene import IGNORE
 
 from .pipeline import RunResult
-from .records import write_json_atomic
+from .records import config_sha256, json_ready, output_hashes, write_json_atomic
 from .results import calibration_key
 
 STAGES = ("load", "predictions", "evidence", "graph", "diffusion", "labels", "scores", "metrics", "write", "total")
@@ -190,6 +192,48 @@ def single_frame_summary(sf) -> dict:
     }
 
 
+VOLATILE_KEYS = frozenset({"status", "error", "overrides", "started", "provenance", "timings_s", "memory", "records",
+                           "files", "warnings", "inputs", "outputs", "verify", "kernels"})
+"""summary.json's top-level keys that say how, where and when a run ran, not what it computed."""
+VOLATILE_LEAVES = frozenset({"node", "pid", "host", "machine", "machines", "tiles_dir", "resumed_from", "cache",
+                             "model_calls", "cached_frames", "ms", "s"})
+"""Keys, at any depth, of the same kind: where a tile ran, a network's cache and what it held."""
+VOLATILE_SUFFIXES = ("_s", "_ms", "_gb")
+"""... and of times and memory (``time_s``, ``latency_ms``, ``peak_rss_gb``)."""
+
+
+def _volatile(key: str) -> bool:
+    return key in VOLATILE_LEAVES or key.endswith(VOLATILE_SUFFIXES)
+
+
+def figures(summary: dict) -> dict:
+    """What a run computed, as its summary.json says it: the summary without :data:`VOLATILE_KEYS`
+    and, at any depth, the keys :data:`VOLATILE_LEAVES` or ending in :data:`VOLATILE_SUFFIXES`
+    (JSON-ready: numpy scalars as numbers, NaN as None). Two runs that computed the same have equal
+    figures; ``outputs.figures_sha256`` is the hash of their :func:`canonical_json`."""
+    def walk(o: Any) -> Any:
+        if isinstance(o, dict):
+            return {k: walk(v) for k, v in o.items() if not _volatile(k)}
+        if isinstance(o, list):
+            return [walk(v) for v in o]
+        return o
+
+    return walk(json_ready({k: v for k, v in summary.items() if k not in VOLATILE_KEYS}))
+
+
+def canonical_json(obj: Any) -> str:
+    """Sorted keys, no spaces, floats as Python writes them (shortest exact): equal text, equal values."""
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"))
+
+
+def generator(cfg: Config) -> Optional[dict]:
+    """A procedural scene's generator and seed (summary.json ``inputs.generator``), None for a scene
+    read from files (the scene sources' ``generated``)."""
+    if not sources.get(cfg.scene.source).generated:
+        return None
+    return {"source": cfg.scene.source, "seed": getattr(cfg.scene.options, "seed", None)}
+
+
 class SummaryFile:
     """A run folder's summary.json, the one place it is built. Written as soon as the run starts
     (``status: running``: a run that dies leaves it; with the ``provenance`` block of
@@ -227,6 +271,31 @@ class SummaryFile:
         self.data.update(single_frame_summary(sf))
         self.update(status="ok")
         return self.data
+
+    def seal(self, cfg: Optional[Config], read: Optional[inputs.Collector]) -> dict:
+        """summary.json's ``inputs`` (the files ``read`` recorded, :func:`diffuser_lab.data.inputs.block`,
+        every one listed in the run folder's ``inputs.tsv``; ``config_sha256``; ``generator`` of a
+        procedural scene) and ``outputs`` (``files``: the hashes of the files in ``files``, read back;
+        ``figures_sha256``: of :func:`figures`), written. ``cfg``: the resolved config (None: the run
+        failed before it was). Its own time: ``timings_s.hashes``."""
+        t0 = time.perf_counter()
+        run_dir = self.path.parent
+        rows = read.rows() if read is not None else []
+        block = inputs.block(rows, read)
+        if rows:
+            inputs.write_list(run_dir / inputs.LIST_NAME, rows)
+            block["list"] = inputs.LIST_NAME
+        if cfg is not None:
+            block["config_sha256"] = config_sha256(cfg)
+            gen = generator(cfg)
+            if gen is not None:
+                block["generator"] = gen
+        self.data["inputs"] = block
+        self.data["outputs"] = {"files": output_hashes(run_dir, self.data.get("files") or {}),
+                                "figures_sha256": inputs.sha256_bytes(canonical_json(figures(self.data)).encode())}
+        self.data.setdefault("timings_s", {})["hashes"] = round(time.perf_counter() - t0, 4)
+        self.write()
+        return {"inputs": block, "outputs": self.data["outputs"]}
 
     def failed(self, error: str) -> Optional[dict]:
         self.data.update(status="failed", error=error)

@@ -14,6 +14,7 @@ from typing import Iterable, Optional
 import numpy as np
 
 from diffuser_lab.backends import provenance
+from diffuser_lab.data.inputs import manifest
 from diffuser_lab.method.fusion import METHODS
 
 SEED_KEYS = ("seed",)  # overrides that only repeat a configuration
@@ -44,6 +45,24 @@ class Run:
         """summary.json's ``provenance`` block (machine, versions, commit), None in an older run's."""
         block = self.summary.get("provenance")
         return block if isinstance(block, dict) else None
+
+    @property
+    def inputs(self) -> dict[str, str]:
+        """What the run read, by role: the manifest's sha256 (frames, predictions, feature maps) or
+        the sha256 of a listed role's files' hashes (mesh, intrinsics, ...), and ``generator`` (a
+        procedural scene's source and seed); {} in an older run's summary."""
+        block = self.summary.get("inputs")
+        if not isinstance(block, dict):
+            return {}
+        out = {role: m.get("sha256", "") for role, m in (block.get("manifests") or {}).items()}
+        files: dict[str, list[str]] = {}
+        for f in block.get("files") or []:
+            files.setdefault(f.get("role", "?"), []).append(f.get("sha256", ""))
+        out.update({role: manifest(hs) if len(hs) > 1 else hs[0] for role, hs in files.items()})
+        gen = block.get("generator")
+        if gen:
+            out["generator"] = f"{gen.get('source')} seed {gen.get('seed')}"
+        return out
 
     def metric(self, dotted: str):
         """A value of summary.json by dotted path, e.g. ``baseline.bayesian.miou``; None if absent.
@@ -263,6 +282,37 @@ def config_value(r: Run, key: str) -> str:
     return r.overrides.get(key, "")
 
 
+def inputs_line(runs: list[Run], noun: str = "jobs") -> Optional[str]:
+    """One line when runs of one scene name read different inputs (a frame folder edited or a
+    prediction folder regenerated between jobs: figures of "one scene" that are not): per scene
+    and role, the distinct hashes (12 hex digits) and how many runs read each, e.g. ``different
+    inputs under one scene name: scene0470_00 frames 1a2b3c4d5e6f (3 runs), 9f8e7d6c5b4a (1 run)``;
+    None when every scene's runs agree (runs without an ``inputs`` block left out)."""
+    one = noun[:-1] if noun.endswith("s") else noun
+    by_scene: dict[str, list[Run]] = {}
+    for r in runs:
+        if r.inputs and r.summary.get("scene"):
+            by_scene.setdefault(str(r.summary["scene"]), []).append(r)
+    parts = []
+    for scene, members in sorted(by_scene.items()):
+        for role in sorted({k for r in members for k in r.inputs}):
+            counts: dict[str, int] = {}
+            for r in members:
+                if role in r.inputs:
+                    counts[r.inputs[role]] = counts.get(r.inputs[role], 0) + 1
+            if len(counts) > 1:
+                values = ", ".join(f"{h[:12]} ({n} {one if n == 1 else noun})"
+                                   for h, n in sorted(counts.items(), key=lambda kv: -kv[1]))
+                parts.append(f"{scene} {role} {values}")
+    return "different inputs under one scene name: " + "; ".join(parts) if parts else None
+
+
+def notes(runs: list[Run], noun: str = "jobs") -> list[str]:
+    """The lines a table of these runs ends with: different machines or versions
+    (:func:`provenance_line`), different inputs under one scene name (:func:`inputs_line`)."""
+    return [x for x in (provenance_line(runs, noun), inputs_line(runs, noun)) if x]
+
+
 def run_rows(runs: list[Run]) -> tuple[list[str], list[dict]]:
     keys = _keys(runs)
     rows = []
@@ -272,8 +322,9 @@ def run_rows(runs: list[Run]) -> tuple[list[str], list[dict]]:
         row.update({k: config_value(r, k) for k in keys})
         row.update({name: r.metric(path) for name, path in METRICS.items()})
         row.update(provenance_cells(r.provenance))
+        row["inputs"] = ((r.summary.get("inputs") or {}).get("sha256") or "")[:12]
         rows.append(row)
-    return ["run", "status", "error", "method", "scene", *keys, *METRICS, *PROVENANCE_COLUMNS], rows
+    return ["run", "status", "error", "method", "scene", *keys, *METRICS, *PROVENANCE_COLUMNS, "inputs"], rows
 
 
 def aggregate(runs: list[Run]) -> tuple[list[str], list[dict]]:

@@ -24,7 +24,7 @@ from hydra.experimental.callback import Callback
 
 from diffuser_lab.progress import say
 
-from .results import aggregate, find_runs, markdown, provenance_line
+from .results import aggregate, find_runs, markdown, notes
 
 JOBS_ENV = "DIFFUSER_LAB_SWEEP_JOBS"
 WATCHED_LAUNCHERS = ("ray_launcher", "submitit")  # whose jobs' stdout does not reach this terminal
@@ -149,7 +149,7 @@ def print_table(file=sys.stdout) -> None:
     """The collected table of the sweep this process launched (one row per configuration, seeds
     as mean ± std; a tuning sweep's validation and test runs in a table each) and, when its jobs ran
     on different machines, ISA levels or versions, one line saying what differs and how many jobs
-    per value; nothing if it launched none."""
+    per value (and one when jobs of one scene name read different inputs); nothing if it launched none."""
     if _started.get("watcher") is not None:
         _started.pop("watcher").stop()
     sweep_dir = _started.get("dir")
@@ -167,6 +167,5 @@ def print_table(file=sys.stdout) -> None:
             print(f"{split or 'no split'} runs ({len(part)}):", file=file)
         cols, rows = aggregate(part)
         print(markdown(cols, rows), file=file, flush=True)
-    mixed = provenance_line(runs, "jobs")
-    if mixed:
-        print(mixed, file=file, flush=True)
+    for line in notes(runs, "jobs"):  # other machines or versions; other inputs under one scene name
+        print(line, file=file, flush=True)

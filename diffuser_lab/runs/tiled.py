@@ -42,7 +42,7 @@ from diffuser_lab import progress
 from diffuser_lab.backends import provenance
 from diffuser_lab.backends.threads import blas_one_thread
 from diffuser_lab.config import Config, SparseClasses
-from diffuser_lab.data import validate
+from diffuser_lab.data import inputs, validate
 from diffuser_lab.data.frames import FrameLoop, LazyFrames, first_line
 from diffuser_lab.data.scene import IGNORE, Scene
 from diffuser_lab.data.taxonomy import resolve_taxonomy
@@ -335,9 +335,11 @@ def diffuse_tile(cfg: Config, inp: TileInput, frames, taxonomy, name: str, spec:
     if spec.frames:
         sub = Scene(name=f"{name} tile {spec.id}", points=inp.points, taxonomy=taxonomy,
                     frames=LazyFrames.subset(frames, spec.frames), normals=inp.normals)
-        with warnings.catch_warnings(record=True) as caught:
+        with warnings.catch_warnings(record=True) as caught, inputs.collecting() as read:
             warnings.simplefilter("always")
             res = pipeline.run(cfg, scene=sub)
+        # the files this tile read (a Ray worker's too): the driver's summary lists them (tiled())
+        rec["inputs"] = [dataclasses.asdict(e) for e in read.rows()]
         pos = np.searchsorted(rows, own)
         labels, bayes = res.labels[pos], res.bayesian_labels[pos]
         in_halo = np.ones(rows.size, bool)
@@ -637,6 +639,8 @@ def tiled(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHook
         res_files["features"] = "features.npy"
     t["labels"] = time.perf_counter() - tl
     tiles = [records[s.id] for s in specs]
+    for r in tiles:  # what each tile read, in this process or a Ray worker: this run's inputs
+        inputs.merge(r.pop("inputs", ()))
     res = TiledResult(scene=scene, method=cfg.method.name, labels=labels, bayesian_labels=bayes, grid=shape,
                       tile_m=float(cells.size),
                       tiles=tiles, tiles_dir=tiles_dir, resumed_from=tc.resume, rho=rho,

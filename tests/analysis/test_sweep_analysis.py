@@ -289,3 +289,32 @@ def test_compare_two_groups_pairs_their_seeds(sweep, capsys):
     assert main([str(a), str(b)]) == 0
     assert re.search(r"^on the [\d,]+ points both runs and their Bayesian baselines label \(\d+\.\d%\): mIoU A ",
                      capsys.readouterr().out, re.M)
+
+
+@pytest.mark.slow
+def test_collect_and_the_report_flag_jobs_that_read_different_inputs_under_one_scene_name(sweep, tmp_path):
+    import json
+    import shutil
+
+    from analysis.collect import collect
+    from analysis.report import report
+
+    rrows, _, md = collect([str(sweep / "smoke")], tmp_path / "same")
+    assert "different inputs" not in md and all(len(r["inputs"]) == 12 for r in rrows)
+    copy = tmp_path / "edited"
+    shutil.copytree(sweep / "smoke", copy)
+    jobs = sorted(p.parent for p in copy.glob("*/summary.json"))
+    by_scene: dict = {}
+    for j in jobs:
+        by_scene.setdefault(json.loads((j / "summary.json").read_text())["scene"], []).append(j)
+    scene, (a, b) = next((k, v[:2]) for k, v in sorted(by_scene.items()) if len(v) >= 2)
+    s = json.loads((b / "summary.json").read_text())  # as if its taxonomy file had been edited before it ran
+    (tax,) = [f for f in s["inputs"]["files"] if f["role"] == "taxonomy"]
+    old, tax["sha256"] = tax["sha256"], "f" * 64
+    (b / "summary.json").write_text(json.dumps(s))
+    n = len(by_scene[scene])
+    line = (f"different inputs under one scene name: {scene} taxonomy {old[:12]} ({n - 1} run{'s' if n > 2 else ''}), "
+            f"{'f' * 12} (1 run)")
+    _, _, md = collect([str(copy)], tmp_path / "edited")
+    assert md.endswith("\n\n" + line)
+    assert line in report([str(copy)], tmp_path / "rep").read_text()

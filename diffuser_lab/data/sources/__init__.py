@@ -60,6 +60,8 @@ class SceneSource:
         frames: ``(scene config, taxonomy, sensor) -> LazyFrames``: the frames alone, as ``load``
             gives them, without building the cloud (a tiled run's workers read only their frames);
             None = ``load(...).frames``.
+        generated: a procedural scene, made from its options and ``seed`` alone (no file read):
+            summary.json's ``inputs`` names it and its seed (``inputs.generator``).
     """
 
     name: str
@@ -69,11 +71,12 @@ class SceneSource:
     label_ids: Optional[Callable[[SceneConfig, int], list[tuple[np.ndarray, str]]]] = None
     options: Optional[type] = None
     frames: Optional[Callable[[SceneConfig, Taxonomy, Optional[SensorModel]], Sequence[Frame]]] = None
+    generated: bool = False
 
 
 SOURCES: Registry = Registry("scene.source", "scene source", [
     SceneSource("demo", "embedded procedural room", demo.load, rendered=True,
-                options=demo.DemoOptions),
+                options=demo.DemoOptions, generated=True),
     SceneSource("mesh_views", "labelled mesh (PLY with per-vertex label) + rendered views", mesh_views.load,
                 rendered=True, label_ids=mesh_views.label_ids, options=mesh_views.MeshViewsOptions),
     SceneSource("scannet", "ScanNet export layout (color/ depth/ pose/ intrinsic/ label-filt/ + PLYs)", scannet.load,
@@ -93,7 +96,7 @@ SOURCES: Registry = Registry("scene.source", "scene source", [
     SceneSource("colmap", "COLMAP sparse model (.bin/.txt) + images (+ MVS depth maps, fused.ply)", colmap.load,
                 options=colmap.ColmapOptions),
     SceneSource("city", "embedded procedural outdoor city (cityscapes19), drone and street views", city.load,
-                rendered=True, frames=city.frames, options=city.CityOptions),
+                rendered=True, frames=city.frames, options=city.CityOptions, generated=True),
 ])
 """The scene sources by name (``scene.source``)."""
 

@@ -50,6 +50,7 @@ import numpy as np
 from omegaconf import MISSING
 
 from diffuser_lab.config import SceneConfig, key, rule
+from diffuser_lab.data import inputs
 from diffuser_lab.data.capture import CaptureOptions, CapturedFrame, capture_scene
 from diffuser_lab.data.clouds import read_cloud, read_point_cloud_ply
 from diffuser_lab.data.distortion import colmap_lens, focal_scale, undistort_image
@@ -297,6 +298,7 @@ def read_model(folder: Path, kind: str):
         if not f.is_file():
             raise FileNotFoundError(f"COLMAP model file {f} does not exist (a sparse model is cameras, images "
                                     f"and points3D .{kind})")
+        inputs.record(f, "capture")
     models = _model_ids()
     if kind == "bin":
         cams = _check_cameras_bin(files["cameras"], models)
@@ -358,7 +360,7 @@ def read_depth_map(path: str | Path) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"depth map {path} does not exist")
-    raw = path.read_bytes()
+    raw = inputs.read_bytes(path, "frames")
     m = re.match(rb"(\d+)&(\d+)&(\d+)&", raw[:64])
     if m is None:
         raise ValueError(f"{path}: no 'width&height&channels&' header, expected a COLMAP depth map")

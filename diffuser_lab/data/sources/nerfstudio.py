@@ -56,6 +56,7 @@ import numpy as np
 from omegaconf import MISSING
 
 from diffuser_lab.config import SceneConfig, above, key, rule
+from diffuser_lab.data import inputs
 from diffuser_lab.data.capture import CaptureOptions, CapturedFrame, capture_scene
 from diffuser_lab.data.clouds import read_cloud
 from diffuser_lab.data.distortion import FISHEYE, PERSPECTIVE, LensModel, undistort_image
@@ -128,7 +129,7 @@ def read_transforms(path: str | Path) -> dict:
     if not path.is_file():
         raise FileNotFoundError(f"nerfstudio transforms file {path} does not exist")
     try:
-        meta = json.loads(path.read_text())
+        meta = json.loads(inputs.read_bytes(path, "capture").decode())
     except json.JSONDecodeError as e:
         raise ValueError(f"{path}: not valid JSON ({e.msg} at line {e.lineno} column {e.colno})") from None
     except UnicodeDecodeError as e:

@@ -35,6 +35,7 @@ import numpy as np
 from omegaconf import MISSING
 
 from diffuser_lab.config import SceneConfig, above, at_least, key, rule
+from diffuser_lab.data import inputs
 from diffuser_lab.data.capture import CaptureOptions, CapturedFrame, capture_scene
 from diffuser_lab.data.images import read_depth_png, read_label_png, read_rgb
 from diffuser_lab.data.scene import Scene, Taxonomy
@@ -84,7 +85,7 @@ def read_trajectory(path: str | Path) -> list[np.ndarray]:
     if not path.is_file():
         raise FileNotFoundError(f"Replica trajectory {path} does not exist")
     poses = []
-    for n, line in enumerate(path.read_text().splitlines(), 1):  # loop over poses (text lines)
+    for n, line in enumerate(inputs.read_bytes(path, "capture").decode().splitlines(), 1):  # loop over poses (text lines)
         if not line.strip():
             continue
         try:
@@ -113,7 +114,7 @@ def read_camera(o: ReplicaOptions, root: Path) -> tuple[np.ndarray, tuple[int, i
     cam: dict = {}
     if found is not None:
         try:
-            data = json.loads(found.read_text())
+            data = json.loads(inputs.read_bytes(found, "intrinsics").decode())
         except (json.JSONDecodeError, UnicodeDecodeError) as e:
             raise ValueError(f"{found}: not valid JSON ({getattr(e, 'msg', e)})") from None
         cam = data.get("camera") if isinstance(data, dict) else None

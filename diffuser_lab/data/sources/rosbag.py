@@ -55,6 +55,7 @@ import numpy as np
 from omegaconf import MISSING
 
 from diffuser_lab.config import SceneConfig, above, check, key, rule
+from diffuser_lab.data import inputs
 from diffuser_lab.data.capture import CaptureOptions, CapturedFrame, FollowOptions, capture_scene, followed_capture
 from diffuser_lab.data.frames import first_line
 from diffuser_lab.data.distortion import LensModel, ros_lens, undistort_image
@@ -363,6 +364,8 @@ class _Bag:
             for f in ([self.path] if self.path.is_file() else sorted(self.path.glob("*.mcap"))):
                 if f.suffix == ".mcap":
                     check_mcap(f)
+            for f in ([self.path] if self.path.is_file() else sorted(p for p in self.path.iterdir() if p.is_file())):
+                inputs.record(f, "capture")  # the bag's files (a ROS 2 folder: its storage and metadata.yaml)
             r = AnyReader([self.path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
             try:
                 r.open()

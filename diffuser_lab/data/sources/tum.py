@@ -32,6 +32,7 @@ import numpy as np
 from omegaconf import MISSING
 
 from diffuser_lab.config import SceneConfig, Section, above, at_least, check, key
+from diffuser_lab.data import inputs
 from diffuser_lab.data.capture import fuse_depth
 from diffuser_lab.data.frames import LazyFrames
 from diffuser_lab.data.images import read_depth_png, read_rgb
@@ -97,7 +98,8 @@ TUM_CAMERAS = {  # fx fy cx cy, pixels at 640x480 (TUM RGB-D "intrinsic calibrat
 def _rows(path: Path, ncols: int, what: str) -> list[list[str]]:
     if not path.is_file():
         raise FileNotFoundError(f"{what} file {path} does not exist")
-    rows = [ln.split() for ln in path.read_text().splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    rows = [ln.split() for ln in inputs.read_bytes(path, "capture").decode().splitlines()
+            if ln.strip() and not ln.lstrip().startswith("#")]
     bad = next((k for k, r in enumerate(rows) if len(r) != ncols), None)
     if bad is not None:
         raise ValueError(f"{path}: line '{' '.join(rows[bad])}' has {len(rows[bad])} fields, expected {ncols} "
