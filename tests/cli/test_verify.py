@@ -65,7 +65,8 @@ def test_summary_and_records_carry_the_inputs_and_outputs(scannet_run, capsys):
     assert inp["hashing"]["files"] == len(listed) and inp["hashing"]["hashed"] + inp["hashing"]["cached"] >= len(listed)
     labels = run / "labels.npy"
     assert out["files"]["labels.npy"] == {"size": labels.stat().st_size, "sha256": inputs.sha256_file(labels)[1]}
-    assert set(out["files"]) == {"labels.npy", "labels.ply"} and len(out["figures_sha256"]) == 64
+    assert set(out["files"]) == {"labels.npy", "labels.ply", "bayesian_labels.npy", "gt_labels.npy"}
+    assert len(out["figures_sha256"]) == 64
     for record in (run, run / "run.rrd"):  # run.mcap's metadata, run.rrd's recording property
         assert inspect_main([str(record), "--no-table"]) == 0
         text = capsys.readouterr().out

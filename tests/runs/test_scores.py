@@ -11,7 +11,7 @@ from conftest import SMALL_DEMO, run_cli
 
 from diffuser_lab.config import ConfigError
 from diffuser_lab.method.calibration import confidence, point_confidence, point_rows, stored
-from diffuser_lab.runs.records import _clean
+from diffuser_lab.runs.records import json_ready
 from diffuser_lab.runs.resolve import default_config
 from diffuser_lab.runs.scores import calibration_of_run, read_scores
 
@@ -60,7 +60,7 @@ def test_scores_run_in_the_global_protocol_only():
 
 def _figures(d: dict) -> dict:
     """As summary.json holds them (JSON, NaN -> null)."""
-    return json.loads(json.dumps(_clean(d)))
+    return json.loads(json.dumps(json_ready(d)))
 
 
 @pytest.mark.slow
