@@ -230,6 +230,7 @@ class OnlineDiffuser:
         self.lam = float(cfg.evidence.pixel_weight)
         self.solver = OnlineSolver(oc.solver)
         self.frames_seen = 0
+        self._taken = 0  # frames taken (not skipped): the sweep's turn, the same whatever was skipped between
         self.history: list[FrameStats] = []
         # growing: the earlier frames (new points get their evidence)
         self.store = FrameStore(oc.revisit, oc.revisit_mb * 2**20, cfg.evidence.depth_tol)
@@ -396,6 +397,7 @@ class OnlineDiffuser:
         st.evidence_ms, st.steps_ms = (t3 - t2) * 1e3, (t4 - t3) * 1e3
         st.latency_ms = (t4 - t0) * 1e3
         self.frames_seen += 1
+        self._taken += 1
         self.history.append(st)
         return self.labels
 
@@ -463,7 +465,7 @@ class OnlineDiffuser:
         # sigma_d follows the map's spacing rho: new and changed rows take it now, the others in turn (the
         # sweep's slice of rows every frame: a row's weights are at most `sweep` frames old)
         part = -(-self._n // self.sweep)
-        lo = (self.frames_seen % self.sweep) * part
+        lo = (self._taken % self.sweep) * part
         turn = np.arange(lo, min(lo + part, n0))
         g.reweigh(turn)
         edges = union_rows(changed, turn, self._n)
@@ -514,7 +516,7 @@ class OnlineDiffuser:
             st.residual = residual(*out[-1])
             if region is None:
                 self._bound(st, st.residual)
-            elif self.frames_seen % self.sweep == 0:
+            elif self._taken % self.sweep == 0:
                 self._bound(st, residual(*self.system.steps(1)[-1]))
                 st.steps += 1
         st.changed = self.system.labels(self._labels[:n])
