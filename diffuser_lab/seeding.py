@@ -7,7 +7,7 @@ string: ``"demo.layout"``, ``"surface.noise"``, ...) and the ids of what it is f
 a sample, a camera candidate, a frame, a region). A point that one CPU keeps and another drops
 changes that point's draws, not the rest of the run.
 
-Two forms:
+Three forms:
 
 - :func:`rng`: numpy's ``default_rng([seed..., purpose, ids...])`` (its SeedSequence keys) for
   one thing whose draws are fixed by what it is (a room's layout, one camera candidate, one
@@ -16,6 +16,13 @@ Two forms:
   over arrays of ids (each sample of each triangle, each region of a frame): a splitmix64 hash of
   (seed, purpose, ids) -> 53 random bits. Integer arithmetic and ``scipy.special.ndtri`` (plain C,
   no run-time SIMD dispatch), so the bits are the same on every machine.
+- :func:`keyed`: ``default_rng([key...])`` of an explicit integer key, no purpose id mixed in: the
+  streams that predate purposes (:data:`KEYED`: the demo room's layout, a city block, the depth
+  sensor's frames, the simulated text encoder, two samples), kept bit for bit because the reported
+  figures were measured with them. A new draw takes :func:`rng` or the counter-based form.
+
+Nothing else in the package or ``analysis/`` makes a generator or draws from ``np.random`` /
+``random`` (``tests/test_seeding.py`` scans the code for it and pins every purpose's first draws).
 
 A seed is an int or a sequence of ints (a key prefix, e.g. ``(seed, bx, by)`` for a city
 block); negative ints are taken modulo 2**64.
@@ -27,7 +34,7 @@ from typing import Sequence, Union
 
 import numpy as np
 
-__all__ = ["Seed", "purpose_id", "rng", "hash64", "uniform", "normal", "integers"]
+__all__ = ["Seed", "purpose_id", "rng", "keyed", "KEYED", "hash64", "uniform", "normal", "integers"]
 
 Seed = Union[int, np.integer, Sequence[int]]
 
@@ -58,9 +65,46 @@ def rng(seed: Seed, purpose: str, *ids: int) -> np.random.Generator:
     Args:
         seed: the run's seed (int) or a key prefix (sequence of ints).
         purpose: what the draws are for (a fixed string per call site).
-        ids: ints naming the thing (a frame index, a candidate index, ...).
+        ids: ints naming the thing (a frame index, a candidate index, ...). SeedSequence pads a key
+            with zeros, so trailing zero ids are no ids (``rng(s, p, 0)`` is ``rng(s, p)``): a purpose
+            is drawn with the same number of ids at every call site.
     """
     return np.random.default_rng([*_words(seed), purpose_id(purpose), *(int(i) & _MASK for i in ids)])
+
+
+KEYED = {
+    "demo.layout": "(seed,): the demo room's layout, the room every figure so far shows",
+    "city.block": "(seed, bx, by, 0): city block (bx, by)'s mesh",
+    "city.views": "(seed, bx, by, 2): city block (bx, by)'s camera poses",
+    "sensor.frame": "(seed, index, 0x5E45) mod 2**32: the depth sensor's draws of frame index",
+    "text.common": "(seed, 0): the simulated text encoder's direction every class shares",
+    "text.class": "(seed, 1, blake2b-64 of the name): a class's own direction and share",
+    "geometry.spacing": "(seed,): the points the spacing rho is measured on (scene.voxel_size=auto)",
+    "sparse.sample": "(seed,): the points sparse_classes=auto counts neighbourhood classes on",
+}
+"""The streams :func:`keyed` serves, by the name their call sites give, with their keys. They predate
+purposes: their keys hold no purpose id, so two of them with the same ints are the same stream (the
+layout's, the spacing's and the sparse sample's at seed 0: unrelated uses, never drawn together as
+one; SeedSequence pads a key with zeros, so ``(seed, 0)`` is ``(seed,)`` too). Moving one to
+:func:`rng` changes the figures measured with it."""
+
+
+def keyed(purpose: str, *key: int) -> np.random.Generator:
+    """The numpy Generator of an explicit integer key, ``default_rng([*key])`` (ints modulo 2**64): a
+    stream that predates purposes (:data:`KEYED`), bit for bit what its call site drew before.
+
+    Args:
+        purpose: the stream's name in :data:`KEYED` (checked; not part of the key).
+        key: the ints that are the key, as :data:`KEYED` gives them.
+    Raises:
+        KeyError: ``purpose`` is not one of :data:`KEYED` (a new draw takes :func:`rng`).
+    """
+    if purpose not in KEYED:
+        raise KeyError(f"seeding.keyed({purpose!r}): not a stream that predates purposes ({', '.join(KEYED)}); "
+                       "a new draw takes seeding.rng(seed, purpose, ...)")
+    if not key:
+        raise TypeError(f"seeding.keyed({purpose!r}): expected the key's ints, got none")
+    return np.random.default_rng([int(k) & _MASK for k in key])
 
 
 def _mix64(x: np.ndarray) -> np.ndarray:

@@ -33,6 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
+from diffuser_lab import seeding
+
 __all__ = ["Roof", "measure_roof", "step_cost", "efficiency"]
 
 
@@ -53,7 +55,7 @@ def measure_roof(copy_mb: int = 256, matmul_n: int = 2048, repeat: int = 5) -> R
     ``matmul_n``-square float32 matmul, in this process with its threads as they are."""
     n = copy_mb * 2**20 // 4
     src, dst = np.ones(n, np.float32), np.empty(n, np.float32)
-    a = np.random.default_rng(0).random((matmul_n, matmul_n), dtype=np.float32)
+    a = seeding.rng(0, "bench.roof_matmul").random((matmul_n, matmul_n), dtype=np.float32)
     b = a.T.copy()
 
     def best(fn) -> float:

@@ -34,6 +34,8 @@ from typing import Optional
 import numpy as np
 import scipy.sparse as sp
 
+from diffuser_lab import seeding
+
 from .base import IterationInputs, JacobiBackend
 
 
@@ -43,7 +45,7 @@ def neighbourhood_classes(inputs: IterationInputs, sample: int = 4096, seed: int
     n = inputs.shape[0]
     if n == 0:
         return 0.0
-    rows = np.sort(np.random.default_rng(seed).choice(n, size=min(n, sample), replace=False))
+    rows = np.sort(seeding.keyed("sparse.sample", seed).choice(n, size=min(n, sample), replace=False))
     P = sp.csr_matrix((inputs.data, inputs.indices, inputs.indptr), shape=(n, n))[rows]
     P.eliminate_zeros()
     A = (P + sp.csr_matrix((np.ones(len(rows), np.float32), (np.arange(len(rows)), rows)), shape=P.shape)).tocsr()

@@ -24,6 +24,8 @@ from typing import Sequence
 
 import numpy as np
 
+from diffuser_lab import seeding
+
 from . import inputs
 from .frames import first_line
 from .scene import IGNORE
@@ -61,11 +63,11 @@ def prototypes(names: Sequence[str], dim: int = 512, seed: int = 0) -> np.ndarra
     """
     if dim < 2:
         raise ValueError(f"prototypes: dim {dim}, expected >= 2")
-    u = np.random.default_rng([seed, 0]).standard_normal(dim)
+    u = seeding.keyed("text.common", seed, 0).standard_normal(dim)
     u /= np.linalg.norm(u)
     out = np.empty((len(names), dim), np.float64)
     for c, name in enumerate(names):
-        rng = np.random.default_rng([seed, 1, _name_seed(str(name))])
+        rng = seeding.keyed("text.class", seed, 1, _name_seed(str(name)))
         v = rng.standard_normal(dim)
         v -= (v @ u) * u
         v /= np.linalg.norm(v)

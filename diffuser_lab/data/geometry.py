@@ -12,6 +12,8 @@ import numpy as np
 from scipy.ndimage import uniform_filter
 from scipy.spatial import cKDTree
 
+from diffuser_lab import seeding
+
 from .o3d import open3d
 
 
@@ -136,7 +138,7 @@ def point_spacing(points: np.ndarray, sample: int = 100_000, seed: int = 0) -> f
     n = len(points)
     if n < 2:
         raise ValueError(f"the point spacing needs at least 2 points (got {n})")
-    q = points if n <= sample else points[np.random.default_rng(seed).choice(n, sample, replace=False)]
+    q = points if n <= sample else points[seeding.keyed("geometry.spacing", seed).choice(n, sample, replace=False)]
     tree = cKDTree(points)
     k = min(8, n)
     d, _ = tree.query(q, k=k, workers=-1)  # (S, k): the first of them is the point itself

@@ -32,8 +32,9 @@ perfect z-depth image into one with the sensor's main defects, in this order:
    1/8 px sub-pixel steps; Khoshelham & Elberink 2012), i.e. depth steps of ``z^2 / (f b) / 8``
    (2.9 mm at 1 m, 4.6 cm at 4 m); ``none`` keeps float depth.
 
-Every random draw of frame ``index`` comes from ``default_rng([seed, index, _STREAM])``, so a
-frame's noise does not depend on which other frames were drawn or in which order.
+Every random draw of frame ``index`` comes from ``default_rng([seed, index, _STREAM])``
+(``seeding.keyed("sensor.frame", ...)``), so a frame's noise does not depend on which other frames
+were drawn or in which order.
 
 References:
     C. V. Nguyen, S. Izadi, D. Lovell, "Modeling Kinect Sensor Noise for Improved 3D Reconstruction
@@ -52,6 +53,7 @@ from typing import Optional, Sequence
 import numpy as np
 from scipy import ndimage
 
+from diffuser_lab import seeding
 from diffuser_lab.config import DepthModel, DepthNoiseConfig
 
 from .frames import LazyFrames
@@ -188,7 +190,7 @@ class SensorModel:
             raise ValueError(f"quantization={self.quantization!r}: expected mm, disparity or none")
 
     def rng(self, index: int) -> np.random.Generator:
-        return np.random.default_rng([int(self.seed) % 2**32, int(index) % 2**32, _STREAM])
+        return seeding.keyed("sensor.frame", int(self.seed) % 2**32, int(index) % 2**32, _STREAM)
 
     def quantize(self, z: np.ndarray) -> np.ndarray:
         """Quantised depth (same shape, metres; 0 stays 0)."""

@@ -23,6 +23,8 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from diffuser_lab import seeding
+
 PCA_ROWS = 20_000
 """The PCA is fitted on at most this many seen rows (a seeded subsample)."""
 PCA_SEED = 0
@@ -81,7 +83,7 @@ def fit_view(mass: np.ndarray, names: Sequence[str], embeddings: np.ndarray, que
     norms = np.sqrt(np.einsum("ij,ij->i", mass, mass, dtype=np.float64))
     rows = np.flatnonzero(norms > 0)
     if len(rows) > max_rows:
-        rows = np.sort(np.random.default_rng(seed).choice(rows, max_rows, replace=False))
+        rows = np.sort(seeding.rng(seed, "records.feature_pca").choice(rows, max_rows, replace=False))
     D = mass.shape[1]
     emb = np.ascontiguousarray(embeddings[qi], np.float32)
     emb = emb / max(float(np.linalg.norm(emb)), 1e-30)

@@ -62,6 +62,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from diffuser_lab import seeding
 from diffuser_lab.data.scene import IGNORE
 
 from .eyes import eye_kw, follow_eye, overview_eye, scene_up
@@ -214,7 +215,7 @@ def point_radius(points: np.ndarray) -> float:
 
     if len(points) < 2:
         return 0.01
-    sample = points[np.random.default_rng(0).choice(len(points), min(len(points), 2000), replace=False)]
+    sample = points[seeding.rng(0, "records.point_radius").choice(len(points), min(len(points), 2000), replace=False)]
     # an unbalanced tree builds in half the time and answers 2,000 queries as well
     d, _ = cKDTree(points, balanced_tree=False, compact_nodes=False).query(sample, k=2)
     return float(max(0.5 * np.mean(d[:, 1]), 1e-4))

@@ -31,7 +31,7 @@ from typing import List, Optional
 
 import numpy as np
 
-from diffuser_lab import progress
+from diffuser_lab import progress, seeding
 from diffuser_lab.config import SceneConfig, Section, at_least, check, key, rule, within
 from diffuser_lab.data.frames import LazyFrames
 from diffuser_lab.data.mapping import load_mapping, shipped_mappings
@@ -282,7 +282,7 @@ def block_mesh(cfg: CityOptions, bx: int, by: int) -> tuple[np.ndarray, np.ndarr
     """The labelled triangle mesh of block (bx, by): vertices (V, 3) float32 world metres, triangles
     (T, 3) int32 wound outward, triangle labels (T,) int16 cityscapes19 ids. Drawn from the
     generator seeded by (seed, bx, by) alone."""
-    rng = np.random.default_rng([cfg.seed, bx, by, 0])
+    rng = seeding.keyed("city.block", cfg.seed, bx, by, 0)
     B, w, s = cfg.block_size, cfg.road_width, cfg.sidewalk_width
     m = _Mesh(np.array([bx * B, by * B]))
     zt = _CURB
@@ -466,7 +466,7 @@ def block_poses(cfg: CityOptions, bx: int, by: int) -> list[tuple[str, np.ndarra
     """The (kind, T_cw) of block (bx, by)'s views: ``street_views`` along its two streets at
     ``street_height``, ``drone_views`` alternately nadir and oblique (30-60 degrees down) from
     ``drone_height``, every eye above the block's own cell. Seeded by (seed, bx, by)."""
-    rng = np.random.default_rng([cfg.seed, bx, by, 2])
+    rng = seeding.keyed("city.views", cfg.seed, bx, by, 2)
     B, w = cfg.block_size, cfg.road_width
     o = np.array([bx * B, by * B, 0.0])
     out = []
