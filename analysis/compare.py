@@ -28,6 +28,7 @@ import numpy as np
 from analysis import paired
 from analysis.runs import find_runs
 from diffuser_lab.backends import provenance
+from diffuser_lab.data.arrays import read_array
 from diffuser_lab.runs.results import provenance_line
 
 
@@ -37,7 +38,7 @@ def _load(run: Path) -> tuple[dict, np.ndarray]:
     for p in (s_path, l_path):
         if not p.is_file():
             raise FileNotFoundError(f"{p}: missing; is {run} a diffuser-lab run folder?")
-    return json.loads(s_path.read_text()), np.load(l_path)
+    return json.loads(s_path.read_text()), read_array(l_path, "labels", role=None)
 
 
 def compare(run_a: str | Path, run_b: str | Path, rrd: str | Path | None = None) -> dict:

@@ -35,6 +35,7 @@ import numpy as np
 from analysis.plots import sort_key
 from analysis.runs import SEED_KEYS, Run, find_runs, is_nan, number
 from diffuser_lab import seeding
+from diffuser_lab.data.arrays import read_array
 from diffuser_lab.data.scene import IGNORE
 from diffuser_lab.method.metrics import confusion_matrix, scores_from_confusion
 from diffuser_lab.runs.records import BAYESIAN_FILE, GT_FILE
@@ -301,7 +302,7 @@ class Support:
 
 
 def _load_labels(path: Path, n: Optional[int] = None) -> np.ndarray:
-    a = np.load(path, allow_pickle=False)
+    a = read_array(path, "labels", role=None)
     if a.ndim != 1 or a.dtype.kind not in "iu" or (n is not None and a.size != n):
         want = f"({n},)" if n is not None else "(N,)"
         raise ValueError(f"{path}: shape {a.shape} dtype {a.dtype}, expected {want} integer class ids (-1 = unlabeled)")

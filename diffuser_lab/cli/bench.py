@@ -34,6 +34,7 @@ import numpy as np
 
 from diffuser_lab import progress
 from diffuser_lab.backends import roof as roofline
+from diffuser_lab.data.arrays import open_npz
 from diffuser_lab.method import reference as ref
 from diffuser_lab.method.diffusion import diffuse, labels_from_scores, normalise
 from diffuser_lab.method.exact import solve_exact
@@ -42,13 +43,13 @@ from diffuser_lab.runs.workloads import room_workload
 
 
 def _load(path: str):
-    with np.load(path) as f:
-        missing = [k for k in ("points", "evidence") if k not in f.files]
+    with open_npz(path, "a .npz of points, normals, evidence", role=None) as f:
+        missing = [k for k in ("points", "evidence") if k not in f]
         if missing:
             raise ValueError(f"{path}: missing array(s) {', '.join(missing)} (expected points, normals, evidence)")
-        pts = np.asarray(f["points"], np.float32)
-        nrm = np.asarray(f["normals"], np.float32) if "normals" in f.files else None
-        ev = np.asarray(f["evidence"], np.float32)
+        pts = np.asarray(f.read("points", kinds="fiu"), np.float32)
+        nrm = np.asarray(f.read("normals", kinds="fiu"), np.float32) if "normals" in f else None
+        ev = np.asarray(f.read("evidence", kinds="fiu"), np.float32)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"{path}: points has shape {pts.shape}, expected (N, 3)")
     if nrm is not None and nrm.shape != pts.shape:

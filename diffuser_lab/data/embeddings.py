@@ -26,8 +26,7 @@ import numpy as np
 
 from diffuser_lab import seeding
 
-from . import inputs
-from .frames import first_line
+from .arrays import open_npz
 from .scene import IGNORE
 
 __all__ = ["prototypes", "text_encoder", "simulate_features", "write_queries", "load_queries", "check_queries",
@@ -261,29 +260,16 @@ def load_queries(path: str | Path, dim: int | None = None) -> tuple[list[str], n
         names not strings, a wrong shape, D not ``dim`` ...: :func:`check_queries`).
     """
     path = Path(path)
-    try:
-        z = np.load(path, allow_pickle=False)
-    except Exception as exc:  # noqa: BLE001 - a missing file, a zip or npy error: one line
-        raise ValueError(f"{path}: unreadable ({type(exc).__name__}: {first_line(exc)}), expected {QUERY_FILE}") \
-            from None
-    if not hasattr(z, "files"):
-        raise ValueError(f"{path}: a single array, expected {QUERY_FILE}")
-    with z:
-        missing = [k for k in ("names", "embeddings") if k not in z.files]
+    if not path.is_file():
+        raise ValueError(f"{path}: unreadable (FileNotFoundError: no such file), expected {QUERY_FILE}")
+    with open_npz(path, QUERY_FILE, "queries") as z:
+        missing = [k for k in ("names", "embeddings") if k not in z]
         if missing:
             raise ValueError(f"{path}: no {' or '.join(repr(k) for k in missing)} array (has: "
                              f"{', '.join(z.files) or 'nothing'}), expected {QUERY_FILE}")
-        arrays = {}
-        for key in ("names", "embeddings"):
-            try:
-                arrays[key] = z[key]
-            except Exception as exc:  # noqa: BLE001 - an object (pickled) array, a damaged member
-                raise ValueError(f"{path}: {key!r} unreadable ({first_line(exc)}), expected {QUERY_FILE}") from None
-    names, emb = arrays["names"], arrays["embeddings"]
-    if names.ndim != 1 or names.dtype.kind not in "US":
-        raise ValueError(f"{path}: names of shape {names.shape} dtype {names.dtype}, expected a (Q,) array of strings")
+        names = z.read("names", ndim=1, kinds="SU", expected="a (Q,) array of strings")
+        emb = z.read("embeddings")
     names = [n.decode("utf-8") if isinstance(n, bytes) else str(n) for n in names.tolist()]
-    inputs.record(path, "queries")
     return check_queries(names, emb, str(path), dim)
 
 

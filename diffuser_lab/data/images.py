@@ -1,6 +1,7 @@
-"""Depth, colour and label images and ``.npy``/``.npz`` arrays shared by the capture formats and the
-prediction files, each checked against what its header declares before it is decoded, and the one
-resize of every image: :func:`resize_nearest` for label ids, depth and masks (values kept),
+"""Depth, colour and label images shared by the capture formats and the prediction files, each
+checked against what its header declares before it is decoded (``.npy`` / ``.npz`` arrays:
+:mod:`.arrays`), the one depth reader (:func:`read_depth`: a 16-bit image or a ``.npy`` of metres)
+and the one resize of every image: :func:`resize_nearest` for label ids, depth and masks (values kept),
 :func:`resize_bilinear` for colour and class probabilities (Pillow's bilinear).
 
 :func:`open_image` is the one image reader: every image a capture holds (PNG, PGM/PPM, JPEG, TIFF,
@@ -27,8 +28,9 @@ from typing import Union
 import numpy as np
 
 from . import inputs
+from .arrays import read_array
 
-__all__ = ["read_depth_png", "read_rgb", "read_label_png", "label_ids_in", "read_array", "open_image", "image_size",
+__all__ = ["read_depth", "read_depth_png", "read_rgb", "read_label_png", "label_ids_in", "open_image", "image_size",
            "image_complete", "max_pixels", "resize_nearest", "resize_bilinear"]
 
 Source = Union[str, Path, bytes]
@@ -236,8 +238,8 @@ _JPEG_END = b"\xff\xd9"  # EOI
 
 def image_complete(path: str | Path) -> bool:
     """Whether an image file that a recorder may still be writing is whole: a PNG up to its IEND chunk,
-    a JPEG up to its end marker (trailing zero bytes allowed), another format once it opens and decodes
-    (:func:`open_image`). False for a missing file. Reads the file's last bytes (other formats: all)."""
+    a JPEG up to its end marker (trailing zero bytes allowed), a ``.npy`` depth array once it holds the
+    bytes its header declares, another format once it opens and decodes (:func:`open_image`). False for a missing file. Reads the file's last bytes (other formats: all)."""
     path = Path(path)
     try:
         with open(path, "rb") as fh:
@@ -252,6 +254,12 @@ def image_complete(path: str | Path) -> bool:
         return tail.endswith(_PNG_END)
     if head[:2] == b"\xff\xd8":
         return tail.rstrip(b"\x00").endswith(_JPEG_END)
+    if head[:6] == b"\x93NUMPY":  # a depth array: its header's shape x dtype against the bytes there
+        try:
+            read_array(path, "array", role=None)
+            return True
+        except (ValueError, OSError):
+            return False
     try:
         with open_image(path, "image", role=None):
             return True
@@ -295,6 +303,33 @@ def read_depth_png(path: str | Path, depth_scale: float, bit_shift: int = 0,
     return depth
 
 
+DEPTH_ARRAY = ".npy"
+"""The suffix of a depth file that is an array (float metres, or stored units: :func:`read_depth`), not an image."""
+
+
+def read_depth(path: str | Path, depth_scale: float, bit_shift: int = 0, invalid=(0, 65535),
+               shift_kind: str = "circular", role: str = "frames", npy_unit: float = 1.0) -> np.ndarray:
+    """The one depth reader: a 16-bit depth image or a ``.npy`` array -> (H, W) float32 z-depth in
+    metres, 0 = invalid.
+
+    A ``.npy`` (:func:`diffuser_lab.data.arrays.read_array`, its header checked first): (H, W) numbers
+    (size-1 axes dropped: (H, W, 1) too) times ``npy_unit`` metres (1: metres; nerfstudio's
+    ``depth_unit_scale_factor``), non-finite or <= 0 = invalid. Anything else: a 16-bit image
+    (:func:`read_depth_png`: ``depth_scale`` stored units per metre, ``bit_shift``, ``invalid``,
+    ``shift_kind``). A file of another kind is one ValueError naming it and what was expected."""
+    path = Path(path)
+    if path.suffix.lower() != DEPTH_ARRAY:
+        return read_depth_png(path, depth_scale, bit_shift, invalid, shift_kind, role)
+    raw = read_array(path, "depth array", role=role)
+    d = np.squeeze(raw)
+    if d.ndim != 2 or d.dtype.kind not in "fiu":
+        raise ValueError(f"{path}: depth array of dtype {raw.dtype} shape {raw.shape}, expected (H, W) "
+                         f"{'metres' if npy_unit == 1 else f'numbers x {npy_unit:g} m'} (or a 16-bit depth image)")
+    with np.errstate(over="ignore", invalid="ignore"):  # beyond float32: inf, left out below
+        d = (d.astype(np.float64) * npy_unit).astype(np.float32)
+    return np.where(np.isfinite(d) & (d > 0), d, np.float32(0))
+
+
 def read_rgb(path: str | Path, shape: tuple[int, int] | None = None, role: str = "frames") -> np.ndarray:
     """Colour image -> (H, W, 3) uint8, resized to ``shape`` = (H, W) when given (:func:`resize_bilinear`)."""
     path = Path(path)
@@ -326,62 +361,3 @@ def label_ids_in(files, n: int, what: str, role: str = "frames") -> list[tuple[n
         return []
     ids = np.unique(np.concatenate([np.unique(read_label_png(p, role=role)) for p in files]))  # <= n images
     return [(ids, f"{len(files)} {what} label images")]
-
-
-def _npy_checked(fh, size: int, where: str) -> np.ndarray:
-    """The array of an open ``.npy`` stream of ``size`` bytes, its header's shape x dtype checked
-    against the bytes there before anything is allocated (a header that lies would ask for terabytes)."""
-    fmt = np.lib.format
-    try:
-        version = fmt.read_magic(fh)
-        if version not in ((1, 0), (2, 0), (3, 0)):
-            raise ValueError(f"format version {version}, expected 1.0, 2.0 or 3.0")
-        start, width = fh.tell(), 2 if version == (1, 0) else 4
-        hlen = int.from_bytes(fh.read(width), "little")
-        if hlen > size - start - width:  # read before it is checked, a lying length allocates gigabytes
-            raise ValueError(f"header length {hlen:,} beyond the file's {size:,} bytes")
-        fh.seek(start)
-        shape, fortran, dtype = (fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0)(fh)
-    except (ValueError, OSError, EOFError, SyntaxError) as e:
-        raise ValueError(f"{where}: not a .npy array ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
-                         ) from None
-    if dtype.hasobject:
-        raise ValueError(f"{where}: array of Python objects ({dtype}), expected numbers")
-    need = int(np.prod(shape, dtype=object)) * dtype.itemsize
-    have = size - fh.tell()
-    if need != have:
-        raise ValueError(f"{where}: header says shape {shape} of {dtype} = {need:,} bytes, the file holds {have:,}")
-    buf = fh.read(need)
-    if len(buf) != need:
-        raise ValueError(f"{where}: header says {need:,} bytes of {dtype}, the file ends after {len(buf):,}")
-    return np.frombuffer(buf, dtype).reshape(shape, order="F" if fortran else "C")
-
-
-def read_array(path: str | Path, what: str, key: str | None = None, role: str = "frames") -> np.ndarray:
-    """A ``.npy`` file, or a ``.npz``'s array ``key`` (absent: its first), as stored, read only after its
-    header's shape and dtype are checked against the file's bytes (one ValueError naming the file
-    otherwise; missing file: FileNotFoundError). For depth and probability images kept as arrays;
-    recorded as the run's input of ``role``."""
-    import zipfile
-
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{what} {path} does not exist")
-    inputs.record(path, role)
-    if path.suffix.lower() == ".npz":
-        try:
-            with zipfile.ZipFile(path) as z:
-                names = [n for n in z.namelist() if n.endswith(".npy")]
-                if not names:
-                    raise ValueError(f"{path}: empty .npz, expected a {what}")
-                name = f"{key}.npy" if key is not None and f"{key}.npy" in names else names[0]
-                info = z.getinfo(name)
-                if info.file_size > 1100 * info.compress_size + 4096:  # deflate expands 1032:1 at most
-                    raise ValueError(f"{path}: member {name} says {info.file_size:,} bytes from "
-                                     f"{info.compress_size:,} compressed, more than deflate can expand to")
-                with z.open(name) as fh:
-                    return _npy_checked(fh, info.file_size, f"{path} [{name[:-4]}]")
-        except (zipfile.BadZipFile, OSError, EOFError) as e:
-            raise ValueError(f"{path}: unreadable .npz ({type(e).__name__}: {e})") from None
-    with open(path, "rb") as fh:
-        return _npy_checked(fh, path.stat().st_size, str(path))

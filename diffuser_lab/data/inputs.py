@@ -1,6 +1,6 @@
 """What a run read: every input file's size and sha256, recorded by the readers as they read it.
 
-The one home of input hashing. The readers (:mod:`.images`, :mod:`.clouds`, :mod:`.meshes`,
+The one home of input hashing. The readers (:mod:`.images`, :mod:`.arrays`, :mod:`.clouds`, :mod:`.meshes`,
 :mod:`.poses`, :mod:`.intrinsics`, :mod:`.prediction_files`, :mod:`.embeddings`, :mod:`.networks`,
 :mod:`.taxonomy`, :mod:`.mapping`, a source's index files) call :func:`record` (or :func:`read_bytes`,
 which reads and records) with the file and its role; nothing else hashes an input. A recorder is

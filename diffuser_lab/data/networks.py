@@ -48,6 +48,7 @@ from diffuser_lab import progress
 from diffuser_lab.config import ChannelOrder, OnnxConfig, OnnxOutput, PredictionsConfig, TensorLayout
 
 from . import inputs
+from .arrays import open_npz
 from .frames import LazyFrames
 from .mapping import ClassMapping, load_mapping
 from .images import resize_bilinear, resize_nearest
@@ -390,13 +391,14 @@ class _DiskCache:
     def load(self, path: Optional[Path]) -> Optional[np.ndarray]:
         if path is None or not path.is_file():
             return None
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                if "features" in z.files:
-                    return z["features"].astype(np.float16)
-                arr = z["ids"] if "ids" in z.files else z["probs"]
-                return arr.astype(np.int64) if "ids" in z.files else arr.astype(np.float32)
-        except Exception:  # noqa: BLE001 - a torn or foreign file: computed again and replaced
+        try:  # the one checked reader; not a run's input (the network and the frames are)
+            with open_npz(path, "a network's cached output (features, ids or probs)", role=None) as z:
+                if "features" in z:
+                    return z.read("features", ndim=3, kinds="f").astype(np.float16)
+                if "ids" in z:
+                    return z.read("ids", ndim=2, kinds="iu").astype(np.int64)
+                return z.read("probs", ndim=3, kinds="f").astype(np.float32)
+        except (ValueError, OSError):  # a torn or foreign file: computed again and replaced
             return None
 
     def save(self, path: Optional[Path], out: np.ndarray) -> None:

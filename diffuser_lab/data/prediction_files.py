@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from . import inputs
-from .images import read_array, read_label_png, resize_bilinear, resize_nearest
+from .arrays import open_npz, read_array
+from .images import read_label_png, resize_bilinear, resize_nearest
 from .mapping import ClassMapping
 
 __all__ = [
@@ -73,10 +73,8 @@ def load_probability_prediction(path: str | Path, num_classes: int, shape: tuple
         raise FileNotFoundError(f"probability file {path} does not exist")
     if path.suffix not in (".npy", ".npz"):
         raise ValueError(f"{path}: probability file must be .npy or .npz, got {path.suffix or 'no suffix'}")
-    arr = read_array(path, "array of class probabilities", key="probs", role="predictions")
-    if arr.ndim != 3 or arr.dtype.kind not in "fiu":
-        raise ValueError(f"{path}: probabilities of shape {arr.shape} dtype {arr.dtype}, expected numeric "
-                         f"(H, W, {num_classes}) or ({num_classes}, H, W)")
+    arr = read_array(path, "probabilities", key="probs", role="predictions", ndim=3, kinds="fiu",
+                     expected=f"numeric (H, W, {num_classes}) or ({num_classes}, H, W)")
     last, first = arr.shape[2] == num_classes, arr.shape[0] == num_classes
     if last and first:  # C == H or C == W: let the spatial size decide, else assume (H, W, C)
         first = tuple(arr.shape[1:]) == tuple(shape) and tuple(arr.shape[:2]) != tuple(shape)
@@ -131,28 +129,19 @@ def load_feature_prediction(path: str | Path, *, key: str = "features", layout: 
         raise FileNotFoundError(f"feature file {path} does not exist")
     if layout not in FEATURE_LAYOUTS:
         raise ValueError(f"predictions.layout={layout}: expected one of {', '.join(FEATURE_LAYOUTS)}")
-    inputs.record(path, "features")
     mask = None
-    try:
-        if path.suffix == ".npy":
-            arr = np.load(path, allow_pickle=False)
-        elif path.suffix == ".npz":
-            with np.load(path, allow_pickle=False) as z:
-                names = [n for n in z.files if n != mask_key]
-                if key in z.files:
-                    arr = z[key]
-                elif len(names) == 1:
-                    arr = z[names[0]]
-                else:
-                    raise ValueError(f"{path}: no array {key!r} (predictions.key) among {', '.join(z.files) or 'none'}")
-                mask = z[mask_key] if mask_key in z.files else None
-        else:
-            raise ValueError(f"{path}: feature file must be .npy or .npz, got {path.suffix or 'no suffix'}")
-    except (OSError, EOFError) as exc:  # truncated, not a numpy file
-        raise ValueError(f"{path}: unreadable feature file ({type(exc).__name__}: {exc})") from None
-    if arr.ndim != 3 or arr.dtype not in (np.float16, np.float32):
-        raise ValueError(f"{path}: features of shape {arr.shape} dtype {arr.dtype}, expected float16/float32 "
-                         f"(h, w, D) or (D, h, w)")
+    expect = dict(ndim=3, dtypes=(np.float16, np.float32), expected="float16/float32 (h, w, D) or (D, h, w)")
+    if path.suffix == ".npy":
+        arr = read_array(path, "features", role="features", **expect)
+    elif path.suffix == ".npz":
+        with open_npz(path, "a feature map", "features") as z:
+            names = [n for n in z.files if n != mask_key]
+            if key not in z and len(names) != 1:
+                raise ValueError(f"{path}: no array {key!r} (predictions.key) among {', '.join(z.files) or 'none'}")
+            arr = z.read(key if key in z else names[0], **expect)
+            mask = z.read(mask_key, ndim=2, expected="(h, w) bool") if mask_key in z else None
+    else:
+        raise ValueError(f"{path}: feature file must be .npy or .npz, got {path.suffix or 'no suffix'}")
     if layout == "auto" and dim is not None and dim in (arr.shape[0], arr.shape[2]):
         first = arr.shape[2] != dim  # the axis of size D (the last when both are)
     else:

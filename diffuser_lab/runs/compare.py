@@ -15,6 +15,7 @@ import numpy as np
 
 from diffuser_lab.backends import provenance
 from diffuser_lab.data import inputs
+from diffuser_lab.data.arrays import read_array
 
 from .records import timed_output
 from .report import figures
@@ -116,7 +117,7 @@ class Comparison:
 
 def _labels(run_dir: Path) -> Optional[np.ndarray]:
     p = Path(run_dir) / "labels.npy"
-    return np.load(p, allow_pickle=False) if p.is_file() else None
+    return read_array(p, "labels", role=None) if p.is_file() else None
 
 
 def compare(old_dir: Path, new_dir: Path) -> Comparison:

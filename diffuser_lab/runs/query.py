@@ -30,6 +30,7 @@ from typing import Optional
 import numpy as np
 
 from diffuser_lab.backends import provenance
+from diffuser_lab.data.arrays import open_npz
 from diffuser_lab.data.frames import first_line
 from diffuser_lab.data.scene import IGNORE
 from diffuser_lab.method.basis import BasisFeatures
@@ -163,14 +164,11 @@ def read_run(run_dir: str | Path) -> RunFeatures:
 def _read_basis(path: Path, shape: tuple[int, int]) -> tuple[np.ndarray, dict]:
     """(D, k) vectors and {method key: BasisFeatures} of a run's :data:`BASIS_FILE`; ``shape``:
     features.npy's (N, D). ValueError (one line naming the file) when it does not fit."""
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            V = np.asarray(z["vectors"], np.float32)
-            out = {key: BasisFeatures(np.asarray(z[f"{key}_coords"], np.float32), np.asarray(z[f"{key}_residual"], np.float32))
-                   for key, _, _ in METHODS if f"{key}_coords" in z.files}
-    except Exception as exc:  # noqa: BLE001 - a damaged or foreign file: one line
-        raise ValueError(f"{path}: unreadable ({type(exc).__name__}: {first_line(exc)}), expected a features run's "
-                         f"basis (vectors, <method>_coords, <method>_residual)") from None
+    with open_npz(path, "a features run's basis (vectors, <method>_coords, <method>_residual)", role=None) as z:
+        V = np.asarray(z.read("vectors", ndim=2, kinds="f"), np.float32)
+        out = {key: BasisFeatures(np.asarray(z.read(f"{key}_coords", ndim=2, kinds="f"), np.float32),
+                                  np.asarray(z.read(f"{key}_residual", ndim=1, kinds="f"), np.float32))
+               for key, _, _ in METHODS if f"{key}_coords" in z}
     N, D = shape
     if V.ndim != 2 or V.shape[0] != D or "diffuser" not in out or any(
             f.coords.shape != (N, V.shape[1]) or f.residual.shape != (N,) for f in out.values()):

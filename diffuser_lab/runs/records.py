@@ -17,11 +17,11 @@ from omegaconf import OmegaConf
 
 from diffuser_lab import progress
 from diffuser_lab.data import inputs
+from diffuser_lab.data.arrays import read_array
 from diffuser_lab.data.clouds import write_las, write_pointcloud2_bag
 from diffuser_lab.data.embeddings import write_queries
 from diffuser_lab.data.o3d import open3d
 from diffuser_lab.backends.threads import blas_one_thread
-from diffuser_lab.data.frames import first_line
 from diffuser_lab.data.scene import IGNORE, Taxonomy
 from diffuser_lab.method.calibration import point_rows
 
@@ -209,19 +209,11 @@ def write_scoring(run_dir: Path, scene, bayesian_labels: np.ndarray | None = Non
 
 
 def load_npy(path: Path) -> np.ndarray:
-    """A run folder's ``.npy`` file as a read-only memory map; one line naming the file when it is not one."""
-    try:
-        with open(path, "rb") as fh:
-            if fh.read(6) != b"\x93NUMPY":
-                raise ValueError(f"{path}: not a .npy file, expected a numpy array")
-        return np.load(path, mmap_mode="r", allow_pickle=False)
-    except ValueError as exc:
-        if str(exc).startswith(str(path)):
-            raise
-        raise ValueError(f"{path}: unreadable ({first_line(exc)}), expected a .npy array") from None
-    except Exception as exc:  # noqa: BLE001 - a damaged or foreign file: one line
-        raise ValueError(f"{path}: unreadable ({type(exc).__name__}: {first_line(exc)}), expected a .npy array") \
-            from None
+    """A run folder's ``.npy`` file as a read-only memory map (:func:`diffuser_lab.data.arrays.read_array`:
+    its header checked against the file's bytes); one line naming the file when it is not one."""
+    if not Path(path).is_file():
+        raise ValueError(f"{path}: unreadable (FileNotFoundError: no such file), expected a .npy array")
+    return read_array(path, ".npy array", role=None, mmap=True)
 
 
 def read_gt(run_dir: Path, n: int, num_classes: int) -> Optional[np.ndarray]:

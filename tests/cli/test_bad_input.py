@@ -267,3 +267,101 @@ def test_verbose_shows_the_traceback(good, tmp_path):
     (root / "frame-000001.pose.txt").unlink()
     p = cli(root, "--verbose", cwd=tmp_path)
     assert p.returncode != 0 and "Traceback" in p.stderr
+
+
+def npy_depth(root, bad=None):
+    """The folder's depth as .npy float metres (images.read_depth), frame 1's replaced by ``bad`` bytes."""
+    for f in sorted(root.glob("*.depth.png")):
+        out = f.with_name(f.name.replace(".depth.png", ".depth.npy"))
+        np.save(out, np.asarray(Image.open(f), np.float32) / np.float32(1000))
+        f.unlink()
+    if bad is not None:
+        (root / "frame-000001.depth.npy").write_bytes(bad)
+
+
+def test_npy_depth_in_metres_runs_as_the_png(good, tmp_path):
+    root, _ = copy(good, tmp_path)
+    npy_depth(root)
+    p = cli(root, "scene.options.depth_suffix=depth.npy", cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    s = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert s["status"] == "ok" and s["predictions_2d"]["miou"] == 100 and not warnings_of(p)
+    assert s["coverage_evidence"] > 90
+
+
+def _npy(arr, shape=None) -> bytes:
+    import io
+
+    buf = io.BytesIO()
+    np.save(buf, arr)
+    data = buf.getvalue()
+    if shape is not None:  # the header's shape replaced (both padded to the same length)
+        head = io.BytesIO()
+        np.lib.format.write_array_header_1_0(head, {**np.lib.format.header_data_from_array_1_0(arr), "shape": shape})
+        data = head.getvalue() + data[len(head.getvalue()):]
+    return data
+
+
+@pytest.mark.parametrize("case,needle", [
+    ("colour", "depth array of dtype float32 shape (48, 64, 3), expected (H, W) metres"),
+    ("lies", "header says shape (480000, 640000) of float32"),
+    ("text", "not a .npy file"),
+])
+def test_bad_npy_depth(good, tmp_path, case, needle):
+    root, _ = copy(good, tmp_path)
+    bad = {"colour": lambda: _npy(np.ones((H, W, 3), np.float32)),
+           "lies": lambda: _npy(np.ones((H, W), np.float32), (480_000, 640_000)),
+           "text": lambda: b"0.5 0.5\n"}[case]()
+    npy_depth(root, bad)
+    one_error(cli(root, "scene.options.depth_suffix=depth.npy", cwd=tmp_path), "frame-000001.depth.npy", needle)
+
+
+@pytest.mark.parametrize("case,needle", [
+    ("float64", "features of shape (6, 8, 16) dtype float64, expected float16/float32 (h, w, D) or (D, h, w)"),
+    ("lies", "header says shape (6000, 8000, 16) of float16"),
+])
+def test_bad_feature_maps(good, tmp_path, case, needle):
+    """predictions.embeddings=files: a network's (h, w, D) maps read by the one array reader."""
+    root, _ = copy(good, tmp_path)
+    maps = tmp_path / "maps"
+    maps.mkdir()
+    for i in range(3):
+        np.save(maps / f"frame-{i:06d}.npy", np.random.default_rng(i).random((6, 8, 16)).astype(np.float16))
+    (maps / "frame-000001.npy").write_bytes(
+        _npy(np.ones((6, 8, 16), np.float64)) if case == "float64" else _npy(np.ones((6, 8, 16), np.float16), (6000, 8000, 16)))
+    p = run_cli("scene=rgbd_folder", f"scene.options.root={root}", "scene.options.label_suffix=label.png",
+                f"scene.options.mapping={tmp_path / 'mapping.csv'}", "scene.options.cloud_voxel=0.05",
+                "predictions=features", "predictions.embeddings=files", f"predictions.folder={maps}", "record=off",
+                "solver.max_iter=30", "graph.k=8", f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
+    one_error(p, "frame-000001.npy", needle)
+
+
+@pytest.mark.parametrize("case,needle", [
+    ("text", "unreadable .npz (BadZipFile: File is not a zip file), expected a .npz query file"),
+    ("lies", "q.npz [embeddings]: header says shape (50000, 16) of float32"),
+    ("npy", "a single array, expected a .npz query file"),
+])
+def test_bad_query_file(good, tmp_path, case, needle):
+    """predictions.queries: the query set read by the one array reader (data/arrays.py)."""
+    root, _ = copy(good, tmp_path)
+    maps = tmp_path / "maps"
+    maps.mkdir()
+    for i in range(3):
+        np.save(maps / f"frame-{i:06d}.npy", np.random.default_rng(i).random((6, 8, 16)).astype(np.float16))
+    q = tmp_path / "q.npz"
+    if case == "text":
+        q.write_text("names,embeddings\nwall,0.1\n")
+    elif case == "npy":
+        q.write_bytes(_npy(np.ones((3, 16), np.float32)))
+    else:
+        import zipfile
+
+        with zipfile.ZipFile(q, "w") as z:
+            z.writestr("names.npy", _npy(np.array(["wall", "floor"])))
+            z.writestr("embeddings.npy", _npy(np.ones((2, 16), np.float32), (50_000, 16)))
+    p = run_cli("scene=rgbd_folder", f"scene.options.root={root}", "scene.options.label_suffix=label.png",
+                f"scene.options.mapping={tmp_path / 'mapping.csv'}", "scene.options.cloud_voxel=0.05",
+                "predictions=features", "predictions.embeddings=files", f"predictions.folder={maps}",
+                f"predictions.queries={q}", "record=off", "solver.max_iter=30", "graph.k=8",
+                f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
+    one_error(p, "q.npz", needle)

@@ -165,6 +165,9 @@ def test_library_face(run):
     (["NONAMES", "--queries", "Q"], 1, "NONAMES/summary.json: no 'class_names'"),
     (["BADGT", "--queries", "Q"], 1, "BADGT/gt_labels.npy: shape (7,) dtype int16, expected (3000,) class ids"),
     (["BADAVG", "--queries", "Q"], 1, "BADAVG/features_average.npy: not a .npy file"),
+    (["ZIPBASIS", "--queries", "Q"], 1, "ZIPBASIS/features_basis.npz: unreadable .npz (BadZipFile: "),
+    (["STRBASIS", "--queries", "Q"], 1, "STRBASIS/features_basis.npz [vectors]: vectors of shape (3,) dtype <U1, "
+                                        "expected 2-d floats"),
 ])
 def test_bad_input_gives_one_line(tmp_path, capsys, args, rc, msg):
     folder, _, E = make_run(tmp_path / "run")
@@ -176,12 +179,14 @@ def test_bad_input_gives_one_line(tmp_path, capsys, args, rc, msg):
     paths["BADQ"] = tmp_path / "bad.npz"
     (tmp_path / "map.csv").write_text("chair,furniture\n")
     paths["BADMAP"] = tmp_path / "map.csv"
-    for name in ("NOSUMMARY", "NONAMES", "BADGT", "BADAVG"):
+    for name in ("NOSUMMARY", "NONAMES", "BADGT", "BADAVG", "ZIPBASIS", "STRBASIS"):
         paths[name] = make_run(tmp_path / name.lower())[0]
     (paths["NOSUMMARY"] / "summary.json").unlink()
     (paths["NONAMES"] / "summary.json").write_text("{}")
     np.save(paths["BADGT"] / "gt_labels.npy", np.zeros(7, np.int16))
     (paths["BADAVG"] / "features_average.npy").write_bytes(b"not numpy")
+    (paths["ZIPBASIS"] / "features_basis.npz").write_bytes(b"PK\x03\x04 cut short")  # the one array reader
+    np.savez(paths["STRBASIS"] / "features_basis.npz", vectors=np.array(list("abc")))
     got = main([str(paths.get(a, a)) for a in args])
     err = capsys.readouterr().err
     for key, p in sorted(paths.items(), key=lambda kv: -len(str(kv[1]))):  # EMPTY (tmp_path) last

@@ -153,7 +153,7 @@ def _bad(tmp_path, name, **arrays):
     ("dim", "embeddings of dimension 8, expected 16 (the features)"),
     ("nan", "embedding of 'b' is not finite or all zero"),
     ("zero", "embedding of 'a' is not finite or all zero"),
-    ("object", "'names' unreadable"),
+    ("object", "[names]: array of Python objects (object), expected numbers or strings"),
     ("numbers", "names of shape (2,) dtype int64, expected a (Q,) array of strings"),
     ("dup", "query names ['a'] repeated"),
     ("npy", "a single array, expected a .npz query file"),

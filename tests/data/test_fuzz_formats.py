@@ -454,7 +454,7 @@ def test_probability_and_depth_arrays_whose_header_lies(shape, m, npz):
     import zipfile
 
     from diffuser_lab.data.prediction_files import load_probability_prediction
-    from diffuser_lab.data.sources.nerfstudio import _read_depth
+    from diffuser_lab.data.images import read_depth
 
     data = _npy()
     head = np.lib.format.header_data_from_array_1_0(np.zeros((1,), "<f4"))
@@ -470,7 +470,7 @@ def test_probability_and_depth_arrays_whose_header_lies(shape, m, npz):
                 name, b = name.replace(".npy", ".npz"), zb.getvalue()
             p = _write(d, name, b)
             ends_clearly(lambda q: load_probability_prediction(q, 20, (6, 8)), p)
-            ends_clearly(lambda q: _read_depth(q, 0.001), p)
+            ends_clearly(lambda q: read_depth(q, 1000.0, npy_unit=0.001), p)
 
 
 # ------------------------------------------------------------------------------------------- corpus
@@ -483,7 +483,8 @@ READERS = {".las": "read_cloud", ".laz": "read_cloud", ".ply": "read_cloud", ".j
 
 def replay(paths: list[Path]) -> list[str]:
     """Each corpus file through its reader, bounded: one result line per file."""
-    from diffuser_lab.data.images import read_array, read_depth_png
+    from diffuser_lab.data.arrays import read_array
+    from diffuser_lab.data.images import read_depth_png
 
     fns = {"read_cloud": read_cloud, "read_transforms": read_transforms, "read_array": lambda p: read_array(p, "array"),
            "read_intrinsics_file": read_intrinsics_file, "read_bag": read_bag, "read_colmap": read_colmap,

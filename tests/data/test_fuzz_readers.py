@@ -95,6 +95,51 @@ def test_mapping_tables(rows, header):
     _check(lambda p: load_mapping(str(p), SCANNET20), text.encode(), ".csv")
 
 
+def _arrays_bytes(kind: str, shape: tuple, dtype: str) -> bytes:
+    """A .npy of ``shape`` x ``dtype`` (a float16 (h, w, D) feature map, an (H, W) depth, strings), or a
+    .npz of it as the query set's ``names`` and ``embeddings`` and the feature map's ``features``."""
+    arr = np.zeros(shape, dtype)
+    buf = io.BytesIO()
+    if kind == "npy":
+        np.save(buf, arr)
+    else:
+        np.savez_compressed(buf, names=np.array(["a", "b"]), embeddings=arr, features=arr)
+    return buf.getvalue()
+
+
+ARRAY_SHAPES = st.sampled_from([(2, 3), (4, 5, 6), (2, 4), (0,), (3, 2, 1)])
+
+
+@FUZZ
+@given(st.sampled_from(["npy", "npz"]), ARRAY_SHAPES, st.sampled_from(["<f2", "<f4", ">f8", "<i4", "<U2", "|b1"]),
+       st.integers(0, 400), st.binary(max_size=16), st.floats(0.0, 1.0))
+def test_arrays_damaged_anywhere(kind, shape, dtype, at, junk, cut):
+    """The one array reader and its users (a feature map, a query set, a depth array): a file of any
+    shape or dtype, bytes overwritten or cut short (a header, a zip directory), reads or fails in one
+    line naming the file."""
+    from diffuser_lab.data.arrays import open_npz, read_array
+    from diffuser_lab.data.embeddings import load_queries
+    from diffuser_lab.data.images import read_depth
+    from diffuser_lab.data.prediction_files import load_feature_prediction
+
+    data = bytearray(_arrays_bytes(kind, shape, dtype))
+    data[at:at + len(junk)] = junk
+    data = bytes(data[: max(1, int(len(data) * cut))] if cut < 0.5 else data)
+    suffix = f".{kind}"
+
+    def every_member(p):
+        with open_npz(p, "a test file") as z:
+            return [z.read(n) for n in z.files]
+
+    _check(lambda p: read_array(p, "array", ndim=2, kinds="f"), data, suffix)
+    _check(lambda p: read_array(p, "array", mmap=True), data, suffix)
+    _check(load_feature_prediction, data, suffix)
+    _check(lambda p: read_depth(p, 1000.0), data, suffix)
+    if kind == "npz":
+        _check(every_member, data, suffix)
+        _check(load_queries, data, suffix)
+
+
 def test_empty_folders(tmp_path):
     with pytest.raises(FileNotFoundError, match="does not exist|no frame-XXXXXX.depth.png"):
         load_rgbd_folder(tmp_path)

@@ -200,6 +200,40 @@ def test_cache_keys():
                 model_key({"_target_": "a.c", "x": 1}, False)[0]}) == 4
 
 
+def test_the_cache_reads_back_bit_for_bit_and_a_damaged_file_is_computed_again(tmp_path):
+    """The network cache through the one array reader (data/arrays.py): ids, probabilities and a feature
+    map come back as they were saved; a torn, foreign or lying file reads as absent (computed again and
+    replaced), never a traceback or a header's allocation."""
+    import io
+    import zipfile
+
+    from diffuser_lab.data.networks import _DiskCache
+
+    cache = _DiskCache(str(tmp_path), "k", {"source": "test"})
+    rng = np.random.default_rng(0)
+    outs = {"ids": rng.integers(-1, 300, (6, 8)), "probs": rng.random((6, 8, 4)).astype(np.float32),
+            "features": rng.random((3, 4, 16)).astype(np.float16)}
+    for name, out in outs.items():
+        p = cache.path("scene", name, "0" * 16)
+        cache.save(p, out)
+        got = cache.load(p)
+        want = out.astype(np.float16).astype(np.float32) if name == "probs" else out
+        assert got.dtype == want.dtype and np.array_equal(got, want), name
+    p = cache.path("scene", "ids", "0" * 16)
+    good = p.read_bytes()
+    buf = io.BytesIO()
+    head = np.lib.format.header_data_from_array_1_0(np.zeros((6, 8), np.int16))
+    np.lib.format.write_array_header_1_0(buf, {**head, "shape": (60_000, 80_000)})
+    for bad in (good[: len(good) // 2], b"not a zip", np.zeros(3).tobytes()):
+        p.write_bytes(bad)
+        assert cache.load(p) is None
+    with zipfile.ZipFile(p, "w") as z:  # a member whose header says 4.8e9 int16 in 96 bytes
+        z.writestr("ids.npy", buf.getvalue() + b"\0" * 96)
+    assert cache.load(p) is None
+    np.savez(p, ids=np.zeros((2, 3, 4), np.int16))  # another shape: 2-d ids expected
+    assert cache.load(p) is None
+
+
 @pytest.mark.parametrize("args,needle", [
     (["predictions=model"], "predictions.model._target_ is required"),
     (["predictions=onnx"], "predictions.onnx.path is required"),

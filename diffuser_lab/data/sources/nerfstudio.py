@@ -60,7 +60,7 @@ from diffuser_lab.data import inputs
 from diffuser_lab.data.capture import CaptureOptions, CapturedFrame, capture_scene
 from diffuser_lab.data.clouds import read_cloud
 from diffuser_lab.data.distortion import FISHEYE, PERSPECTIVE, LensModel, undistort_image
-from diffuser_lab.data.images import open_image, read_array, read_depth_png, read_label_png, read_rgb, resize_nearest
+from diffuser_lab.data.images import open_image, read_depth, read_label_png, read_rgb, resize_nearest
 from diffuser_lab.data.scene import IGNORE, Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
 from diffuser_lab.data.poses import check_rigid, rigid_inverse
@@ -170,17 +170,6 @@ def _frame_path(root: Path, rel: str, downscale: int, prefix: str) -> Path:
     return root / rel
 
 
-def _read_depth(path: Path, unit: float) -> np.ndarray:
-    """A depth file -> (H, W) float32 metres (x ``unit``), 0 = none: 16-bit PNG or ``.npy``."""
-    if path.suffix.lower() == ".npy":
-        d = np.squeeze(read_array(path, "depth file"))
-        if d.ndim != 2 or d.dtype.kind not in "uif":
-            raise ValueError(f"{path}: depth array of dtype {d.dtype} shape {d.shape}, expected (H, W) numbers")
-        d = d.astype(np.float64) * unit
-        return np.where(np.isfinite(d) & (d > 0), d, 0).astype(np.float32)
-    return read_depth_png(path, 1.0 / unit, invalid=(0,))
-
-
 def _read_mask(path: Path) -> np.ndarray:
     """A mask image -> (H, W) bool, True = use the pixel (non-zero)."""
     with open_image(path, "mask image") as im:
@@ -199,7 +188,7 @@ class _Frame:
         return undistort_image(img, self.K, self.lens, order=1, fill=0, K_size=self.K_size)
 
     def depth(self) -> np.ndarray:
-        d = _read_depth(self.depth_path, self.unit)
+        d = read_depth(self.depth_path, 1.0 / self.unit, invalid=(0,), npy_unit=self.unit)
         if self.mask is not None:
             d = np.where(resize_nearest(_read_mask(self.mask), d.shape), d, 0).astype(np.float32)
         return undistort_image(d, self.K, self.lens, order=0, fill=0, K_size=self.K_size)

@@ -37,7 +37,7 @@ from omegaconf import MISSING
 from diffuser_lab.config import SceneConfig, above, at_least, key, rule
 from diffuser_lab.data import inputs
 from diffuser_lab.data.capture import CaptureOptions, CapturedFrame, capture_scene
-from diffuser_lab.data.images import read_depth_png, read_label_png, read_rgb
+from diffuser_lab.data.images import read_depth, read_label_png, read_rgb
 from diffuser_lab.data.scene import Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
 from diffuser_lab.data.poses import check_rigid, rigid_inverse
@@ -162,7 +162,7 @@ def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) ->
         frames.append(CapturedFrame(
             name=color.stem,
             T_cw=rigid_inverse(c2w), K=K, K_size=K_size, K_from=f"{cam_src} (w h)", K_image=depth,
-            depth=lambda p=depth: read_depth_png(p, scale, invalid=(0,)),
+            depth=lambda p=depth: read_depth(p, scale, invalid=(0,)),
             rgb=lambda p=color: read_rgb(p),
             labels=(lambda p=labels: read_label_png(p)) if labels is not None and labels.is_file() else None))
     if not frames:

@@ -4,7 +4,7 @@ Layout of ``root`` (every name is a key; docs/layouts.md)::
 
     camera-intrinsics.txt        3x3 K (pixels) of the depth image, shared by all frames (intrinsics_file)
     frame-000000.color.jpg       colour (any resolution; resized to the depth's)    (frame_prefix, color_suffix)
-    frame-000000.depth.png       16-bit depth                                        (depth_suffix)
+    frame-000000.depth.png       16-bit depth (or .npy metres: images.read_depth)    (depth_suffix)
     frame-000000.pose.txt        4x4 camera-to-world, metres (pose_convention)       (pose_suffix)
     frame-000000.<label_suffix>  optional ground-truth label image
 
@@ -21,12 +21,13 @@ grow with the sequence length.
 **Followed as it is written** (``follow=true``, protocol=online; docs/online.md): the folder is polled
 while a recorder writes it; a frame is taken, in name order, once its depth, colour (unless
 ``color_suffix`` is null) and pose files are whole (:func:`~diffuser_lab.data.images.image_complete`: a
-PNG up to its IEND chunk, a JPEG up to its end marker; the pose parses as a 4x4 matrix). A frame still
-incomplete :data:`LATE_S` seconds after a later one is whole was cut short: it is handed on as a bad
-frame (skipped with one line), so one damaged frame does not hold up the rest. The intrinsics file is
-waited for too. A folder has no end mark: the run ends ``follow_timeout`` seconds after the last new
-frame (or at ``max_frames``). The readers it shares with the other formats live in
-:mod:`diffuser_lab.data.images`, :mod:`diffuser_lab.data.poses` and :mod:`diffuser_lab.data.intrinsics`.
+PNG up to its IEND chunk, a JPEG up to its end marker, a .npy up to its header's bytes; the pose
+parses as a 4x4 matrix). A frame still incomplete :data:`LATE_S` seconds after a later one is whole
+was cut short: it is handed on as a bad frame (skipped with one line), so one damaged frame does not
+hold up the rest. The intrinsics file is waited for too. A folder has no end mark: the run ends
+``follow_timeout`` seconds after the last new frame (or at ``max_frames``). The readers it shares
+with the other formats live in :mod:`diffuser_lab.data.images`, :mod:`diffuser_lab.data.poses` and
+:mod:`diffuser_lab.data.intrinsics`.
 """
 from __future__ import annotations
 
@@ -48,7 +49,7 @@ from diffuser_lab.config import Check, PoseConvention, SceneConfig, above, at_le
 from diffuser_lab.data.capture import FollowOptions, followed_scene, fuse_depth, taxonomy_mapping, to_taxonomy
 from diffuser_lab.data.clouds import read_cloud
 from diffuser_lab.data.frames import Follow, LazyFrames, first_line
-from diffuser_lab.data.images import (image_complete, label_ids_in, read_depth_png, read_label_png, read_rgb,
+from diffuser_lab.data.images import (image_complete, label_ids_in, read_depth, read_label_png, read_rgb,
                                       resize_nearest)
 from diffuser_lab.data.intrinsics import read_intrinsics
 from diffuser_lab.data.mapping import ClassMapping
@@ -175,7 +176,7 @@ def load_rgbd_folder(
 
     def read(K: np.ndarray, name: str, T_cw: np.ndarray, skip: frozenset = frozenset()) -> Frame:
         """Frame ``name``'s files (colour left out when ``skip`` says so)."""
-        depth = read_depth_png(root / f"{name}.{depth_suffix}", depth_scale, depth_bit_shift, invalid_depth,
+        depth = read_depth(root / f"{name}.{depth_suffix}", depth_scale, depth_bit_shift, invalid_depth,
                                depth_shift_kind)
         rgb = read_rgb(root / f"{name}.{color_suffix}", depth.shape) if color_suffix and "rgb" not in skip else None
         gt = None

@@ -44,7 +44,7 @@ from diffuser_lab import progress
 from diffuser_lab.config import SceneConfig, Section, above, at_least, file_pattern, key, rule
 from diffuser_lab.data.frames import LazyFrames
 from diffuser_lab.data.geometry import scaled_intrinsics
-from diffuser_lab.data.images import label_ids_in, read_depth_png, read_label_png, read_rgb, resize_nearest
+from diffuser_lab.data.images import label_ids_in, read_depth, read_label_png, read_rgb, resize_nearest
 from diffuser_lab.data.intrinsics import read_intrinsics
 from diffuser_lab.data.mapping import ClassMapping, identity_mapping, load_mapping, native_mapping
 from diffuser_lab.data.meshes import mesh_label_ids, read_labelled_mesh, vertex_normals
@@ -192,7 +192,7 @@ def _scannet_frames(root: Path, frame_step: int, max_frames: int | None, mapping
 
     def load(i: int, skip: frozenset = frozenset()) -> Frame:
         fid = kept[i]
-        depth = read_depth_png(root / L.depth.format(frame=fid), L.depth_scale, 0, (0,))
+        depth = read_depth(root / L.depth.format(frame=fid), L.depth_scale, 0, (0,))
         rgb = read_rgb(root / L.color.format(frame=fid), depth.shape) if has_color and "rgb" not in skip else None
         gt = None
         if has_labels:

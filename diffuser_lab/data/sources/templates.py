@@ -29,21 +29,19 @@ from enum import Enum
 from pathlib import Path
 from typing import List, Optional
 
-import numpy as np
 from omegaconf import MISSING
 
 from diffuser_lab import progress
 from diffuser_lab.config import PoseConvention, SceneConfig, above, key, rule
 from diffuser_lab.data.capture import CaptureOptions, CapturedFrame, capture_scene
-from diffuser_lab.data.images import read_array, read_depth_png, read_label_png, read_rgb
+from diffuser_lab.data.images import read_depth, read_label_png, read_rgb
 from diffuser_lab.data.intrinsics import detect_format, read_intrinsics_file, scannet_depth_shift
 from diffuser_lab.data.poses import pose_to_world_to_camera, read_pose_c2w
 from diffuser_lab.data.scene import Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
 
 
-__all__ = ["TemplatesOptions", "IntrinsicsFormat", "template_fields", "template_regex", "find_frames",
-           "read_depth", "load"]
+__all__ = ["TemplatesOptions", "IntrinsicsFormat", "template_fields", "template_regex", "find_frames", "load"]
 
 PLACEHOLDERS = ("scene", "frame")
 DEPTH_16BIT = (".png", ".pgm", ".tif", ".tiff")
@@ -167,19 +165,6 @@ def find_frames(root: Path, template: str, scene: str, key_name: str) -> list[tu
     return sorted(found.items())
 
 
-def read_depth(path: Path, depth_scale: float, invalid) -> np.ndarray:
-    """A depth image -> (H, W) float32 metres, 0 = none: 16-bit PNG/PGM/TIFF in ``depth_scale``
-    units per metre (``invalid`` raw values = none), or ``.npy`` float metres (non-finite, <= 0 = none)."""
-    suffix = path.suffix.lower()
-    if suffix == ".npy":
-        d = read_array(path, "depth image")  # its header's shape checked against the file first
-        if d.ndim != 2 or d.dtype.kind not in "fiu":
-            raise ValueError(f"{path}: .npy depth of dtype {d.dtype} shape {d.shape}, expected (H, W) float metres")
-        d = d.astype(np.float32)
-        return np.where(np.isfinite(d) & (d > 0), d, 0).astype(np.float32)
-    return read_depth_png(path, depth_scale, 0, tuple(invalid))
-
-
 def _check_depth_suffix(template: str) -> None:
     suffix = Path(template).suffix.lower()
     if suffix == ".exr":
@@ -254,7 +239,7 @@ def load(cfg: SceneConfig, taxonomy: Taxonomy, sensor: Optional[SensorModel]) ->
             frames.append(CapturedFrame(
                 name=name, T_cw=pose_to_world_to_camera(T, conv), K=K, K_size=K_size, K_from=K_from,
                 K_image=described if K_size is not None else None,
-                depth=(lambda p=dp: read_depth(p, depth_scale, o.invalid_depth)) if dp is not None else None,
+                depth=(lambda p=dp: read_depth(p, depth_scale, 0, tuple(o.invalid_depth))) if dp is not None else None,
                 rgb=(lambda p=cp: read_rgb(p)) if cp is not None else None,
                 labels=(lambda p=lp: read_label_png(p)) if lp is not None else None))
     if not frames:

@@ -35,7 +35,7 @@ from diffuser_lab.config import SceneConfig, Section, above, at_least, check, ke
 from diffuser_lab.data import inputs
 from diffuser_lab.data.capture import fuse_depth
 from diffuser_lab.data.frames import LazyFrames
-from diffuser_lab.data.images import read_depth_png, read_rgb
+from diffuser_lab.data.images import read_depth, read_rgb
 from diffuser_lab.data.poses import associate, interpolate_poses, pose_matrices, rigid_inverse
 from diffuser_lab.data.scene import SCANNET20, Frame, Scene, Taxonomy
 from diffuser_lab.data.sensor import SensorModel
@@ -226,7 +226,7 @@ def load_tum(
     names = [p.stem for p in (rgb_files if rgb_files is not None else depth_files)]
 
     def load(i: int, skip: frozenset = frozenset()) -> Frame:
-        depth = read_depth_png(depth_files[i], depth_scale, 0, (0,))
+        depth = read_depth(depth_files[i], depth_scale, 0, (0,))
         rgb = read_rgb(rgb_files[i], depth.shape) if rgb_files is not None and "rgb" not in skip else None
         return Frame(name=names[i], K=K.copy(), T_cw=T_cw[i], depth=depth, gt_labels=None, rgb=rgb)
 

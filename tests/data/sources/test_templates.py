@@ -16,8 +16,8 @@ from diffuser_lab.config import ConfigError
 from diffuser_lab.data.geometry import scaled_intrinsics
 from diffuser_lab.data.intrinsics import read_intrinsics_file
 from diffuser_lab.data.mapping import load_mapping
-from diffuser_lab.data.images import read_label_png, resize_nearest
-from diffuser_lab.data.sources.templates import find_frames, read_depth
+from diffuser_lab.data.images import read_depth, read_label_png, resize_nearest
+from diffuser_lab.data.sources.templates import find_frames
 from diffuser_lab.runs.pipeline import load_scene, run
 from diffuser_lab.runs.resolve import resolve
 from diffuser_lab.runs.single_frame import single_frame
@@ -89,7 +89,7 @@ SPLIT = ["scene=templates", "scene.options.depth='depth/{scene}_{frame:06d}.png'
 @needs_7scenes
 def test_sensreader_layout_labels_as_the_reference(seven):
     root = write_sensreader(seven["base"] / "sens", seven["frames"], seven["K"])
-    np.testing.assert_array_equal(read_depth(root / "frame-000000.depth.pgm", 1000.0, (0, 65535)),
+    np.testing.assert_array_equal(read_depth(root / "frame-000000.depth.pgm", 1000.0, invalid=(0, 65535)),
                                   seven["frames"][0]["depth"])  # big-endian PGM read as written
     pts, lab, res = labels_of("scene=scannet_sensreader", f"scene.options.root={root}", "scene.options.mapping=null",
                               *FAST)
@@ -232,7 +232,7 @@ def test_scannet_frames_both_protocols_and_alignment():
     assert res.metrics is not None and res.metrics["miou"] > 30
     # label-filt (320x240, NYU40) resized to depth as the frames are: over all 27 frames its boundaries
     # lie on the depth edges within 3 px (measured: best shift (1, -3), 34 % vs 28 % unshifted)
-    raw = [(read_depth(p, 1000.0, (0,)), resize_nearest(read_label_png(SCANNET / "label-filt" / f"{p.stem}.png"),
+    raw = [(read_depth(p, 1000.0, invalid=(0,)), resize_nearest(read_label_png(SCANNET / "label-filt" / f"{p.stem}.png"),
                                                         (480, 640))) for p in sorted((SCANNET / "depth").glob("*.png"))]
     mapped = load_mapping("nyu40_to_scannet20", s.taxonomy).apply(raw[0][1])[0]
     np.testing.assert_array_equal(s.frames[0].gt_labels, mapped)  # frame 0 is depth/0.png
