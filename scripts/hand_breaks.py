@@ -163,7 +163,7 @@ def main(argv=None) -> int:
         r = quick_loop(root, args.pytest_args)
         caught = r["rc"] != 0 if b else r["rc"] == 0
         name = b.name if b else "baseline (no break)"
-        tests = ", ".join(t.split("::", 1)[1] if "::" in t else t for t in r["failed"][:3]) or "-"
+        tests = ", ".join(f"`{t}`" for t in r["failed"][:3]) or "-"
         what = (b.what if b else "the copy as it is").replace("|", "\\|")  # a markdown cell
         rows.append(f"| {name} | {what} | {'caught' if caught and b else 'passes' if caught else 'MISSED' if b else 'FAILS'} "
                     f"| {tests} | {r['seconds']:.0f} s{', cold cache' if cold else ''} |")
