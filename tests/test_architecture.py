@@ -14,35 +14,55 @@ LAYERS = ["config", "seeding", "progress", "hooks", "registry", "backends", "dat
 package's ``__init__``, may import anything)."""
 
 
-def _modules() -> dict[str, Path]:
+@functools.cache
+def _parsed() -> dict[str, tuple[Path, ast.Module]]:
+    """Every module of the package by its dotted name: (file, syntax tree), parsed once per process."""
     out = {}
     for f in PKG.rglob("*.py"):
-        name = ".".join(f.relative_to(PKG.parent).with_suffix("").parts)
-        out[name[: -len(".__init__")] if name.endswith(".__init__") else name] = f
+        out[_name_of(f)] = (f, ast.parse(f.read_text()))
     return out
 
 
-def _imports(mods: dict[str, Path]):
+def _name_of(f: Path) -> str:
+    name = ".".join(f.relative_to(PKG.parent).with_suffix("").parts)
+    return name[: -len(".__init__")] if name.endswith(".__init__") else name
+
+
+def _modules() -> dict[str, Path]:
+    return {m: f for m, (f, _) in _parsed().items()}
+
+
+def _import_nodes(tree: ast.AST):
+    """(import node, inside a function?) for every import of ``tree``: one walk."""
+    stack = [(tree, False)]
+    while stack:
+        node, inner = stack.pop()
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            yield node, inner
+        inner = inner or isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))
+        stack.extend((child, inner) for child in ast.iter_child_nodes(node))
+
+
+@functools.cache
+def _all_imports() -> tuple[tuple[str, str, bool], ...]:
     """(module, imported module, inside a function?) for every import of the package's own modules."""
-    for m, f in mods.items():
-        tree = ast.parse(f.read_text())
-        inner = set()
-        for fn in ast.walk(tree):
-            if isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
-                inner |= {id(x) for x in ast.walk(fn) if isinstance(x, (ast.Import, ast.ImportFrom))}
-        for node in ast.walk(tree):
+    mods, out = _modules(), []
+    for m, (f, tree) in _parsed().items():
+        for node, inner in _import_nodes(tree):
             if isinstance(node, ast.Import):
                 targets = [a.name for a in node.names]
-            elif isinstance(node, ast.ImportFrom):
+            else:
                 base = m.split(".") if f.name == "__init__.py" else m.split(".")[:-1]
                 base = base[: len(base) - node.level + 1] if node.level else []
                 root = ".".join(base + ([node.module] if node.module else []))
                 targets = [root] + [f"{root}.{a.name}" for a in node.names]
-            else:
-                continue
-            for t in targets:
-                if t in mods and t != m and not m.startswith(t + "."):
-                    yield m, t, id(node) in inner
+            out += [(m, t, inner) for t in targets if t in mods and t != m and not m.startswith(t + ".")]
+    return tuple(out)
+
+
+def _imports(mods: dict[str, Path]):
+    """(module, imported module, inside a function?) of the modules ``mods`` (the package's, parsed once)."""
+    return [e for e in _all_imports() if e[0] in mods]
 
 
 def _layer(module: str) -> int:
@@ -103,7 +123,7 @@ def test_no_compiled_or_numpy_choice_outside_backends():
         rel = f.relative_to(PKG).as_posix()
         if rel.startswith(("backends/", "cli/")):
             continue
-        for node in ast.walk(ast.parse(f.read_text())):
+        for node, _ in _import_nodes(_parsed()[_name_of(f)][1]):
             if isinstance(node, ast.ImportFrom) and (node.module or "").startswith(("numba", "diffuser_lab.backends.numba")):
                 asks.append(rel)
             elif isinstance(node, ast.ImportFrom) and node.module == "diffuser_lab.backends" and \
