@@ -164,7 +164,7 @@ def _private(name: str) -> bool:
     return name.startswith("_") and not name.startswith("__")
 
 
-def _private_uses(mods: dict[str, Path]):
+def _private_uses(parsed: dict[str, tuple[Path, ast.Module]]):
     """(module, what) for every private name one module of the package takes from another: ``from
     .x import _y``, ``from diffuser_lab.x import _y``, ``x._y`` on a module ``x`` imported, and a
     private module (``_x``) imported from outside the package that holds it (``from . import
@@ -173,8 +173,8 @@ def _private_uses(mods: dict[str, Path]):
         parent = private_module.rsplit(".", 1)[0]
         return m == private_module or m.startswith(parent + ".") or m == parent
 
-    for m, f in mods.items():
-        tree = ast.parse(f.read_text())
+    mods = {m: f for m, (f, _) in parsed.items()}
+    for m, (f, tree) in parsed.items():
         pkg = m.split(".") if f.name == "__init__.py" else m.split(".")[:-1]
         bound = {}  # local name -> module of the package
         for node in ast.walk(tree):
@@ -222,7 +222,7 @@ PRIVATE_USES_ALLOWED = {
 
 @functools.lru_cache(maxsize=1)
 def _package_private_uses() -> frozenset:
-    return frozenset(_private_uses(_modules()))
+    return frozenset(_private_uses(_parsed()))
 
 
 def test_no_private_name_used_across_modules():
@@ -254,7 +254,7 @@ def test_the_private_use_scan_sees_each_form(tmp_path):
     mods = {}
     for f in pkg.rglob("*.py"):
         name = ".".join(f.relative_to(tmp_path).with_suffix("").parts)
-        mods[name[: -len(".__init__")] if name.endswith(".__init__") else name] = f
+        mods[name[: -len(".__init__")] if name.endswith(".__init__") else name] = (f, ast.parse(f.read_text()))
     assert sorted(set(_private_uses(mods))) == [
         ("diffuser_lab.b.abs", "diffuser_lab.a.x._y"), ("diffuser_lab.b.attr", "diffuser_lab.a.x._y"),
         ("diffuser_lab.b.mod", "diffuser_lab.a._hidden"), ("diffuser_lab.b.rel", "diffuser_lab.a.x._y")]
@@ -294,7 +294,8 @@ def _function_lengths(folder: Path, root: Path = PKG) -> dict[str, int]:
                 visit(child, prefix, rel)
 
     for f in sorted(folder.rglob("*.py")):
-        visit(ast.parse(f.read_text()), "", f.relative_to(root).as_posix())
+        tree = _parsed()[_name_of(f)][1] if root == PKG else ast.parse(f.read_text())  # the package's: parsed once
+        visit(tree, "", f.relative_to(root).as_posix())
     return out
 
 
