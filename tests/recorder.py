@@ -28,6 +28,7 @@ import numpy as np
 
 T0 = 1_700_000_000 * 10**9  # the first frame's stamp, ns
 SPLIT_PAUSE_S = 0.003  # between a file's (or chunk's) two halves
+GATE_AT = 20  # a gated recorder's first frame after the gate: a bag's follower takes frame 0 after 0.5 s of messages
 
 
 def demo_frames(n: int, width: int = 64, height: int = 48) -> dict:
@@ -50,9 +51,11 @@ def save(path: Path, frames: dict) -> Path:
     return Path(path)
 
 
-def start(kind: str, frames: Path, out: Path, rate: float = 30.0) -> subprocess.Popen:
-    """This file as a process writing ``frames`` (:func:`save`'s file) to ``out`` as ``kind`` at ``rate`` Hz."""
-    return subprocess.Popen([sys.executable, str(Path(__file__).resolve()), kind, str(frames), str(out), str(rate)],
+def start(kind: str, frames: Path, out: Path, rate: float = 30.0, gate: Path | None = None) -> subprocess.Popen:
+    """This file as a process writing ``frames`` (:func:`save`'s file) to ``out`` as ``kind`` at ``rate`` Hz;
+    with ``gate``, frames from :data:`GATE_AT` on once that file exists (:func:`_pace`)."""
+    return subprocess.Popen([sys.executable, str(Path(__file__).resolve()), kind, str(frames), str(out), str(rate),
+                             *([str(gate)] if gate is not None else [])],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)
 
 
@@ -92,18 +95,24 @@ def _png(a: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def _pace(rate: float, n: int):
-    """Yield 0..n-1, the i-th at the start time + i / rate."""
+def _pace(rate: float, n: int, gate: Path | None = None):
+    """Yield 0..n-1, the i-th at the start time + i / rate; with ``gate``, frames from :data:`GATE_AT` on
+    once that file exists (the follower has taken frame 0), paced from then."""
     t0 = time.monotonic()
     for i in range(n):  # loop over frames
+        if i == GATE_AT and gate is not None:
+            end = time.monotonic() + 120
+            while not gate.exists() and time.monotonic() < end:
+                time.sleep(0.005)
+            t0 = time.monotonic() - i / rate
         time.sleep(max(0.0, t0 + i / rate - time.monotonic()))
         yield i
 
 
-def write_folder(f: dict, root: Path, rate: float) -> None:
+def write_folder(f: dict, root: Path, rate: float, gate: Path | None = None) -> None:
     root.mkdir(parents=True)
     np.savetxt(root / "camera-intrinsics.txt", f["K"])
-    for i in _pace(rate, len(f["depth"])):  # loop over frames: colour, depth, then the pose
+    for i in _pace(rate, len(f["depth"]), gate):  # loop over frames: colour, depth, then the pose
         stem = root / f"frame-{i:06d}"
         _write_file(Path(f"{stem}.color.png"), _png(f["rgb"][i]))
         _write_file(Path(f"{stem}.depth.png"), _png(np.rint(f["depth"][i] * 1000).astype(np.uint16)))
@@ -112,7 +121,7 @@ def write_folder(f: dict, root: Path, rate: float) -> None:
         _write_file(Path(f"{stem}.pose.txt"), text.getvalue().encode())
 
 
-def write_bag(f: dict, path: Path, rate: float) -> None:
+def write_bag(f: dict, path: Path, rate: float, gate: Path | None = None) -> None:
     from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
     from scipy.spatial.transform import Rotation
@@ -138,7 +147,7 @@ def write_bag(f: dict, path: Path, rate: float) -> None:
         return T["sensor_msgs/msg/Image"](header=header(t), height=h, width=wd, encoding=enc, is_bigendian=0,
                                           step=a.strides[0], data=a.view(np.uint8).reshape(-1))
 
-    for i in _pace(rate, len(f["depth"])):  # loop over frames: one chunk each
+    for i in _pace(rate, len(f["depth"]), gate):  # loop over frames: one chunk each
         t = T0 + int(i * 1e9 / rate)
         c2w = f["c2w"][i]
         q = Rotation.from_matrix(c2w[:3, :3]).as_quat()
@@ -162,8 +171,9 @@ def write_bag(f: dict, path: Path, rate: float) -> None:
 
 if __name__ == "__main__":
     kind, src, out, hz = sys.argv[1], Path(sys.argv[2]), Path(sys.argv[3]), float(sys.argv[4])
+    go = Path(sys.argv[5]) if len(sys.argv) > 5 else None
     data = dict(np.load(src))
     if kind == "folder":
-        write_folder(data, out, hz)
+        write_folder(data, out, hz, go)
     else:
-        write_bag(data, out, hz)
+        write_bag(data, out, hz, go)

@@ -41,13 +41,16 @@ def _folder(root) -> list[str]:
 
 class Watch(RunHooks):
     """Whether the recorder was still writing when each frame was taken; ``delay`` seconds more per frame
-    (a map slower than the sensor)."""
+    (a map slower than the sensor); ``gate``: the file that lets the recorder go on after frame 0
+    (recorder.start), made once this run has taken it."""
 
-    def __init__(self, proc, delay: float = 0.0):
-        self.proc, self.delay, self.writing = proc, delay, []
+    def __init__(self, proc, delay: float = 0.0, gate=None):
+        self.proc, self.delay, self.gate, self.writing = proc, delay, gate, []
 
     def on_frame(self, index, frame):
         self.writing.append(self.proc.poll() is None)
+        if self.gate is not None:
+            self.gate.touch()
         time.sleep(self.delay)
 
 
@@ -58,8 +61,9 @@ def _used(res) -> list[int]:
 @pytest.mark.slow
 def test_a_bag_followed_as_it_is_written_labels_as_the_closed_bag(tmp_path, frames):
     bag = tmp_path / "rec"  # a rosbag2 folder: ends once each MCAP footer and metadata.yaml are written
-    proc = recorder.start("bag", frames, bag)
-    watch = Watch(proc)
+    # frames 20.. once the run has taken frame 0 (recorder.GATE_AT): a loaded start-up can outlast the 1.5 s
+    proc = recorder.start("bag", frames, bag, gate=tmp_path / "go")
+    watch = Watch(proc, gate=tmp_path / "go")
     live = online(compose(*_bag(bag), "scene.options.follow=true", "scene.options.follow_policy=all",
                           "scene.options.follow_timeout=10", *DETERMINISTIC), hooks=watch)
     assert proc.wait(10) == 0, proc.stderr.read()
