@@ -165,7 +165,10 @@ def test_a_reduced_basis_agrees_with_the_full_path(tmp_path):
 
     from diffuser_lab.data.embeddings import write_queries
     from diffuser_lab.runs.query import query_run
-    files = auto.space.write(tmp_path, auto.rows)
+    from diffuser_lab.runs.records import write_scoring
+
+    files = auto.space.write(tmp_path, auto.rows)  # the space's files; gt_labels.npy: the run's scoring file
+    write_scoring(tmp_path, small_demo_scene)
     assert files["features_basis"] == "features_basis.npz" and "features_average" not in files
     (tmp_path / "summary.json").write_text(json.dumps({"class_names": list(small_demo_scene.taxonomy.names),
                                                        "features": {"queries": list(al.queries.names),
