@@ -15,11 +15,12 @@ the code no longer depends on them (docs/results/isa.md). ``--qemu CPU`` runs a 
 (slow: minutes; ``--runs data`` builds only the demo's data and hashes it).
 
     python scripts/isa_check.py run --setting generic --out DIR [--runs demo,scene0470,features]
-    python scripts/isa_check.py compare DIR_A DIR_B          # labels equal >= 99.99 %, metrics within 0.1
+    python scripts/isa_check.py compare DIR_A DIR_B          # labels' hashes and every score equal (FROM_Z: 1e-3)
     python scripts/isa_check.py both --out DIR               # host and generic, then compare
 
-Each run writes DIR/<run>.npy (its labels) and DIR/report.json (metrics, the forced settings as the
-libraries report them).
+Each run writes DIR/<run>.npy (its labels) and DIR/report.json (its labels' sha256, every figure of its
+metrics and baselines, the diffusion's iterations and residual, the forced settings as the libraries
+report them).
 """
 from __future__ import annotations
 
@@ -93,6 +94,22 @@ def _data_hashes() -> dict:
     return {k: hashlib.sha256(np.ascontiguousarray(v).tobytes()).hexdigest()[:16] for k, v in parts.items()}
 
 
+def figures(tree, prefix: str = "") -> dict[str, float]:
+    """Every number of a nested dict (or list) by its dotted path: the figures a run prints and
+    saves (mIoU, accuracy, coverage, per-class IoU, calibration, the baselines'), as float64."""
+    out = {}
+    items = tree.items() if isinstance(tree, dict) else enumerate(tree) if isinstance(tree, (list, tuple)) else ()
+    for k, v in items:
+        key = f"{prefix}{k}"
+        if hasattr(v, "ndim") and v.ndim > 0:
+            v = v.tolist()
+        if isinstance(v, (dict, list, tuple)):
+            out.update(figures(v, key + "."))
+        elif isinstance(v, (int, float)) and not isinstance(v, bool) or hasattr(v, "dtype") and v.ndim == 0:
+            out[key] = float(v)
+    return out
+
+
 def run(setting: str, out: Path, names: list[str]) -> dict:
     """The runs ``names`` in this process (the setting's variables already set by the caller)."""
     import numpy as np
@@ -117,11 +134,12 @@ def run(setting: str, out: Path, names: list[str]) -> dict:
             cfg = to_object(compose("config", overrides=[*RUNS[name], "record=off"]))
         res = pipeline_run(cfg)
         np.save(out / f"{name}.npy", res.labels)
-        m = res.metrics or {}
+        d = res.diffusion
         report["runs"][name] = {
-            "n": int(len(res.labels)), "miou": m.get("miou"), "accuracy": m.get("accuracy"),
-            "baselines": {k: {"miou": v.get("miou"), "accuracy": v.get("accuracy")} for k, v in res.baseline.items()},
-            "labels_sha": hashlib.sha256(np.ascontiguousarray(res.labels).tobytes()).hexdigest()[:16]}
+            "n": int(len(res.labels)),
+            "figures": figures({"metrics": res.metrics or {}, "baselines": res.baseline,
+                                "diffusion": {} if d is None else {"iterations": d.iterations, "residual": d.residual}}),
+            "labels_sha": hashlib.sha256(np.ascontiguousarray(res.labels).tobytes()).hexdigest()}
     (out / "report.json").write_text(json.dumps(report, indent=1))
     return report
 
@@ -140,14 +158,26 @@ def spawn(setting: str, out: Path, names: list[str], qemu: str | None = None, ti
     return json.loads((out / "report.json").read_text())
 
 
-def compare(a: Path, b: Path, min_equal: float = 0.9999, max_metric: float = 0.1) -> list[str]:
-    """Differences between two report folders beyond the tolerances (empty = they agree), and a
-    table of what was compared printed to stdout."""
+FROM_Z = ("metrics.calibration.", "diffusion.residual")
+"""Figures computed from the diffusion's float32 state Z rather than from its labels: the calibration
+(ECE, NLL, Brier, the reliability bins) and the relative change of the last step. The compiled kernels
+round Z's last bits by the instruction set (numba's AVX-512 / AVX2 / generic code: FMA, the order of
+a row's sums), so these agree to :data:`Z_REL` only; every other figure, and the labels, bit for bit."""
+Z_REL = 1e-3
+"""Relative tolerance of the figures of :data:`FROM_Z` (measured 2026-12-07, AMD EPYC Zen 4 host
+against generic: 8.1e-5 for the residual, 2.5e-4 for the features run's bins: one point of 4,067 in
+the next confidence bin; 1e-8 for scene0470's)."""
+
+
+def compare(a: Path, b: Path) -> list[str]:
+    """Differences between two report folders (empty = the same bits: the labels' sha256 and every
+    figure equal, nan to nan; the figures of :data:`FROM_Z` within :data:`Z_REL`), and a table of what
+    was compared printed to stdout."""
     import numpy as np
 
     ra, rb = (json.loads((d / "report.json").read_text()) for d in (a, b))
     bad = []
-    print(f"{'run':<11} {'labels equal':>13} {'max |d metric|':>15}   {ra['setting']} vs {rb['setting']}")
+    print(f"{'run':<11} {'labels':>9} {'equal':>8} {'max rel. diff':>15}   {ra['setting']} vs {rb['setting']}")
     for name in sorted(set(ra["runs"]) & set(rb["runs"])):
         x, y = ra["runs"][name], rb["runs"][name]
         if "skipped" in x or "skipped" in y:
@@ -159,16 +189,27 @@ def compare(a: Path, b: Path, min_equal: float = 0.9999, max_metric: float = 0.1
             bad += [f"{name}: {k} differ" for k in diff]
             continue
         la, lb = np.load(a / f"{name}.npy"), np.load(b / f"{name}.npy")
-        equal = float((la == lb).mean()) if la.shape == lb.shape else 0.0
-        pairs = [(x["miou"], y["miou"]), (x["accuracy"], y["accuracy"])]
-        pairs += [(x["baselines"][k]["miou"], y["baselines"][k]["miou"]) for k in x["baselines"]]
-        worst = max((abs(p - q) for p, q in pairs if p is not None and q is not None), default=0.0)
-        print(f"{name:<11} {100 * equal:12.4f}% {worst:15.4f}")
-        if equal < min_equal:
-            bad.append(f"{name}: labels equal on {100 * equal:.4f} % < {100 * min_equal:.2f} %")
-        if worst > max_metric:
-            bad.append(f"{name}: a metric differs by {worst:.3f} > {max_metric}")
+        same = x["labels_sha"] == y["labels_sha"]
+        fx, fy = x["figures"], y["figures"]
+        differ = sorted(k for k in set(fx) | set(fy) if not (fx.get(k) == fy.get(k) or
+                                                                 _nan(fx.get(k)) and _nan(fy.get(k))))
+        worst = max((abs(fx[k] - fy[k]) / max(abs(fx[k]), 1e-300) for k in differ if k in fx and k in fy),
+                    default=0.0)
+        print(f"{name:<11} {'same' if same else 'differ':>9} {len(fx) - len(differ):>4}/{len(fx):<3} {worst:15.3g}")
+        differ = [k for k in differ if not (k.startswith(FROM_Z) and k in fx and k in fy
+                                            and abs(fx[k] - fy[k]) <= Z_REL * max(abs(fx[k]), abs(fy[k])))]
+        if not same:
+            equal = float((la == lb).mean()) if la.shape == lb.shape else 0.0
+            bad.append(f"{name}: labels differ (sha256 {x['labels_sha'][:16]} vs {y['labels_sha'][:16]}; "
+                       f"{100 * equal:.4f} % equal)")
+        bad += [f"{name}: {k} = {fx.get(k)!r} vs {fy.get(k)!r}" for k in differ]
+        if not fx:
+            bad.append(f"{name}: no figures recorded")
     return bad
+
+
+def _nan(v) -> bool:
+    return isinstance(v, float) and v != v
 
 
 def main(argv=None) -> int:
@@ -195,7 +236,7 @@ def main(argv=None) -> int:
     else:
         names = args.runs.split(",")
         spawn("host", args.out / "host", names)
-        other = f"{args.against}-qemu-{args.qemu}" if args.qemu else args.against
+        other = f"host-qemu-{args.qemu}" if args.qemu else args.against
         spawn(args.against if not args.qemu else "host", args.out / other, names, qemu=args.qemu)
         bad = compare(args.out / "host", args.out / other)
     for b in bad:

@@ -12,6 +12,8 @@ neighbour order with fused multiply-adds, so the float32 ones give the package k
 
 - ``package``: the generated kernel (``backends/numba/_unrolled.steps_16``: 16-wide class blocks, LLVM's
   SLP), rows claimed 512 at a time and done for every block (as before issue 53), or all rows a block;
+  ``package zmm``: the package's kernel of several blocks since issue 53 (``_unrolled.steps_32z``: 32-wide
+  blocks, ``backends/numba/_zmm``'s 16-lane row kernel, rows claimed ``jacobi.MULTI_CHUNK`` at a time);
 - issue 38's, Z row-major (N, W): ``vec64``: explicit 8-lane vectors from numba (a ``f32x8`` type and
   ``numba.extending.intrinsic``s emitting LLVM vector loads and ``llvm.fma.v8f32``), per row column
   groups of 64: 8 independent accumulators; ``vec32x2`` / ``vec16x4``: 2 / 4 rows at a time;
@@ -20,7 +22,7 @@ neighbour order with fused multiply-adds, so the float32 ones give the package k
   itself (no gather leaves L1: the kernel's ceiling);
 - issue 53's column tiles: Z, Zn and B tile-major (W / T tiles of (N, T)), ``tileT R=r``: rows r at a
   time done for every tile (``all``: a tile's whole column block before the next), 16-lane (zmm)
-  vectors for T >= 16 (``ymm``: 8 lanes); ``small-idx``: the index stream as row-relative int16 offsets
+  vectors for T >= 16 (the package's intrinsics, ``backends/numba/_zmm.py``; ``ymm``: 8 lanes); ``small-idx``: the index stream as row-relative int16 offsets
   (rows where one does not fit: int32 neighbours) and float16 weights, 4 instead of 8 bytes a
   neighbour; ``f16Z``: Z stored as float16, scaled by 2^14 (B and the floor with it);
   ``tileT self``: the ceiling.
@@ -44,6 +46,12 @@ from llvmlite import ir
 from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic, models, register_model
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from diffuser_lab.backends.numba._zmm import f32x16, prefetch  # noqa: E402,F401 - the package's 16-lane vectors
+from diffuser_lab.backends.numba._zmm import vabsdiff as wabsdiff, vadd as wadd, vflush as wflush  # noqa: E402,F401
+from diffuser_lab.backends.numba._zmm import vfma as wfma, vhmax as whmax, vload as wload  # noqa: E402,F401
+from diffuser_lab.backends.numba._zmm import vmax as wmax, vstore as wstore, vzero as wzero  # noqa: E402,F401
 
 LANES = 8
 _F = ir.FloatType()
@@ -166,20 +174,6 @@ def vstore_nt(typingctx, arr, idx, v):
     return types.none(arr, idx, v), codegen
 
 
-@intrinsic
-def prefetch(typingctx, arr, idx):
-    """Prefetch arr[idx]'s cache line (read, keep in all levels)."""
-    def codegen(context, builder, sig, args):
-        i = context.cast(builder, args[1], sig.args[1], types.intp)
-        data = cgutils.create_struct_proxy(sig.args[0])(context, builder, value=args[0]).data
-        p = builder.bitcast(builder.gep(data, [i]), ir.IntType(8).as_pointer())
-        i32 = ir.IntType(32)
-        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.VoidType(), [ir.IntType(8).as_pointer(), i32, i32, i32]), "llvm.prefetch.p0")
-        builder.call(fn, [p, ir.Constant(i32, 0), ir.Constant(i32, 3), ir.Constant(i32, 1)])
-        return context.get_dummy_value()
-    return types.none(arr, idx), codegen
-
-
 _H = ir.VectorType(ir.HalfType(), LANES)
 
 
@@ -206,48 +200,15 @@ def vstore_h(typingctx, arr, idx, v):
     return types.none(arr, idx, v), codegen
 
 
-# ---- issue 53: 16-lane (zmm) vectors and the small index stream ---------------------------------
+# ---- issue 53: 16-lane (zmm) vectors: the package's (backends/numba/_zmm.py); here only their float16
+# loads and stores, for the small index stream and float16 Z
 _V16 = ir.VectorType(_F, 16)
 _H16 = ir.VectorType(ir.HalfType(), 16)
-
-
-class F32x16(types.Type):
-    def __init__(self):
-        super().__init__(name="f32x16")
-
-
-f32x16 = F32x16()
-
-
-@register_model(F32x16)
-class _Model16(models.PrimitiveModel):
-    def __init__(self, dmm, fe_type):
-        super().__init__(dmm, fe_type, _V16)
 
 
 def _p16(context, builder, arrty, arr, idx, vt):
     data = cgutils.create_struct_proxy(arrty)(context, builder, value=arr).data
     return builder.bitcast(builder.gep(data, [idx]), vt.as_pointer())
-
-
-def _splat16(builder, s):
-    v = builder.insert_element(ir.Constant(_V16, ir.Undefined), s, ir.Constant(ir.IntType(32), 0))
-    return builder.shuffle_vector(v, ir.Constant(_V16, ir.Undefined), ir.Constant(ir.VectorType(ir.IntType(32), 16), [0] * 16))
-
-
-@intrinsic
-def wzero(typingctx):
-    def codegen(context, builder, sig, args):
-        return ir.Constant(_V16, [0.0] * 16)
-    return f32x16(), codegen
-
-
-@intrinsic
-def wload(typingctx, arr, idx):
-    def codegen(context, builder, sig, args):
-        i = context.cast(builder, args[1], sig.args[1], types.intp)
-        return builder.load(_p16(context, builder, sig.args[0], args[0], i, _V16), align=4)
-    return f32x16(arr, idx), codegen
 
 
 @intrinsic
@@ -260,70 +221,12 @@ def wload_h(typingctx, arr, idx):
 
 
 @intrinsic
-def wstore(typingctx, arr, idx, v):
-    def codegen(context, builder, sig, args):
-        i = context.cast(builder, args[1], sig.args[1], types.intp)
-        builder.store(args[2], _p16(context, builder, sig.args[0], args[0], i, _V16), align=4)
-        return context.get_dummy_value()
-    return types.none(arr, idx, v), codegen
-
-
-@intrinsic
 def wstore_h(typingctx, arr, idx, v):
     def codegen(context, builder, sig, args):
         i = context.cast(builder, args[1], sig.args[1], types.intp)
         builder.store(builder.fptrunc(args[2], _H16), _p16(context, builder, sig.args[0], args[0], i, _H16), align=2)
         return context.get_dummy_value()
     return types.none(arr, idx, v), codegen
-
-
-@intrinsic
-def wfma(typingctx, x, s, acc):
-    def codegen(context, builder, sig, args):
-        fma = cgutils.get_or_insert_function(builder.module, ir.FunctionType(_V16, [_V16, _V16, _V16]), "llvm.fma.v16f32")
-        return builder.call(fma, [args[0], _splat16(builder, args[1]), args[2]])
-    return f32x16(x, s, acc), codegen
-
-
-@intrinsic
-def wadd(typingctx, a, b):
-    def codegen(context, builder, sig, args):
-        return builder.fadd(args[0], args[1])
-    return f32x16(a, b), codegen
-
-
-@intrinsic
-def wflush(typingctx, v, floor):
-    def codegen(context, builder, sig, args):
-        ge = builder.fcmp_ordered(">=", args[0], _splat16(builder, args[1]))
-        return builder.select(ge, args[0], ir.Constant(_V16, [0.0] * 16))
-    return f32x16(v, floor), codegen
-
-
-@intrinsic
-def wmax(typingctx, a, b):
-    def codegen(context, builder, sig, args):
-        return builder.select(builder.fcmp_ordered(">", args[0], args[1]), args[0], args[1])
-    return f32x16(a, b), codegen
-
-
-@intrinsic
-def wabsdiff(typingctx, a, b):
-    def codegen(context, builder, sig, args):
-        fabs = cgutils.get_or_insert_function(builder.module, ir.FunctionType(_V16, [_V16]), "llvm.fabs.v16f32")
-        return builder.call(fabs, [builder.fsub(args[0], args[1])])
-    return f32x16(a, b), codegen
-
-
-@intrinsic
-def whmax(typingctx, v):
-    def codegen(context, builder, sig, args):
-        out = builder.extract_element(args[0], ir.Constant(ir.IntType(32), 0))
-        for k in range(1, 16):
-            e = builder.extract_element(args[0], ir.Constant(ir.IntType(32), k))
-            out = builder.select(builder.fcmp_ordered(">", e, out), e, out)
-        return out
-    return types.float32(v), codegen
 
 
 @intrinsic
@@ -524,7 +427,6 @@ def main(argv=None) -> int:
     ap.add_argument("--labels", type=int, default=100, help="steps of the label check on the input's classes (0: none)")
     a = ap.parse_args(argv)
     sys.modules.setdefault("_levers", sys.modules[__name__])
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     import os
 
     from diffuser_lab.backends import roof
@@ -581,6 +483,14 @@ def main(argv=None) -> int:
                 calls[nm] = (lambda R_=R_: _unrolled.steps_16(
                     nbr, wts, Zb, Znb, Bb, floor, -1.0, kernels.EVERY_ROW, *kernels.untracked(a.steps, 1), a.steps, R_, 0, 1,
                     np.zeros(1 + a.steps, np.int64), np.zeros((a.steps, 1, 2), np.float32)))
+            W32 = pad(32)  # the package's kernel of several blocks: 32-wide blocks, the zmm row kernel
+            Zz, Bz = tile_major(Z0[:, :W32], 32).reshape(-1, N * 32), tile_major(B0[:, :W32], 32).reshape(-1, N * 32)
+            Znz = np.zeros_like(Zz)
+            nm = f"package zmm (32-wide blocks), {kernels.MULTI_CHUNK} rows"
+            widths[nm] = W32
+            calls[nm] = lambda: _unrolled.steps_32z(
+                nbr, wts, Zz, Znz, Bz, floor, -1.0, kernels.EVERY_ROW, a.steps, kernels.MULTI_CHUNK, 0, 1,
+                np.zeros(1 + a.steps, np.int64), np.zeros((a.steps, 1, 2), np.float32))
             W64 = pad(64)
             Zr, Br, Znr = _aligned(N * W64), _aligned(N * W64), _aligned(N * W64)
             Zr[:] = Z0[:, :W64].ravel()

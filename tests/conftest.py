@@ -6,6 +6,8 @@ from pathlib import Path
 
 import pytest
 
+pytest_plugins = ["hangs"]  # a hang, in C code too, fails with its stack (tests/hangs.py)
+
 ROOT = Path(__file__).resolve().parent.parent
 SHARED = ROOT.parent / "shared"
 
@@ -168,7 +170,8 @@ class _CliServer:
         self.env = _import_env(os.environ)
         self.dir = Path(tempfile.mkdtemp(prefix="diffuser-lab-cli-"))
         self.proc = subprocess.Popen([sys.executable, str(ROOT / "tests" / "cli_server.py")], cwd=ROOT,
-                                     env={**os.environ, "PYTHONPATH": str(ROOT / "tests")},
+                                     # the checkout's package, not an editable install's of another tree
+                                     env={**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "tests"), str(ROOT)])},
                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1)
         import atexit
         import shutil

@@ -46,7 +46,7 @@ def _cloud_dtype() -> np.dtype:
                      "formats": ["<f4", "<f4", "<f4", "u1", "u1", "u1", "u1", "<i2"]})
 
 
-def _cloud(points: np.ndarray) -> np.ndarray:
+def packed_cloud(points: np.ndarray) -> np.ndarray:
     """(P, 3) points -> a packed cloud (:func:`_cloud_dtype`) with x y z set, opaque, label -1."""
     buf = np.zeros(len(points), _cloud_dtype())
     for i, ax in enumerate("xyz"):
@@ -56,7 +56,7 @@ def _cloud(points: np.ndarray) -> np.ndarray:
     return buf
 
 
-def _point_cloud(buf: np.ndarray, stamp_ns: int, with_data: bool = True) -> Any:
+def point_cloud(buf: np.ndarray, stamp_ns: int, with_data: bool = True) -> Any:
     """A foxglove.PointCloud of the packed structured array ``buf`` (without its ``data``
     field when not ``with_data``)."""
     from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
@@ -76,9 +76,9 @@ def _point_cloud(buf: np.ndarray, stamp_ns: int, with_data: bool = True) -> Any:
 
 
 def point_cloud_bytes(buf: np.ndarray, stamp_ns: int, out: Optional[bytearray] = None) -> memoryview:
-    """``_point_cloud(buf, stamp_ns).SerializeToString()`` with ``buf`` copied once, into ``out``
+    """``point_cloud(buf, stamp_ns).SerializeToString()`` with ``buf`` copied once, into ``out``
     (see :func:`_with_bytes_field`); ``data`` is PointCloud's last field (6)."""
-    head = _point_cloud(buf, stamp_ns, with_data=False).SerializeToString()
+    head = point_cloud(buf, stamp_ns, with_data=False).SerializeToString()
     mv, at = _with_bytes_field(head, 6, buf.nbytes, b"", out)
     np.frombuffer(mv, np.uint8, buf.nbytes, at)[:] = buf.reshape(-1).view(np.uint8)
     return mv
@@ -191,7 +191,7 @@ def z_precision_text(dtype: str) -> str:
     return "float32: exact"
 
 
-class _RawMessage:
+class RawMessage:
     """An already serialized message (what the writer thread calls SerializeToString on);
     ``done`` is called once the writer has copied it (returns a pooled buffer)."""
 

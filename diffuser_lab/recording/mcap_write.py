@@ -80,11 +80,11 @@ from .mcap_encode import (
     TOPIC_TILED_RECORDS,
     TOPIC_TILED_TILES,
     TOPIC_Z,
-    _cloud,
-    _point_cloud,
-    _RawMessage,
+    RawMessage,
     camera_messages,
     label_png,
+    packed_cloud,
+    point_cloud,
     point_cloud_bytes,
     z_state_bytes,
 )
@@ -268,7 +268,7 @@ class McapRecorder:
             "scene": scene.name, "n_points": str(scene.n_points), "taxonomy": tax.name,
             "class_names": json.dumps(list(tax.names)), "class_colors": json.dumps(tax.colors.tolist()),
             "has_colors": json.dumps(scene.colors is not None), "has_gt": json.dumps(gt is not None)})
-        buf = _cloud(scene.points)
+        buf = packed_cloud(scene.points)
         if gt is not None:
             self._paint(buf, gt)
         if scene.colors is not None:  # input colours win over the ground truth's
@@ -276,7 +276,7 @@ class McapRecorder:
         elif gt is None:
             buf["red"] = buf["green"] = buf["blue"] = 160
         t = self._time("scene")
-        self._write(TOPIC_SCENE, _point_cloud(buf, t), t=t)
+        self._write(TOPIC_SCENE, point_cloud(buf, t), t=t)
 
     def log_camera(self, index: int, frame: Any) -> None:
         """Frame ``index``: its camera in RunInfo (full size) and its foxglove messages (pose,
@@ -311,10 +311,10 @@ class McapRecorder:
         info.cameras.extend(self._cameras)
         t = self._time("evidence")
         self._write(TOPIC_RUN, info, t=t)
-        buf = _cloud(work_points)
+        buf = packed_cloud(work_points)
         self._paint(buf, bayesian)
-        self._write(TOPIC_EVIDENCE, _point_cloud(buf, t), t=t)
-        self._labels_buf = _cloud(work_points)  # the per-iteration cloud: positions filled once
+        self._write(TOPIC_EVIDENCE, point_cloud(buf, t), t=t)
+        self._labels_buf = packed_cloud(work_points)  # the per-iteration cloud: positions filled once
         self._flush()
 
     # -- per iteration ------------------------------------------------------------------------
@@ -361,7 +361,7 @@ class McapRecorder:
 
     def _write_pooled(self, topic: str, mv: memoryview, sequence: int) -> None:
         """Queue a serialized message whose buffer returns to ``topic``'s pool once written."""
-        self._write(topic, _RawMessage(mv, functools.partial(self._free[topic].put, mv.obj)), sequence)
+        self._write(topic, RawMessage(mv, functools.partial(self._free[topic].put, mv.obj)), sequence)
 
     # -- a features run (predictions=features) ------------------------------------------------------
     def log_feature_view(self, view: Any) -> None:
@@ -430,16 +430,16 @@ class McapRecorder:
         self._flush()
 
     def _online_cloud(self, index: int, points: np.ndarray, labels: np.ndarray, t: int) -> None:
-        buf = _cloud(points)
+        buf = packed_cloud(points)
         self._paint(buf, labels)
         mv = point_cloud_bytes(buf, t, self._pooled(TOPIC_ONLINE_LABELS))
-        self._write(TOPIC_ONLINE_LABELS, _RawMessage(mv, functools.partial(self._free[TOPIC_ONLINE_LABELS].put, mv.obj)),
+        self._write(TOPIC_ONLINE_LABELS, RawMessage(mv, functools.partial(self._free[TOPIC_ONLINE_LABELS].put, mv.obj)),
                     index, t)
 
     def _online_z(self, index: int, Z: np.ndarray, labels: np.ndarray, exact: bool, t: int) -> None:
         dtype = "float32" if exact else self.z_dtype
         mv = z_state_bytes(index, Z, dtype, self._pooled(TOPIC_Z), labels=labels)
-        self._write(TOPIC_Z, _RawMessage(mv, functools.partial(self._free[TOPIC_Z].put, mv.obj)), index, t)
+        self._write(TOPIC_Z, RawMessage(mv, functools.partial(self._free[TOPIC_Z].put, mv.obj)), index, t)
 
     # -- protocol=single_frame -------------------------------------------------------------------
     def log_single_frame_start(self, meta: dict) -> None:
@@ -480,7 +480,7 @@ class McapRecorder:
             m = CompressedImage(frame_id=str(name), format="png", data=label_png(img, self._colors))
             m.timestamp.FromNanoseconds(t)
             self._write(TOPIC_TARGET_IMAGES, m, step, t)
-        self._write(TOPIC_TARGET_ROWS, _RawMessage(json.dumps(rows, default=_json_default).encode()), step, t)
+        self._write(TOPIC_TARGET_ROWS, RawMessage(json.dumps(rows, default=_json_default).encode()), step, t)
         self._flush()
 
     # -- protocol=tiled ------------------------------------------------------------------------
@@ -516,13 +516,13 @@ class McapRecorder:
             self.w.add_metadata("diffuser_lab.tiled", {"json": json.dumps(meta, default=_json_default)})
 
         self._submit(start)
-        buf = _cloud(points)
+        buf = packed_cloud(points)
         self._paint(buf, labels)
-        self._write(TOPIC_TILED_LABELS, _point_cloud(buf, t), t=t)
+        self._write(TOPIC_TILED_LABELS, point_cloud(buf, t), t=t)
         self._write(TOPIC_TILED_TILES, upd, t=t)
         for i, rec in enumerate(tiles):  # loop over tiles
             raw = json.dumps(rec, default=_json_default).encode()
-            self._write(TOPIC_TILED_RECORDS, _RawMessage(raw), i, t + i)
+            self._write(TOPIC_TILED_RECORDS, RawMessage(raw), i, t + i)
         self._flush()
 
     def log_provenance(self, block: dict) -> None:

@@ -183,6 +183,19 @@ def test_weights_and_normalisation_match_the_numpy_path():
     np.testing.assert_array_equal(sys_.B, pix * inv[:, None])
 
 
+if nb.available():  # compiled once per process (in the test it was compiled once per cloud: ~3 s each)
+    @nb.NB.njit
+    def _ring_rows(flo, fhi, c, h, dims, start, X, Y, Z, J, k):
+        out = np.empty((J.shape[0], k), np.int64)
+        bd = np.empty(k)
+        no_table = np.empty(0, np.int64)
+        for a in range(J.shape[0]):
+            cell_search.ring_knn(J[a], X[a], Y[a], Z[a], (c[a, 0], c[a, 1], c[a, 2]), (flo[a, 0], flo[a, 1], flo[a, 2]),
+                                 (fhi[a, 0], fhi[a, 1], fhi[a, 2]), h, np.zeros(3, np.int64), dims - 1, dims,
+                                 no_table, no_table, 0, start, start[1:], X, Y, Z, J, k, bd, out[a])
+        return out
+
+
 @needs_numba
 @pytest.mark.parametrize("name,pts,k", [*tie_clouds(), *clouds()], ids=[c[0] for c in [*tie_clouds(), *clouds()]])
 def test_ring_search_is_brute_force(name, pts, k):
@@ -201,18 +214,7 @@ def test_ring_search_is_brute_force(name, pts, k):
     eps = 1e-9 * h  # the faces' distances a little short: cell of a point at a face by rounding
     flo, fhi = p - (lo + c * h) - eps, lo + (c + 1) * h - p - eps
 
-    @nb.NB.njit
-    def rows(flo, fhi, c, h, dims, start, X, Y, Z, J, k):
-        out = np.empty((J.shape[0], k), np.int64)
-        bd = np.empty(k)
-        no_table = np.empty(0, np.int64)
-        for a in range(J.shape[0]):
-            cell_search.ring_knn(J[a], X[a], Y[a], Z[a], (c[a, 0], c[a, 1], c[a, 2]), (flo[a, 0], flo[a, 1], flo[a, 2]),
-                                 (fhi[a, 0], fhi[a, 1], fhi[a, 2]), h, np.zeros(3, np.int64), dims - 1, dims,
-                                 no_table, no_table, 0, start, start[1:], X, Y, Z, J, k, bd, out[a])
-        return out
-
     # the grid holds the points in cell order, J their indices
     idx = np.empty((len(o), k), np.int64)
-    idx[o] = rows(flo[o], fhi[o], c[o], h, dims, start, X, Y, Z, o, k)
+    idx[o] = _ring_rows(flo[o], fhi[o], c[o], h, dims, start, X, Y, Z, o, k)
     np.testing.assert_array_equal(idx, brute_rows(pts.astype(np.float32), k)[0])

@@ -4,8 +4,6 @@ Each case starts from a small valid posed RGB-D folder (rendered from the demo r
 breaks one thing, then runs the command line as a user would.
 """
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -138,9 +136,8 @@ def test_an_old_spelling_names_the_new_key(tmp_path):
     from diffuser_lab.config import ConfigError, default_config
 
     for args, new in ((["scene.demo.n_views=3"], "scene.options.n_views"),
-                      (["-m", "+scene.city.blocks_x=1"], "scene.options.blocks_x")):  # two processes: ~2 s each
-        p = subprocess.run([sys.executable, "-m", "diffuser_lab", *args], cwd=tmp_path, capture_output=True,
-                           text=True, timeout=120)
+                      (["-m", "+scene.city.blocks_x=1"], "scene.options.blocks_x")):  # forked commands (run_cli)
+        p = run_cli(*args, cwd=tmp_path)
         one_error(p, f"is now {new}")
         assert p.returncode == 2 and not (tmp_path / "logs").exists()
     for old, new in (("scene.demo.n_views", "scene.options.n_views"), ("scene.scannet.root", "scene.options.root"),

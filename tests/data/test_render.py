@@ -1,8 +1,8 @@
 """Ray-cast rendering, surface sampling and camera trajectories (diffuser_lab.data.render)."""
-from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import SHARED
 
 from diffuser_lab.data.render import (
     MeshRenderer,
@@ -302,10 +302,10 @@ def test_camera_trajectory_raises_when_impossible():
                           max_tries_factor=4)
 
 
-SCANNET_PLY = Path("/work/shared/data/scannet/scene0470_00/scene0470_00_vh_clean_2.labels.ply")
+SCANNET_PLY = SHARED / "data" / "scannet" / "scene0470_00" / "scene0470_00_vh_clean_2.labels.ply"  # ../shared
 
 
-@pytest.mark.skipif(not SCANNET_PLY.exists(), reason="ScanNet scene0470_00 mesh not available")
+@pytest.mark.skipif(not SCANNET_PLY.exists(), reason=f"ScanNet scene0470_00 mesh not available ({SCANNET_PLY})")
 def test_camera_trajectory_on_scannet_mesh():
     import open3d as o3d
 

@@ -314,7 +314,7 @@ def test_several_blocks_on_threads_equal_one_thread_exactly():
         Z, Zn = np.zeros_like(B), np.zeros_like(B)
         with kernels.StepRunner(len(pts), threads=th, min_rows_per_thread=1, chunk=97) as runner:
             args = (s.sorted_neighbors, s.sorted_P, Z.reshape(3, -1), Zn.reshape(3, -1), B.reshape(3, -1),
-                    np.float32(1e-18), -1.0)
+                    np.float32(1e-18), -1.0, kernels.EVERY_ROW)
             res = runner.launch(kernels._multi_kernel(), args, 30, 2)
         assert res.shape == (30, th, 2)
         out.append((Z.copy(), res.max(axis=1)))
@@ -336,18 +336,23 @@ def test_no_evidence_at_all_leaves_z_at_zero():
 
 @needs_numba
 @pytest.mark.parametrize("W", [16, 32])
-def test_explicit_vector_blocks_equal_the_generated_kernel_bit_for_bit(W):
-    """Several blocks: :mod:`backends.numba._zmm`'s 16-lane kernel (issue 53) gives the generated (SLP) kernel's Z
-    and residuals exactly, rows claimed 97 at a time by 2 threads."""
-    from diffuser_lab.backends.numba import _unrolled, _zmm
+@pytest.mark.parametrize("region", [False, True])
+def test_explicit_vector_blocks_equal_the_generated_kernel_bit_for_bit(W, region):
+    """Several blocks: the step loop over :mod:`backends.numba._zmm`'s 16-lane row kernel (issue 53,
+    ``steps_Wz``) gives the generated (SLP) kernel's Z and residuals exactly, rows claimed 97 at a time
+    by 2 threads, or a region's runs of rows."""
+    from diffuser_lab.backends.numba import _unrolled
+    from diffuser_lab.backends.base import row_runs
     pts, nrm, mass = cloud(3000)
     s = normalise(build_graph(pts, 12, nrm), mass, 1e-4)
     rng = np.random.default_rng(1)
     B = np.zeros((3, len(pts), W), np.float32)
     B[..., :W - 3] = rng.random((3, len(pts), W - 3), dtype=np.float32) * (rng.random((3, len(pts), 1)) < 0.1)
+    rows = np.unique(np.r_[np.arange(200, 1300), rng.integers(0, len(pts), 300)])
+    runs = row_runs(rows, 97) if region else kernels.EVERY_ROW
     out = []
-    for f, stats in ((getattr(_unrolled, f"steps_{W}"), (kernels.EVERY_ROW, *kernels.untracked(25, 2))),
-                     (getattr(_zmm, f"msteps_{W}z"), ())):
+    for f, stats in ((getattr(_unrolled, f"steps_{W}"), (runs, *kernels.untracked(25, 2))),
+                     (getattr(_unrolled, f"steps_{W}z"), (runs,))):
         Z, Zn = np.zeros_like(B), np.zeros_like(B)
         with kernels.StepRunner(len(pts), threads=2, min_rows_per_thread=1, chunk=97) as runner:
             args = (s.sorted_neighbors, s.sorted_P, Z.reshape(3, -1), Zn.reshape(3, -1), B.reshape(3, -1),

@@ -211,15 +211,15 @@ def test_z_state_bytes_is_the_protobuf_serialisation():
 
 
 def test_point_cloud_bytes_is_the_protobuf_serialisation():
-    from diffuser_lab.recording.mcap_encode import _cloud_dtype, _point_cloud, point_cloud_bytes
+    from diffuser_lab.recording.mcap_encode import _cloud_dtype, point_cloud, point_cloud_bytes
 
     buf = np.zeros(300, _cloud_dtype())
     buf["x"], buf["label"], buf["red"] = np.arange(300) * 0.5, np.arange(300) % 7 - 1, 200
     pool = bytearray(100_000)
     for out in (None, pool, bytearray(10)):  # new, reused (larger), too small (replaced)
         assert bytes(point_cloud_bytes(buf, 1_234_567_890_123, out)) == \
-            _point_cloud(buf, 1_234_567_890_123).SerializeToString()
-    assert bytes(point_cloud_bytes(buf[:0], 5)) == _point_cloud(buf[:0], 5).SerializeToString()
+            point_cloud(buf, 1_234_567_890_123).SerializeToString()
+    assert bytes(point_cloud_bytes(buf[:0], 5)) == point_cloud(buf[:0], 5).SerializeToString()
 
 
 def test_float16_and_voxel_grid(small_demo_scene, tmp_path):

@@ -150,11 +150,12 @@ def test_a_reduced_basis_agrees_with_the_full_path(tmp_path):
     seen = np.isfinite(cf).all(1)
     bf, ba = cf[seen].max(1), ca[seen].max(1)
     for t in np.percentile(bf, [25, 50, 75]):  # the threshold test at the run's own quartiles
-        assert ((bf >= t) == (ba >= t)).mean() >= 0.993  # 99.57-99.79 % measured (the target, 99.5 %: results)
+        assert ((bf >= t) == (ba >= t)).mean() >= 0.995  # the target (results); 99.57-99.79 % measured 2026-12-07
     Ff = fl.unit_rows(fl.method)[seen].astype(np.float32)
     Fa = al.unit_rows(al.method)[seen].astype(np.float32)
     cos = (Ff * Fa).sum(1) / (np.linalg.norm(Ff, axis=1) * np.linalg.norm(Fa, axis=1))
-    assert np.median(cos) >= 0.99 and np.percentile(cos, 5) >= 0.9
+    # measured 2026-12-07: median 0.99911, 5th percentile 0.99702 (1 - cos within twice the measured)
+    assert np.median(cos) >= 0.998 and np.percentile(cos, 5) >= 0.994
     for m in ("diffuser", "bayesian", "best_view"):
         assert al.basis is not None
         a, f = auto.metrics["calibration"][m], full.metrics["calibration"][m]

@@ -37,7 +37,11 @@ def test_each_rule_labels_labels_and_features_in_the_global_protocol(rule, tiny_
         assert res.method == rule and res.diffusion is None
         seen = res.evidence.seen[res.rows]
         assert (res.labels[seen] >= 0).all() and (res.labels[~seen] < 0).all()  # no graph: evidence only
-        assert res.metrics["miou"] > 10 and rule in res.metrics["calibration"]
+        # the rule lifts the same evidence as the Bayesian baseline (no graph): its mIoU near that one's and
+        # its coverage the same (measured 2026-12-07: 22.5-24.4 against 24.1 / 24.4, coverage 44.8 both)
+        bay = res.baseline["bayesian"]
+        assert abs(res.metrics["miou"] - bay["miou"]) < 2.5 and res.metrics["miou"] > 20, (res.metrics["miou"], bay)
+        assert res.metrics["coverage"] == bay["coverage"] and rule in res.metrics["calibration"]
         if extra and rule == "vote":  # class votes, no feature of its own
             assert res.space.method is None
         elif extra:
@@ -72,9 +76,19 @@ def test_tikhonov_and_affinity_run_on_the_graph_and_change_nothing_by_default(ti
     clear = (top2[:, 1] > top2[:, 0])[huge.rows]  # evidence with one largest class (no tie for the graph to break)
     # t -> inf: each point with evidence takes its own average (the Bayesian labels)
     assert clear.sum() > 100 and (huge.labels[clear] == huge.bayesian_labels[clear]).mean() > 0.995
-    assert closed.metrics["coverage"] > 95 and closed.metrics["miou"] > 10
+    # t = 1 changes the solution of t = 0 (the same exact solver): labels moved on 31 % of the points, mIoU 33.7
+    # -> 42.5 (measured 2026-12-07)
+    bare = run(default_config(**TINY, **{"solver.name": "exact"}), scene=tiny_scene)
+    assert not np.allclose(closed.diffusion.Z, bare.diffusion.Z, rtol=1e-3, atol=0)
+    assert (closed.labels != bare.labels).mean() > 0.1 and closed.metrics["miou"] > bare.metrics["miou"] + 4
+    assert closed.metrics["coverage"] > 95 and closed.metrics["miou"] > 35  # 99.0 and 42.5
+    # affinity: the same edges, 38 % of their weights lowered by the features' similarity factor (<= 1)
+    feat = run(default_config(**TINY, **FEATURES), scene=tiny_scene)
     aff = run(default_config(**TINY, **FEATURES, **{"graph.affinity": "features"}), scene=tiny_scene)
-    assert aff.metrics["miou"] > 10 and aff.graph.weights.shape == plain.graph.weights.shape
+    np.testing.assert_array_equal(aff.graph.neighbors, feat.graph.neighbors)
+    wa, wf = aff.graph.weights, feat.graph.weights
+    assert (wa <= wf).all() and 0.2 < (wa < wf).mean() < 0.6, (wa < wf).mean()
+    assert (aff.labels != feat.labels).mean() > 0.02 and aff.metrics["miou"] > 35  # 5.5 % moved; mIoU 41.1 (40.7)
     with pytest.raises(ValueError, match="graph.affinity=colour: the scene's cloud has no colours"):
         run(default_config(**TINY, **{"graph.affinity": "colour"}), scene=tiny_scene)
 
@@ -113,13 +127,17 @@ def test_memory_snapshot_sees_this_jobs_peak():
 
     import mmap
 
-    memory.reset_peak()
+    if not memory.reset_peak():
+        pytest.skip("/proc/self/clear_refs cannot reset the high-water mark here (Linux >= 4.0 can): the "
+                    "process's peak is reported, which no job can reset")
     block = mmap.mmap(-1, 64 * 2**20)  # 64 MB of fresh pages (a freed heap may hold resident ones)
     block.write(b"x" * len(block))
     s = memory.snapshot()
     block.close()
-    assert s["peak_rss_gb"] >= s["start_rss_gb"] + 0.05 or s["source"].startswith("ru_maxrss")
-    assert s["peak_rss_gb"] > 0
+    assert s["source"] == "VmHWM since the job's start"
+    assert s["peak_rss_gb"] >= s["start_rss_gb"] + 0.05  # the block's 0.0625 GB
+    memory.reset_peak()  # the next job's peak: the block is gone from it
+    assert memory.snapshot()["peak_rss_gb"] < s["peak_rss_gb"] - 0.05
 
 
 @pytest.mark.slow  # the report draws its plots (matplotlib): seconds

@@ -3,7 +3,8 @@
 ``cell_search.py`` (the ring search both grids share), ``weights.py`` (Eq. 4), ``hashing.py``
 and ``voxel_map.py`` (hash tables, the growing map's voxel merge), ``normalise.py`` (the rows of
 Eqs. 14-15), ``jacobi.py`` (the Jacobi steps of Eq. 10 on threads
-meeting at a barrier, ``_sync.py``; generated row kernels in ``_unrolled.py``), ``evidence.py``
+meeting at a barrier, ``_sync.py``; generated row kernels and step loops in ``_unrolled.py``, the
+explicit 16-lane vectors they use in ``_zmm.py``), ``evidence.py``
 (the fused evidence of one frame, Eqs. 1-2) and ``float16.py`` (Z states encoded for run.mcap).
 
 This module is the one switch: numba is used when it is installed and ``DIFFUSER_LAB_NUMBA`` is

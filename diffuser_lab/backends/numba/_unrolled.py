@@ -3,6 +3,7 @@ import numpy as np
 from numba import njit
 
 from ._sync import all_converged, atomic_add, wait_until
+from ._zmm import AHEAD, prefetch, vabsdiff, vadd, vflush, vfma, vhmax, vload, vmax, vstore, vzero
 
 @njit(cache=True, boundscheck=False, nogil=True, fastmath={'contract'})
 def rows_8(nbr, wts, Zf, Znf, Bf, floor, lo, hi):
@@ -1539,6 +1540,127 @@ def steps_32(nbr, wts, Za, Zb, Bf, floor, tol, runs, ids, labels, tptr, tcls, tc
                 tp = max(tp, b)
             if track:  # the statistics of the rows just written, while they are in cache
                 stats_32(dst, ids, labels, tptr, tcls, tcnt, lo, hi, st[s, tid])
+        res[s, tid, 0] = ch
+        res[s, tid, 1] = tp
+        atomic_add(ctrl, 0, 1)
+        wait_until(ctrl, 0, (s + 1) * nthreads)
+        if all_converged(res, s, nthreads, tol):
+            return s + 1
+    return n_steps
+
+
+@njit(cache=True, boundscheck=False, nogil=True)
+def rows_16z(nbr, wts, Zf, Znf, Bf, floor, lo, hi):
+    K = nbr.shape[1]
+    n = nbr.shape[0]
+    ch = vzero()
+    tp = vzero()
+    for i in range(lo, hi):
+        a0 = vzero()
+        ip = i + AHEAD if i + AHEAD < n else i
+        for kk in range(K):
+            b = np.int64(nbr[i, kk]) * 16
+            w = wts[i, kk]
+            bp = np.int64(nbr[ip, kk]) * 16
+            prefetch(Zf, bp)
+            a0 = vfma(vload(Zf, b), w, a0)
+        ib = np.int64(i) * 16
+        v0 = vflush(vadd(a0, vload(Bf, ib)), floor)
+        ch = vmax(vabsdiff(v0, vload(Zf, ib)), ch)
+        tp = vmax(v0, tp)
+        vstore(Znf, ib, v0)
+    return vhmax(ch), vhmax(tp)
+
+
+@njit(cache=True, boundscheck=False, nogil=True)
+def steps_16z(nbr, wts, Za, Zb, Bf, floor, tol, runs, n_steps, chunk, tid,
+             nthreads, ctrl, res):
+    n = nbr.shape[0]
+    every = runs.shape[0] == 0
+    nchunks = (n + chunk - 1) // chunk if every else runs.shape[0]
+    for s in range(n_steps):
+        src = Za if s % 2 == 0 else Zb
+        dst = Zb if s % 2 == 0 else Za
+        ch = np.float32(0.0)
+        tp = np.float32(0.0)
+        while True:
+            c = atomic_add(ctrl, 1 + s, 1)
+            if c >= nchunks:
+                break
+            if every:
+                lo = c * chunk
+                hi = min(lo + chunk, n)
+            else:
+                lo = runs[c, 0]
+                hi = runs[c, 1]
+            for blk in range(Za.shape[0]):
+                a, b = rows_16z(nbr, wts, src[blk], dst[blk], Bf[blk], floor, lo, hi)
+                ch = max(ch, a)
+                tp = max(tp, b)
+        res[s, tid, 0] = ch
+        res[s, tid, 1] = tp
+        atomic_add(ctrl, 0, 1)
+        wait_until(ctrl, 0, (s + 1) * nthreads)
+        if all_converged(res, s, nthreads, tol):
+            return s + 1
+    return n_steps
+
+
+@njit(cache=True, boundscheck=False, nogil=True)
+def rows_32z(nbr, wts, Zf, Znf, Bf, floor, lo, hi):
+    K = nbr.shape[1]
+    n = nbr.shape[0]
+    ch = vzero()
+    tp = vzero()
+    for i in range(lo, hi):
+        a0 = vzero()
+        a1 = vzero()
+        ip = i + AHEAD if i + AHEAD < n else i
+        for kk in range(K):
+            b = np.int64(nbr[i, kk]) * 32
+            w = wts[i, kk]
+            bp = np.int64(nbr[ip, kk]) * 32
+            prefetch(Zf, bp)
+            prefetch(Zf, bp + 16)
+            a0 = vfma(vload(Zf, b), w, a0)
+            a1 = vfma(vload(Zf, b + 16), w, a1)
+        ib = np.int64(i) * 32
+        v0 = vflush(vadd(a0, vload(Bf, ib)), floor)
+        v1 = vflush(vadd(a1, vload(Bf, ib + 16)), floor)
+        ch = vmax(vabsdiff(v0, vload(Zf, ib)), ch)
+        ch = vmax(vabsdiff(v1, vload(Zf, ib + 16)), ch)
+        tp = vmax(v0, tp)
+        tp = vmax(v1, tp)
+        vstore(Znf, ib, v0)
+        vstore(Znf, ib + 16, v1)
+    return vhmax(ch), vhmax(tp)
+
+
+@njit(cache=True, boundscheck=False, nogil=True)
+def steps_32z(nbr, wts, Za, Zb, Bf, floor, tol, runs, n_steps, chunk, tid,
+             nthreads, ctrl, res):
+    n = nbr.shape[0]
+    every = runs.shape[0] == 0
+    nchunks = (n + chunk - 1) // chunk if every else runs.shape[0]
+    for s in range(n_steps):
+        src = Za if s % 2 == 0 else Zb
+        dst = Zb if s % 2 == 0 else Za
+        ch = np.float32(0.0)
+        tp = np.float32(0.0)
+        while True:
+            c = atomic_add(ctrl, 1 + s, 1)
+            if c >= nchunks:
+                break
+            if every:
+                lo = c * chunk
+                hi = min(lo + chunk, n)
+            else:
+                lo = runs[c, 0]
+                hi = runs[c, 1]
+            for blk in range(Za.shape[0]):
+                a, b = rows_32z(nbr, wts, src[blk], dst[blk], Bf[blk], floor, lo, hi)
+                ch = max(ch, a)
+                tp = max(tp, b)
         res[s, tid, 0] = ch
         res[s, tid, 1] = tp
         atomic_add(ctrl, 0, 1)

@@ -10,19 +10,20 @@ lever). Measured (``scripts/kernel_levers.py``, 30k points x 200 classes, one co
 16 wide 1.3-1.6x, 32 wide 2.0-2.2x the SLP kernel with rows claimed 2,048 at a time, the prefetch
 another 1.2x (see docs/results/performance.md).
 
-``msteps_16z`` / ``msteps_32z(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, ctrl, res)``:
-the contract of ``_unrolled.steps_16`` / ``steps_32`` (jacobi's ``_STEPS_TEMPLATE``) on (blocks, N * W)
-float32 Z, Zn, B (``rows_32z``: two accumulators, where the generated 32-wide kernel runs out of registers).
+Here are the vector type and its intrinsics, written by hand. The kernels that use them are generated
+into ``_unrolled.py`` (``python -m diffuser_lab.backends.numba.jacobi``): the row kernels ``rows_16z`` /
+``rows_32z`` (``jacobi.zmm_rows_source``: the contract of ``rows_16`` / ``rows_32`` with one 16-lane
+accumulator per 16 classes, where the SLP 32-wide kernel runs out of registers) and their runs of steps
+on threads ``steps_16z`` / ``steps_32z`` (jacobi's one step loop, ``_STEPS_TEMPLATE``, without the statistics).
 """
 from __future__ import annotations
 
 import numpy as np
 from llvmlite import ir
-from numba import njit, types
+from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic, models, register_model
 
-from ._sync import all_converged, atomic_add, wait_until
 
 _F = ir.FloatType()
 _V = ir.VectorType(_F, 16)
@@ -148,113 +149,3 @@ def prefetch(typingctx, arr, idx):
 AHEAD = 4
 """Rows ahead whose neighbours' lines the kernels prefetch (30k x 224, one thread, best of 9 under load:
 3 / 4 / 6 rows ahead 1.05x / 1.22x / 1.15x the kernel without; medians 1.19x at 4)."""
-
-
-@njit(cache=True, boundscheck=False, nogil=True)
-def rows_32z(nbr, wts, Zf, Znf, Bf, floor, lo, hi):
-    """rows_32 with two 16-lane accumulators: rows lo..hi-1 of Zn = P Z + B (below ``floor``: 0);
-    returns (max |Zn - Z|, max Zn) over them."""
-    K = nbr.shape[1]
-    n = nbr.shape[0]
-    ch = vzero()
-    tp = vzero()
-    for i in range(lo, hi):
-        a0 = vzero()
-        a1 = vzero()
-        ip = i + AHEAD if i + AHEAD < n else i
-        for kk in range(K):
-            b = np.int64(nbr[i, kk]) * 32
-            w = wts[i, kk]
-            bp = np.int64(nbr[ip, kk]) * 32
-            prefetch(Zf, bp)
-            prefetch(Zf, bp + 16)
-            a0 = vfma(vload(Zf, b), w, a0)
-            a1 = vfma(vload(Zf, b + 16), w, a1)
-        ib = np.int64(i) * 32
-        v0 = vflush(vadd(a0, vload(Bf, ib)), floor)
-        v1 = vflush(vadd(a1, vload(Bf, ib + 16)), floor)
-        ch = vmax(vabsdiff(v0, vload(Zf, ib)), ch)
-        ch = vmax(vabsdiff(v1, vload(Zf, ib + 16)), ch)
-        tp = vmax(v0, tp)
-        tp = vmax(v1, tp)
-        vstore(Znf, ib, v0)
-        vstore(Znf, ib + 16, v1)
-    return vhmax(ch), vhmax(tp)
-
-
-@njit(cache=True, boundscheck=False, nogil=True)
-def msteps_32z(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, ctrl, res):
-    n = nbr.shape[0]
-    nchunks = (n + chunk - 1) // chunk
-    for s in range(n_steps):
-        src = Za if s % 2 == 0 else Zb
-        dst = Zb if s % 2 == 0 else Za
-        ch = np.float32(0.0)
-        tp = np.float32(0.0)
-        while True:
-            c = atomic_add(ctrl, 1 + s, 1)
-            if c >= nchunks:
-                break
-            lo = c * chunk
-            hi = min(lo + chunk, n)
-            for blk in range(Za.shape[0]):
-                a, b = rows_32z(nbr, wts, src[blk], dst[blk], Bf[blk], floor, lo, hi)
-                ch = max(ch, a)
-                tp = max(tp, b)
-        res[s, tid, 0] = ch
-        res[s, tid, 1] = tp
-        atomic_add(ctrl, 0, 1)
-        wait_until(ctrl, 0, (s + 1) * nthreads)
-        if all_converged(res, s, nthreads, tol):
-            return s + 1
-    return n_steps
-
-
-@njit(cache=True, boundscheck=False, nogil=True)
-def rows_16z(nbr, wts, Zf, Znf, Bf, floor, lo, hi):
-    """rows_16 with one 16-lane accumulator: rows lo..hi-1 of Zn = P Z + B (below ``floor``: 0);
-    returns (max |Zn - Z|, max Zn) over them."""
-    K = nbr.shape[1]
-    n = nbr.shape[0]
-    ch = vzero()
-    tp = vzero()
-    for i in range(lo, hi):
-        a = vzero()
-        ip = i + AHEAD if i + AHEAD < n else i
-        for kk in range(K):
-            prefetch(Zf, np.int64(nbr[ip, kk]) * 16)
-            a = vfma(vload(Zf, np.int64(nbr[i, kk]) * 16), wts[i, kk], a)
-        ib = np.int64(i) * 16
-        v = vflush(vadd(a, vload(Bf, ib)), floor)
-        ch = vmax(vabsdiff(v, vload(Zf, ib)), ch)
-        tp = vmax(v, tp)
-        vstore(Znf, ib, v)
-    return vhmax(ch), vhmax(tp)
-
-
-@njit(cache=True, boundscheck=False, nogil=True)
-def msteps_16z(nbr, wts, Za, Zb, Bf, floor, tol, n_steps, chunk, tid, nthreads, ctrl, res):
-    n = nbr.shape[0]
-    nchunks = (n + chunk - 1) // chunk
-    for s in range(n_steps):
-        src = Za if s % 2 == 0 else Zb
-        dst = Zb if s % 2 == 0 else Za
-        ch = np.float32(0.0)
-        tp = np.float32(0.0)
-        while True:
-            c = atomic_add(ctrl, 1 + s, 1)
-            if c >= nchunks:
-                break
-            lo = c * chunk
-            hi = min(lo + chunk, n)
-            for blk in range(Za.shape[0]):
-                a, b = rows_16z(nbr, wts, src[blk], dst[blk], Bf[blk], floor, lo, hi)
-                ch = max(ch, a)
-                tp = max(tp, b)
-        res[s, tid, 0] = ch
-        res[s, tid, 1] = tp
-        atomic_add(ctrl, 0, 1)
-        wait_until(ctrl, 0, (s + 1) * nthreads)
-        if all_converged(res, s, nthreads, tol):
-            return s + 1
-    return n_steps

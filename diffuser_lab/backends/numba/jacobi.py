@@ -10,7 +10,10 @@ vectorisation off by default, so it is switched on while these kernels compile (
 Rows are summed in the order of their neighbours, like scipy's CSR product. :class:`StepRunner`
 runs them on plain threads, each thread doing a whole run of steps in one compiled call
 (``steps_W``) that meets the others at a barrier between steps (atomics in :mod:`._sync`):
-no step returns to Python, and none needs the GIL.
+no step returns to Python, and none needs the GIL. That loop is written once
+(:data:`_STEPS_TEMPLATE`) and generated for every row kernel: ``steps_W`` over ``rows_W`` (with the
+per-step statistics) and ``steps_Wz`` over :mod:`._zmm`'s explicit 16-lane row kernels (several
+class blocks).
 """
 from __future__ import annotations
 
@@ -58,6 +61,7 @@ def generate_source() -> str:
            "from numba import njit",
            "",
            "from ._sync import all_converged, atomic_add, wait_until",
+           "from ._zmm import AHEAD, prefetch, vabsdiff, vadd, vflush, vfma, vhmax, vload, vmax, vstore, vzero",
            ""]
     for W in WIDTHS:
         L = ["@njit(cache=True, boundscheck=False, nogil=True, fastmath={'contract'})",
@@ -84,8 +88,54 @@ def generate_source() -> str:
               "    return change, top", "", ""]
         out += L
         out += stats_source(W)
-        out += [line.format(W=W) for line in _STEPS_TEMPLATE]
+        out += steps_source(f"steps_{W}", f"rows_{W}", f"stats_{W}")
+    for W in ZMM_WIDTHS:  # explicit 16-lane vectors (._zmm's intrinsics): the same loop, untracked
+        out += zmm_rows_source(W)
+        out += steps_source(f"steps_{W}z", f"rows_{W}z")
     return "\n".join(out).rstrip() + "\n"
+
+
+_ZMM_ROWS_TEMPLATE = """\
+@njit(cache=True, boundscheck=False, nogil=True)
+def rows_{W}z(nbr, wts, Zf, Znf, Bf, floor, lo, hi):
+    K = nbr.shape[1]
+    n = nbr.shape[0]
+    ch = vzero()
+    tp = vzero()
+    for i in range(lo, hi):
+        a{m} = vzero()
+        ip = i + AHEAD if i + AHEAD < n else i
+        for kk in range(K):
+            b = np.int64(nbr[i, kk]) * {W}
+            w = wts[i, kk]
+            bp = np.int64(nbr[ip, kk]) * {W}
+            prefetch(Zf, bp{o})
+            a{m} = vfma(vload(Zf, b{o}), w, a{m})
+        ib = np.int64(i) * {W}
+        v{m} = vflush(vadd(a{m}, vload(Bf, ib{o})), floor)
+        ch = vmax(vabsdiff(v{m}, vload(Zf, ib{o})), ch)
+        tp = vmax(v{m}, tp)
+        vstore(Znf, ib{o}, v{m})
+    return vhmax(ch), vhmax(tp)
+
+
+"""
+"""``rows_Wz``: ``rows_W``'s contract written against :mod:`._zmm`'s 16-lane vectors (issue 53): per row
+one accumulator per 16 classes, a neighbour one 16-lane load and one fused multiply-add each (summed in
+neighbour order: ``rows_W``'s Z bit for bit), the lines of row i + ``AHEAD``'s neighbours prefetched
+(one per 16 floats: a 64-byte line). A line with ``{m}`` / ``{o}`` stands once per 16 classes m (``{o}``:
+its offset, `` + 16 m``)."""
+
+
+def zmm_rows_source(W: int) -> list[str]:
+    """Source lines of ``rows_Wz`` (:data:`_ZMM_ROWS_TEMPLATE`) for W classes, a multiple of 16."""
+    out = []
+    for line in _ZMM_ROWS_TEMPLATE.splitlines():
+        if "{m}" in line or "{o}" in line:
+            out += [line.format(W=W, m=m, o=f" + {16 * m}" if m else "") for m in range(W // 16)]
+        else:
+            out.append(line.format(W=W))
+    return out
 
 
 def _tree(op: str, names: list[str], tag: str) -> tuple[list[str], str]:
@@ -173,12 +223,11 @@ def stats_source(W: int) -> list[str]:
 
 _STEPS_TEMPLATE = """\
 @njit(cache=True, boundscheck=False, nogil=True)
-def steps_{W}(nbr, wts, Za, Zb, Bf, floor, tol, runs, ids, labels, tptr, tcls, tcnt, st, n_steps, chunk, tid,
+def {name}(nbr, wts, Za, Zb, Bf, floor, tol, runs, {stats_args}n_steps, chunk, tid,
              nthreads, ctrl, res):
     n = nbr.shape[0]
     every = runs.shape[0] == 0
-    nchunks = (n + chunk - 1) // chunk if every else runs.shape[0]
-    track = st.shape[2] > 0
+    nchunks = (n + chunk - 1) // chunk if every else runs.shape[0]{track}
     for s in range(n_steps):
         src = Za if s % 2 == 0 else Zb
         dst = Zb if s % 2 == 0 else Za
@@ -195,11 +244,9 @@ def steps_{W}(nbr, wts, Za, Zb, Bf, floor, tol, runs, ids, labels, tptr, tcls, t
                 lo = runs[c, 0]
                 hi = runs[c, 1]
             for blk in range(Za.shape[0]):
-                a, b = rows_{W}(nbr, wts, src[blk], dst[blk], Bf[blk], floor, lo, hi)
+                a, b = {rows}(nbr, wts, src[blk], dst[blk], Bf[blk], floor, lo, hi)
                 ch = max(ch, a)
-                tp = max(tp, b)
-            if track:  # the statistics of the rows just written, while they are in cache
-                stats_{W}(dst, ids, labels, tptr, tcls, tcnt, lo, hi, st[s, tid])
+                tp = max(tp, b){stats_call}
         res[s, tid, 0] = ch
         res[s, tid, 1] = tp
         atomic_add(ctrl, 0, 1)
@@ -209,9 +256,10 @@ def steps_{W}(nbr, wts, Za, Zb, Bf, floor, tol, runs, ids, labels, tptr, tcls, t
     return n_steps
 
 
-""".splitlines()
-"""``steps_W(nbr, wts, Za, Zb, Bf, floor, tol, runs, ids, labels, tptr, tcls, tcnt, st, n_steps, chunk, tid,
-nthreads, ctrl, res)``: thread ``tid`` of ``nthreads`` runs up to ``n_steps`` Jacobi steps on class
+"""
+"""The one multi-thread step loop (:func:`steps_source` fills it in): ``steps_W(nbr, wts, Za, Zb, Bf,
+floor, tol, runs, ids, labels, tptr, tcls, tcnt, st, n_steps, chunk, tid, nthreads, ctrl, res)``: thread
+``tid`` of ``nthreads`` runs up to ``n_steps`` Jacobi steps on class
 blocks Za, Zb, Bf (blocks, N*W) (one block: (1, N*W)), Za -> Zb -> Za ... Every step's rows are
 taken ``chunk`` at a time from the ticket counter ``ctrl[1 + s]`` (so a thread that the OS parks is
 made up for by the others), or, where ``runs`` (R, 2) int64 is not empty, one run of rows
@@ -223,8 +271,25 @@ after it every thread sees the same residual and stops after the first step whos
 is <= ``tol``. Returns the number of steps done. With ``st`` (n_steps, nthreads, 3 + 2 C) float64
 (tracking: its last axis not empty) each run of rows also gets its statistics right after it is
 written (``stats_W``: labels of the active classes ``ids`` into ``labels``, the ground truth's CSR
-``tptr``/``tcls``/``tcnt``), added into ``st[s, tid]``; :data:`UNTRACKED` fills those arguments
-otherwise."""
+``tptr``/``tcls``/``tcnt``), added into ``st[s, tid]``; :func:`untracked` fills those arguments
+otherwise. ``steps_Wz`` (W in :data:`ZMM_WIDTHS`) is the same loop over the explicit 16-lane row
+kernel ``rows_Wz`` (:func:`zmm_rows_source`) without the statistics' arguments (``..., tol, runs, n_steps, ...``)."""
+
+ZMM_WIDTHS = (16, 32)
+"""Widths of the explicit 16-lane row kernels ``rows_Wz`` (:mod:`._zmm`'s intrinsics) and their ``steps_Wz``."""
+
+
+def steps_source(name: str, rows: str, stats: Optional[str] = None) -> list[str]:
+    """Source lines of the step loop :data:`_STEPS_TEMPLATE` named ``name`` over the row kernel
+    ``rows`` (``rows_W`` or ``rows_Wz``: rows lo..hi-1 of one block, returning (max change, max Zn));
+    with ``stats`` (``stats_W``) it takes the statistics' arguments and tracks them."""
+    tracked = stats is not None
+    text = _STEPS_TEMPLATE.format(
+        name=name, rows=rows, stats_args="ids, labels, tptr, tcls, tcnt, st, " if tracked else "",
+        track="\n    track = st.shape[2] > 0" if tracked else "",
+        stats_call=("\n            if track:  # the statistics of the rows just written, while they are in cache"
+                    f"\n                {stats}(dst, ids, labels, tptr, tcls, tcnt, lo, hi, st[s, tid])") if tracked else "")
+    return text.splitlines()
 
 
 _GEN = Path(__file__).with_name("_unrolled.py")
@@ -236,19 +301,17 @@ def _step_kernels():
 
 
 MULTI_KERNEL = "zmm"
-"""The kernel of several blocks: ``zmm`` (:mod:`._zmm`: explicit 16-lane vectors, issue 53) or ``slp``
-(``_unrolled.steps_W``, the generated kernel: the same Z bit for bit)."""
+"""The kernel of several blocks: ``zmm`` (``_unrolled.steps_Wz``: :mod:`._zmm`'s explicit 16-lane row
+kernel, issue 53) or ``slp`` (``_unrolled.steps_W``, the generated row kernel: the same Z bit for bit)."""
 MULTI_CHUNK = 2048
 """Rows a thread claims at a time when several blocks are stepped (each claim's rows done for every
 block): 2,048 rows of indices and weights (384 KB) stay in L2 across the blocks."""
 
 
 def _multi_kernel():
-    """The compiled run of steps on several :data:`MULTI_WIDTH`-wide blocks (see :data:`_STEPS_TEMPLATE`)."""
-    if MULTI_KERNEL == "zmm":
-        from . import _zmm
-        return {16: _zmm.msteps_16z, 32: _zmm.msteps_32z}[MULTI_WIDTH]
-    return _step_kernels()[MULTI_WIDTH]
+    """The compiled run of steps on several :data:`MULTI_WIDTH`-wide blocks without statistics
+    (``steps_Wz``, see :data:`_STEPS_TEMPLATE`)."""
+    return getattr(_unrolled, f"steps_{MULTI_WIDTH}z")
 
 
 class StepRunner:
@@ -521,7 +584,8 @@ class NumbaJacobi(JacobiBackend):
     @property
     def compiling(self) -> bool:
         if self._stack is not None:
-            return first_compile(_multi_kernel() if self.tracking is None else _step_kernels()[MULTI_WIDTH])
+            zmm = self.tracking is None and MULTI_KERNEL == "zmm"
+            return first_compile(_multi_kernel() if zmm else _step_kernels()[MULTI_WIDTH])
         return bool(self.blocks) and first_compile(*{_step_kernels()[b.width] for b in self.blocks})
 
     def _tracked(self, count: int) -> Optional[tuple]:
@@ -559,7 +623,7 @@ class NumbaJacobi(JacobiBackend):
         args = (self.nbr, self.wts, Z3.reshape(nb, -1), Zn3.reshape(nb, -1), B3.reshape(nb, -1),
                 np.float32(floor), float(tol))
         if tracked is None and MULTI_KERNEL == "zmm":
-            out = self.runner.launch(_multi_kernel(), args, count, 2, chunk=MULTI_CHUNK).max(axis=1)
+            out = self.runner.launch(_multi_kernel(), (*args, EVERY_ROW), count, 2, chunk=MULTI_CHUNK).max(axis=1)
         else:  # statistics in the step: the generated kernel (the same Z bit for bit) tracks them
             out = self.runner.launch(_step_kernels()[MULTI_WIDTH], (*args, EVERY_ROW, *(tracked or untracked(
                 count, self.runner.threads))), count, 2).max(axis=1)
@@ -583,8 +647,8 @@ class NumbaJacobi(JacobiBackend):
         return row_runs(rows, self.runner.chunk if self.runner.threads > 1 else max(int(rows.size), 1))
 
     def steps_region(self, count: int, runs: np.ndarray) -> np.ndarray:
-        """Up to ``count`` steps of the rows ``runs`` (R, 2) covers (``steps_W`` with runs), both
-        buffers made equal outside them first (a region's step reads them from either) and on
+        """Up to ``count`` steps of the rows ``runs`` (R, 2) covers (``steps_W`` with runs; several
+        blocks: ``steps_Wz``, the same Z), both buffers made equal outside them first (a region's step reads them from either) and on
         them after."""
         floor, tol, n = self.inputs.floor, self.tol, self.inputs.shape[0]
         if not self.blocks:
@@ -599,10 +663,13 @@ class NumbaJacobi(JacobiBackend):
         else:
             B3, Z3, Zn3 = self._stack
             Za, Zb, Bf = Z3.reshape(nb, -1), Zn3.reshape(nb, -1), B3.reshape(nb, -1)
-        W = self.blocks[0].width
-        args = (self.nbr, self.wts, Za, Zb, Bf, np.float32(floor), float(tol), runs,
-                *untracked(count, self.runner.threads))
-        out = self.runner.launch(_step_kernels()[W], args, count, 2).max(axis=1)
+        args = (self.nbr, self.wts, Za, Zb, Bf, np.float32(floor), float(tol), runs)
+        if nb > 1 and MULTI_KERNEL == "zmm":  # 30k rows x 200 / 64 classes, 10 steps of a region: 1.1-1.7x SLP
+            out = self.runner.launch(_multi_kernel(), args, count, 2).max(axis=1)
+        else:
+            W = self.blocks[0].width
+            out = self.runner.launch(_step_kernels()[W], (*args, *untracked(count, self.runner.threads)), count,
+                                     2).max(axis=1)
         self._swap(len(out))
         for b in self.blocks:
             copy_runs(b.Z, b.Zn, runs)
