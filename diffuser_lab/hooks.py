@@ -77,8 +77,8 @@ class RunHooks:
         F (M, D) float32 (a reduced basis: (M, k) coordinates, :meth:`on_queries`) read-only
         per-point feature sums after ``iteration`` (valid during this call
         only); :meth:`observe` then gets the queries' class scores (M, C) of them
-        (:meth:`~diffuser_lab.runs.pipeline.FeatureLift.scores`), and ``on_result``'s
-        ``result.diffusion.Z`` is those of the final features (``result.lifted.method``)."""
+        (:meth:`~diffuser_lab.method.space.Features.scores`), and ``on_result``'s
+        ``result.diffusion.Z`` is those of the final features (``result.space.method``)."""
 
     def on_online_frame(self, frame: Any, update: Any) -> None:
         """protocol=online, after each frame's update: ``update`` is a

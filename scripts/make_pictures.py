@@ -311,7 +311,7 @@ def feature_query(out: Path) -> Path:
     from diffuser_lab.method.queries import similarity
 
     res = run(config("predictions=features"))
-    lift = res.lifted
+    lift = res.space
     names = list(lift.queries.names)
     words = ["chair", "bed", "floor"]
     sim = similarity(lift.method, lift.queries)

@@ -208,16 +208,10 @@ def _private_uses(parsed: dict[str, tuple[Path, ast.Module]]):
                     yield m, full
 
 
-PRIVATE_USES_ALLOWED = {
-    # runs/pipeline.py's helpers that the other protocols reuse: the runs/ refactor (issue 59, runs/ by
-    # protocol and concern) makes them public or moves them. This set only shrinks: a fixed entry fails
-    # test_allowed_private_uses_still_exist until it is removed here.
-    ("diffuser_lab.runs.online", "diffuser_lab.runs.pipeline._Observe"),
-    ("diffuser_lab.runs.online", "diffuser_lab.runs.pipeline._to_original"),
-    ("diffuser_lab.runs.online", "diffuser_lab.runs.pipeline._work_cloud"),
-    ("diffuser_lab.runs.single_frame", "diffuser_lab.runs.pipeline._Observe"),
-    ("diffuser_lab.runs.tiled", "diffuser_lab.runs.pipeline._sparse_classes"),
-}
+PRIVATE_USES_ALLOWED: set[tuple[str, str]] = set()
+"""Private names a module may still take from another: none since issue 59's runs/ refactor (runs/work.py,
+method/space.py made them public). This set only shrinks: a fixed entry fails
+test_allowed_private_uses_still_exist until it is removed here."""
 
 
 @functools.lru_cache(maxsize=1)
@@ -263,15 +257,11 @@ def test_the_private_use_scan_sees_each_form(tmp_path):
 MAX_RUNS_FUNCTION = 80
 """The most lines a function of ``runs/`` may take, its docstring not counted."""
 
-LONG_RUNS_FUNCTIONS = {
-    # today's longer ones, with their length as a ceiling: the runs/ refactor (issue 59) splits them. This
-    # only shrinks: one at or under MAX_RUNS_FUNCTION fails test_allowed_long_functions_are_still_long
-    # until it is removed here, one that grows past its figure fails test_runs_functions_are_short.
-    "runs/online.py::online": 121,
-    "runs/pipeline.py::_run": 186,
-    "runs/single_frame.py::single_frame": 174,
-    "runs/tiled.py::tiled": 97,
-}
+LONG_RUNS_FUNCTIONS: dict[str, int] = {}
+"""Functions of runs/ allowed over MAX_RUNS_FUNCTION, each with its length as a ceiling: none since issue
+59's refactor (pipeline._run 186, single_frame 174, online 121, tiled 97 before). This only shrinks: one at
+or under MAX_RUNS_FUNCTION fails test_allowed_long_functions_are_still_long until it is removed here, one
+that grows past its figure fails test_runs_functions_are_short."""
 
 
 def _function_lengths(folder: Path, root: Path = PKG) -> dict[str, int]:

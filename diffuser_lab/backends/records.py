@@ -3,10 +3,12 @@
 (:func:`diffuser_lab.backends.numba.available`), else its numpy twin here. The twins give the
 same bits, except where a docstring says otherwise (float32 summation order).
 
-Z states encoded for run.mcap (:func:`transpose_into`, :func:`to_float16`, :func:`shares`) and
-the statistics of a recorded diffusion step (:func:`step_stats`)."""
+Z states encoded for run.mcap (:func:`transpose_into`, :func:`to_float16`, :func:`shares`),
+the statistics of a recorded diffusion step (:func:`step_stats`) and an (N, D) float16 ``.npy``
+written a chunk of rows at a time (:func:`write_rows`)."""
 from __future__ import annotations
 
+from pathlib import Path
 from typing import NamedTuple, Optional
 
 import numpy as np
@@ -164,4 +166,19 @@ def step_stats(Z: np.ndarray, prev: np.ndarray, gt: Optional[np.ndarray] = None,
     return StepStats(labels, conf, n_changed, n_lab, mean_conf, wrong, counts)
 
 
-__all__ = ["transpose_into", "to_float16", "shares", "step_stats", "StepStats", "confidence", "compiled"]
+WRITE_ROWS = 4096
+"""Rows made and written at once (4 MB of float16 at D = 512: the float32 products stay in cache)."""
+
+
+def write_rows(path: Path, shape: tuple, chunks) -> None:
+    """An (N, D) float16 ``.npy`` at ``path`` from ``chunks`` of consecutive rows, appended as they come:
+    no (N, D) array, no memory map's page faults."""
+    with open(path, "wb") as fh:
+        np.lib.format.write_array_header_2_0(fh, {"descr": np.lib.format.dtype_to_descr(np.dtype(np.float16)),
+                                                  "fortran_order": False, "shape": tuple(shape)})
+        for chunk in chunks:
+            fh.write(memoryview(np.ascontiguousarray(chunk, np.float16)))
+
+
+__all__ = ["transpose_into", "to_float16", "shares", "step_stats", "StepStats", "confidence", "compiled",
+           "write_rows", "WRITE_ROWS"]

@@ -235,7 +235,7 @@ class BestView:
 
     Args:
         n, dim: points and D. confidence: (M, D) unit features -> (M,) float32 (e.g. the top
-            query's softmax probability; :meth:`~diffuser_lab.runs.pipeline.FeatureLift.confidence`).
+            query's softmax probability; :meth:`~diffuser_lab.method.space.Features.confidence`).
     Attributes:
         features: (n, D) float16 (0 rows: never seen); score: (n,) float32 (-inf: never seen).
     """

@@ -45,7 +45,7 @@ from diffuser_lab.data.scene import IGNORE
 
 from .features import normalised
 
-__all__ = ["Rule", "Weighted", "Median", "TopK", "Vote", "RULES", "link_weights", "make"]
+__all__ = ["Rule", "Weighted", "Median", "TopK", "Vote", "link_weights"]
 
 WEISZFELD_EPS = 1e-3
 """Weiszfeld's distance floor (the unit of the vectors: unit features, class distributions): a link
@@ -97,6 +97,14 @@ class Rule:
 
     def __init__(self, n: int, dim: int, *, features: bool = False, depth_tol: float = 0.05):
         self.n, self.dim, self.features, self.depth_tol = int(n), int(dim), bool(features), float(depth_tol)
+
+    @classmethod
+    def of(cls, n: int, *, dim: int, features: bool, depth_tol: float, **run) -> "Rule":
+        """The rule for ``n`` points of ``dim`` columns (C; D in a features run) as a run sets it
+        (:meth:`diffuser_lab.method.fusion.FusionMethod.lifting_rule`); ``run`` holds what some rules
+        take besides: ``top_k``, ``num_classes``, a features run's ``confidence`` and ``classify``
+        (:meth:`diffuser_lab.method.space.Features.rule_inputs`)."""
+        return cls(n, dim, features=features, depth_tol=depth_tol)
 
     def __call__(self, frame, points, idx, rows, cols, vec) -> None:
         if idx.size == 0:
@@ -199,6 +207,11 @@ class TopK(Rule):
         self.kept = np.zeros((self.n, self.k, self.dim), np.float16)
         self.score = np.full((self.n, self.k), -np.inf, np.float32)
 
+    @classmethod
+    def of(cls, n, *, dim, features, depth_tol, top_k: int = 3, confidence: Optional[Callable] = None, **run):
+        """``k = top_k`` (``method.top_k``); a features run's ``confidence`` (labels: the vectors' maximum)."""
+        return cls(n, dim, k=top_k, confidence=confidence, features=features, depth_tol=depth_tol)
+
     def add(self, idx, x, w):
         c = self.confidence(x) if self.confidence is not None else x.max(1)
         slot = np.argmin(self.score[idx], axis=1)
@@ -220,7 +233,7 @@ class Vote(Rule):
     """LabelMaker (Weder et al., 3DV 2024, Sec. 3.3, the 3D lifting: every view's label of the point,
     past the depth check, votes; the majority wins): l_i = argmax_c sum_v [argmax x_(i,v) = c].
     Features: each view's label is the query label of its feature (``classify``: the run's
-    :meth:`~diffuser_lab.runs.pipeline.FeatureLift.labels`), so the values are class votes
+    :meth:`~diffuser_lab.method.space.Features.labels`), so the values are class votes
     (:attr:`classes`), not features. State: C counts per point."""
 
     name = "vote"
@@ -231,6 +244,12 @@ class Vote(Rule):
         super().__init__(n, dim, **kw)
         self.classify = classify
         self.counts = np.zeros((self.n, int(num_classes if num_classes is not None else dim)), np.float32)
+
+    @classmethod
+    def of(cls, n, *, dim, features, depth_tol, num_classes: Optional[int] = None, classify: Optional[Callable] = None,
+           **run):
+        """Votes of ``num_classes`` classes; a features run's per-view labels ``classify``."""
+        return cls(n, dim, num_classes=num_classes, classify=classify, features=features, depth_tol=depth_tol)
 
     def add(self, idx, x, w):
         if self.features:
@@ -243,20 +262,3 @@ class Vote(Rule):
 
     def values(self):
         return self.counts
-
-
-RULES: dict[str, type[Rule]] = {r.name: r for r in (Weighted, Median, TopK, Vote)}
-"""The rules by name: a fusion method's ``rule`` (:mod:`diffuser_lab.method.fusion`)."""
-
-
-def make(name: str, n: int, dim: int, *, features: bool, num_classes: int, depth_tol: float, top_k: int = 3,
-         confidence: Optional[Callable] = None, classify: Optional[Callable] = None) -> Rule:
-    """The rule ``name`` for ``n`` points of ``dim`` columns (C, or D for features); ``confidence``
-    (topk) and ``classify`` (vote) come from a features run's lift (labels: from the vectors)."""
-    cls = RULES[name]
-    kw: dict = {"features": features, "depth_tol": depth_tol}
-    if cls is TopK:
-        kw.update(k=top_k, confidence=confidence if features else None)
-    if cls is Vote:
-        kw.update(num_classes=num_classes, classify=classify)
-    return cls(n, dim, **kw)

@@ -115,11 +115,11 @@ class BatchHooks(RecordingHooks):
             if self._online is not None:
                 self._online.on_result(result)
             return
-        d, lifted = result.diffusion, getattr(result, "lifted", None)
+        d, space = result.diffusion, getattr(result, "space", None)
         if self._view is not None and d is not None and self._projected != d.iterations \
-                and getattr(lifted, "method", None) is not None:
+                and getattr(space, "method", None) is not None:
             # the last iteration's features were not observed (early stop, or diffused in blocks)
-            self._send_features(d.iterations, lifted.observed(lifted.method))
+            self._send_features(d.iterations, space.observed(space.method))
         if getattr(result, "confidence", None) is not None and self.lane.live("rerun"):  # output.scores
             self.lane.send("batch.confidence", result.confidence)
         self.lane.send("batch.result", slim_result(result))

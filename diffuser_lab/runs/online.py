@@ -29,9 +29,11 @@ from diffuser_lab.hooks import RunHooks
 from diffuser_lab.method.diffusion import labels_from_scores
 from diffuser_lab.method.metrics import confusion_matrix, score, scores_from_confusion
 from diffuser_lab.method.online import FrameStats, OnlineDiffuser
+from diffuser_lab.method.space import Observe
 
-from .pipeline import _Observe, _to_original, _work_cloud, load_scene, run
+from .pipeline import load_scene, run
 from .resolve import resolve
+from .work import to_original, work_cloud
 
 
 @dataclass
@@ -125,34 +127,106 @@ def online(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHoo
     t: dict = {}
     if scene is None:
         scene = load_scene(cfg.scene, resolve_taxonomy(cfg), cfg.depth)
-    tax = scene.taxonomy
-    growing = cfg.online.map == OnlineMap.growing
-    if not growing:
+    if cfg.online.map != OnlineMap.growing:
         validate.check_points(scene)
     t["load"] = time.perf_counter() - t0
     hooks.on_scene(scene)
-    frames = predicted if predicted is not None else with_predictions(scene.frames, cfg.predictions, tax,
+    frames = predicted if predicted is not None else with_predictions(scene.frames, cfg.predictions, scene.taxonomy,
                                                                        scene_name=scene.name)
     tm = time.perf_counter()
-    rows = None
-    if growing:
-        od = OnlineDiffuser(cfg, tax, backend=backend)
-        gt_map = gt_tree = None
-        if scene.gt_labels is not None:  # a map point's truth: the nearest labelled scene point's
-            from scipy.spatial import cKDTree
+    m = _Map.of(cfg, scene, backend)
+    t["map"] = time.perf_counter() - tm
+    history, kept, finished = _take_frames(cfg, frames, m, hooks, t)
+    if not kept:
+        raise ValueError(f"scene {scene.name}: no frame could be taken ({len(frames)} frames)")
+    od = m.od
+    res = OnlineResult(scene=scene, mode=cfg.online.map.value, points=od.points.copy(), labels=od.labels.copy(),
+                       bayesian_labels=od.bayesian_labels.copy(), gt=m.map_truth(), frames=history, metrics=None,
+                       bayesian=None,
+                       settings={"steps": od.steps, "gamma": od.gamma, "horizon": od.horizon,
+                                 "rate_hz": float(cfg.online.rate), "finish": finished,
+                                 "backend": od.backend_name, "rho_m": float(od.rho),
+                                 "sigma_d_m": float(od.sigma_d)},
+                       latency_ms=latency_summary(history))
+    m.score(res)
+    if cfg.online.compare_batch:
+        tb = time.perf_counter()
+        res.batch = compare_with_batch(cfg, scene, kept, od, res, m.rows)
+        t["batch"] = time.perf_counter() - tb
+    t["total"] = time.perf_counter() - t0
+    res.timings_s = t
+    hooks.on_result(res)
+    return res
 
-            gt_map, gt_tree = np.zeros(0, np.int16), cKDTree(scene.points)
-        gt_dist = max(2.0 * cfg.online.voxel_size, 0.05)
-    else:
-        pts, nrm, grid = _work_cloud(scene, cfg.scene.voxel_size)
+
+@dataclass
+class _Map:
+    """The online Diffuser's map and its ground truth. A growing map's points take the label of the
+    nearest labelled scene point (``tree``: a cKDTree of the scene's points) within ``dist`` metres as
+    they come (``gt``); a given map's rows are scored through the scene's points (``rows``: each scene
+    point's map row; ``gt``: the scene's), as batch runs."""
+
+    od: OnlineDiffuser
+    scene: Scene
+    growing: bool
+    rows: Optional[np.ndarray] = None
+    gt: Optional[np.ndarray] = None
+    tree: object = None
+    dist: float = 0.0
+
+    @classmethod
+    def of(cls, cfg: Config, scene: Scene, backend: str) -> "_Map":
+        tax = scene.taxonomy
+        if cfg.online.map == OnlineMap.growing:
+            m = cls(OnlineDiffuser(cfg, tax, backend=backend), scene, True, dist=max(2.0 * cfg.online.voxel_size, 0.05))
+            if scene.gt_labels is not None:  # a map point's truth: the nearest labelled scene point's
+                from scipy.spatial import cKDTree
+
+                m.gt, m.tree = np.zeros(0, np.int16), cKDTree(scene.points)
+            return m
+        pts, nrm, grid = work_cloud(scene, cfg.scene.voxel_size)
         with progress.stage(f"kNN graph of the given map (k={cfg.graph.k}, {pts.shape[0]:,} points)"):
             od = OnlineDiffuser(cfg, tax, points=pts, normals=nrm, backend=backend)
-        rows = od.map_index[_to_original(scene, grid, np.arange(pts.shape[0]))]  # scene point -> map row
-        gt_map = None
-        if scene.gt_labels is not None:  # each map row scored through the scene's points, as batch runs
-            gt_map = scene.gt_labels
-    t["map"] = time.perf_counter() - tm
-    names = tax.names
+        rows = od.map_index[to_original(scene, grid, np.arange(pts.shape[0]))]  # scene point -> map row
+        return cls(od, scene, False, rows=rows, gt=scene.gt_labels)
+
+    def metrics(self, st: FrameStats) -> dict:
+        """mIoU so far after a frame (:func:`frame_metrics`; a growing map's new points' truth added
+        first), {} without ground truth."""
+        od = self.od
+        if self.growing and self.gt is not None and st.new_points:
+            self.gt = np.concatenate([self.gt, _map_gt(self.tree, self.scene.gt_labels, od.points[-st.new_points:],
+                                                       self.dist)])
+        if self.gt is None:
+            return {}
+        if self.growing:
+            return frame_metrics(od.labels, od.bayesian_labels, self.gt, self.scene.taxonomy.names)
+        return frame_metrics(od.labels[self.rows], od.bayesian_labels[self.rows], self.gt, self.scene.taxonomy.names)
+
+    def map_truth(self) -> Optional[np.ndarray]:
+        """A growing map's points' ground truth (None for a given map: its truth is the scene's)."""
+        return self.gt.copy() if self.growing and self.gt is not None else None
+
+    def score(self, res: OnlineResult) -> None:
+        """The final scores (a given map's on the scene's points, as batch runs) and its scene labels."""
+        names = self.scene.taxonomy.names
+        if self.growing:
+            if self.gt is not None:
+                res.metrics = score(res.labels, self.gt, names)
+                res.bayesian = score(res.bayesian_labels, self.gt, names)
+            return
+        res.scene_labels = res.labels[self.rows]
+        if self.scene.gt_labels is not None:
+            res.metrics = score(res.scene_labels, self.scene.gt_labels, names)
+            res.bayesian = score(res.bayesian_labels[self.rows], self.scene.gt_labels, names)
+
+
+def _take_frames(cfg: Config, frames: Sequence[Frame], m: _Map, hooks: RunHooks, t: dict
+                 ) -> tuple[list[dict], list[int], dict]:
+    """The frames one at a time through the online Diffuser (the sensor's idle time spent on extra
+    steps), then its final pass (``online.finish``: hooks see its steps). Returns every frame's
+    figures, the frames taken and the final pass's."""
+    od = m.od
     history: list[dict] = []
     kept: list[int] = []
     t["frames"] = t["update"] = t["metrics"] = 0.0
@@ -179,25 +253,16 @@ def online(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHoo
             kept.append(i)
             st = od.history[-1]
             tq = time.perf_counter()
-            if growing and gt_map is not None and st.new_points:
-                gt_map = np.concatenate([gt_map, _map_gt(gt_tree, scene.gt_labels, od.points[-st.new_points:],
-                                                         gt_dist)])
-            if growing:
-                gt_now, lab_now, bay_now = gt_map, od.labels, od.bayesian_labels
-            else:
-                gt_now = gt_map
-                lab_now, bay_now = (od.labels[rows], od.bayesian_labels[rows]) if gt_map is not None else (None, None)
-            m = frame_metrics(lab_now, bay_now, gt_now, names) if gt_now is not None else {}
+            metrics = m.metrics(st)
             t["metrics"] += time.perf_counter() - tq
-            rec = {**dataclasses.asdict(st), **m}
+            rec = {**dataclasses.asdict(st), **metrics}
             history.append(rec)
             if loop.bar.enabled:
                 loop.bar.note(f"{st.latency_ms:.0f} ms, {od.n:,} points" +
-                              (f", mIoU {m['diffuser_miou']:.1f}" if m else ""))
+                              (f", mIoU {metrics['diffuser_miou']:.1f}" if metrics else ""))
             hooks.on_online_frame(f, OnlineUpdate(index=i, stats=st, points=od.points, labels=od.labels,
-                                                  bayesian=od.bayesian_labels,
-                                                  gt=gt_map if growing else None, metrics=m,
-                                                  scores=od.scores))
+                                                  bayesian=od.bayesian_labels, gt=m.gt if m.growing else None,
+                                                  metrics=metrics, scores=od.scores))
             if slot:  # what the frame left of the sensor's frame time: extra steps (the next frame sees them)
                 ti = time.perf_counter()
                 od.idle(slot - (ti - tf))
@@ -207,39 +272,12 @@ def online(cfg: Config, *, scene: Optional[Scene] = None, hooks: Optional[RunHoo
         t["frames"] += loop.read_s
         tq = time.perf_counter()
         if kept and cfg.online.finish:
-            finished = od.finish(cfg.online.finish, observer=_Observe(hooks, None))  # hooks see its steps
+            finished = od.finish(cfg.online.finish, observer=Observe(hooks))  # hooks see its steps
         t["finish"] = time.perf_counter() - tq
     finally:
         od.close()
         blas.close()
-    if not kept:
-        raise ValueError(f"scene {scene.name}: no frame could be taken ({len(frames)} frames)")
-    res = OnlineResult(scene=scene, mode=cfg.online.map.value, points=od.points.copy(), labels=od.labels.copy(),
-                       bayesian_labels=od.bayesian_labels.copy(),
-                       gt=(gt_map.copy() if gt_map is not None else None) if growing else None,
-                       frames=history, metrics=None, bayesian=None,
-                       settings={"steps": od.steps, "gamma": od.gamma, "horizon": od.horizon,
-                                 "rate_hz": float(cfg.online.rate), "finish": finished,
-                                 "backend": od.backend_name, "rho_m": float(od.rho),
-                                 "sigma_d_m": float(od.sigma_d)},
-                       latency_ms=latency_summary(history))
-    if growing:
-        if gt_map is not None:
-            res.metrics = score(res.labels, gt_map, names)
-            res.bayesian = score(res.bayesian_labels, gt_map, names)
-    else:
-        res.scene_labels = res.labels[rows]
-        if scene.gt_labels is not None:
-            res.metrics = score(res.scene_labels, scene.gt_labels, names)
-            res.bayesian = score(res.bayesian_labels[rows], scene.gt_labels, names)
-    if cfg.online.compare_batch:
-        tb = time.perf_counter()
-        res.batch = compare_with_batch(cfg, scene, kept, od, res, rows)
-        t["batch"] = time.perf_counter() - tb
-    t["total"] = time.perf_counter() - t0
-    res.timings_s = t
-    hooks.on_result(res)
-    return res
+    return history, kept, finished
 
 
 def compare_with_batch(cfg: Config, scene: Scene, kept: list[int], od: OnlineDiffuser, res: OnlineResult,

@@ -28,7 +28,7 @@ from diffuser_lab.registry import Registry
 from . import online as online_mod
 from . import report, single_frame, tiled
 from .pipeline import run
-from .records import write_features, write_labels, write_scores, write_scoring
+from .records import write_labels, write_scores, write_scoring
 
 __all__ = ["Protocol", "PROTOCOLS", "register", "get"]
 
@@ -67,8 +67,7 @@ def _finish_global(result, cfg: Config, run_dir: Path, summary: report.SummaryFi
     files = write_labels(run_dir, result.scene.points, result.labels, result.scene.taxonomy, ply=cfg.output.labels_ply,
                          clouds=cfg.output.clouds, confidence=result.confidence)
     files.update(write_scoring(run_dir, result.scene, result.bayesian_labels))
-    if result.lifted is not None:
-        files.update(write_features(run_dir, result))
+    files.update(result.space.write(run_dir, result.rows))  # a features run's features (classes: none)
     if cfg.output.scores:
         files.update(write_scores(run_dir, result))
     result.timings_s["write"] = time.perf_counter() - t

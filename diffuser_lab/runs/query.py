@@ -7,7 +7,8 @@ A features run's folder holds (written by the pipeline, ``predictions=features``
   the point), and the baselines' ``features_average.npy`` (feature averaging, OpenScene's 2D fusion)
   and ``features_best_view.npy`` (the most confident view's feature), each optional;
 - with a reduced basis (``predictions.basis=auto``) ``features_basis.npz`` (the three methods'
-  features in the basis: :func:`diffuser_lab.runs.records.write_features`), read instead of the
+  features in the basis: :meth:`diffuser_lab.method.space.Features.write`, read by
+  :func:`diffuser_lab.method.space.read_basis`), read instead of the
   (N, D) files: a query's cosines are then f.q from the basis' coordinates over the run's estimated |f|;
 - ``gt_labels.npy`` (N,) int16 ground truth (IGNORE = unannotated), when the scene has it;
 - ``summary.json`` with ``class_names`` (the taxonomy's names in id order) and ``taxonomy``.
@@ -30,21 +31,19 @@ from typing import Optional
 import numpy as np
 
 from diffuser_lab.backends import provenance
-from diffuser_lab.data.arrays import open_npz
 from diffuser_lab.data.frames import first_line
 from diffuser_lab.data.scene import IGNORE
-from diffuser_lab.method.basis import BasisFeatures
 from diffuser_lab.method.metrics import score
 from diffuser_lab.method.queries import Queries, labels_of_cosines, query_classes, query_labels
+from diffuser_lab.method.space import BASIS_FILE, FEATURE_FILES, read_basis
 
-from .records import BASIS_FILE, load_npy, read_gt, write_json_atomic
+from .records import load_npy, read_gt, write_json_atomic
 
 __all__ = ["METHODS", "FEATURES", "RunFeatures", "QueryResult", "read_run", "query_run", "output_names", "table", "basis_line"]
 
-METHODS = (("diffuser", "features.npy", "diffuser"),
-           ("average", "features_average.npy", "average (baseline)"),
-           ("best_view", "features_best_view.npy", "best view (baseline)"))
-"""(key in query.json, file in the run folder, row of the table), in the table's order."""
+METHODS = FEATURE_FILES
+"""(key in query.json, file in the run folder, row of the table), in the table's order (the run's
+label space writes them: :meth:`diffuser_lab.method.space.Features.write`)."""
 FEATURES = METHODS[0][1]
 """The file that makes a folder a features run."""
 _OUT_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
@@ -156,25 +155,9 @@ def read_run(run_dir: str | Path) -> RunFeatures:
     basis = feats.get("basis") if isinstance(feats.get("basis"), dict) else {"kind": "full"}
     vectors = None
     if (run_dir / BASIS_FILE).is_file():  # a reduced basis: every method's features from it
-        vectors, features = _read_basis(run_dir / BASIS_FILE, features["diffuser"].shape)
+        vectors, features = read_basis(run_dir / BASIS_FILE, features["diffuser"].shape)
     return RunFeatures(run_dir, features, gt, tuple(names), str(summary.get("taxonomy", "")), basis,
                        tuple(str(q) for q in feats.get("queries") or ()), vectors)
-
-
-def _read_basis(path: Path, shape: tuple[int, int]) -> tuple[np.ndarray, dict]:
-    """(D, k) vectors and {method key: BasisFeatures} of a run's :data:`BASIS_FILE`; ``shape``:
-    features.npy's (N, D). ValueError (one line naming the file) when it does not fit."""
-    with open_npz(path, "a features run's basis (vectors, <method>_coords, <method>_residual)", role=None) as z:
-        V = np.asarray(z.read("vectors", ndim=2, kinds="f"), np.float32)
-        out = {key: BasisFeatures(np.asarray(z.read(f"{key}_coords", ndim=2, kinds="f"), np.float32),
-                                  np.asarray(z.read(f"{key}_residual", ndim=1, kinds="f"), np.float32))
-               for key, _, _ in METHODS if f"{key}_coords" in z}
-    N, D = shape
-    if V.ndim != 2 or V.shape[0] != D or "diffuser" not in out or any(
-            f.coords.shape != (N, V.shape[1]) or f.residual.shape != (N,) for f in out.values()):
-        raise ValueError(f"{path}: vectors {V.shape} and coordinates {[f.coords.shape for f in out.values()]}, expected "
-                         f"({D}, k) and ({N}, k) as features.npy's ({N}, {D})")
-    return V, out
 
 
 def output_names(run_dir: str | Path, out: Optional[str] = None) -> tuple[Path, Path]:

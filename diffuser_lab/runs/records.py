@@ -19,9 +19,8 @@ from diffuser_lab import progress
 from diffuser_lab.data import inputs
 from diffuser_lab.data.arrays import read_array
 from diffuser_lab.data.clouds import write_las, write_pointcloud2_bag
-from diffuser_lab.data.embeddings import write_queries
 from diffuser_lab.data.o3d import open3d
-from diffuser_lab.backends.threads import blas_one_thread
+from diffuser_lab.backends.records import write_rows
 from diffuser_lab.data.scene import IGNORE, Taxonomy
 from diffuser_lab.method.calibration import point_rows
 
@@ -175,16 +174,6 @@ def _write_labels(run_dir: Path, points: np.ndarray, labels: np.ndarray, taxonom
     return out
 
 
-def write_rows(path: Path, shape: tuple, chunks) -> None:
-    """An (N, D) float16 ``.npy`` at ``path`` from ``chunks`` of consecutive rows, appended as they come:
-    no (N, D) array, no memory map's page faults."""
-    with open(path, "wb") as fh:
-        np.lib.format.write_array_header_2_0(fh, {"descr": np.lib.format.dtype_to_descr(np.dtype(np.float16)),
-                                                  "fortran_order": False, "shape": tuple(shape)})
-        for chunk in chunks:
-            fh.write(memoryview(np.ascontiguousarray(chunk, np.float16)))
-
-
 GT_FILE = "gt_labels.npy"
 """The scene's ground truth on its points, (N,) int16 (IGNORE = unannotated), when it has one."""
 BAYESIAN_FILE = "bayesian_labels.npy"
@@ -241,59 +230,3 @@ def write_scores(run_dir: Path, result) -> dict:
     n, c = len(result.labels), result.scene.taxonomy.num_classes
     write_rows(run_dir / SCORES_FILE, (n, c), (p for _, _, p in point_rows(result.scores, result.rows, n)))
     return {"scores": SCORES_FILE}
-
-
-BASIS_FILE = "features_basis.npz"
-"""A reduced-basis features run's per-point features in the basis (``diffuser_lab.runs.query`` reads it)."""
-WRITE_ROWS = 4096
-"""Feature rows made and written at once (4 MB of float16 at D = 512: the float32 products stay in cache)."""
-
-
-def write_features(run_dir: Path, result) -> dict:
-    """A features run's per-point features on the scene's original points, (N, D) float16 unit rows
-    (an all-zero row: nothing reached the point): ``features.npy`` (the method's), ``features_average.npy``
-    (the averaging baseline's), ``features_best_view.npy`` (the most confident view's); ``queries.npz``
-    (the run's query set) and ``gt_labels.npy`` (when the scene has ground truth), so that ``diffuser-lab-query`` relabels the run without it.
-
-    With a reduced basis (``predictions.basis=auto``) ``features.npy`` holds the projections, and
-    :data:`BASIS_FILE` the three methods' features in the basis (``vectors`` (D, k) float32, the
-    ``queries`` (Q, k) coordinates, ``{diffuser,average,best_view}_coords`` (N, k) float32 sums and
-    ``..._residual`` (N,) float32 the estimated energy outside the basis) instead of the baselines'
-    (N, D) files: 3 x N x D x 2 bytes (950 MB at 317k x 512) are as long to write as the run."""
-    lf, rows = result.lifted, result.rows
-    if rows is not None and np.array_equal(rows, np.arange(rows.size)):
-        rows = None
-    with blas_one_thread():  # many small products: OpenBLAS's spinning workers would cost more than they give
-        return _write_features(run_dir, result, lf, rows)
-
-
-def _write_features(run_dir: Path, result, lf, rows) -> dict:
-    out = {}
-    files = (("features", lf.method), ("features_average", lf.average), ("features_best_view", lf.best_view))
-    if lf.basis is not None:  # the baselines in the basis only: (N, k) each, not (N, D)
-        files = files[:1]
-        parts = {"vectors": lf.basis.vectors, "queries": lf.basis.queries}
-        for key, X in (("diffuser", lf.method), ("average", lf.average), ("best_view", lf.best_view)):
-            X = X if rows is None else X.take(rows)
-            parts[f"{key}_coords"] = np.asarray(X.coords, np.float32)
-            parts[f"{key}_residual"] = np.asarray(X.residual, np.float32)
-        np.savez(run_dir / BASIS_FILE, **parts)
-        out["features_basis"] = BASIS_FILE
-    for name, work in files:
-        if work is None:  # a rule without features of its own (vote: class votes)
-            continue
-        n = len(work) if rows is None else len(rows)
-        # a chunk of rows at a time (a basis' rows reconstructed in R^D: FeatureLift.unit_rows)
-        buf = np.empty((min(n, WRITE_ROWS), lf.queries.dim), np.float16)
-
-        def chunks(work=work, buf=buf, n=n):
-            for lo in range(0, n, WRITE_ROWS):  # chunks of rows: 4 MB at D = 512
-                sel = np.arange(lo, min(lo + WRITE_ROWS, n)) if rows is None else rows[lo:lo + WRITE_ROWS]
-                yield lf.unit_rows(work, sel, out=buf[: len(sel)])
-
-        write_rows(run_dir / f"{name}.npy", (n, lf.queries.dim), chunks())
-        out[name] = f"{name}.npy"
-    write_queries(run_dir / "queries.npz", list(lf.queries.names), lf.queries.embeddings)
-    out["queries"] = "queries.npz"
-    out.update(write_scoring(run_dir, result.scene))
-    return out

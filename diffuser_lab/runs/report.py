@@ -55,11 +55,7 @@ def summary(res: RunResult, cfg: Config) -> dict:
     if res.graph is not None:
         out["graph"] = {"k": int(res.graph.neighbors.shape[1]), "rho_m": res.graph.rho,
                         "sigma_d_m": res.graph.sigma_d, "normals": cfg.graph.use_normals}
-    if res.lifted is not None:  # a features run: the bayesian baseline is the averaging of features
-        lf = res.lifted
-        out["class_names"] = list(scene.taxonomy.names)
-        out["features"] = {"dim": int(lf.queries.dim), "queries": list(lf.queries.names),
-                           "threshold": lf.threshold, "baseline": "average", "basis": lf.basis_info}
+    out.update(res.space.summary(scene.taxonomy))  # a features run's class names and queries
     return out
 
 
@@ -129,7 +125,7 @@ def table(res: RunResult, run_dir: Path | None = None) -> str:
         lines.append(f"{'':22s}{'mIoU':>7s}{'acc':>7s}{'cover':>7s}")
         rows = [(res.method, res.metrics)]
         if res.method != "bayesian":  # a features run's bayesian baseline is the features' average
-            rows.append(("bayesian (baseline)" if res.lifted is None else "average (baseline)",
+            rows.append((res.space.baseline_title,
                          res.baseline.get("bayesian")))
         if "best_view" in res.baseline:
             rows.append(("best view (baseline)", res.baseline["best_view"]))

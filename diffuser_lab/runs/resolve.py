@@ -65,7 +65,7 @@ def resolve(cfg: Config, protocols: Optional[Mapping[str, Any]] = None) -> Confi
     return with_method(cfg, cfg.method.name)
 
 
-LIFTING_PROTOCOLS = ("global_3d", "single_frame")
+LIFTING_PROTOCOLS = fusion.LIFTING_PROTOCOLS
 """The protocols that run the lifting rules (method/lifters.py), ``graph.affinity`` and ``solver.tikhonov``."""
 
 
@@ -79,7 +79,7 @@ def _check_protocol_keys(cfg: Config) -> None:
     if cfg.protocol.name in LIFTING_PROTOCOLS:
         return
     what = []
-    if fusion.get(cfg.method.name).evidence == fusion.RULE:
+    if not fusion.get(cfg.method.name).runs_in(cfg.protocol.name):  # a lifting rule
         what.append(f"method.name={cfg.method.name}")
     if cfg.graph.affinity != config.GraphAffinity.none:
         what.append(f"graph.affinity={cfg.graph.affinity.value}")

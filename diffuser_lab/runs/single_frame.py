@@ -12,11 +12,12 @@ Rows (paper Table II): each fusion method of :data:`~diffuser_lab.method.fusion.
 Bayesian rows read the baseline's evidence (single pixel), as in global runs. A method outside
 Table II (the lifting rules of :mod:`diffuser_lab.method.lifters`) adds its rows when it is the run's
 ``method.name``; ``graph.affinity`` and ``solver.tikhonov`` change the graph methods' rows as in
-global runs (:func:`~diffuser_lab.runs.pipeline.graph_variant`).
+global runs (:func:`~diffuser_lab.method.fusion.graph_variant`). What differs between the methods
+is their registry entries' (the evidence they read, whether they diffuse), between labels and
+features the run's label space's (:mod:`diffuser_lab.method.space`: a features run adds the best view).
 """
 from __future__ import annotations
 
-import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import Optional
@@ -24,7 +25,7 @@ from typing import Optional
 import numpy as np
 from scipy.ndimage import distance_transform_edt
 
-from diffuser_lab.config import Config, FrameNormals, GraphAffinity, SparseClasses
+from diffuser_lab.config import Config, FrameNormals, GraphAffinity
 from diffuser_lab.data.frames import FrameLoop
 from diffuser_lab.data.geometry import backproject, normals_from_depth, voxel_downsample, voxel_edge
 from diffuser_lab.data.predictions import with_predictions
@@ -33,12 +34,14 @@ from diffuser_lab.data.taxonomy import resolve_taxonomy
 from diffuser_lab.hooks import RunHooks
 from diffuser_lab.method import calibration, fusion
 from diffuser_lab.method import evidence as evidence_mod
-from diffuser_lab.method import features as features_mod
-from diffuser_lab.method.diffusion import labels_from_scores, normalise
+from diffuser_lab.method.diffusion import DiffusionResult
+from diffuser_lab.method.evidence import Evidence
+from diffuser_lab.method.fusion import graph_variant
 from diffuser_lab.method.graph import SortedKnnGraph, graph_stage, make_graph
 from diffuser_lab.method.metrics import confusion_matrix, scores_from_confusion
+from diffuser_lab.method.space import of_frame as label_space
 
-from .pipeline import FeatureLift, _Observe, feature_lift, graph_variant, lifting_rule, load_scene
+from .pipeline import load_scene
 from .resolve import resolve, with_method
 
 
@@ -148,30 +151,15 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None, on_frame=None,
     if scene is None:
         scene = load_scene(cfg.scene, resolve_taxonomy(cfg), cfg.depth)
     hooks.on_scene(scene)
-    tax, names = scene.taxonomy, scene.taxonomy.names
+    tax = scene.taxonomy
     frames = with_predictions(scene.frames, cfg.predictions, tax, scene_name=scene.name)
-    n = len(frames)
-    if n == 0:
+    if len(frames) == 0:
         raise ValueError(f"scene {scene.name}: no frames for the single-frame protocol")
     W = cfg.protocol.window
-    targets = list(range(0, n, cfg.protocol.target_step))[: cfg.protocol.max_targets]
-    order = [(m.name, v) for m in fusion.METHODS.values() if m.table_ii or m.name == cfg.method.name
-             for v in m.single_frame_rows(W)]
-    observed = ("diffuser", max(v for name, v in order if name == "diffuser")) if any(
-        name == "diffuser" for name, _ in order) else None  # the diffusion the hooks see, per target
-    count = 0
-    settings = {}  # each method: (entry, the run's config with what it fixes applied, evidence pixel window)
-    for m in fusion.METHODS.values():
-        mc = with_method(cfg, m.name)
-        settings[m.name] = (m, mc, 0 if m.evidence == fusion.BASELINE else mc.evidence.pixel_radius)
-    rows = {key: Row(*key, cal=calibration.Calibration(tax.num_classes, cfg.calibration.bins)) for key in order}
-    temperature = cfg.calibration.temperature
-    pred2d = Row("2d", 1)
+    targets = list(range(0, len(frames), cfg.protocol.target_step))[: cfg.protocol.max_targets]
+    table = _Table(cfg, tax, W)
     t = {"load": time.perf_counter() - t0, "frames": 0.0, "evidence": 0.0, "graph": 0.0, "diffusion": 0.0}
-    n_points = []
-    ev_kw = dict(depth_tol=cfg.evidence.depth_tol)
-    lam, solver = cfg.evidence.pixel_weight, cfg.solver
-    fill = cfg.protocol.fill_missing_depth
+    n_points, count, space = [], 0, None
 
     def need_gt(f: Frame) -> None:
         if f.gt_labels is None:
@@ -179,143 +167,191 @@ def single_frame(cfg: Config, scene: Optional[Scene] = None, on_frame=None,
 
     loop = FrameLoop(frames, f"single-frame protocol: target frames (window {W})", targets=targets, window=W,
                      check=need_gt)
-    lift: Optional[FeatureLift] = None  # a features run (predictions=features): its queries
     for i, f in loop:
-        if lift is None and f.features is not None:
-            lift = feature_lift(cfg, tax, f.features.shape[2])
-            solver = dataclasses.replace(solver, sparse_classes=SparseClasses.off)
-            if W > 1:  # a features run's other baseline: each point's most confident view of the window
-                order.append(("best_view", W))
-                rows[("best_view", W)] = Row("best_view", W, cal=calibration.Calibration(tax.num_classes,
-                                                                                          cfg.calibration.bins))
+        space = space or table.start(label_space(f, cfg, tax, fusion.get(cfg.method.name)))  # labels or features
         ta = time.perf_counter()
+        work = _TargetWork.of(cfg, f)
+        if work is None:
+            continue  # almost no depth in this frame: nothing to label
+        n_points.append(work.points.shape[0])
+        table.add_2d(space, f)
+        win_frames = loop.window_frames(i)
+        t["frames"] += time.perf_counter() - ta
+        count += 1
+        watch = None  # the observed row's observer (the hooks)
+        if table.observed is not None:
+            hooks.on_target(Target(index=i, count=count, frame=f, window=loop.window_of(i), frames=win_frames,
+                                   work_points=work.points, pixels=work.at,
+                                   work_gt=pixel_majority(work.at, f.gt_labels, work.points.shape[0], tax.num_classes),
+                                   observed=table.observed))
+            watch = space.observer(hooks, None)
+        labelled, seen = _label_target(cfg, space, table, f, win_frames, work, watch, t)
+        images = table.add(labelled, work.at, f)
+        if on_frame is not None:
+            on_frame(f, images)
+        if watch is not None:  # Table II as it accumulates: every row's pooled figures so far, this frame's
+            hooks.on_target_done(i, images, table.so_far(images), seen)
+    t["frames"] += loop.read_s
+    t["total"] = time.perf_counter() - t0
+    res = SingleFrameResult(scene=scene, window=W, targets=targets, rows=table.results(), predictions_2d=table.input_2d(),
+                            mean_points=float(np.mean(n_points)) if n_points else 0.0, timings_s=t,
+                            filled=bool(cfg.protocol.fill_missing_depth), method=cfg.method.name)
+    hooks.on_result(res)
+    return res
+
+
+class _Table:
+    """Table II as it accumulates: its rows in order (each fusion method's, then those the run's label
+    space adds), each with its pooled confusion and calibration, and the 2D input's row; each method's
+    entry with the run's config as it fixes it."""
+
+    def __init__(self, cfg: Config, tax, window: int):
+        self.names, self.window, self.bins, self.temperature = tax.names, window, cfg.calibration.bins, \
+            cfg.calibration.temperature
+        self.num_classes = tax.num_classes
+        self.methods = {m.name: (m, with_method(cfg, m.name)) for m in fusion.METHODS.values()}
+        self.method_rows = [(m.name, v) for m in fusion.METHODS.values() for v in m.table_rows(window, cfg.method.name)]
+        self.order, self.rows, self.observed = list(self.method_rows), {}, None
+        self.pred2d = Row("2d", 1)
+
+    def start(self, space):
+        """The rows of a run in ``space`` (returned): the methods' and the space's (features: the best
+        view), and the row whose diffusion the hooks observe (the Diffuser's widest; none in features)."""
+        self.order = self.method_rows + space.extra_rows(self.window)
+        self.rows = {key: Row(*key, cal=calibration.Calibration(self.num_classes, self.bins)) for key in self.order}
+        observed = [(name, v) for name, v in self.method_rows if self.methods[name][0].observed]
+        self.observed = space.watched(max(observed, key=lambda r: r[1])) if observed else None
+        return space
+
+    def add_2d(self, space, f: Frame) -> None:
+        pred = space.label_image(f)  # None: a features run's maps are no labels
+        if pred is not None:
+            self.pred2d.add(pred, f.gt_labels, self.names)
+
+    def add(self, labelled: dict, at: np.ndarray, f: Frame) -> dict:
+        """Each row's 3D labels (and scores) of a target's work points back into the target frame,
+        scored; returns the label images."""
+        images = {}
+        for key, (lab, scores) in labelled.items():
+            img = np.where(at >= 0, lab[np.maximum(at, 0)], IGNORE).astype(np.int16)
+            self.rows[key].add(img, f.gt_labels, self.names)
+            self.rows[key].cal.add(scores, f.gt_labels, at, self.temperature)
+            images[key] = img
+        return images
+
+    def so_far(self, images: dict) -> list[dict]:
+        return [{**self.rows[k].result(self.names), "frame_miou": self.rows[k].per_frame_miou[-1]}
+                for k in self.order if k in images]
+
+    def results(self) -> list[dict]:
+        out = [self.rows[k].result(self.names) for k in self.order]
+        for r in out:
+            r["calibration"]["temperature"] = float(self.temperature)
+        return out
+
+    def input_2d(self) -> Optional[dict]:
+        return self.pred2d.result(self.names) if self.pred2d.conf is not None else None
+
+
+@dataclass
+class _TargetWork:
+    """A target frame's back-projected depth as work points (voxel centroids with scene.voxel_size):
+    ``points`` (M, 3), ``pix`` (P, 2) the pixels with depth, ``to_work`` (P,) each one's work point,
+    ``at`` (H, W) each pixel's work point (-1: no depth; with protocol.fill_missing_depth the nearest pixel's)."""
+
+    points: np.ndarray
+    pix: np.ndarray
+    to_work: np.ndarray
+    at: np.ndarray
+
+    @classmethod
+    def of(cls, cfg: Config, f: Frame) -> Optional["_TargetWork"]:
+        """None when the frame has almost no depth (no more points than graph.k)."""
         pts, pix = backproject(f.depth, f.K, f.T_cw)
         if pts.shape[0] <= cfg.graph.k:
-            continue  # almost no depth in this frame: nothing to label
+            return None
         edge = voxel_edge(cfg.scene.voxel_size, pts)  # auto: from this frame's back-projected points
         if edge > 0:
             grid = voxel_downsample(pts, edge)
             work, to_work = grid.points, grid.inverse
         else:
             work, to_work = pts, np.arange(pts.shape[0])
-        n_points.append(work.shape[0])
-        if lift is None:
-            pred = f.labels if f.labels is not None else np.argmax(f.probs, axis=2)
-            pred2d.add(pred, f.gt_labels, names)
-        win_frames = loop.window_frames(i)
         at = np.full(f.shape, -1, np.int64)  # each pixel's work point (-1: no depth, uniform)
         at[pix[:, 0], pix[:, 1]] = to_work
-        if fill:  # protocol.fill_missing_depth: a pixel without depth reads its nearest pixel with depth
+        if cfg.protocol.fill_missing_depth:  # a pixel without depth reads its nearest pixel with depth
             near = distance_transform_edt(at < 0, return_distances=False, return_indices=True)
             at = at[near[0], near[1]]
-        t["frames"] += time.perf_counter() - ta
-        count += 1
-        watch = seen = None  # the observed row's observer (the hooks) and its result
-        if lift is None and observed is not None:
-            hooks.on_target(Target(index=i, count=count, frame=f, window=loop.window_of(i), frames=win_frames,
-                                   work_points=work, pixels=at,
-                                   work_gt=pixel_majority(at, f.gt_labels, work.shape[0], tax.num_classes),
-                                   observed=observed))
-            watch = _Observe(hooks, None)
+        return cls(work, pix, to_work, at)
 
-        # each method's settings (what it fixes applied to the run's config), its evidence and
-        # graph built once per target frame and shared between the rows that use them
-        evidence, graphs, work_labels, work_scores = {}, {}, {}, {}
-        for name, views in order:
-            if name not in settings:  # best_view (below)
-                continue
-            m, mc, radius = settings[name]
-            ekey = (views, radius)
-            if ekey not in evidence:
-                te = time.perf_counter()
-                evidence[ekey] = evidence_mod.accumulate(work, win_frames if views > 1 else [f],
-                                                         tax.num_classes if lift is None else lift.queries.dim,
-                                                         pixel_radius=radius, **ev_kw)
-                t["evidence"] += time.perf_counter() - te
-            system = None
-            gkey = (mc.graph.use_normals, mc.graph.k)  # LDLS: no normals, K = 10; Diffuser: the run's graph
-            if m.graph:
-                if gkey not in graphs:
-                    tg = time.perf_counter()
-                    nrm = None
-                    if mc.graph.use_normals and cfg.protocol.normals == FrameNormals.depth_image:
-                        nrm = image_normals(f, pix, to_work, work.shape[0], cfg.protocol.normal_window_px)
-                    with graph_stage(work.shape[0], mc.graph, mc.graph.use_normals):
-                        graphs[gkey] = make_graph(work, nrm, mc.graph)[1]
-                    t["graph"] += time.perf_counter() - tg
-            ev, key = evidence[ekey], (name, views)
-            if m.evidence == fusion.RULE:  # a lifting rule: its own pass over the same links
-                te = time.perf_counter()
-                dim = tax.num_classes if lift is None else lift.queries.dim
-                rule = lifting_rule(m, mc, work.shape[0], dim, tax.num_classes, lift)
-                evidence_mod.accumulate(work, win_frames if views > 1 else [f], dim, pixel_radius=radius, hook=rule,
-                                        **ev_kw)
-                values = rule.values()
-                t["evidence"] += time.perf_counter() - te
-                if lift is None or rule.classes:
-                    work_labels[key], work_scores[key] = labels_from_scores(values), values
-                else:
-                    work_labels[key], work_scores[key] = lift.labels(values), lift.scores(values)
-                continue
-            graph = graphs.get(gkey) if m.graph else None
-            if m.graph and (cfg.graph.affinity != GraphAffinity.none or cfg.solver.tikhonov > 0):
-                vkey = ("variant", gkey, ekey)  # the graph and evidence of this evidence's variant
-                if vkey not in graphs:
-                    tg = time.perf_counter()
-                    g = graph if cfg.graph.affinity == GraphAffinity.none else copy_graph(graph)
-                    colors = (frame_colors(f, pix, to_work, work.shape[0])
-                              if cfg.graph.affinity == GraphAffinity.colour else None)
-                    average = features_mod.normalised(ev.mass)[0] if lift is not None else None
-                    graphs[vkey] = g, graph_variant(g, ev, mc, colors=colors, average=average)
-                    t["graph"] += time.perf_counter() - tg
-                graph, ev = graphs[vkey]
-            if lift is None and m.graph:
-                system = normalise(graph, ev.mass, lam)
-            td = time.perf_counter()
-            if lift is None:
-                work_labels[key], diff = m.label(ev.mass, system=system, solver=solver,
-                                                 observer=watch if key == observed else None)
-                if key == observed:
-                    seen = diff
-                work_scores[key] = diff.Z if diff is not None else ev.mass
-            else:  # a features run, as the global protocol's (method/features.py; the rows share ev: a copy)
-                F = (features_mod.diffuse_features(graph, ev.mass.copy(), ev.links, lam, solver)[0] if m.graph
-                     else ev.mass)
-                work_labels[key], work_scores[key] = lift.labels(F), lift.scores(F)
-            if m.graph:
-                t["diffusion"] += time.perf_counter() - td
 
-        if lift is not None and W > 1:
-            te = time.perf_counter()
-            best = evidence_mod.BestView(work.shape[0], lift.queries.dim, lift.confidence)
-            evidence_mod.accumulate(work, win_frames, lift.queries.dim, best=best, **ev_kw)
-            work_labels[("best_view", W)] = lift.labels(best.features)
-            work_scores[("best_view", W)] = lift.scores(best.features)
-            t["evidence"] += time.perf_counter() - te
+def _label_target(cfg: Config, space, table: _Table, f: Frame, win_frames: list, work: _TargetWork, watch,
+                  t: dict) -> tuple[dict, Optional[DiffusionResult]]:
+    """Every row's (labels, class scores) of a target's work points, by (method, views), and the observed
+    row's diffusion: each method asked for its evidence and labels (:mod:`~diffuser_lab.method.fusion`),
+    in the run's label space; the evidence and graphs shared between the rows that use the same."""
+    shared = _Shared(cfg, space, f, work, t)
+    out, seen = {}, None
+    solver = space.solver(cfg.solver)
+    for name, views in table.method_rows:
+        m, mc = table.methods[name]
+        frames = win_frames if views > 1 else [f]
+        ekey = (views, m.evidence_radius(mc))
+        te = time.perf_counter()
+        ev, rule = m.window_evidence(space, mc, work.points, frames,
+                                     lambda radius, frames=frames: shared.evidence((views, radius), frames))
+        t["evidence"] += time.perf_counter() - te
+        key, g0, td = (name, views), t["graph"], time.perf_counter()
+        labelled = m.label(space, ev, rule=rule, graph=lambda e, mc=mc, ekey=ekey: shared.graph(mc, ekey, e),
+                           solver=solver, lam=cfg.evidence.pixel_weight, observer=watch if key == table.observed else None)
+        out[key] = labelled.labels, labelled.scores
+        if labelled.diffusion is not None:
+            t["diffusion"] += time.perf_counter() - td - (t["graph"] - g0)
+        seen = labelled.diffusion if key == table.observed else seen
+    te = time.perf_counter()
+    out.update(space.window_baselines(work.points, win_frames, table.window, cfg.evidence.depth_tol))
+    t["evidence"] += time.perf_counter() - te
+    return out, seen
 
-        images = {}
-        for key, lab in work_labels.items():  # 3D labels back into the target frame
-            img = np.where(at >= 0, lab[np.maximum(at, 0)], IGNORE).astype(np.int16)
-            rows[key].add(img, f.gt_labels, names)
-            rows[key].cal.add(work_scores[key], f.gt_labels, at, temperature)
-            images[key] = img
-        if on_frame is not None:
-            on_frame(f, images)
-        if watch is not None:  # Table II as it accumulates: every row's pooled figures so far, this frame's
-            hooks.on_target_done(i, images, [{**rows[k].result(names), "frame_miou": rows[k].per_frame_miou[-1]}
-                                             for k in order if k in images], seen)
-    t["frames"] += loop.read_s
 
-    t["total"] = time.perf_counter() - t0
-    results = [rows[k].result(names) for k in order]
-    for r in results:
-        r["calibration"]["temperature"] = float(temperature)
-    p2 = pred2d.result(names) if pred2d.conf is not None else None
-    res = SingleFrameResult(scene=scene, window=W, targets=targets, rows=results, predictions_2d=p2,
-                            mean_points=float(np.mean(n_points)) if n_points else 0.0, timings_s=t,
-                            filled=bool(fill), method=cfg.method.name)
-    hooks.on_result(res)
-    return res
+class _Shared:
+    """A target's evidence per (views, pixel window) and graphs per (normals, K) (LDLS: no normals,
+    K = 10; Diffuser: the run's graph) with their ``graph.affinity`` / ``solver.tikhonov`` variants per
+    evidence, each built once and shared between the rows that use them."""
+
+    def __init__(self, cfg: Config, space, f: Frame, work: _TargetWork, t: dict):
+        self.cfg, self.space, self.f, self.work, self.t = cfg, space, f, work, t
+        self.evidences: dict = {}
+        self.graphs: dict = {}
+
+    def evidence(self, key: tuple, frames: list) -> Evidence:
+        if key not in self.evidences:
+            self.evidences[key] = evidence_mod.accumulate(self.work.points, frames, self.space.dim, pixel_radius=key[1],
+                                                          depth_tol=self.cfg.evidence.depth_tol)
+        return self.evidences[key]
+
+    def graph(self, mc: Config, ekey: tuple, ev: Evidence) -> tuple[SortedKnnGraph, Evidence]:
+        """The graph of ``mc``'s keys and the evidence ``ev`` (of ``ekey``) as its variant changes them;
+        the evidence's mass a copy (a features diffusion may overwrite it, the rows share it)."""
+        tg = time.perf_counter()
+        cfg, w = self.cfg, self.work
+        gkey = (mc.graph.use_normals, mc.graph.k)
+        if gkey not in self.graphs:
+            nrm = None
+            if mc.graph.use_normals and cfg.protocol.normals == FrameNormals.depth_image:
+                nrm = image_normals(self.f, w.pix, w.to_work, w.points.shape[0], cfg.protocol.normal_window_px)
+            with graph_stage(w.points.shape[0], mc.graph, mc.graph.use_normals):
+                self.graphs[gkey] = make_graph(w.points, nrm, mc.graph)[1]
+        graph = self.graphs[gkey]
+        if cfg.graph.affinity != GraphAffinity.none or cfg.solver.tikhonov > 0:
+            vkey = ("variant", gkey, ekey)  # the graph and evidence of this evidence's variant
+            if vkey not in self.graphs:
+                g = graph if cfg.graph.affinity == GraphAffinity.none else copy_graph(graph)
+                colors = (frame_colors(self.f, w.pix, w.to_work, w.points.shape[0])
+                          if cfg.graph.affinity == GraphAffinity.colour else None)
+                self.graphs[vkey] = g, graph_variant(g, ev, mc, colors=colors, average=self.space.averaged(ev.mass))
+            graph, ev = self.graphs[vkey]
+        self.t["graph"] += time.perf_counter() - tg
+        return graph, Evidence(mass=ev.mass.copy(), links=ev.links)
 
 
 def copy_graph(g: SortedKnnGraph) -> SortedKnnGraph:

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from diffuser_lab.data.scene import IGNORE, Frame
-from diffuser_lab.method import lifters
+from diffuser_lab.method import fusion, lifters
 from diffuser_lab.method.evidence import BestView, accumulate
 
 
@@ -173,9 +173,10 @@ def test_rules_stream_their_state_is_independent_of_the_number_of_frames():
     """Each rule's state is allocated once for N points: hundreds of frames later it has the same
     arrays of the same size (it never holds a point's observations)."""
     rng = np.random.default_rng(2)
-    rules = [lifters.make(name, 50, 8, features=True, num_classes=8, depth_tol=0.05, top_k=3,
-                          confidence=lambda f: f.max(1), classify=lambda f: np.argmax(f, 1))
-             for name in lifters.RULES]
+    entries = [m for m in fusion.METHODS.values() if m.rule is not None]  # every rule is a method's
+    assert {m.rule.name for m in entries} == {"weighted", "median", "topk", "vote"}
+    rules = [m.rule.of(50, dim=8, features=True, num_classes=8, depth_tol=0.05, top_k=3,
+                       confidence=lambda f: f.max(1), classify=lambda f: np.argmax(f, 1)) for m in entries]
 
     def state(r):
         return sorted((k, v.nbytes) for k, v in vars(r).items() if isinstance(v, np.ndarray))
@@ -188,7 +189,7 @@ def test_rules_stream_their_state_is_independent_of_the_number_of_frames():
         for r in rules:
             r.add(idx, x, np.ones(20, np.float32))
     assert [state(r) for r in rules] == before
-    assert dict(before[list(lifters.RULES).index("median")]) == {"m": 50 * 8 * 4, "s": 50 * 8 * 4, "t": 50 * 4}
+    assert dict(before[[m.rule.name for m in entries].index("median")]) == {"m": 50 * 8 * 4, "s": 50 * 8 * 4, "t": 50 * 4}
 
 
 def test_the_evidence_hook_sees_every_link_with_its_vector():

@@ -19,7 +19,8 @@ from diffuser_lab.method import evidence as evidence_mod
 from diffuser_lab.method.diffusion import labels_from_scores
 from diffuser_lab.method.online import OnlineDiffuser, discount
 from diffuser_lab.runs.online import online
-from diffuser_lab.runs.pipeline import _work_cloud, load_scene, run
+from diffuser_lab.runs.pipeline import load_scene, run
+from diffuser_lab.runs.work import work_cloud
 
 SMALL = {"scene.options.n_views": 10, "scene.options.point_spacing": 0.08, "protocol.name": "online",
          "record.mode": "off"}
@@ -35,7 +36,7 @@ def demo():
     scene = load_scene(cfg.scene)
     frames = with_predictions(scene.frames, cfg.predictions, scene.taxonomy)
     frames = [frames[i] for i in range(len(frames))]
-    pts, nrm, _ = _work_cloud(scene, cfg.scene.voxel_size)
+    pts, nrm, _ = work_cloud(scene, cfg.scene.voxel_size)
     return cfg, scene, frames, pts, nrm
 
 

@@ -80,15 +80,15 @@ def test_a_features_run_records_its_projection_and_labels_do_not_change(small_de
         hooks.close()
     off = run(default_config(**SMALL, **{"record.mode": "off"}), scene=small_demo_scene)
     np.testing.assert_array_equal(res.labels, off.labels)  # recording never changes the result
-    assert res.lifted.basis_info["kind"] == "auto"  # 64-D: a reduced basis, the records lifted to R^D
-    np.testing.assert_array_equal(res.lifted.method.coords, off.lifted.method.coords)
+    assert res.space.basis_info["kind"] == "auto"  # 64-D: a reduced basis, the records lifted to R^D
+    np.testing.assert_array_equal(res.space.method.coords, off.space.method.coords)
     M = len(res.work_points)
     view, steps = mcap_features(tmp_path / "run.mcap")
     assert view is not None and view.query == "chair" and view.dim == 64
     assert sorted(steps) == list(hooks.recorded) and hooks.recorded[-1] == res.diffusion.iterations
     last = steps[res.diffusion.iterations]
     # the basis in the file (in R^D) reproduces the last colours from the features in R^D
-    rgb, sim = fv.project(fv.feature_view_of(view), res.lifted.unit_rows(res.lifted.method).astype(np.float32))
+    rgb, sim = fv.project(fv.feature_view_of(view), res.space.unit_rows(res.space.method).astype(np.float32))
     assert np.abs(np.frombuffer(last.rgb, np.uint8).reshape(M, 3).astype(int) - rgb).max() <= 1
     assert np.abs(np.frombuffer(last.similarity, np.uint8).astype(int) - sim).max() <= 1
     pca = rrd_colors(tmp_path / "run.rrd", "/world/features")

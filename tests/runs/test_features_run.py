@@ -17,8 +17,8 @@ CLEAN = {"predictions.source": "features", "predictions.strength": 0.0, "predict
 def test_prototypes_as_queries_reproduce_the_label_paths_labels_on_clean_input(small_demo_scene):
     labels = run(default_config(**SMALL, **{"predictions.source": "gt"}), scene=small_demo_scene)
     feats = run(default_config(**SMALL, **CLEAN), scene=small_demo_scene)
-    assert feats.lifted is not None and feats.lifted.basis_info["kind"] == "auto"  # 64-D: a reduced basis
-    assert feats.lifted.unit_rows(feats.lifted.method).shape == (feats.work_points.shape[0], 64)
+    assert feats.space is not None and feats.space.basis_info["kind"] == "auto"  # 64-D: a reduced basis
+    assert feats.space.unit_rows(feats.space.method).shape == (feats.work_points.shape[0], 64)
     assert (feats.labels == labels.labels).mean() >= 0.995  # 99.93 % measured: near-ties of mixed points
     assert (feats.bayesian_labels == labels.bayesian_labels).mean() >= 0.995
     assert abs(feats.metrics["miou"] - labels.metrics["miou"]) < 0.5
@@ -40,7 +40,7 @@ def test_feature_files_give_the_simulated_networks_run(small_demo_scene, tmp_pat
                                            "predictions.pattern": ["{name}.npz"], "predictions.dim": 32}),
                 scene=small_demo_scene)
     np.testing.assert_array_equal(files.labels, sim.labels)
-    np.testing.assert_allclose(files.lifted.method, sim.lifted.method, rtol=1e-5, atol=1e-12)
+    np.testing.assert_allclose(files.space.method, sim.space.method, rtol=1e-5, atol=1e-12)
 
 
 def test_a_frame_without_a_feature_map_in_a_features_run_is_one_error(small_demo_scene, tmp_path):
@@ -61,10 +61,10 @@ def test_baselines_side_by_side_and_the_single_frame_protocol(small_demo_scene):
     assert res.baseline["best_view"]["miou"] > 0
     assert set(res.metrics["calibration"]) == {"diffuser", "bayesian", "best_view"}
     seen = res.evidence.links > 0
-    best = res.lifted.unit_rows(res.lifted.best_view).astype(np.float32)  # the basis' projections, in R^D
+    best = res.space.unit_rows(res.space.best_view).astype(np.float32)  # the basis' projections, in R^D
     assert np.abs(best[~seen]).max() == 0
     np.testing.assert_allclose(np.linalg.norm(best[seen], axis=1), 1, atol=2e-3)
-    np.testing.assert_allclose(res.lifted.best_view.norms()[seen], 1, atol=2e-3)  # unit: its residual is exact
+    np.testing.assert_allclose(res.space.best_view.norms()[seen], 1, atol=2e-3)  # unit: its residual is exact
 
     from diffuser_lab.runs.single_frame import single_frame
 
@@ -115,11 +115,11 @@ def test_a_tiled_features_run_writes_the_whole_scenes_features(small_demo_scene,
     t = tiled(default_config(**SMALL, **keys, **{"protocol.name": "tiled", "tiling.size": 2.0}),
               scene=small_demo_scene, run_dir=tmp_path)
     assert t.files == {"features": "features.npy"} and not t.failed
-    assert {r["basis"]["kind"] for r in t.tiles} == {basis} == {whole.lifted.basis_info["kind"]}
+    assert {r["basis"]["kind"] for r in t.tiles} == {basis} == {whole.space.basis_info["kind"]}
     F = np.load(tmp_path / "features.npy")
     assert F.shape == (small_demo_scene.n_points, dim) and F.dtype == np.float16
     assert (t.labels == whole.labels).mean() > 0.98  # 98.9 % measured: each tile stops early on its own
-    unit = whole.lifted.unit_rows(whole.lifted.method).astype(np.float32)
+    unit = whole.space.unit_rows(whole.space.method).astype(np.float32)
     cos = (F.astype(np.float32) * unit[whole.rows]).sum(1)
     assert np.median(cos) > 0.999
 
@@ -139,7 +139,7 @@ def test_a_reduced_basis_agrees_with_the_full_path(tmp_path):
     small_demo_scene = load_scene(c.scene, resolve_taxonomy(c), c.depth)
     full = run(default_config(**cfg, **{"predictions.basis": "full"}), scene=small_demo_scene)
     auto = run(c, scene=small_demo_scene)
-    fl, al = full.lifted, auto.lifted
+    fl, al = full.space, auto.space
     assert fl.basis is None and fl.basis_info == {"kind": "full"}
     info = al.basis_info
     assert info["kind"] == "auto" and info["dim"] == 20 + 8 and (info["probes"], info["of"]) == (3, 96)
@@ -166,9 +166,10 @@ def test_a_reduced_basis_agrees_with_the_full_path(tmp_path):
 
     from diffuser_lab.data.embeddings import write_queries
     from diffuser_lab.runs.query import query_run
-    from diffuser_lab.runs.records import write_features
+    from diffuser_lab.runs.records import write_scoring
 
-    files = write_features(tmp_path, auto)
+    files = auto.space.write(tmp_path, auto.rows)  # the space's files; gt_labels.npy: the run's scoring file
+    write_scoring(tmp_path, small_demo_scene)
     assert files["features_basis"] == "features_basis.npz" and "features_average" not in files
     (tmp_path / "summary.json").write_text(json.dumps({"class_names": list(small_demo_scene.taxonomy.names),
                                                        "features": {"queries": list(al.queries.names),

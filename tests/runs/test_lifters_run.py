@@ -43,9 +43,9 @@ def test_each_rule_labels_labels_and_features_in_the_global_protocol(rule, tiny_
         assert abs(res.metrics["miou"] - bay["miou"]) < 2.5 and res.metrics["miou"] > 20, (res.metrics["miou"], bay)
         assert res.metrics["coverage"] == bay["coverage"] and rule in res.metrics["calibration"]
         if extra and rule == "vote":  # class votes, no feature of its own
-            assert res.lifted.method is None
+            assert res.space.method is None
         elif extra:
-            assert res.lifted.method.shape == (res.work_points.shape[0], 32)
+            assert res.space.method.shape == (res.work_points.shape[0], 32)
 
 
 @pytest.mark.slow
@@ -55,8 +55,8 @@ def test_vote_on_one_hot_labels_is_the_bayesian_vote_and_topk1_is_the_best_view(
     vote = run(default_config(**TINY, **{"method.name": "vote"}), scene=tiny_scene)
     np.testing.assert_array_equal(vote.labels, vote.bayesian_labels)
     top1 = run(default_config(**TINY, **FEATURES, **{"method.name": "topk", "method.top_k": 1}), scene=tiny_scene)
-    best = top1.lifted.labels(top1.lifted.best_view)
-    assert (top1.lifted.labels(top1.lifted.method) == best).mean() > 0.999
+    best = top1.space.labels(top1.space.best_view)
+    assert (top1.space.labels(top1.space.method) == best).mean() > 0.999
     assert abs(top1.metrics["miou"] - top1.baseline["best_view"]["miou"]) < 0.2
 
 

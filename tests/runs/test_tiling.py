@@ -57,7 +57,7 @@ def test_the_spacing_tile_by_tile_is_the_whole_clouds():
     pts[:40] = pts[40:80]  # duplicates
     pts[-1] = [8.99, 4.99, 1.0]  # alone near a corner cell's edge
     for size in (0.5, 2.0):
-        cells = tiled._Cells(pts, size)
+        cells = tiled.Cells(pts, size)
         d = nearest_distinct(pts, 24)
         assert cells.spacing(pts, 24) == pytest.approx(d[np.isfinite(d)].mean(), rel=1e-9)
 
@@ -67,7 +67,7 @@ def test_a_tiles_rows_from_its_neighbouring_cells_are_the_brute_force_ones(halo)
     rng = np.random.default_rng(3)
     pts = (rng.random((20_000, 3)) * [9.0, 5.0, 2.0]).astype(np.float32)
     pts[:50, 0] = np.float32(2.0)  # on a cell edge
-    cells = tiled._Cells(pts, 2.0)
+    cells = tiled.Cells(pts, 2.0)
     assert cells.shape == (5, 3) and sum(o.size for o in cells.owns.values()) == len(pts)
     for ix, iy in cells.owns:
         spec = TileSpec(ix, iy, cells.origin, cells.size, halo)
@@ -82,7 +82,7 @@ def test_the_grid_is_fitted_to_the_cloud():
     into 60 m tiles had: 10 m of points in its last column)."""
     rng = np.random.default_rng(0)
     pts = (rng.random((60_000, 3)) * [130.0, 70.0, 20.0]).astype(np.float32)
-    cells = tiled._Cells(pts, 60.0)
+    cells = tiled.Cells(pts, 60.0)
     assert cells.shape == (3, 2) and 43.2 < cells.size <= 130.0 / 3 * (1 + 1e-6)
     counts = np.array([o.size for o in cells.owns.values()])
     assert len(counts) == 6 and counts.min() >= 0.6 * counts.mean(), counts  # at 60 m: 3 of 6 cells ~1/6 full
