@@ -35,8 +35,8 @@ _deadline: list[float] = []  # monotonic times at which the armed watchdogs fire
 
 def grace(timeout: float) -> float:
     """Seconds after pytest-timeout's failure before the watchdog ends the process: time for the
-    failed test's teardown, on a loaded machine too (10 s for a 2 s timeout, 30 s for the default 300 s)."""
-    return min(30.0, max(10.0, timeout / 10))
+    failed test's teardown (3 s for a 2 s timeout, 30 s for the default 300 s)."""
+    return min(30.0, max(3.0, timeout / 10))
 
 
 def _file(worker: str | None = None):

@@ -4,6 +4,7 @@ code holding the GIL, under xdist as the suite runs; and the fuzz cases' bound (
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -38,10 +39,10 @@ HANGS = textwrap.dedent("""\
     """)
 
 
-@pytest.mark.slow  # a pytest of its own, two timeouts and a watchdog: ~20 s
+@pytest.mark.slow  # a pytest of its own, two timeouts and a watchdog: ~10 s
 def test_a_hang_in_python_and_one_in_c_fail_with_their_stacks_under_xdist(tmp_path):
     """The suite's own settings (pyproject.toml's, tests/hangs.py) on a module whose tests hang: each
-    fails with the line it hung on, the next test still runs, and the run ends (10 s measured with a 3 s grace,
+    fails with the line it hung on, the next test still runs, and the run ends (10 s measured,
     2026-12-07)."""
     (tmp_path / "test_hang.py").write_text(HANGS)
     p = subprocess.run([sys.executable, "-m", "pytest", "-c", str(ROOT / "pyproject.toml"), "--rootdir", str(tmp_path),
@@ -56,7 +57,8 @@ def test_a_hang_in_python_and_one_in_c_fail_with_their_stacks_under_xdist(tmp_pa
     assert "test_hang.py:9: Failed" in sleeps, sleeps[:2000]
     crashed = out[out.index("crashed while running 'test_hang.py::test_spins_in_c_holding_the_gil'"):]
     assert 'test_hang.py", line 14 in test_spins_in_c_holding_the_gil' in crashed, crashed[:3000]  # the watchdog
-    assert out.count("crashed while running") == 1  # the crashed test is not handed to the next worker
+    # one crash report (the short summary may repeat its line, as wide as the terminal)
+    assert len(re.findall(r"^worker 'gw\d+' crashed while running", out, re.M)) == 1  # the crashed test is not handed to the next worker
 
 
 def test_a_fuzz_case_stuck_in_c_ends_its_process_with_the_stack():

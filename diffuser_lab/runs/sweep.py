@@ -65,12 +65,23 @@ class SweepProgress(Callback):
         sweep_dir = Path(str(config.hydra.sweep.dir))
         _started["dir"] = sweep_dir
         if n is not None:
+            _started["jobs_env"] = os.environ.get(JOBS_ENV)  # given back at the sweep's end
             os.environ[JOBS_ENV] = str(n)
         launcher = str(config.hydra.launcher.get("_target_", ""))
         print(f"sweep: {n if n is not None else 'unknown number of'} jobs -> {sweep_dir}", flush=True)
         if any(w in launcher for w in WATCHED_LAUNCHERS):
             _started["watcher"] = Watcher(sweep_dir)
             _started["watcher"].start()
+
+    def on_multirun_end(self, config: Any, **kwargs: Any) -> None:
+        # the job count was for this sweep's jobs only: a process that goes on (a test, a notebook) gets its
+        # environment back (tests/conftest.py's command-line server serves only the environment it started with)
+        if "jobs_env" in _started:
+            before = _started.pop("jobs_env")
+            if before is None:
+                os.environ.pop(JOBS_ENV, None)
+            else:
+                os.environ[JOBS_ENV] = before
 
 
 def job_tag(num: Optional[int]) -> str:

@@ -2,6 +2,7 @@
 defaults, and a job's kernel threads following its launcher's CPUs."""
 import io
 import json
+import os
 import subprocess
 import sys
 
@@ -59,6 +60,30 @@ def test_job_lines(tmp_path, monkeypatch):
     assert job_line(0, tmp_path / "0_graph.k=0", bad) == "[1/15] 0_graph.k=0: FAILED: ConfigError: graph.k=0: expected >= 1"
     monkeypatch.delenv(JOBS_ENV)
     assert job_tag(0) == "[1]"
+
+
+@pytest.mark.parametrize("before", [None, "7"])
+def test_a_sweeps_job_count_leaves_the_process_with_it(tmp_path, monkeypatch, before):
+    """The count is the sweep's jobs': set at its start, the process's own value again at its end (a run
+    of the command line in a test worker compared os.environ with its server's and went to fresh
+    interpreters for the rest of the worker's life)."""
+    from omegaconf import OmegaConf, open_dict
+
+    from diffuser_lab.runs.sweep import JOBS_ENV, SweepProgress
+
+    if before is None:
+        monkeypatch.delenv(JOBS_ENV, raising=False)
+    else:
+        monkeypatch.setenv(JOBS_ENV, before)
+    cfg = _compose([])
+    with open_dict(cfg):
+        cfg.hydra.overrides.task = OmegaConf.create(["seed=0,1,2"])
+        cfg.hydra.sweep.dir = str(tmp_path)
+    cb = SweepProgress()
+    cb.on_multirun_start(cfg)
+    assert os.environ[JOBS_ENV] == "3"
+    cb.on_multirun_end(cfg)
+    assert os.environ.get(JOBS_ENV) == before
 
 
 def test_watcher_prints_each_job_once(tmp_path, monkeypatch):
