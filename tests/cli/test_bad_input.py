@@ -58,10 +58,10 @@ def copy(good, tmp_path):
     return dst, scene
 
 
-def cli(root, *extra, cwd):
+def cli(root, *extra, cwd, predictions="gt"):
     args = ["scene=rgbd_folder", f"scene.options.root={root}", "scene.options.label_suffix=label.png",
             f"scene.options.mapping={root.parent / 'mapping.csv'}", "scene.options.cloud_voxel=0.05",
-            "predictions=gt", "record=off", "solver.max_iter=30", "graph.k=8", *extra]
+            f"predictions={predictions}", "record=off", "solver.max_iter=30", "graph.k=8", *extra]
     return run_cli(*args, f"hydra.run.dir={cwd / 'run'}", cwd=cwd)
 
 
@@ -313,6 +313,15 @@ def test_bad_npy_depth(good, tmp_path, case, needle):
     one_error(cli(root, "scene.options.depth_suffix=depth.npy", cwd=tmp_path), "frame-000001.depth.npy", needle)
 
 
+def _feature_maps(tmp_path):
+    """A (6, 8, 16) float16 feature map per frame of :func:`good`'s folder, in ``tmp_path / "maps"``."""
+    maps = tmp_path / "maps"
+    maps.mkdir()
+    for i in range(3):
+        np.save(maps / f"frame-{i:06d}.npy", np.random.default_rng(i).random((6, 8, 16)).astype(np.float16))
+    return maps
+
+
 @pytest.mark.parametrize("case,needle", [
     ("float64", "features of shape (6, 8, 16) dtype float64, expected float16/float32 (h, w, D) or (D, h, w)"),
     ("lies", "header says shape (6000, 8000, 16) of float16"),
@@ -320,16 +329,10 @@ def test_bad_npy_depth(good, tmp_path, case, needle):
 def test_bad_feature_maps(good, tmp_path, case, needle):
     """predictions.embeddings=files: a network's (h, w, D) maps read by the one array reader."""
     root, _ = copy(good, tmp_path)
-    maps = tmp_path / "maps"
-    maps.mkdir()
-    for i in range(3):
-        np.save(maps / f"frame-{i:06d}.npy", np.random.default_rng(i).random((6, 8, 16)).astype(np.float16))
+    maps = _feature_maps(tmp_path)
     (maps / "frame-000001.npy").write_bytes(
         _npy(np.ones((6, 8, 16), np.float64)) if case == "float64" else _npy(np.ones((6, 8, 16), np.float16), (6000, 8000, 16)))
-    p = run_cli("scene=rgbd_folder", f"scene.options.root={root}", "scene.options.label_suffix=label.png",
-                f"scene.options.mapping={tmp_path / 'mapping.csv'}", "scene.options.cloud_voxel=0.05",
-                "predictions=features", "predictions.embeddings=files", f"predictions.folder={maps}", "record=off",
-                "solver.max_iter=30", "graph.k=8", f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
+    p = cli(root, "predictions.embeddings=files", f"predictions.folder={maps}", cwd=tmp_path, predictions="features")
     one_error(p, "frame-000001.npy", needle)
 
 
@@ -341,10 +344,7 @@ def test_bad_feature_maps(good, tmp_path, case, needle):
 def test_bad_query_file(good, tmp_path, case, needle):
     """predictions.queries: the query set read by the one array reader (data/arrays.py)."""
     root, _ = copy(good, tmp_path)
-    maps = tmp_path / "maps"
-    maps.mkdir()
-    for i in range(3):
-        np.save(maps / f"frame-{i:06d}.npy", np.random.default_rng(i).random((6, 8, 16)).astype(np.float16))
+    maps = _feature_maps(tmp_path)
     q = tmp_path / "q.npz"
     if case == "text":
         q.write_text("names,embeddings\nwall,0.1\n")
@@ -356,9 +356,6 @@ def test_bad_query_file(good, tmp_path, case, needle):
         with zipfile.ZipFile(q, "w") as z:
             z.writestr("names.npy", _npy(np.array(["wall", "floor"])))
             z.writestr("embeddings.npy", _npy(np.ones((2, 16), np.float32), (50_000, 16)))
-    p = run_cli("scene=rgbd_folder", f"scene.options.root={root}", "scene.options.label_suffix=label.png",
-                f"scene.options.mapping={tmp_path / 'mapping.csv'}", "scene.options.cloud_voxel=0.05",
-                "predictions=features", "predictions.embeddings=files", f"predictions.folder={maps}",
-                f"predictions.queries={q}", "record=off", "solver.max_iter=30", "graph.k=8",
-                f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
+    p = cli(root, "predictions.embeddings=files", f"predictions.folder={maps}", f"predictions.queries={q}",
+            cwd=tmp_path, predictions="features")
     one_error(p, "q.npz", needle)
